@@ -1,0 +1,1 @@
+"""Flash-Mono client: Python SDK and the `flashmono` command line."""

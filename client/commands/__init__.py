@@ -1,0 +1,1 @@
+"""Sub-commands of the `flashmono` CLI, one module each (see client.cli)."""

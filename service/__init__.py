@@ -1,0 +1,1 @@
+"""Flash-Mono gateway: FastAPI routes, auth, schemas and the Redis session registry."""

@@ -1,0 +1,97 @@
+"""SE(3) and Sim(3) as 4x4 matrices [s*R | t; 0 1], batched over leading dimensions.
+
+A similarity T maps points p -> s * R @ p + t. SE(3) is the special case s = 1, so every function here accepts
+both. Poses are camera-to-world unless a name says otherwise.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from .quaternion import quat_to_rotmat, rotmat_to_quat
+
+
+def make_sim3(R: torch.Tensor, t: torch.Tensor, s: torch.Tensor | float = 1.0) -> torch.Tensor:
+    """Build [..., 4, 4] from rotation [..., 3, 3], translation [..., 3] and scale [...] (or a float)."""
+    s = torch.as_tensor(s, dtype=R.dtype, device=R.device)
+    T = torch.zeros(R.shape[:-2] + (4, 4), dtype=R.dtype, device=R.device)
+    T[..., :3, :3] = R * s[..., None, None]
+    T[..., :3, 3] = t
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def sim3_from_quat(q: torch.Tensor, t: torch.Tensor, s: torch.Tensor | float = 1.0) -> torch.Tensor:
+    """Build [..., 4, 4] from a wxyz quaternion, translation and scale."""
+    return make_sim3(quat_to_rotmat(q), t, s)
+
+
+def sim3_scale(T: torch.Tensor) -> torch.Tensor:
+    """The scale s of [..., 4, 4] similarities (cube root of det(sR))."""
+    det = torch.linalg.det(T[..., :3, :3])
+    return det.sign() * det.abs().pow(1.0 / 3.0)
+
+
+def sim3_decompose(T: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Split [..., 4, 4] into (s [...], R [..., 3, 3], t [..., 3])."""
+    s = sim3_scale(T)
+    return s, T[..., :3, :3] / s[..., None, None], T[..., :3, 3]
+
+
+def sim3_to_quat(T: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Split [..., 4, 4] into (s, wxyz quaternion, t)."""
+    s, R, t = sim3_decompose(T)
+    return s, rotmat_to_quat(R), t
+
+
+def sim3_inverse(T: torch.Tensor) -> torch.Tensor:
+    """Closed-form inverse: (sR, t)^-1 = (R^T / s, -R^T t / s)."""
+    s, R, t = sim3_decompose(T)
+    Rt = R.transpose(-1, -2)
+    return make_sim3(Rt, -(Rt @ t[..., None])[..., 0] / s[..., None], 1.0 / s)
+
+
+def sim3_compose(A: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
+    """A * B (apply B first)."""
+    return A @ B
+
+
+def sim3_apply(T: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """Transform points [..., N, 3] by T [..., 4, 4] (broadcast over leading dims)."""
+    return points @ T[..., :3, :3].transpose(-1, -2) + T[..., None, :3, 3]
+
+
+def relative_transform(T_a: torch.Tensor, T_b: torch.Tensor) -> torch.Tensor:
+    """T_a^-1 * T_b: the pose of b expressed in the frame of a."""
+    return sim3_inverse(T_a) @ T_b
+
+
+def so3_exp(omega: torch.Tensor) -> torch.Tensor:
+    """Rodrigues: axis-angle [..., 3] -> rotation [..., 3, 3] (differentiable, safe at zero)."""
+    theta2 = (omega * omega).sum(-1, keepdim=True)[..., None]
+    theta = theta2.clamp_min(1e-24).sqrt()
+    small = theta2 < 1e-8
+    a = torch.where(small, 1 - theta2 / 6, torch.sin(theta) / theta)
+    b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / theta2.clamp_min(1e-24))
+    wx, wy, wz = omega.unbind(-1)
+    zero = torch.zeros_like(wx)
+    K = torch.stack([zero, -wz, wy, wz, zero, -wx, -wy, wx, zero], -1).reshape(omega.shape + (3,))
+    eye = torch.eye(3, dtype=omega.dtype, device=omega.device).expand_as(K)
+    return eye + a * K + b * (K @ K)
+
+
+def so3_log(R: torch.Tensor) -> torch.Tensor:
+    """Inverse of so3_exp, via the quaternion (stable for all angles)."""
+    q = rotmat_to_quat(R)
+    w = q[..., :1].clamp(-1.0, 1.0)
+    v = q[..., 1:]
+    n = v.norm(dim=-1, keepdim=True)
+    angle = 2 * torch.atan2(n, w)
+    factor = torch.where(n < 1e-12, 2.0 / w.clamp_min(1e-12), angle / n.clamp_min(1e-12))
+    return v * factor
+
+
+def se3_exp(xi: torch.Tensor) -> torch.Tensor:
+    """Small-motion update: xi = (rho [3], omega [3]) -> 4x4 with R = exp(omega), t = rho (first-order)."""
+    R = so3_exp(xi[..., 3:])
+    return make_sim3(R, xi[..., :3])
