@@ -1,0 +1,427 @@
+"""The asynchronous Python SDK: `AsyncFlashMonoClient` (REST over httpx) and `AsyncFrameStream` (the WebSocket).
+
+    async with AsyncFlashMonoClient("http://localhost:8000", api_key="...") as client:
+        session = await client.create_session(name="walk", intrinsics={"fx": 525, ...})
+        async with client.open_stream(session.id) as stream:
+            for frame in frames:
+                await stream.send(frame)
+            async for event in stream.events():   # or on_event=callback
+                ...
+            summary = await stream.finish()
+        trajectory = await client.trajectory(session.id)
+"""
+
+from __future__ import annotations
+
+import asyncio
+import inspect
+import json
+import time
+from collections import deque
+from collections.abc import AsyncIterator, Awaitable, Callable
+from typing import Any
+from urllib.parse import quote
+
+import httpx
+import numpy as np
+
+from client import rest
+from client.errors import (
+    FlashMonoError,
+    ServerUnreachableError,
+    StreamError,
+    error_for_status,
+    stream_error_from_frame,
+)
+from client.models import (
+    LoopClosedEvent,
+    PoseEvent,
+    Session,
+    SessionPage,
+    StreamEvent,
+    StreamSummary,
+    Trajectory,
+    event_from_message,
+)
+from client.streaming import FlowControl, WireOptions, encode_frame_message, open_frames
+from worker.data.frame import Frame
+
+EventCallback = Callable[[StreamEvent], Any]
+DEFAULT_SERVER = "http://127.0.0.1:8000"
+
+
+def websocket_url(server_url: str, path: str) -> str:
+    """ws(s):// URL of `path` on the server at http(s)://`server_url`."""
+    base = server_url.rstrip("/")
+    if base.startswith("https://"):
+        return "wss://" + base[len("https://"):] + path
+    if base.startswith("http://"):
+        return "ws://" + base[len("http://"):] + path
+    if base.startswith(("ws://", "wss://")):
+        return base + path
+    raise ValueError(f"server URL must start with http:// or https://, got {server_url!r}")
+
+
+def decode_png(data: bytes, kind: str = "color") -> np.ndarray:
+    """A rendered PNG as an array: RGB uint8 [H, W, 3] for color, metres float32 [H, W] for 16-bit depth (mm)."""
+    import cv2
+
+    image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise ValueError("the server's answer is not a decodable PNG")
+    if kind == "depth":
+        return image.astype(np.float32) / 1000.0
+    if image.ndim == 2:
+        return np.repeat(image[..., None], 3, axis=2)
+    return cv2.cvtColor(image[..., :3], cv2.COLOR_BGR2RGB)
+
+
+class AsyncFrameStream:
+    """One WebSocket stream of frames into a session, with flow control and live events.
+
+    Use as an async context manager (or call `connect()` / `close()`). `send(frame)` waits while the flow
+    control says the server has enough frames; `events()` yields PoseEvent / LoopClosedEvent as they arrive and
+    `on_event` is called for each (sync or async callable); `finish()` waits for every frame to be processed.
+    Per-frame errors (e.g. a corrupt image) are collected in `summary.errors` (raised with
+    `raise_on_frame_error=True`); stream-level errors and a closed connection raise `StreamError`.
+    """
+
+    def __init__(self, url: str, session_id: str, headers: dict[str, str], *, flow: FlowControl | None = None,
+                 wire: WireOptions = WireOptions(), on_event: EventCallback | None = None,
+                 idle_timeout_s: float = 300.0, raise_on_frame_error: bool = False) -> None:
+        self.url = url
+        self.session_id = session_id
+        self.headers = headers
+        self.flow = flow or FlowControl()
+        self.wire = wire
+        self.on_event = on_event
+        self.idle_timeout_s = idle_timeout_s
+        self.raise_on_frame_error = raise_on_frame_error
+        self.summary = StreamSummary(session_id=session_id)
+        self._ws: Any = None
+        self._reader: asyncio.Task | None = None
+        self._outbox: deque[Frame] = deque()
+        self._next_seq = 0
+        self._changed = asyncio.Event()
+        self._finished = asyncio.Event()
+        self._failure: FlashMonoError | None = None
+        self._events: asyncio.Queue[StreamEvent | None] = asyncio.Queue()
+        self._started = 0.0
+
+    # -------------------------------------------------------------------------------------------- lifecycle
+    async def connect(self) -> AsyncFrameStream:
+        import websockets
+        from websockets.exceptions import InvalidStatus
+
+        try:
+            self._ws = await websockets.connect(self.url, additional_headers=self.headers, max_size=2**24,
+                                                open_timeout=30)
+        except InvalidStatus as err:
+            response = err.response
+            body: Any = bytes(response.body or b"").decode("utf-8", "replace")
+            try:
+                body = json.loads(body)
+            except ValueError:
+                pass
+            raise error_for_status(response.status_code, body, response.reason_phrase) from err
+        except OSError as err:
+            raise ServerUnreachableError(f"cannot open the stream at {self.url}: {err}") from err
+        self._started = time.monotonic()
+        self._reader = asyncio.create_task(self._read_loop())
+        return self
+
+    async def __aenter__(self) -> AsyncFrameStream:
+        return await self.connect()
+
+    async def __aexit__(self, *exc: Any) -> None:
+        await self.close()
+
+    async def close(self) -> None:
+        """Close the socket (without finishing the session) and stop the reader."""
+        if self._ws is not None:
+            await self._ws.close()
+        if self._reader is not None:
+            try:
+                await asyncio.wait_for(self._reader, timeout=5)
+            except (TimeoutError, asyncio.CancelledError):
+                self._reader.cancel()
+        self._events.put_nowait(None)
+        self.summary.elapsed_s = time.monotonic() - self._started if self._started else 0.0
+
+    # ---------------------------------------------------------------------------------------------- sending
+    async def send(self, frame: Frame) -> None:
+        """Queue `frame` and send everything the flow control allows; returns once `frame` is on the wire."""
+        if self._ws is None:
+            raise StreamError("the stream is not connected", code="not_connected")
+        self._outbox.append(frame)
+        await self._pump(lambda: not self._outbox)
+
+    async def finish(self, timeout_s: float | None = None) -> StreamSummary:
+        """Send what is left, tell the server no more frames will come and wait for it to process them all."""
+        await self._pump(lambda: not self._outbox and not self.flow.in_flight and not self.flow.refused)
+        await self._ws.send(json.dumps({"type": "finish"}))
+        wait_s = timeout_s if timeout_s is not None else self.idle_timeout_s
+        while not self._finished.is_set():
+            self._raise_if_failed()
+            self._changed.clear()
+            try:
+                await asyncio.wait_for(self._changed.wait(), timeout=wait_s)
+            except TimeoutError as err:
+                raise StreamError(f"the server did not finish within {wait_s:.0f} s", code="timeout") from err
+        await self.close()
+        return self.summary
+
+    async def ping(self) -> None:
+        await self._ws.send(json.dumps({"type": "ping"}))
+
+    async def _pump(self, done: Callable[[], bool]) -> None:
+        while not done():
+            self._raise_if_failed()
+            if self.flow.recovery_ready():
+                resends, delay = self.flow.take_resends()
+                self.summary.backpressure_retries += len(resends)
+                self._outbox.extendleft(reversed(resends))
+                await asyncio.sleep(delay)
+                continue
+            if self._outbox and self.flow.can_send():
+                await self._send_now(self._outbox.popleft())
+                continue
+            self._changed.clear()
+            try:
+                await asyncio.wait_for(self._changed.wait(), timeout=self.idle_timeout_s)
+            except TimeoutError as err:
+                raise StreamError(f"no answer from the server for {self.idle_timeout_s:.0f} s "
+                                  f"({self.flow.unsettled} frames unsettled)", code="timeout") from err
+
+    async def _send_now(self, frame: Frame) -> None:
+        seq = self._next_seq
+        self._next_seq += 1
+        payload = await asyncio.to_thread(encode_frame_message, frame, seq, self.wire)
+        self.flow.on_sent(seq, frame)
+        try:
+            await self._ws.send(payload)
+        except Exception as err:  # websockets raises ConnectionClosed subclasses
+            raise self._failure or StreamError(f"the stream closed while sending: {err}", code="closed") from err
+        self.summary.frames_sent += 1
+
+    def _raise_if_failed(self) -> None:
+        if self._failure is not None:
+            raise self._failure
+
+    # ---------------------------------------------------------------------------------------------- receiving
+    async def _read_loop(self) -> None:
+        from websockets.exceptions import ConnectionClosed
+
+        try:
+            async for raw in self._ws:
+                await self._handle(raw)
+                self._changed.set()
+        except ConnectionClosed:
+            pass
+        except Exception as err:  # a bug in a callback or a malformed message must not hang the sender
+            self._failure = self._failure or StreamError(f"stream reader failed: {err!r}", code="client_error")
+        finally:
+            if not self._finished.is_set() and self._failure is None:
+                close = getattr(self._ws, "close_reason", None) or getattr(self._ws, "close_code", None)
+                self._failure = StreamError(f"the server closed the stream ({close or 'no reason given'})",
+                                            code="closed")
+            self._events.put_nowait(None)
+            self._changed.set()
+
+    async def _handle(self, raw: str | bytes) -> None:
+        try:
+            message = json.loads(raw)
+        except ValueError:
+            from worker.serialization import unpack
+
+            message = unpack(raw) if isinstance(raw, bytes) else {}
+        if not isinstance(message, dict):
+            return
+        kind = message.get("type")
+        seq = message.get("seq")
+        if kind == "ack":
+            depth = message.get("queue_depth")
+            self.flow.on_ack(int(seq), depth)
+            self.summary.frames_acked += 1
+            self.summary.max_queue_depth = max(self.summary.max_queue_depth, int(depth or 0))
+        elif kind in ("pose", "loop_closed"):
+            event = event_from_message(message)
+            if isinstance(event, PoseEvent):
+                self.flow.on_result(event.seq)
+                self.summary.poses.append(event)
+            elif isinstance(event, LoopClosedEvent):
+                self.summary.loop_closures.append(event)
+            await self._publish(event)
+        elif kind == "error":
+            self._handle_error(message)
+        elif kind == "finished":
+            self.summary.finished_frames = message.get("frames")
+            self._finished.set()
+
+    def _handle_error(self, message: dict[str, Any]) -> None:
+        error = stream_error_from_frame(message)
+        if error.seq is not None and error.code == "backpressure":
+            self.flow.on_refused(error.seq)
+            return
+        self.summary.errors.append(message)
+        if error.seq is not None:
+            self.flow.on_rejected(error.seq)
+            if self.raise_on_frame_error:
+                self._failure = error
+        else:
+            self._failure = error
+
+    async def _publish(self, event: StreamEvent | None) -> None:
+        if event is None:
+            return
+        self._events.put_nowait(event)
+        if self.on_event is not None:
+            result = self.on_event(event)
+            if inspect.isawaitable(result):
+                await result
+
+    async def events(self) -> AsyncIterator[StreamEvent]:
+        """Live events until the stream ends (finished, failed or closed)."""
+        while True:
+            event = await self._events.get()
+            if event is None:
+                self._events.put_nowait(None)  # let other iterators end too
+                return
+            yield event
+
+
+class AsyncFlashMonoClient:
+    """Asynchronous client of a Flash-Mono gateway. `api_key` goes in the X-API-Key header."""
+
+    def __init__(self, server_url: str = DEFAULT_SERVER, api_key: str | None = None, *, timeout_s: float = 60.0,
+                 transport: httpx.AsyncBaseTransport | None = None) -> None:
+        websocket_url(server_url, "")  # validates the scheme
+        self.server_url = server_url.rstrip("/")
+        self.api_key = api_key
+        self._http = httpx.AsyncClient(base_url=self.server_url, headers=self._auth_headers(), timeout=timeout_s,
+                                       transport=transport)
+
+    def _auth_headers(self) -> dict[str, str]:
+        return {"X-API-Key": self.api_key} if self.api_key else {}
+
+    async def __aenter__(self) -> AsyncFlashMonoClient:
+        return self
+
+    async def __aexit__(self, *exc: Any) -> None:
+        await self.aclose()
+
+    async def aclose(self) -> None:
+        await self._http.aclose()
+
+    async def _call(self, call: rest.Call) -> Any:
+        try:
+            response = await self._http.request(call.method, call.path, params=call.params or None, json=call.json)
+        except httpx.TransportError as err:
+            raise ServerUnreachableError(f"cannot reach {self.server_url}: {err}") from err
+        rest.raise_for_error(response)
+        return call.parse(response)
+
+    # ------------------------------------------------------------------------------------------------ REST
+    async def health(self) -> dict[str, Any]:
+        return await self._call(rest.health())
+
+    async def ready(self) -> dict[str, Any]:
+        """/readyz: raises ServerError (503) while Redis or every worker is unreachable."""
+        return await self._call(rest.ready())
+
+    async def create_session(self, *, intrinsics: Any = None, preset: str | None = None, name: str | None = None,
+                             device_id: str | None = None, metadata: dict[str, Any] | None = None) -> Session:
+        return await self._call(rest.create_session(intrinsics, preset, name, device_id, metadata))
+
+    async def list_sessions(self, *, status: str | None = None, device_id: str | None = None,
+                            name: str | None = None, limit: int | None = None,
+                            cursor: str | None = None) -> SessionPage:
+        return await self._call(rest.list_sessions(status, device_id, name, limit, cursor))
+
+    async def iter_sessions(self, *, page_size: int = 100, **filters: Any) -> AsyncIterator[Session]:
+        """Every session matching `filters` (status, device_id, name), following the pagination cursor."""
+        cursor = None
+        while True:
+            page = await self.list_sessions(limit=page_size, cursor=cursor, **filters)
+            for session in page.sessions:
+                yield session
+            if not page.next_cursor:
+                return
+            cursor = page.next_cursor
+
+    async def get_session(self, session_id: str) -> Session:
+        return await self._call(rest.get_session(session_id))
+
+    async def delete_session(self, session_id: str) -> None:
+        await self._call(rest.delete_session(session_id))
+
+    async def trajectory(self, session_id: str, which: str = "all") -> Trajectory:
+        return await self._call(rest.trajectory(session_id, which))
+
+    async def trajectory_tum(self, session_id: str, which: str = "all") -> str:
+        return await self._call(rest.trajectory_tum(session_id, which))
+
+    async def render(self, session_id: str, pose: Any, *, width: int, height: int, fx: float, fy: float,
+                     cx: float, cy: float, kind: str = "color") -> bytes:
+        """PNG bytes of the map seen from c2w `pose` (depth: 16-bit PNG in millimetres)."""
+        return await self._call(rest.render(session_id, pose, width, height, fx, fy, cx, cy, kind))
+
+    async def render_array(self, session_id: str, pose: Any, *, kind: str = "color", **camera: Any) -> np.ndarray:
+        """Like `render`, decoded: RGB uint8 [H, W, 3] or depth in metres float32 [H, W]."""
+        return decode_png(await self.render(session_id, pose, kind=kind, **camera), kind)
+
+    async def download_map(self, session_id: str) -> bytes:
+        """The session's surfel map as PLY bytes."""
+        return await self._call(rest.map_ply(session_id))
+
+    # ------------------------------------------------------------------------------------------- streaming
+    def open_stream(self, session_id: str, *, window: int = 4, max_pending: int = 8, max_retries: int = 20,
+                    wire: WireOptions = WireOptions(), on_event: EventCallback | None = None,
+                    idle_timeout_s: float = 300.0, raise_on_frame_error: bool = False) -> AsyncFrameStream:
+        """A stream into `session_id` (connect with `async with`). See AsyncFrameStream and FlowControl."""
+        url = websocket_url(self.server_url, f"{rest.API_PREFIX}/sessions/{quote(session_id, safe='')}/stream")
+        flow = FlowControl(window=window, max_pending=max_pending, max_retries=max_retries)
+        return AsyncFrameStream(url, session_id, self._auth_headers(), flow=flow, wire=wire, on_event=on_event,
+                                idle_timeout_s=idle_timeout_s, raise_on_frame_error=raise_on_frame_error)
+
+    async def stream(self, session_id: str, source: Any, *, on_event: EventCallback | None = None,
+                     on_sent: Callable[[StreamSummary], Any] | None = None, fps: float | None = None,
+                     stride: int = 1, max_frames: int | None = None, resize: tuple[int, int] | None = None,
+                     source_options: dict[str, Any] | None = None, **stream_options: Any) -> StreamSummary:
+        """Stream every frame of `source` (see client.streaming.open_frames) into the session and finish it.
+
+        fps: pace sending like a live camera (None: as fast as the flow control allows). on_sent is called with
+        the running summary after each frame goes out (progress bars).
+        """
+        if fps is not None and fps <= 0:
+            raise ValueError("fps must be positive")
+        frames = await asyncio.to_thread(open_frames, source, stride=stride, max_frames=max_frames, resize=resize,
+                                         **(source_options or {}))
+        iterator = iter(frames)
+        done = object()
+        async with self.open_stream(session_id, on_event=on_event, **stream_options) as stream:
+            start = time.monotonic()
+            count = 0
+            while True:
+                frame = await asyncio.to_thread(next, iterator, done)
+                if frame is done:
+                    break
+                if fps is not None:
+                    await asyncio.sleep(max(0.0, start + count / fps - time.monotonic()))
+                await stream.send(frame)
+                count += 1
+                if on_sent is not None:
+                    on_sent(stream.summary)
+            return await stream.finish()
+
+
+def run_coroutine(factory: Callable[[], Awaitable[Any]]) -> Any:
+    """Run a coroutine to completion from sync code, also when the caller already runs an event loop."""
+    try:
+        asyncio.get_running_loop()
+    except RuntimeError:
+        return asyncio.run(factory())
+    import concurrent.futures
+
+    with concurrent.futures.ThreadPoolExecutor(max_workers=1) as pool:
+        return pool.submit(lambda: asyncio.run(factory())).result()

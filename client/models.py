@@ -1,0 +1,171 @@
+"""What the SDK returns: sessions, trajectories and live stream events, parsed from the server's JSON."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+
+def pose_from_list(values: Any) -> np.ndarray:
+    """A 4x4 float64 c2w matrix from the wire's 16 row-major floats (or a nested 4x4 list)."""
+    arr = np.asarray(values, dtype=np.float64)
+    if arr.size != 16:
+        raise ValueError(f"a pose needs 16 values, got {arr.size}")
+    return arr.reshape(4, 4)
+
+
+def pose_to_list(pose: Any) -> list[float]:
+    """The wire form of a 4x4 pose: 16 row-major floats. Rejects anything that is not 4x4 and finite."""
+    arr = np.asarray(pose, dtype=np.float64)
+    if arr.shape == (16,):
+        arr = arr.reshape(4, 4)
+    if arr.shape != (4, 4):
+        raise ValueError(f"a pose must be a 4x4 matrix or 16 values, got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError("a pose must be finite")
+    return [float(v) for v in arr.reshape(-1)]
+
+
+@dataclass(frozen=True)
+class Session:
+    """A SLAM session as the gateway reports it. `raw` keeps every field the server sent."""
+
+    id: str
+    status: str
+    name: str | None = None
+    device_id: str | None = None
+    created_at: Any = None
+    updated_at: Any = None
+    frames_received: int = 0
+    frames_processed: int = 0
+    keyframes: int = 0
+    revision: int = 0
+    worker: str | None = None
+    preset: str | None = None
+    intrinsics: dict[str, Any] | None = None
+    metadata: dict[str, Any] = field(default_factory=dict)
+    raw: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> Session:
+        if not isinstance(data, dict) or "id" not in data:
+            raise ValueError(f"not a session object: {data!r}")
+        return cls(
+            id=str(data["id"]),
+            status=str(data.get("status", "unknown")),
+            name=data.get("name"),
+            device_id=data.get("device_id"),
+            created_at=data.get("created_at"),
+            updated_at=data.get("updated_at"),
+            frames_received=int(data.get("frames_received") or 0),
+            frames_processed=int(data.get("frames_processed") or 0),
+            keyframes=int(data.get("keyframes") or 0),
+            revision=int(data.get("revision") or 0),
+            worker=data.get("worker"),
+            preset=data.get("preset"),
+            intrinsics=data.get("intrinsics"),
+            metadata=dict(data.get("metadata") or {}),
+            raw=dict(data),
+        )
+
+
+@dataclass(frozen=True)
+class SessionPage:
+    """One page of the fleet listing; pass `next_cursor` back to get the next one (None: last page)."""
+
+    sessions: list[Session]
+    next_cursor: str | None
+
+
+@dataclass(frozen=True)
+class TrajectoryPose:
+    seq: int
+    timestamp: float
+    pose: np.ndarray  # 4x4 c2w
+
+    @property
+    def position(self) -> np.ndarray:
+        return self.pose[:3, 3]
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """A session's estimated trajectory at one revision (the revision grows when a loop closure rewrites it)."""
+
+    session_id: str
+    revision: int
+    which: str
+    poses: list[TrajectoryPose]
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> Trajectory:
+        poses = [
+            TrajectoryPose(seq=int(p.get("seq", i)), timestamp=float(p.get("timestamp", 0.0)),
+                           pose=pose_from_list(p["pose"]))
+            for i, p in enumerate(data.get("poses", []))
+        ]
+        return cls(session_id=str(data.get("session_id", "")), revision=int(data.get("revision") or 0),
+                   which=str(data.get("which", "all")), poses=poses)
+
+    def __len__(self) -> int:
+        return len(self.poses)
+
+    def positions(self) -> np.ndarray:
+        """Camera centres [N, 3]."""
+        return np.array([p.position for p in self.poses]).reshape(-1, 3)
+
+
+@dataclass(frozen=True)
+class PoseEvent:
+    """A live pose for a streamed frame."""
+
+    seq: int
+    timestamp: float
+    pose: np.ndarray
+    is_keyframe: bool
+    revision: int
+
+
+@dataclass(frozen=True)
+class LoopClosedEvent:
+    """The server closed a loop: trajectory revision `revision` rewrote past poses."""
+
+    revision: int
+    data: dict[str, Any] = field(default_factory=dict)
+
+
+StreamEvent = PoseEvent | LoopClosedEvent
+
+
+def event_from_message(message: dict[str, Any]) -> StreamEvent | None:
+    """The SDK event for a server message of type "pose" or "loop_closed" (None for other types)."""
+    kind = message.get("type")
+    if kind == "pose":
+        return PoseEvent(seq=int(message["seq"]), timestamp=float(message.get("timestamp", 0.0)),
+                         pose=pose_from_list(message["pose"]), is_keyframe=bool(message.get("is_keyframe", False)),
+                         revision=int(message.get("revision") or 0))
+    if kind == "loop_closed":
+        return LoopClosedEvent(revision=int(message.get("revision") or 0), data=dict(message))
+    return None
+
+
+@dataclass
+class StreamSummary:
+    """What happened during one streaming run."""
+
+    session_id: str
+    frames_sent: int = 0
+    frames_acked: int = 0
+    poses: list[PoseEvent] = field(default_factory=list)
+    loop_closures: list[LoopClosedEvent] = field(default_factory=list)
+    backpressure_retries: int = 0
+    errors: list[dict[str, Any]] = field(default_factory=list)
+    finished_frames: int | None = None
+    elapsed_s: float = 0.0
+    max_queue_depth: int = 0
+
+    @property
+    def fps(self) -> float:
+        return self.frames_sent / self.elapsed_s if self.elapsed_s > 0 else 0.0

@@ -1,0 +1,140 @@
+"""The gateway's REST calls, described once and executed by both the sync and the async client.
+
+Each function returns a `Call`: method, path, query, JSON body and a `parse(response)` that turns a successful
+`httpx.Response` into the SDK's result. `raise_for_error(response)` converts failures into typed errors.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+from urllib.parse import quote
+
+import httpx
+
+from client.errors import error_for_status
+from client.models import Session, SessionPage, Trajectory, pose_to_list
+
+API_PREFIX = "/v1"
+
+
+@dataclass(frozen=True)
+class Call:
+    method: str
+    path: str
+    parse: Callable[[httpx.Response], Any]
+    params: dict[str, Any] = field(default_factory=dict)
+    json: Any = None
+
+
+def raise_for_error(response: httpx.Response) -> None:
+    """Raise the typed error carrying the server's message when `response` is not a success."""
+    if response.is_success:
+        return
+    try:
+        body: Any = response.json()
+    except ValueError:
+        body = response.text
+    raise error_for_status(response.status_code, body, response.reason_phrase)
+
+
+def _session_path(session_id: str, suffix: str = "") -> str:
+    if not session_id or not isinstance(session_id, str):
+        raise ValueError("a session id is required")
+    return f"{API_PREFIX}/sessions/{quote(session_id, safe='')}{suffix}"
+
+
+def _drop_none(values: dict[str, Any]) -> dict[str, Any]:
+    return {k: v for k, v in values.items() if v is not None}
+
+
+def intrinsics_payload(intrinsics: Any) -> dict[str, float] | None:
+    """{fx, fy, cx, cy, width?, height?} from a dict, a worker.geometry.Intrinsics or a 4-sequence."""
+    if intrinsics is None:
+        return None
+    if isinstance(intrinsics, dict):
+        values = dict(intrinsics)
+    elif hasattr(intrinsics, "fx"):
+        keys = ("fx", "fy", "cx", "cy", "width", "height")
+        values = {k: getattr(intrinsics, k) for k in keys if hasattr(intrinsics, k)}
+    elif isinstance(intrinsics, Sequence) and len(intrinsics) == 4:
+        values = dict(zip(("fx", "fy", "cx", "cy"), intrinsics))
+    else:
+        raise ValueError("intrinsics must be a dict, an Intrinsics or [fx, fy, cx, cy]")
+    missing = {"fx", "fy", "cx", "cy"} - values.keys()
+    if missing:
+        raise ValueError(f"intrinsics lack {sorted(missing)}")
+    out: dict[str, float] = {}
+    for key, value in values.items():
+        if key in ("width", "height"):
+            out[key] = int(value)
+        elif key in ("fx", "fy", "cx", "cy"):
+            out[key] = float(value)
+    if out["fx"] <= 0 or out["fy"] <= 0:
+        raise ValueError("focal lengths must be positive")
+    return out
+
+
+def create_session(intrinsics: Any = None, preset: str | None = None, name: str | None = None,
+                   device_id: str | None = None, metadata: dict[str, Any] | None = None) -> Call:
+    body = _drop_none({"intrinsics": intrinsics_payload(intrinsics), "preset": preset, "name": name,
+                       "device_id": device_id, "metadata": metadata})
+    return Call("POST", f"{API_PREFIX}/sessions", lambda r: Session.from_json(r.json()), json=body)
+
+
+def list_sessions(status: str | None = None, device_id: str | None = None, name: str | None = None,
+                  limit: int | None = None, cursor: str | None = None) -> Call:
+    def parse(response: httpx.Response) -> SessionPage:
+        data = response.json()
+        return SessionPage([Session.from_json(s) for s in data.get("sessions", [])], data.get("next_cursor"))
+
+    params = _drop_none({"status": status, "device_id": device_id, "name": name, "limit": limit, "cursor": cursor})
+    return Call("GET", f"{API_PREFIX}/sessions", parse, params=params)
+
+
+def get_session(session_id: str) -> Call:
+    return Call("GET", _session_path(session_id), lambda r: Session.from_json(r.json()))
+
+
+def delete_session(session_id: str) -> Call:
+    return Call("DELETE", _session_path(session_id), lambda r: None)
+
+
+def _check_which(which: str) -> str:
+    if which not in ("all", "keyframes"):
+        raise ValueError(f"which must be 'all' or 'keyframes', got {which!r}")
+    return which
+
+
+def trajectory(session_id: str, which: str = "all") -> Call:
+    return Call("GET", _session_path(session_id, "/trajectory"), lambda r: Trajectory.from_json(r.json()),
+                params={"format": "json", "which": _check_which(which)})
+
+
+def trajectory_tum(session_id: str, which: str = "all") -> Call:
+    return Call("GET", _session_path(session_id, "/trajectory"), lambda r: r.text,
+                params={"format": "tum", "which": _check_which(which)})
+
+
+def render(session_id: str, pose: Any, width: int, height: int, fx: float, fy: float, cx: float, cy: float,
+           kind: str = "color") -> Call:
+    if kind not in ("color", "depth"):
+        raise ValueError(f"kind must be 'color' or 'depth', got {kind!r}")
+    if width <= 0 or height <= 0:
+        raise ValueError("width and height must be positive")
+    params = {"pose": ",".join(repr(v) for v in pose_to_list(pose)), "width": int(width), "height": int(height),
+              "fx": float(fx), "fy": float(fy), "cx": float(cx), "cy": float(cy), "kind": kind}
+    return Call("GET", _session_path(session_id, "/render"), lambda r: r.content, params=params)
+
+
+def map_ply(session_id: str) -> Call:
+    return Call("GET", _session_path(session_id, "/map.ply"), lambda r: r.content)
+
+
+def health() -> Call:
+    return Call("GET", "/healthz", lambda r: r.json())
+
+
+def ready() -> Call:
+    return Call("GET", "/readyz", lambda r: r.json())
