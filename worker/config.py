@@ -1,0 +1,163 @@
+"""SlamConfig: every knob of the SLAM engine, typed and validated, with the paper's defaults and named presets.
+
+Sections follow the system's parts: `frontend` (model, image size, submaps, keyframes), `loop` (detection,
+relocalization, pose graph), `mapping` (voxelization, fusion, refinement) and `input` (how given depth and poses
+are used). `SlamConfig.preset(name)` gives "paper" (the paper's settings), "default" (paper settings with the
+default model), "fast" (CPU-friendly) and "test" (tiny and quick, for unit tests).
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+log = logging.getLogger(__name__)
+
+DEFAULT_CHECKPOINT = Path(__file__).parent / "frontend" / "weights" / "tiny.safetensors"
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class FrontendConfig(_Section):
+    """The feed-forward model and submap tracking (paper 4.1, ablation 5.5)."""
+
+    model: str = Field("tiny", description="model config name for worker.frontend.build_model")
+    checkpoint: str | None = Field(None, description="safetensors checkpoint; None = the shipped default if present")
+    long_side: int = Field(224, ge=32, le=2048, description="images are resized so the long side is this (then /16)")
+    submap_size: int = Field(8, ge=2, le=256, description="frames per submap")
+    submap_overlap: int = Field(1, ge=1, description="frames shared by consecutive submaps")
+    keyframe_every: int = Field(4, ge=1, description="a keyframe at least every N frames")
+    keyframe_translation: float = Field(0.05, gt=0, description="or when the camera moved this far (map units)")
+    keyframe_rotation_deg: float = Field(10.0, gt=0, description="or turned this much")
+    min_confidence: float = Field(1.5, ge=1.0, description="per-pixel confidence below which surfels are dropped")
+    seed: int = Field(0, description="seed of the randomly initialised model when no checkpoint exists")
+
+    @model_validator(mode="after")
+    def _overlap_below_size(self) -> FrontendConfig:
+        if self.submap_overlap >= self.submap_size:
+            raise ValueError(f"submap_overlap ({self.submap_overlap}) must be < submap_size ({self.submap_size})")
+        return self
+
+
+class LoopConfig(_Section):
+    """Loop detection, relocalization and Sim(3) pose-graph optimisation (paper 4.2)."""
+
+    enabled: bool = True
+    descriptor: Literal["encoder", "orb"] = "orb"
+    relocalization: Literal["hidden_state", "pnp"] = Field(
+        "hidden_state", description="hidden_state = f(I_j, M_a) (paper); pnp needs depth (given or predicted)")
+    top_k: int = Field(3, ge=1, description="candidates verified per keyframe")
+    min_score: float = Field(0.3, ge=0.0, le=1.0, description="descriptor similarity needed to verify a candidate")
+    exclusion_keyframes: int = Field(10, ge=0, description="recent keyframes never proposed as loop candidates")
+    min_inliers: int = Field(30, ge=4, description="geometric verification: inliers needed")
+    robust_kernel: Literal["cauchy", "huber", "none"] = "cauchy"
+    robust_k: float = Field(1.0, gt=0)
+    pgo_iterations: int = Field(50, ge=1, le=10000)
+    loop_cooldown_keyframes: int = Field(2, ge=0, description="keyframes between two accepted loop closures")
+
+
+class MappingConfig(_Section):
+    """The 2DGS backend (paper 4.3)."""
+
+    enabled: bool = True
+    voxel_block: Literal[1, 2] = Field(2, description="2 = merge 2x2 blocks (eq. 15-16); 1 = keep every pixel")
+    merged_scale_factor: float = Field(
+        2.0, gt=0, description="scale multiplier of a merged block's surfel: a 2x2 block covers twice the width")
+    tau_depth: float = Field(0.05, gt=0, description="relative depth range above which a block is not merged")
+    tau_accum: float = Field(0.9, gt=0, le=1.0, description="add new surfels only where accumulation < tau_accum")
+    prune_rgb_error: float = Field(0.3, gt=0, description="prune surfels on pixels with this L1 colour error")
+    prune_depth_error: float = Field(0.1, gt=0, description="... or this relative depth error")
+    refine_keyframes: int = Field(5, ge=1, description="K: refine the surfels of the last K keyframes")
+    refine_iterations: int = Field(20, ge=0, le=10000, description="iterations after each keyframe")
+    ssim_weight: float = Field(0.2, ge=0, le=1)
+    depth_weight: float = Field(0.1, ge=0)
+    final_refine_iterations: int = Field(0, ge=0, description="extra refinement over all keyframes at finish()")
+    render_backend: Literal["auto", "cpu", "reference", "gsplat"] = "auto"
+
+
+class InputConfig(_Section):
+    """How optional per-frame inputs are used (posed and RGB-D modes)."""
+
+    use_depth: bool = Field(True, description="frames carrying depth: surfel means from unprojected depth")
+    pose_mode: Literal["ignore", "prior", "fixed"] = Field(
+        "prior", description="frames carrying poses: ignore them, use them as odometry priors in PGO, or keep them")
+    surfel_init: Literal["model", "depth"] = Field(
+        "model", description="with depth: other surfel attributes from the model, or initialised from image+depth")
+    depth_scale_to_pose: bool = Field(True, description="monocular with poses: scale model depth to the poses")
+
+
+class SlamConfig(_Section):
+    """The whole engine's configuration. `SlamConfig.preset(name, **overrides)` builds a named one."""
+
+    name: str = "default"
+    frontend: FrontendConfig = Field(default_factory=FrontendConfig)
+    loop: LoopConfig = Field(default_factory=LoopConfig)
+    mapping: MappingConfig = Field(default_factory=MappingConfig)
+    input: InputConfig = Field(default_factory=InputConfig)
+    threaded: bool = Field(True, description="frontend and backend in two threads; False = deterministic, inline")
+    queue_size: int = Field(8, ge=1, le=1024, description="bound of the frontend->backend keyframe queue")
+    device: str = Field("cpu", pattern=r"^(cpu|cuda(:\d+)?)$")
+    num_threads: int = Field(2, ge=1, le=256, description="torch intra-op threads")
+
+    @classmethod
+    def preset(cls, name: str, **overrides: Any) -> SlamConfig:
+        """A named preset ("paper", "default", "fast", "test") with optional nested overrides
+        (e.g. `mapping={"refine_iterations": 5}`)."""
+        if name not in PRESETS:
+            raise ValueError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
+        data = _deep_merge(PRESETS[name], overrides)
+        data["name"] = overrides.get("name", name)
+        return cls.model_validate(data)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> SlamConfig:
+        """Validate a plain dict, raising ValueError with pydantic's message on bad values."""
+        try:
+            return cls.model_validate(data)
+        except ValidationError as err:
+            raise ValueError(f"invalid SLAM config: {err}") from err
+
+    def checkpoint_path(self) -> Path | None:
+        """The checkpoint to load: the configured one, else the shipped default when present, else None
+        (a seeded random model is then used, with a warning)."""
+        if self.frontend.checkpoint:
+            path = Path(self.frontend.checkpoint)
+            if not path.is_file():
+                raise ValueError(f"checkpoint {path} does not exist")
+            return path
+        if self.frontend.model == "tiny" and DEFAULT_CHECKPOINT.is_file():
+            return DEFAULT_CHECKPOINT
+        return None
+
+
+def _deep_merge(base: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
+    out = {k: (dict(v) if isinstance(v, dict) else v) for k, v in base.items()}
+    for key, value in overrides.items():
+        if isinstance(value, BaseModel):
+            value = value.model_dump()
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _deep_merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+PRESETS: dict[str, dict[str, Any]] = {
+    # The paper: 512-wide images, paper-size model, K=5 keyframes x 20 iterations.
+    "paper": {"frontend": {"model": "paper", "long_side": 512}, "device": "cuda"},
+    # Paper settings with the shipped default model on whatever device is there.
+    "default": {},
+    # CPU-friendly: smaller images and fewer refinement iterations.
+    "fast": {"frontend": {"long_side": 224, "keyframe_every": 6},
+             "mapping": {"refine_keyframes": 3, "refine_iterations": 8}},
+    # Unit tests: tiny images, few iterations, single-threaded and deterministic.
+    "test": {"frontend": {"long_side": 64, "submap_size": 4, "keyframe_every": 2},
+             "loop": {"exclusion_keyframes": 4, "pgo_iterations": 30},
+             "mapping": {"refine_keyframes": 2, "refine_iterations": 3},
+             "threaded": False, "queue_size": 4},
+}

@@ -1,0 +1,83 @@
+"""Per-pixel camera-frame surfel grids for a keyframe, from the model's prediction and/or a depth map.
+
+A grid is a dict of tensors over the image: means [H,W,3], quats [H,W,4] wxyz, scales [H,W,2], opacities [H,W],
+colors [H,W,3] and valid [H,W] bool: the input `worker.mapping.voxelize` takes. In RGB-D mode the means come from
+the unprojected depth (paper: "means from unprojected depth"); the other attributes come from the model or, with
+`surfel_init="depth"`, from the image and the depth's local surface (no model needed: the backend in isolation).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from worker.geometry import rotmat_to_quat, unproject_depth
+
+# A per-pixel surfel's standard deviation in pixels: ~0.7 px covers the pixel without blurring its neighbours.
+PIXEL_SIGMA = 0.7
+INITIAL_OPACITY = 0.95
+
+
+def depth_normals(points: torch.Tensor) -> torch.Tensor:
+    """Unit normals [H,W,3] of a camera-frame point grid from central differences, oriented towards the camera."""
+    p = F.pad(points.permute(2, 0, 1)[None], (1, 1, 1, 1), mode="replicate")[0].permute(1, 2, 0)
+    dx = p[1:-1, 2:] - p[1:-1, :-2]
+    dy = p[2:, 1:-1] - p[:-2, 1:-1]
+    n = torch.linalg.cross(dx, dy, dim=-1)
+    norm = n.norm(dim=-1, keepdim=True)
+    fallback = torch.tensor([0.0, 0.0, -1.0], dtype=points.dtype)
+    n = torch.where(norm > 1e-12, n / norm.clamp_min(1e-12), fallback)
+    facing = (n * points).sum(-1, keepdim=True) > 0
+    return torch.where(facing, -n, n)
+
+
+def normals_to_quats(normals: torch.Tensor) -> torch.Tensor:
+    """wxyz quaternions [...,4] of rotations whose third column is the given unit normal."""
+    helper = torch.zeros_like(normals)
+    use_x = normals[..., 0].abs() < 0.9
+    helper[..., 0] = use_x.to(normals.dtype)
+    helper[..., 1] = (~use_x).to(normals.dtype)
+    u = torch.linalg.cross(helper, normals, dim=-1)
+    u = u / u.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    v = torch.linalg.cross(normals, u, dim=-1)
+    return rotmat_to_quat(torch.stack([u, v, normals], dim=-1))
+
+
+def grid_from_depth(image: torch.Tensor, depth: torch.Tensor, K: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Surfels from an RGB image float [H,W,3] in [0,1] and metric depth [H,W] (0 = invalid): one per pixel at
+    the unprojected depth, oriented along the depth's surface normal, coloured by the pixel, ~1 pixel wide."""
+    depth = depth.to(torch.float32)
+    means = unproject_depth(depth, K.to(torch.float32))
+    normals = depth_normals(means)
+    footprint = depth / float(K[0, 0])
+    # A tilted surfel must stretch to cover its pixel: divide by the cosine of the viewing angle (capped).
+    view = means / means.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+    cos = (normals * view).sum(-1).abs().clamp_min(0.3)
+    sigma = (PIXEL_SIGMA * footprint / cos).clamp_min(1e-6)
+    return {
+        "means": means,
+        "quats": normals_to_quats(normals),
+        "scales": torch.stack([sigma, sigma], dim=-1),
+        "opacities": torch.full_like(depth, INITIAL_OPACITY),
+        "colors": image.to(torch.float32).clamp(0, 1),
+        "valid": depth > 0,
+    }
+
+
+def grid_from_prediction(points: torch.Tensor, conf: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
+                         opacities: torch.Tensor, colors: torch.Tensor, min_confidence: float,
+                         depth: torch.Tensor | None = None, K: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    """Surfels from one frame's model prediction (all [H,W,...] at model resolution). With a metric `depth` (same
+    resolution) and K, the means come from the depth and the predicted scales are rescaled by depth / predicted z
+    so the surfels keep their pixel footprint; confidence then does not gate pixels that have depth."""
+    valid = conf >= min_confidence
+    if depth is not None:
+        if K is None:
+            raise ValueError("K is needed to unproject depth")
+        metric = unproject_depth(depth.to(torch.float32), K.to(torch.float32))
+        ratio = depth / points[..., 2].clamp_min(1e-6)
+        scales = scales * ratio[..., None]
+        points = metric
+        valid = depth > 0
+    return {"means": points, "quats": quats, "scales": scales, "opacities": opacities, "colors": colors,
+            "valid": valid & torch.isfinite(points).all(-1)}
