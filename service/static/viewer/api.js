@@ -1,0 +1,56 @@
+// REST calls of the Flash-Mono gateway, with the API key in the X-API-Key header.
+
+export class ApiError extends Error {
+  constructor(status, message) {
+    super(message);
+    this.status = status;
+  }
+}
+
+export class Api {
+  constructor(apiKey = "") {
+    this.apiKey = apiKey;
+  }
+
+  headers() {
+    return this.apiKey ? { "X-API-Key": this.apiKey } : {};
+  }
+
+  async request(path, params = {}) {
+    const url = new URL(path, window.location.origin);
+    for (const [key, value] of Object.entries(params)) {
+      if (value !== undefined && value !== null) url.searchParams.set(key, String(value));
+    }
+    const response = await fetch(url, { headers: this.headers() });
+    if (!response.ok) {
+      let message = `${response.status} ${response.statusText}`;
+      try {
+        const body = await response.json();
+        if (body && body.detail) message = typeof body.detail === "string" ? body.detail : JSON.stringify(body.detail);
+      } catch (_) { /* not JSON */ }
+      throw new ApiError(response.status, message);
+    }
+    return response;
+  }
+
+  async sessions(limit = 50) {
+    return (await this.request("/v1/sessions", { limit })).json();
+  }
+
+  async session(id) {
+    return (await this.request(`/v1/sessions/${encodeURIComponent(id)}`)).json();
+  }
+
+  async trajectory(id, which = "all") {
+    return (await this.request(`/v1/sessions/${encodeURIComponent(id)}/trajectory`, { format: "json", which })).json();
+  }
+
+  async render(id, pose, camera, kind = "color") {
+    const params = { pose: pose.map((v) => v.toPrecision(9)).join(","), kind, ...camera };
+    return (await this.request(`/v1/sessions/${encodeURIComponent(id)}/render`, params)).blob();
+  }
+
+  async map(id) {
+    return (await this.request(`/v1/sessions/${encodeURIComponent(id)}/map.ply`)).blob();
+  }
+}

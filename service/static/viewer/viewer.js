@@ -1,0 +1,248 @@
+// The Flash-Mono web viewer: session list, live trajectory (top-down and 3D), loop closures, a rendered view from
+// a camera the user moves, and the map download. Query parameters: ?session=ID&api_key=KEY.
+
+import { Api } from "./api.js";
+import { OrbitView, VirtualCamera, drawTopDown, position } from "./scene.js";
+
+const POLL_TRAJECTORY_MS = 1000;
+const POLL_SESSIONS_MS = 4000;
+const RENDER_MAX_WIDTH = 320;
+
+const $ = (id) => document.getElementById(id);
+const params = new URLSearchParams(window.location.search);
+const state = {
+  api: new Api(params.get("api_key") || localStorage.getItem("flashmono.apiKey") || ""),
+  sessionId: params.get("session"),
+  session: null,
+  poses: [],
+  keyframes: [],
+  loops: [], // {revision, position}
+  revision: null,
+  camera: new VirtualCamera(),
+  cameraPlaced: false,
+  renderKind: "color",
+  rendering: false,
+  renderQueued: false,
+  renderTimer: null,
+  renderUrl: null,
+};
+// What tests and curious users can read: how much has been drawn and rendered.
+window.viewerState = { posesDrawn: 0, renders: 0, lastError: null, loopClosures: 0 };
+
+const orbit = new OrbitView($("view3d"));
+
+function setStatus(text, isError = false) {
+  const el = $("status");
+  el.textContent = text;
+  el.classList.toggle("error", isError);
+  if (isError) window.viewerState.lastError = text;
+}
+
+// ----------------------------------------------------------------------------------------------- sessions
+
+async function refreshSessions() {
+  try {
+    const { sessions } = await state.api.sessions();
+    const list = $("sessions");
+    list.replaceChildren();
+    for (const s of sessions) {
+      const li = document.createElement("li");
+      li.dataset.id = s.id;
+      li.classList.toggle("selected", s.id === state.sessionId);
+      const title = document.createElement("span");
+      title.textContent = s.name || s.id;
+      const meta = document.createElement("span");
+      meta.className = "meta";
+      meta.textContent = `${s.status} · ${s.frames_processed} frames · ${s.device_id || "no device"}`;
+      li.append(title, meta);
+      li.addEventListener("click", () => selectSession(s.id));
+      list.append(li);
+    }
+    if (!state.sessionId) setStatus(sessions.length ? "pick a session" : "no sessions yet");
+  } catch (err) {
+    setStatus(`sessions: ${err.message}`, true);
+  }
+}
+
+function selectSession(id) {
+  Object.assign(state, { sessionId: id, session: null, poses: [], keyframes: [], loops: [], revision: null,
+    cameraPlaced: false });
+  const url = new URL(window.location.href);
+  url.searchParams.set("session", id);
+  window.history.replaceState(null, "", url);
+  for (const li of $("sessions").children) li.classList.toggle("selected", li.dataset.id === id);
+  $("download-map").disabled = false;
+  pollSession();
+}
+
+// --------------------------------------------------------------------------------------------- trajectory
+
+async function pollSession() {
+  const id = state.sessionId;
+  if (!id) return;
+  try {
+    const [session, all, keyframes] = await Promise.all([
+      state.api.session(id), state.api.trajectory(id, "all"), state.api.trajectory(id, "keyframes"),
+    ]);
+    if (id !== state.sessionId) return; // the user switched meanwhile
+    state.session = session;
+    const poses = all.poses.map((p) => p.pose);
+    if (state.revision !== null && all.revision > state.revision && poses.length) {
+      // A loop closure rewrote the trajectory since the last poll: mark where the camera was.
+      state.loops.push({ revision: all.revision, position: position(poses[poses.length - 1]) });
+    }
+    state.revision = all.revision;
+    state.poses = poses;
+    state.keyframes = keyframes.poses.map((p) => p.pose);
+    window.viewerState.loopClosures = state.loops.length;
+    $("session-title").textContent = session.name ? `${session.name} (${session.id})` : session.id;
+    $("session-stats").textContent = `${session.status} · ${session.frames_processed}/${session.frames_received} `
+      + `frames · ${session.keyframes} keyframes · revision ${all.revision}`;
+    drawTrajectory();
+    if (!state.cameraPlaced && poses.length) {
+      state.camera.setFromPose(poses[poses.length - 1]);
+      state.cameraPlaced = true;
+      scheduleRender();
+    }
+    setStatus(`live · ${poses.length} poses`);
+  } catch (err) {
+    setStatus(`session ${id}: ${err.message}`, true);
+  }
+}
+
+function drawTrajectory() {
+  const drawn = drawTopDown($("topdown"), state.poses, state.keyframes, state.loops);
+  orbit.update(state.poses, state.keyframes, state.loops);
+  window.viewerState.posesDrawn = drawn;
+  document.body.dataset.posesDrawn = String(drawn);
+}
+
+// ------------------------------------------------------------------------------------------ rendered view
+
+function renderCamera() {
+  const k = (state.session && state.session.intrinsics) || null;
+  const width = k && k.width ? k.width : 320;
+  const height = k && k.height ? k.height : 240;
+  const scale = Math.min(1, RENDER_MAX_WIDTH / width);
+  const fx = k ? k.fx : 0.8 * width, fy = k ? k.fy : 0.8 * width;
+  const cx = k ? k.cx : width / 2, cy = k ? k.cy : height / 2;
+  return { width: Math.round(width * scale), height: Math.round(height * scale), fx: fx * scale, fy: fy * scale,
+    cx: cx * scale, cy: cy * scale };
+}
+
+function scheduleRender() {
+  clearTimeout(state.renderTimer);
+  state.renderTimer = setTimeout(renderNow, 120);
+}
+
+async function renderNow() {
+  if (!state.sessionId || !state.cameraPlaced) return;
+  if (state.rendering) {
+    state.renderQueued = true;
+    return;
+  }
+  state.rendering = true;
+  try {
+    const blob = await state.api.render(state.sessionId, state.camera.pose(), renderCamera(), state.renderKind);
+    if (state.renderUrl) URL.revokeObjectURL(state.renderUrl);
+    state.renderUrl = URL.createObjectURL(blob);
+    $("render").src = state.renderUrl;
+    window.viewerState.renders += 1;
+    document.body.dataset.renders = String(window.viewerState.renders);
+  } catch (err) {
+    setStatus(`render: ${err.message}`, true);
+  } finally {
+    state.rendering = false;
+    if (state.renderQueued) {
+      state.renderQueued = false;
+      scheduleRender();
+    }
+  }
+}
+
+function stepSize() {
+  const pts = state.poses.map(position);
+  if (pts.length < 2) return 0.05;
+  let extent = 0;
+  for (let i = 0; i < 3; i++) extent = Math.max(extent, Math.max(...pts.map((p) => p[i])) - Math.min(...pts.map((p) => p[i])));
+  return Math.max(0.01, 0.05 * extent);
+}
+
+const MOVES = {
+  forward: (c, s) => c.translate([0, 0, s]), back: (c, s) => c.translate([0, 0, -s]),
+  left: (c, s) => c.translate([-s, 0, 0]), right: (c, s) => c.translate([s, 0, 0]),
+  up: (c, s) => c.translate([0, -s, 0]), down: (c, s) => c.translate([0, s, 0]),
+  "yaw-left": (c) => c.rotate("y", -0.1), "yaw-right": (c) => c.rotate("y", 0.1),
+  "pitch-up": (c) => c.rotate("x", 0.1), "pitch-down": (c) => c.rotate("x", -0.1),
+};
+const KEYS = { w: "forward", s: "back", a: "left", d: "right", q: "up", e: "down", ArrowLeft: "yaw-left",
+  ArrowRight: "yaw-right", ArrowUp: "pitch-up", ArrowDown: "pitch-down" };
+
+function move(name) {
+  if (!state.cameraPlaced) return;
+  MOVES[name](state.camera, stepSize());
+  scheduleRender();
+}
+
+// ----------------------------------------------------------------------------------------------- download
+
+async function downloadMap() {
+  const id = state.sessionId;
+  if (!id) return;
+  try {
+    setStatus("downloading the map…");
+    const blob = await state.api.map(id);
+    const link = document.createElement("a");
+    link.href = URL.createObjectURL(blob);
+    link.download = `${id}.ply`;
+    document.body.append(link);
+    link.click();
+    link.remove();
+    setTimeout(() => URL.revokeObjectURL(link.href), 10000);
+    setStatus(`map downloaded (${blob.size} bytes)`);
+  } catch (err) {
+    setStatus(`map: ${err.message}`, true);
+  }
+}
+
+// ------------------------------------------------------------------------------------------------- wiring
+
+function init() {
+  const keyInput = $("api-key");
+  keyInput.value = state.api.apiKey;
+  keyInput.addEventListener("change", () => {
+    state.api.apiKey = keyInput.value.trim();
+    localStorage.setItem("flashmono.apiKey", state.api.apiKey);
+    refreshSessions();
+  });
+  $("refresh-sessions").addEventListener("click", refreshSessions);
+  $("download-map").addEventListener("click", downloadMap);
+  $("snap-camera").addEventListener("click", () => {
+    if (!state.poses.length) return;
+    state.camera.setFromPose(state.poses[state.poses.length - 1]);
+    state.cameraPlaced = true;
+    scheduleRender();
+  });
+  $("render-kind").addEventListener("change", (e) => {
+    state.renderKind = e.target.value;
+    scheduleRender();
+  });
+  for (const button of $("camera-controls").querySelectorAll("button")) {
+    button.addEventListener("click", () => move(button.dataset.move));
+  }
+  window.addEventListener("keydown", (e) => {
+    if (e.target instanceof HTMLInputElement) return;
+    const name = KEYS[e.key] || KEYS[e.key.toLowerCase()];
+    if (name) {
+      e.preventDefault();
+      move(name);
+    }
+  });
+  refreshSessions();
+  if (state.sessionId) selectSession(state.sessionId);
+  setInterval(refreshSessions, POLL_SESSIONS_MS);
+  setInterval(pollSession, POLL_TRAJECTORY_MS);
+  drawTrajectory();
+}
+
+init();
