@@ -40,12 +40,14 @@ class Session:
     updated_at: Any = None
     frames_received: int = 0
     frames_processed: int = 0
+    frames_rejected: int = 0
     keyframes: int = 0
     revision: int = 0
     worker: str | None = None
     preset: str | None = None
     intrinsics: dict[str, Any] | None = None
     metadata: dict[str, Any] = field(default_factory=dict)
+    error: str | None = None
     raw: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
 
     @classmethod
@@ -61,12 +63,14 @@ class Session:
             updated_at=data.get("updated_at"),
             frames_received=int(data.get("frames_received") or 0),
             frames_processed=int(data.get("frames_processed") or 0),
+            frames_rejected=int(data.get("frames_rejected") or 0),
             keyframes=int(data.get("keyframes") or 0),
             revision=int(data.get("revision") or 0),
             worker=data.get("worker"),
             preset=data.get("preset"),
             intrinsics=data.get("intrinsics"),
             metadata=dict(data.get("metadata") or {}),
+            error=data.get("error"),
             raw=dict(data),
         )
 
