@@ -1,0 +1,88 @@
+"""The FastAPI gateway: `create_app(settings)`; `app` for `uvicorn service.app:app`."""
+
+from __future__ import annotations
+
+import logging
+from contextlib import asynccontextmanager
+from pathlib import Path
+from typing import Any
+
+import redis.asyncio as aioredis
+from fastapi import FastAPI
+from fastapi.staticfiles import StaticFiles
+
+from service import routes_health, routes_results, routes_sessions, routes_stream
+from service.auth import Authenticator
+from service.metrics import GatewayMetrics
+from service.registry import Registry
+from service.settings import Settings
+from service.websocket_doc import WEBSOCKET_DOC
+
+log = logging.getLogger(__name__)
+VIEWER_DIR = Path(__file__).parent / "static" / "viewer"
+API_VERSION = "0.1.0"
+
+
+def _validate_preset(name: str) -> None:
+    """Known presets of the real engine (imported on first use only: it pulls in torch)."""
+    try:
+        from worker.slam import SlamConfig
+    except ImportError:  # the engine is not installed here: the worker will report an unknown preset
+        return
+    SlamConfig.preset(name)
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """The gateway app; connects to Redis at start-up."""
+    settings = settings or Settings.from_env()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        client = aioredis.Redis.from_url(settings.redis_url, health_check_interval=30)
+        app.state.registry = Registry(client)
+        try:
+            yield
+        finally:
+            await client.aclose()
+
+    app = FastAPI(title="Flash-Mono", version=API_VERSION, lifespan=lifespan,
+                  description="Real-time monocular 2D Gaussian-splatting SLAM as a service. Authenticate with "
+                              "`X-API-Key: <key>` or `Authorization: Bearer <key>` (WebSocket also `?api_key=`).")
+    app.state.settings = settings
+    app.state.auth = Authenticator(settings)
+    app.state.metrics = GatewayMetrics()
+    app.state.validate_preset = _validate_preset
+    for module in (routes_sessions, routes_results, routes_stream, routes_health):
+        app.include_router(module.router)
+    if VIEWER_DIR.is_dir():
+        app.mount("/viewer/static", StaticFiles(directory=VIEWER_DIR), name="viewer-static")
+        app.add_api_route("/viewer", _viewer_index, include_in_schema=False)
+    app.openapi = lambda: _openapi_with_websocket(app)
+    return app
+
+
+async def _viewer_index():
+    from fastapi.responses import FileResponse, PlainTextResponse
+
+    index = VIEWER_DIR / "index.html"
+    return FileResponse(index) if index.is_file() else PlainTextResponse("viewer not installed", status_code=404)
+
+
+def _openapi_with_websocket(app: FastAPI) -> dict[str, Any]:
+    """The generated schema plus the WebSocket protocol (OpenAPI has no WebSocket operations: an x- extension)."""
+    if app.openapi_schema is None:
+        from fastapi.openapi.utils import get_openapi
+
+        schema = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
+        schema["x-websocket"] = WEBSOCKET_DOC
+        app.openapi_schema = schema
+    return app.openapi_schema
+
+
+def __getattr__(name: str):
+    """`service.app:app` builds the app from the environment on first access (uvicorn service.app:app)."""
+    if name == "app":
+        global app
+        app = create_app()
+        return app
+    raise AttributeError(name)

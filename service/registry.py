@@ -1,0 +1,210 @@
+"""The gateway's view of Redis: the session registry, frame ingest, results, and requests to workers.
+
+The key layout is `worker.runtime.keys` (shared with the workers). All calls are async (redis.asyncio).
+"""
+
+from __future__ import annotations
+
+import json
+import uuid
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from typing import Any
+
+import msgpack
+import redis.asyncio as aioredis
+
+from worker.runtime import keys
+
+# Atomically: check the session accepts frames, seq increases, the queue has room; enqueue; count.
+# Returns {code, value}: 0 accepted (value = queue depth), -1 no session, -2 not accepting (status),
+# -3 seq not increasing (value = last seq), -4 queue full (value = queue depth).
+_INGEST = """
+local h = KEYS[1]
+local fields = redis.call('HMGET', h, 'status', 'last_seq', 'frames_received', 'frames_processed', 'frames_rejected')
+if not fields[1] then return {-1, 0} end
+if fields[1] ~= 'created' and fields[1] ~= 'streaming' then return {-2, 0} end
+local seq = tonumber(ARGV[1])
+local last = tonumber(fields[2] or '-1')
+if seq <= last then return {-3, last} end
+local depth = tonumber(fields[3] or '0') - tonumber(fields[4] or '0') - tonumber(fields[5] or '0')
+if depth >= tonumber(ARGV[2]) then return {-4, depth} end
+redis.call('XADD', KEYS[2], '*', 'kind', 'frame', 'seq', ARGV[1], 'msg', ARGV[4])
+if fields[1] == 'created' then
+  redis.call('HSET', h, 'last_seq', ARGV[1], 'status', 'streaming', 'updated_at', ARGV[3])
+else
+  redis.call('HSET', h, 'last_seq', ARGV[1], 'updated_at', ARGV[3])
+end
+redis.call('HINCRBY', h, 'frames_received', 1)
+return {0, depth + 1}
+"""
+_FINISH = """
+local status = redis.call('HGET', KEYS[1], 'status')
+if not status then return -1 end
+if status ~= 'created' and status ~= 'streaming' then return 0 end
+redis.call('HSET', KEYS[1], 'status', 'finishing', 'updated_at', ARGV[1])
+redis.call('XADD', KEYS[2], '*', 'kind', 'finish')
+return 1
+"""
+
+INGEST_ACCEPTED, NO_SESSION, NOT_ACCEPTING, SEQ_NOT_INCREASING, QUEUE_FULL = 0, -1, -2, -3, -4
+_INT_FIELDS = ("frames_received", "frames_processed", "frames_rejected", "keyframes", "revision")
+
+
+def now_iso() -> str:
+    return datetime.now(UTC).isoformat(timespec="milliseconds")
+
+
+@dataclass(frozen=True)
+class IngestResult:
+    code: int
+    value: int
+
+
+class RequestTimeout(Exception):
+    """No worker answered a render/export request in time."""
+
+
+class Registry:
+    """Session records and streams in Redis, for one gateway process."""
+
+    def __init__(self, client: aioredis.Redis) -> None:
+        self.client = client
+        self._ingest = client.register_script(_INGEST)
+        self._finish = client.register_script(_FINISH)
+
+    # --- sessions -----------------------------------------------------------------------------------------------
+    async def create_session(self, body: dict[str, Any], owner: str) -> dict[str, Any]:
+        session_id = uuid.uuid4().hex
+        created = now_iso()
+        record = {
+            "id": session_id, "name": body.get("name") or "", "device_id": body.get("device_id") or "",
+            "status": "created", "created_at": created, "updated_at": created, "frames_received": 0,
+            "frames_processed": 0, "frames_rejected": 0, "keyframes": 0, "revision": 0, "worker": "",
+            "preset": body.get("preset") or "", "intrinsics": json.dumps(body.get("intrinsics")),
+            "metadata": json.dumps(body.get("metadata") or {}), "owner": owner, "last_seq": -1,
+        }
+        member = f"{datetime.now(UTC).timestamp() * 1e6:020.0f}:{session_id}"
+        pipe = self.client.pipeline(transaction=True)
+        pipe.hset(keys.session(session_id), mapping=record)
+        pipe.hset(keys.session(session_id), "index_member", member)
+        pipe.zadd(keys.SESSIONS_INDEX, {member: 0})
+        pipe.xadd(keys.JOBS, {"session_id": session_id})
+        await pipe.execute()
+        return parse_session(record)
+
+    async def get_raw(self, session_id: str) -> dict[str, str] | None:
+        raw = await self.client.hgetall(keys.session(session_id))
+        if not raw:
+            return None
+        return {k.decode(): v.decode() for k, v in raw.items()}
+
+    async def list_sessions(self, *, status: str | None, device_id: str | None, name: str | None, limit: int,
+                            cursor: str | None, owner: str | None) -> tuple[list[dict[str, Any]], str | None]:
+        """Newest first. `cursor` is the index member of the last session of the previous page."""
+        results: list[dict[str, Any]] = []
+        upper = f"({cursor}" if cursor else "+"
+        batch = max(limit * 2, 50)
+        while len(results) < limit:
+            members = await self.client.zrevrangebylex(keys.SESSIONS_INDEX, upper, "-", start=0, num=batch)
+            if not members:
+                return results, None
+            pipe = self.client.pipeline(transaction=False)
+            for member in members:
+                pipe.hgetall(keys.session(member.decode().split(":", 1)[1]))
+            records = await pipe.execute()
+            for member, raw in zip(members, records):
+                upper = f"({member.decode()}"
+                if not raw:
+                    continue
+                record = {k.decode(): v.decode() for k, v in raw.items()}
+                if owner is not None and record.get("owner") != owner:
+                    continue
+                if status and record["status"] != status:
+                    continue
+                if device_id is not None and record.get("device_id") != device_id:
+                    continue
+                if name is not None and record.get("name") != name:
+                    continue
+                results.append(parse_session(record))
+                if len(results) == limit:
+                    more = await self.client.zrevrangebylex(keys.SESSIONS_INDEX, upper, "-", start=0, num=1)
+                    return results, (upper[1:] if more else None)
+            if len(members) < batch:
+                return results, None
+        return results, None
+
+    async def delete_session(self, session_id: str, record: dict[str, str]) -> None:
+        pipe = self.client.pipeline(transaction=True)
+        pipe.delete(*keys.all_session_keys(session_id))
+        if record.get("index_member"):
+            pipe.zrem(keys.SESSIONS_INDEX, record["index_member"])
+        await pipe.execute()
+
+    # --- streaming ----------------------------------------------------------------------------------------------
+    async def ingest_frame(self, session_id: str, seq: int, message: bytes, max_queue: int) -> IngestResult:
+        code, value = await self._ingest(keys=[keys.session(session_id), keys.inbox(session_id)],
+                                         args=[seq, max_queue, now_iso(), message])
+        return IngestResult(int(code), int(value))
+
+    async def request_finish(self, session_id: str) -> int:
+        """1 finishing now, 0 already finishing/finished, -1 no such session."""
+        return int(await self._finish(keys=[keys.session(session_id), keys.inbox(session_id)], args=[now_iso()]))
+
+    async def last_outbox_id(self, session_id: str) -> str:
+        entries = await self.client.xrevrange(keys.outbox(session_id), count=1)
+        return entries[0][0].decode() if entries else "0-0"
+
+    # --- results ------------------------------------------------------------------------------------------------
+    async def trajectory(self, session_id: str, which: str) -> list[dict[str, Any]]:
+        raw = await self.client.hgetall(keys.poses(session_id))
+        poses = []
+        for seq, blob in raw.items():
+            record = msgpack.unpackb(blob, raw=False)
+            if which == "keyframes" and not record.get("kf"):
+                continue
+            poses.append({"seq": int(seq), "timestamp": float(record["t"]), "pose": record["p"]})
+        poses.sort(key=lambda p: p["seq"])
+        return poses
+
+    async def request(self, session_id: str, kind: str, params: dict[str, Any], live: bool,
+                      timeout_s: float) -> dict[str, Any]:
+        """Ask the owning worker (live) or any worker (finished) to render/export; its reply dict."""
+        request_id = uuid.uuid4().hex
+        fields = {"id": request_id, "kind": kind, "params": json.dumps(params), "session_id": session_id}
+        stream = keys.session_requests(session_id) if live else keys.REQUESTS
+        await self.client.xadd(stream, fields, maxlen=1000, approximate=True)
+        reply = await self.client.blpop([keys.reply(request_id)], timeout=timeout_s)
+        if reply is None:
+            raise RequestTimeout(f"no worker answered within {timeout_s:.0f} s")
+        return msgpack.unpackb(reply[1], raw=False)
+
+    # --- fleet --------------------------------------------------------------------------------------------------
+    async def live_workers(self) -> list[str]:
+        return [k.decode()[len(keys.WORKER_PREFIX):]
+                async for k in self.client.scan_iter(match=f"{keys.WORKER_PREFIX}*", count=500)]
+
+    async def worker_stats(self) -> dict[str, dict[str, float]]:
+        out = {}
+        async for key in self.client.scan_iter(match=f"{keys.WORKER_STATS_PREFIX}*", count=500):
+            raw = await self.client.hgetall(key)
+            out[key.decode()[len(keys.WORKER_STATS_PREFIX):]] = {k.decode(): float(v) for k, v in raw.items()}
+        return out
+
+    async def lease_holder(self, session_id: str) -> str | None:
+        value = await self.client.get(keys.lease(session_id))
+        return value.decode() if value else None
+
+
+def parse_session(record: dict[str, Any]) -> dict[str, Any]:
+    """The API form of a session hash."""
+    out: dict[str, Any] = {
+        "id": record["id"], "name": record.get("name") or None, "device_id": record.get("device_id") or None,
+        "status": record["status"], "created_at": record["created_at"], "updated_at": record["updated_at"],
+        "worker": record.get("worker") or None, "preset": record.get("preset") or None,
+        "intrinsics": json.loads(record.get("intrinsics") or "null"),
+        "metadata": json.loads(record.get("metadata") or "{}"), "error": record.get("error") or None,
+    }
+    for name in _INT_FIELDS:
+        out[name] = int(record.get(name) or 0)
+    return out

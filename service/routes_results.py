@@ -1,0 +1,146 @@
+"""What a session produced: trajectory (JSON or TUM), rendered views and the map (PLY)."""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Annotated, Literal
+
+import numpy as np
+from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
+from fastapi.responses import PlainTextResponse
+
+from service.auth import Principal, caller
+from service.deps import registry, session_for
+from service.registry import Registry, RequestTimeout
+from service.schemas import ErrorBody, Trajectory
+from worker.runtime import keys
+
+router = APIRouter(prefix="/v1/sessions/{session_id}", tags=["results"],
+                   responses={401: {"model": ErrorBody}, 403: {"model": ErrorBody}, 404: {"model": ErrorBody}})
+
+
+@router.get("/trajectory", response_model=Trajectory,
+            responses={200: {"content": {"application/json": {}, "text/plain": {"description": "TUM format"}}}})
+async def get_trajectory(
+    session_id: str,
+    request: Request,
+    format: Annotated[Literal["json", "tum"], Query(description="json, or TUM text")] = "json",
+    which: Annotated[Literal["all", "keyframes"], Query()] = "all",
+    principal: Principal = Depends(caller),
+    reg: Registry = Depends(registry),
+):
+    """The current trajectory (camera-to-world poses by frame seq) at the session's current revision."""
+    request.app.state.auth.require(principal, "read", "stream")
+    record = await session_for(reg, principal, session_id, write=False)
+    poses = await reg.trajectory(session_id, which)
+    if format == "tum":
+        return PlainTextResponse(tum_text(poses), media_type="text/plain")
+    return {"session_id": session_id, "revision": int(record.get("revision") or 0), "which": which, "poses": poses}
+
+
+def tum_text(poses: list[dict]) -> str:
+    """TUM lines "timestamp tx ty tz qx qy qz qw" (the rotation of a Sim(3) pose without its scale)."""
+    lines = ["# timestamp tx ty tz qx qy qz qw (camera-to-world)"]
+    if poses:
+        import torch  # lazily: only TUM output needs worker.geometry (torch) in the gateway
+
+        from worker.geometry import sim3_to_quat
+
+        mats = torch.tensor([p["pose"] for p in poses], dtype=torch.float64).reshape(-1, 4, 4)
+        _, quats, trans = sim3_to_quat(mats)
+        for p, q, t in zip(poses, quats.tolist(), trans.tolist()):
+            w, x, y, z = q
+            lines.append(f"{p['timestamp']:.6f} {t[0]:.8f} {t[1]:.8f} {t[2]:.8f} {x:.8f} {y:.8f} {z:.8f} {w:.8f}")
+    return "\n".join(lines) + "\n"
+
+
+@router.get("/render", response_class=Response,
+            responses={200: {"content": {"image/png": {}}, "description": "color: RGB PNG; depth: 16-bit PNG, mm"},
+                       400: {"model": ErrorBody}, 409: {"model": ErrorBody}, 503: {"model": ErrorBody},
+                       504: {"model": ErrorBody}})
+async def render_view(
+    session_id: str,
+    request: Request,
+    pose: Annotated[str, Query(description="camera-to-world 4x4 as 16 comma-separated floats, row-major")],
+    width: Annotated[int | None, Query(ge=8, le=4096)] = None,
+    height: Annotated[int | None, Query(ge=8, le=4096)] = None,
+    fx: Annotated[float | None, Query(gt=0)] = None,
+    fy: Annotated[float | None, Query(gt=0)] = None,
+    cx: Annotated[float | None, Query()] = None,
+    cy: Annotated[float | None, Query()] = None,
+    kind: Annotated[Literal["color", "depth"], Query()] = "color",
+    principal: Principal = Depends(caller),
+    reg: Registry = Depends(registry),
+) -> Response:
+    """Render the session's map from any camera. Defaults: the session's intrinsics (scaled to width x height)."""
+    request.app.state.auth.require(principal, "read", "stream")
+    record = await session_for(reg, principal, session_id, write=False)
+    params = render_params(record, pose, width, height, fx, fy, cx, cy, kind,
+                           request.app.state.settings.max_render_pixels)
+    return await _ask_worker(request, reg, session_id, record, "render", params)
+
+
+@router.get("/map.ply", response_class=Response,
+            responses={200: {"content": {"application/octet-stream": {}}, "description": "binary PLY"},
+                       409: {"model": ErrorBody}, 503: {"model": ErrorBody}, 504: {"model": ErrorBody}})
+async def export_map(session_id: str, request: Request, principal: Principal = Depends(caller),
+                     reg: Registry = Depends(registry)) -> Response:
+    """The session's 2DGS surfel map as PLY."""
+    request.app.state.auth.require(principal, "read", "stream")
+    record = await session_for(reg, principal, session_id, write=False)
+    response = await _ask_worker(request, reg, session_id, record, "export_ply", {})
+    response.headers["content-disposition"] = f'attachment; filename="{session_id}.ply"'
+    return response
+
+
+async def _ask_worker(request: Request, reg: Registry, session_id: str, record: dict[str, str], kind: str,
+                      params: dict) -> Response:
+    status = record["status"]
+    live = status in keys.LIVE_STATUSES
+    if status == "failed":
+        raise HTTPException(409, f"session failed: {record.get('error', '')}")
+    if live and await reg.lease_holder(session_id) is None:
+        raise HTTPException(503, "no worker owns this session right now; retry shortly")
+    t0 = time.perf_counter()
+    try:
+        reply = await reg.request(session_id, kind, params, live=live,
+                                  timeout_s=request.app.state.settings.request_timeout_s)
+    except RequestTimeout as err:
+        raise HTTPException(504, str(err)) from err
+    request.app.state.metrics.request_latency.labels(kind).observe(time.perf_counter() - t0)
+    if not reply.get("ok"):
+        raise HTTPException(int(reply.get("status", 500)), reply.get("detail", "worker error"))
+    return Response(content=reply["body"], media_type=reply["content_type"])
+
+
+def render_params(record: dict[str, str], pose: str, width: int | None, height: int | None, fx: float | None,
+                  fy: float | None, cx: float | None, cy: float | None, kind: str, max_pixels: int) -> dict:
+    """Validated render parameters, defaults filled from the session's intrinsics; 400 on bad input."""
+    try:
+        values = [float(v) for v in pose.split(",")]
+    except ValueError as err:
+        raise HTTPException(400, "pose must be 16 comma-separated floats") from err
+    if len(values) != 16 or not all(math.isfinite(v) for v in values):
+        raise HTTPException(400, f"pose must be 16 finite comma-separated floats, got {len(values)} values")
+    m = np.asarray(values).reshape(4, 4)
+    if not np.allclose(m[3], [0, 0, 0, 1]) or abs(np.linalg.det(m[:3, :3])) < 1e-12:
+        raise HTTPException(400, "pose must be a camera-to-world [sR|t; 0 0 0 1] matrix")
+    import json
+
+    session_k = json.loads(record.get("intrinsics") or "null")
+    if width is None or height is None:
+        if session_k is None:
+            raise HTTPException(400, "width and height are required (the session has no intrinsics)")
+        width, height = width or session_k["width"], height or session_k["height"]
+    if width * height > max_pixels:
+        raise HTTPException(400, f"{width}x{height} exceeds the limit of {max_pixels} pixels")
+    if None in (fx, fy, cx, cy):
+        if session_k is None:
+            raise HTTPException(400, "fx, fy, cx, cy are required (the session has no intrinsics)")
+        sx, sy = width / session_k["width"], height / session_k["height"]
+        fx = fx if fx is not None else session_k["fx"] * sx
+        fy = fy if fy is not None else session_k["fy"] * sy
+        cx = cx if cx is not None else session_k["cx"] * sx
+        cy = cy if cy is not None else session_k["cy"] * sy
+    return {"pose": values, "width": width, "height": height, "fx": fx, "fy": fy, "cx": cx, "cy": cy, "kind": kind}

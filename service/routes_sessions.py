@@ -1,0 +1,67 @@
+"""Session CRUD and the fleet listing: /v1/sessions."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
+
+from service.auth import Principal, caller
+from service.deps import registry, session_for
+from service.registry import Registry, parse_session
+from service.schemas import ErrorBody, Session, SessionCreate, SessionList, SessionStatus
+
+router = APIRouter(prefix="/v1/sessions", tags=["sessions"],
+                   responses={401: {"model": ErrorBody}, 403: {"model": ErrorBody}})
+
+
+@router.post("", status_code=201, response_model=Session, responses={422: {"description": "invalid body"}})
+async def create_session(body: SessionCreate, request: Request, principal: Principal = Depends(caller),
+                         reg: Registry = Depends(registry)) -> dict:
+    """Create a session; a worker picks it up. Needs the `stream` scope."""
+    request.app.state.auth.require(principal, "stream")
+    if body.preset is not None:
+        check = request.app.state.validate_preset
+        try:
+            check(body.preset)
+        except (ValueError, KeyError) as err:
+            raise HTTPException(422, f"unknown preset {body.preset!r}: {err}") from err
+    session = await reg.create_session(body.model_dump(mode="json"), owner=principal.key_id)
+    request.app.state.metrics.sessions_created.inc()
+    return session
+
+
+@router.get("", response_model=SessionList)
+async def list_sessions(
+    request: Request,
+    status: Annotated[SessionStatus | None, Query(description="only sessions with this status")] = None,
+    device_id: Annotated[str | None, Query(max_length=200)] = None,
+    name: Annotated[str | None, Query(max_length=200)] = None,
+    limit: Annotated[int, Query(ge=1, le=500)] = 50,
+    cursor: Annotated[str | None, Query(max_length=200, description="next_cursor of the previous page")] = None,
+    principal: Principal = Depends(caller),
+    reg: Registry = Depends(registry),
+) -> dict:
+    """Fleet listing, newest first. Keys with only the `stream` scope see the sessions they created."""
+    request.app.state.auth.require(principal, "read", "stream")
+    owner = None if principal.can_read_any() else principal.key_id
+    sessions, next_cursor = await reg.list_sessions(status=status, device_id=device_id, name=name, limit=limit,
+                                                    cursor=cursor, owner=owner)
+    return {"sessions": sessions, "next_cursor": next_cursor}
+
+
+@router.get("/{session_id}", response_model=Session, responses={404: {"model": ErrorBody}})
+async def get_session(session_id: str, request: Request, principal: Principal = Depends(caller),
+                      reg: Registry = Depends(registry)) -> dict:
+    request.app.state.auth.require(principal, "read", "stream")
+    return parse_session(await session_for(reg, principal, session_id, write=False))
+
+
+@router.delete("/{session_id}", status_code=204, responses={404: {"model": ErrorBody}})
+async def delete_session(session_id: str, request: Request, principal: Principal = Depends(caller),
+                         reg: Registry = Depends(registry)) -> Response:
+    """Delete the session and everything stored for it; its worker stops."""
+    request.app.state.auth.require(principal, "stream")
+    record = await session_for(reg, principal, session_id, write=True)
+    await reg.delete_session(session_id, record)
+    return Response(status_code=204)

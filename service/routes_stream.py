@@ -1,0 +1,175 @@
+"""WS /v1/sessions/{id}/stream: frames in (binary msgpack), acks/poses/events out (text JSON).
+
+The receive loop validates each frame, enqueues it with one atomic Redis call (seq check + bounded queue) and
+acks it; a forwarding task relays the worker's results from the session's outbox stream.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import time
+
+from fastapi import APIRouter, HTTPException, WebSocket, WebSocketDisconnect
+
+from service.auth import request_key
+from service.deps import session_for
+from service.frame_validation import FrameRejected, check_frame_message
+from service.registry import (
+    NO_SESSION,
+    NOT_ACCEPTING,
+    QUEUE_FULL,
+    SEQ_NOT_INCREASING,
+    Registry,
+)
+from worker.runtime import keys
+
+log = logging.getLogger(__name__)
+router = APIRouter()
+
+_AUTH_CODES = {401: "unauthorized", 403: "forbidden", 404: "not_found"}
+
+
+@router.websocket("/v1/sessions/{session_id}/stream")
+async def stream_frames(websocket: WebSocket, session_id: str) -> None:
+    app = websocket.app
+    reg: Registry = app.state.registry
+    try:
+        principal = app.state.auth.principal(request_key(websocket, allow_query=True))
+        app.state.auth.require(principal, "stream")
+        record = await session_for(reg, principal, session_id, write=True)
+    except HTTPException as err:
+        await websocket.accept()
+        await websocket.send_text(json.dumps({"type": "error", "code": _AUTH_CODES.get(err.status_code, "error"),
+                                              "message": err.detail}))
+        await websocket.close(code=4000 + err.status_code, reason=str(err.detail)[:120])
+        return
+    await websocket.accept()
+    if record["status"] not in ("created", "streaming"):
+        await websocket.send_text(json.dumps({"type": "error", "code": "not_accepting",
+                                              "message": f"session is {record['status']}; it takes no frames"}))
+        await websocket.close(code=4409)
+        return
+    stream = _Stream(websocket, reg, session_id, json.loads(record.get("intrinsics") or "null"))
+    await stream.run()
+
+
+class _Stream:
+    """One open stream of one session."""
+
+    def __init__(self, websocket: WebSocket, reg: Registry, session_id: str, intrinsics: dict | None) -> None:
+        self.ws = websocket
+        self.reg = reg
+        self.session_id = session_id
+        self.intrinsics = intrinsics
+        self.settings = websocket.app.state.settings
+        self.metrics = websocket.app.state.metrics
+        self._send_lock = asyncio.Lock()
+        self._closed = asyncio.Event()
+
+    async def send(self, text: str) -> None:
+        async with self._send_lock:
+            await self.ws.send_text(text)
+
+    async def error(self, code: str, message: str, seq: int | None = None, **extra) -> None:
+        body = {"type": "error", "code": code, "message": message, **extra}
+        if seq is not None:
+            body["seq"] = seq
+        await self.send(json.dumps(body))
+
+    async def run(self) -> None:
+        self.metrics.streams_open.inc()
+        start_id = await self.reg.last_outbox_id(self.session_id)
+        forwarder = asyncio.create_task(self._forward_results(start_id))
+        try:
+            while not self._closed.is_set():
+                message = await self.ws.receive()
+                if message["type"] == "websocket.disconnect":
+                    break
+                if message.get("bytes") is not None:
+                    await self._on_frame(message["bytes"])
+                elif message.get("text") is not None:
+                    await self._on_control(message["text"])
+        except (WebSocketDisconnect, RuntimeError):
+            pass  # the client went away (RuntimeError: receive after the forwarder closed the socket)
+        finally:
+            self.metrics.streams_open.dec()
+            forwarder.cancel()
+            try:
+                await forwarder
+            except (asyncio.CancelledError, Exception):
+                pass
+
+    async def _on_frame(self, data: bytes) -> None:
+        t0 = time.perf_counter()
+        try:
+            frame = check_frame_message(data, self.settings.max_frame_bytes, self.intrinsics)
+        except FrameRejected as err:
+            self.metrics.frames_refused.labels(err.code).inc()
+            await self.error(err.code, str(err), err.seq)
+            return
+        result = await self.reg.ingest_frame(self.session_id, frame.seq, data, self.settings.max_queue)
+        if result.code == QUEUE_FULL:
+            self.metrics.frames_refused.labels("backpressure").inc()
+            await self.error("backpressure", f"session queue is full ({result.value} frames); frame {frame.seq} "
+                             "was not queued: resend it later", frame.seq, queue_depth=result.value)
+        elif result.code == SEQ_NOT_INCREASING:
+            self.metrics.frames_refused.labels("bad_seq").inc()
+            await self.error("bad_seq", f"seq {frame.seq} is not greater than the last accepted seq {result.value} "
+                             "(duplicate or out of order); frame not queued", frame.seq)
+        elif result.code == NOT_ACCEPTING:
+            await self.error("not_accepting", "the session is finishing or finished; frame not queued", frame.seq)
+        elif result.code == NO_SESSION:
+            await self.error("not_found", "the session was deleted", frame.seq)
+            await self._close(4404)
+        else:
+            await self.send(json.dumps({"type": "ack", "seq": frame.seq, "queue_depth": result.value}))
+            self.metrics.frames_ingested.inc()
+            self.metrics.queue_depth.observe(result.value)
+            self.metrics.ack_latency.observe(time.perf_counter() - t0)
+
+    async def _on_control(self, text: str) -> None:
+        try:
+            message = json.loads(text)
+        except ValueError:
+            await self.error("bad_message", "text messages must be JSON objects like {\"type\": \"finish\"}")
+            return
+        kind = message.get("type") if isinstance(message, dict) else None
+        if kind == "ping":
+            await self.send(json.dumps({"type": "pong"}))
+        elif kind == "finish":
+            if await self.reg.request_finish(self.session_id) == -1:
+                await self.error("not_found", "the session was deleted")
+                await self._close(4404)
+        else:
+            await self.error("bad_message", f"unknown control message type {kind!r}; expected finish or ping")
+
+    async def _forward_results(self, last_id: str) -> None:
+        """Relay the outbox (pose, loop_closed, error, finished) to the client; close after "finished"."""
+        client = self.reg.client
+        outbox = keys.outbox(self.session_id)
+        while True:
+            reply = await client.xread({outbox: last_id}, count=256, block=1000)
+            if not reply:
+                if not await client.exists(keys.session(self.session_id)):
+                    await self.error("not_found", "the session was deleted")
+                    await self._close(4404)
+                    return
+                continue
+            for _stream, entries in reply:
+                for entry_id, fields in entries:
+                    last_id = entry_id.decode()
+                    text = fields[b"msg"].decode()  # each seq appears once: the worker's store is idempotent
+                    await self.send(text)
+                    if text.startswith('{"type": "finished"'):
+                        await self._close(1000)
+                        return
+
+    async def _close(self, code: int) -> None:
+        self._closed.set()
+        async with self._send_lock:
+            try:
+                await self.ws.close(code=code)
+            except RuntimeError:
+                pass

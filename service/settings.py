@@ -1,0 +1,72 @@
+"""Gateway configuration from the environment (read once at app creation)."""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+SCOPES = ("stream", "read", "admin")
+
+
+@dataclass(frozen=True)
+class Settings:
+    """REDIS_URL; FLASHMONO_API_KEYS ("key1=stream,read;key2=admin") or FLASHMONO_API_KEYS_FILE (JSON
+    {key: [scopes]}); FLASHMONO_MAX_QUEUE (frames queued per session, 64); FLASHMONO_MAX_FRAME_BYTES (8 MiB);
+    FLASHMONO_REQUEST_TIMEOUT_S (render/export reply timeout, 60); FLASHMONO_MAX_RENDER_PIXELS (4096*4096)."""
+
+    redis_url: str = "redis://127.0.0.1:6379/0"
+    api_keys: dict[str, frozenset[str]] = field(default_factory=dict)
+    max_queue: int = 64
+    max_frame_bytes: int = 8 * 1024 * 1024
+    request_timeout_s: float = 60.0
+    max_render_pixels: int = 4096 * 4096
+
+    @property
+    def auth_enabled(self) -> bool:
+        return bool(self.api_keys)
+
+    @classmethod
+    def from_env(cls, environ: dict[str, str] | None = None) -> Settings:
+        env = os.environ if environ is None else environ
+        keys = parse_api_keys(env.get("FLASHMONO_API_KEYS", ""))
+        if env.get("FLASHMONO_API_KEYS_FILE"):
+            keys.update(load_api_keys_file(Path(env["FLASHMONO_API_KEYS_FILE"])))
+        settings = cls(
+            redis_url=env.get("REDIS_URL") or cls.redis_url,
+            api_keys=keys,
+            max_queue=int(env.get("FLASHMONO_MAX_QUEUE", cls.max_queue)),
+            max_frame_bytes=int(env.get("FLASHMONO_MAX_FRAME_BYTES", cls.max_frame_bytes)),
+            request_timeout_s=float(env.get("FLASHMONO_REQUEST_TIMEOUT_S", cls.request_timeout_s)),
+            max_render_pixels=int(env.get("FLASHMONO_MAX_RENDER_PIXELS", cls.max_render_pixels)),
+        )
+        if settings.max_queue < 1 or settings.max_frame_bytes < 1024:
+            raise ValueError("FLASHMONO_MAX_QUEUE must be >= 1 and FLASHMONO_MAX_FRAME_BYTES >= 1024")
+        return settings
+
+
+def parse_api_keys(text: str) -> dict[str, frozenset[str]]:
+    """{key: scopes} from "key1=stream,read;key2=admin"."""
+    keys: dict[str, frozenset[str]] = {}
+    for item in filter(None, (part.strip() for part in text.split(";"))):
+        key, sep, scopes = item.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"FLASHMONO_API_KEYS entry {item!r} is not key=scope,scope")
+        keys[key.strip()] = _checked_scopes([s.strip() for s in scopes.split(",") if s.strip()])
+    return keys
+
+
+def load_api_keys_file(path: Path) -> dict[str, frozenset[str]]:
+    """{key: scopes} from a JSON file {key: [scopes]}."""
+    data = json.loads(path.read_text())
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a JSON object {{key: [scopes]}}")
+    return {str(key): _checked_scopes(list(scopes)) for key, scopes in data.items()}
+
+
+def _checked_scopes(scopes: list[str]) -> frozenset[str]:
+    unknown = set(scopes) - set(SCOPES)
+    if unknown or not scopes:
+        raise ValueError(f"API key scopes must be a non-empty subset of {SCOPES}, got {scopes}")
+    return frozenset(scopes)

@@ -1,0 +1,184 @@
+"""The worker: takes sessions from the "fm:jobs" stream (consumer group "workers"), runs each in a
+`SessionRunner` thread under a lease, renews its leases by heartbeats, takes over sessions of dead workers
+(XAUTOCLAIM of jobs idle longer than the lease TTL) and serves render/export requests for finished sessions.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+import time
+
+import redis
+
+from worker.runtime import keys
+from worker.runtime.engine import SessionEngine, close_engine, restore_engine
+from worker.runtime.leases import Leases
+from worker.runtime.requests import handle_request
+from worker.runtime.sessions import RuntimeConfig, SessionRunner, ensure_group
+from worker.runtime.stats import StageStats
+
+log = logging.getLogger(__name__)
+
+
+class Worker:
+    """One worker process's runtime. `run()` blocks until `shutdown()` (or SIGTERM in main.py)."""
+
+    def __init__(self, client: redis.Redis, worker_id: str, config: RuntimeConfig) -> None:
+        self.client = client
+        self.worker_id = worker_id
+        self.config = config
+        self.leases = Leases(client, worker_id, config.lease_ttl_ms)
+        self.stats = StageStats()
+        self.runners: dict[str, SessionRunner] = {}
+        self._waiting: dict[str, str] = {}  # session id -> job id claimed while the old lease had not expired yet
+        self._stopping = threading.Event()
+        self._finished_engines: collections.OrderedDict[str, SessionEngine] = collections.OrderedDict()
+
+    # --- lifecycle ----------------------------------------------------------------------------------------------
+    def run(self) -> None:
+        ensure_group(self.client, keys.JOBS)
+        ensure_group(self.client, keys.REQUESTS)
+        self._heartbeat_once()
+        threads = [threading.Thread(target=self._heartbeat_loop, name="heartbeat", daemon=True),
+                   threading.Thread(target=self._requests_loop, name="requests", daemon=True)]
+        for thread in threads:
+            thread.start()
+        log.info("worker %s ready (engine %s)", self.worker_id, self.config.engine_kind)
+        try:
+            self._jobs_loop()
+        finally:
+            self._stopping.set()
+            for runner in list(self.runners.values()):
+                runner.stop()
+            for runner in list(self.runners.values()):
+                runner.join(timeout=30)
+            for thread in threads:
+                thread.join(timeout=5)
+            self.client.delete(keys.worker(self.worker_id))
+            log.info("worker %s stopped", self.worker_id)
+
+    def shutdown(self) -> None:
+        self._stopping.set()
+
+    # --- jobs ---------------------------------------------------------------------------------------------------
+    def _jobs_loop(self) -> None:
+        next_claim = 0.0
+        while not self._stopping.is_set():
+            self._reap_runners()
+            if time.monotonic() >= next_claim:
+                self._claim_stale_jobs()
+                next_claim = time.monotonic() + self.config.lease_ttl_ms / 2000
+            for session_id, job_id in list(self._waiting.items()):
+                self._take(session_id, job_id)
+            if len(self.runners) >= self.config.max_sessions:
+                time.sleep(0.05)
+                continue
+            reply = self.client.xreadgroup(keys.GROUP, self.worker_id, {keys.JOBS: ">"}, count=1,
+                                           block=min(self.config.block_ms, 500))
+            for _stream, entries in reply or []:
+                for job_id, fields in entries:
+                    self._take(fields[b"session_id"].decode(), job_id.decode())
+
+    def _claim_stale_jobs(self) -> None:
+        """Jobs whose owner stopped renewing them (dead worker) for longer than a lease lasts."""
+        start = "0-0"
+        while True:
+            start, claimed, *_ = self.client.xautoclaim(keys.JOBS, keys.GROUP, self.worker_id,
+                                                        min_idle_time=self.config.lease_ttl_ms, start_id=start,
+                                                        count=10)
+            for job_id, fields in claimed:
+                if fields:
+                    session_id = fields[b"session_id"].decode()
+                    if session_id not in self.runners:
+                        log.info("claimed the job of session %s from a silent worker", session_id)
+                        self._take(session_id, job_id.decode())
+                else:  # the entry was trimmed away
+                    self.client.xack(keys.JOBS, keys.GROUP, job_id)
+            if start in (b"0-0", "0-0"):
+                return
+
+    def _take(self, session_id: str, job_id: str) -> None:
+        """Own the session if it still needs running and its lease is free."""
+        status = self.client.hget(keys.session(session_id), "status")
+        if status is None or status.decode() in ("finished", "failed"):
+            self.client.xack(keys.JOBS, keys.GROUP, job_id)
+            self._waiting.pop(session_id, None)
+            return
+        if len(self.runners) >= self.config.max_sessions or not self.leases.acquire(session_id):
+            self._waiting[session_id] = job_id  # retried until the old owner's lease expires
+            return
+        self._waiting.pop(session_id, None)
+        self.client.xclaim(keys.JOBS, keys.GROUP, self.worker_id, min_idle_time=0, message_ids=[job_id],
+                           justid=True)
+        runner = SessionRunner(self.client, self.worker_id, session_id, job_id, self.leases, self.config,
+                               self.stats)
+        self.runners[session_id] = runner
+        runner.start()
+        log.info("session %s started on %s", session_id, self.worker_id)
+
+    def _reap_runners(self) -> None:
+        for session_id, runner in list(self.runners.items()):
+            if runner.is_alive():
+                continue
+            del self.runners[session_id]
+            if runner.terminal:
+                self.client.xack(keys.JOBS, keys.GROUP, runner.job_id)
+
+    # --- heartbeats ---------------------------------------------------------------------------------------------
+    def _heartbeat_loop(self) -> None:
+        interval = self.config.lease_ttl_ms / 3000
+        while not self._stopping.wait(interval):
+            try:
+                self._heartbeat_once()
+            except redis.RedisError:
+                log.exception("heartbeat failed")
+
+    def _heartbeat_once(self) -> None:
+        pipe = self.client.pipeline(transaction=False)
+        pipe.set(keys.worker(self.worker_id), len(self.runners), px=self.config.lease_ttl_ms)
+        pipe.hset(keys.worker_stats(self.worker_id), mapping=self.stats.as_fields())
+        pipe.expire(keys.worker_stats(self.worker_id), 3600)
+        pipe.execute()
+        for session_id, runner in list(self.runners.items()):
+            if not runner.is_alive():
+                continue
+            if self.leases.renew(session_id):
+                # keep our job entry fresh so XAUTOCLAIM by others only catches jobs of silent workers
+                self.client.xclaim(keys.JOBS, keys.GROUP, self.worker_id, min_idle_time=0,
+                                   message_ids=[runner.job_id], justid=True)
+            else:
+                runner.lease_lost()
+
+    # --- requests for finished sessions -------------------------------------------------------------------------
+    def _requests_loop(self) -> None:
+        while not self._stopping.is_set():
+            try:
+                reply = self.client.xreadgroup(keys.GROUP, self.worker_id, {keys.REQUESTS: ">"}, count=1,
+                                               block=500)
+                for _stream, entries in reply or []:
+                    for entry_id, fields in entries:
+                        t0 = time.perf_counter()
+                        session_id = fields.get(b"session_id", b"").decode()
+                        handle_request(self.client, self._finished_engine(session_id), fields)
+                        self.client.xack(keys.REQUESTS, keys.GROUP, entry_id)
+                        self.stats.add("render", time.perf_counter() - t0)
+            except redis.RedisError:
+                log.exception("request loop error")
+                time.sleep(0.5)
+
+    def _finished_engine(self, session_id: str) -> SessionEngine | None:
+        """The engine of a finished session, restored from its snapshot (a small LRU cache)."""
+        snap = self.client.hmget(keys.snapshot(session_id), ["stream_id", "engine", "data"])
+        if snap[2] is None:
+            return None
+        cache_key = f"{session_id}@{snap[0].decode()}"
+        if cache_key in self._finished_engines:
+            self._finished_engines.move_to_end(cache_key)
+            return self._finished_engines[cache_key]
+        engine = restore_engine(snap[1].decode(), snap[2])
+        self._finished_engines[cache_key] = engine
+        while len(self._finished_engines) > 4:
+            close_engine(self._finished_engines.popitem(last=False)[1])
+        return engine

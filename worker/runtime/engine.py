@@ -1,0 +1,131 @@
+"""The one interface the runtime drives: a per-session SLAM engine.
+
+`create_engine(kind, preset, intrinsics)` and `restore_engine(kind, blob)` build engines of two kinds:
+- "slam": the real `worker.slam.SlamSystem` (the default).
+- "passthrough": a tiny deterministic engine that tracks nothing (it reports the frame's own pose, or identity)
+  and renders a flat image. It exists to test the runtime's delivery guarantees quickly and to measure the
+  service's own per-frame overhead without the engine's compute; it is never the default.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Protocol
+
+import numpy as np
+
+from worker.data.frame import Frame, FrameResult
+from worker.geometry import Intrinsics
+from worker.serialization import pack, unpack
+
+ENGINE_KINDS = ("slam", "passthrough")
+
+
+class SessionEngine(Protocol):
+    """What the runtime needs from an engine (the SlamSystem contract)."""
+
+    revision: int
+
+    def push(self, frame: Frame) -> FrameResult: ...
+
+    def finish(self) -> None: ...
+
+    def trajectory(self, which: str = "all") -> list[tuple[int, float, np.ndarray]]: ...
+
+    def render_view(self, pose_c2w: np.ndarray, K: np.ndarray, width: int, height: int
+                    ) -> tuple[np.ndarray, np.ndarray]: ...
+
+    def export_ply(self) -> bytes: ...
+
+    def snapshot(self) -> bytes: ...
+
+
+def create_engine(kind: str, preset: str | None, intrinsics: Intrinsics | None) -> SessionEngine:
+    """A fresh engine of `kind` for a new session."""
+    if kind == "slam":
+        from worker.slam import SlamConfig, SlamSystem
+
+        return SlamSystem(SlamConfig.preset(preset) if preset else None, intrinsics=intrinsics)
+    if kind == "passthrough":
+        return PassthroughEngine(intrinsics=intrinsics)
+    raise ValueError(f"unknown engine kind {kind!r}; expected one of {ENGINE_KINDS}")
+
+
+def restore_engine(kind: str, blob: bytes) -> SessionEngine:
+    """An engine rebuilt from `snapshot()` bytes."""
+    if kind == "slam":
+        from worker.slam import SlamSystem
+
+        return SlamSystem.restore(blob)
+    if kind == "passthrough":
+        return PassthroughEngine.restore(blob)
+    raise ValueError(f"unknown engine kind {kind!r}; expected one of {ENGINE_KINDS}")
+
+
+def close_engine(engine: SessionEngine | None) -> None:
+    """Stop an engine's background threads, if it has any (SlamSystem.close)."""
+    close = getattr(engine, "close", None)
+    if close is not None:
+        close()
+
+
+class PassthroughEngine:
+    """Deterministic engine without tracking: pose = the frame's pose (or identity), every 4th frame a keyframe."""
+
+    KEYFRAME_EVERY = 4
+
+    def __init__(self, intrinsics: Intrinsics | None = None) -> None:
+        self.intrinsics = intrinsics
+        self.revision = 0
+        self._poses: list[tuple[int, float, np.ndarray, bool]] = []
+        self._colors: list[np.ndarray] = []
+        self.finished = False
+
+    def push(self, frame: Frame) -> FrameResult:
+        if self.finished:
+            raise RuntimeError("push after finish")
+        pose = np.eye(4) if frame.pose is None else np.asarray(frame.pose, dtype=np.float64)
+        is_keyframe = len(self._poses) % self.KEYFRAME_EVERY == 0
+        self._poses.append((frame.index, frame.timestamp, pose, is_keyframe))
+        if is_keyframe:
+            self._colors.append(frame.image.reshape(-1, 3).mean(axis=0))
+        return FrameResult(index=frame.index, timestamp=frame.timestamp, pose=pose, is_keyframe=is_keyframe,
+                           submap_id=len(self._poses) // 8, revision=self.revision)
+
+    def finish(self) -> None:
+        self.finished = True
+
+    def trajectory(self, which: str = "all") -> list[tuple[int, float, np.ndarray]]:
+        if which not in ("all", "keyframes"):
+            raise ValueError("which must be 'all' or 'keyframes'")
+        return [(i, t, p) for i, t, p, kf in self._poses if which == "all" or kf]
+
+    def render_view(self, pose_c2w: np.ndarray, K: np.ndarray, width: int, height: int
+                    ) -> tuple[np.ndarray, np.ndarray]:
+        mean = np.mean(self._colors, axis=0) if self._colors else np.zeros(3)
+        rgb = np.broadcast_to(mean.astype(np.uint8), (height, width, 3)).copy()
+        depth = np.full((height, width), 1.0 + float(np.linalg.norm(pose_c2w[:3, 3])), dtype=np.float32)
+        return rgb, depth
+
+    def export_ply(self) -> bytes:
+        centres = [p[:3, 3] for _, _, p, _ in self._poses]
+        lines = ["ply", "format ascii 1.0", f"element vertex {len(centres)}", "property float x",
+                 "property float y", "property float z", "end_header"]
+        lines += [f"{c[0]:.6f} {c[1]:.6f} {c[2]:.6f}" for c in centres]
+        return ("\n".join(lines) + "\n").encode()
+
+    def snapshot(self) -> bytes:
+        return pack({
+            "intrinsics": self.intrinsics.to_dict() if self.intrinsics else None, "revision": self.revision,
+            "finished": self.finished, "colors": [c for c in self._colors],
+            "poses": [[i, t, p, kf] for i, t, p, kf in self._poses],
+        })
+
+    @classmethod
+    def restore(cls, blob: bytes) -> PassthroughEngine:
+        state: dict[str, Any] = unpack(blob)
+        engine = cls(Intrinsics.from_dict(state["intrinsics"]) if state["intrinsics"] else None)
+        engine.revision = int(state["revision"])
+        engine.finished = bool(state["finished"])
+        engine._colors = list(state["colors"])
+        engine._poses = [(int(i), float(t), np.asarray(p), bool(kf)) for i, t, p, kf in state["poses"]]
+        return engine

@@ -1,0 +1,64 @@
+"""Worker process entry point: `python -m worker.runtime.main` (or via `flashmono serve`).
+
+Environment (flags override): REDIS_URL (required here), FLASHMONO_WORKER_ID, FLASHMONO_ENGINE (slam|passthrough),
+FLASHMONO_LEASE_TTL_MS (10000), FLASHMONO_SNAPSHOT_EVERY (keyframes between snapshots, 5),
+FLASHMONO_MAX_SESSIONS (sessions per worker, 16), FLASHMONO_TORCH_THREADS (torch intra-op threads).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import signal
+import socket
+import sys
+import uuid
+
+import redis
+
+from worker.runtime.consumer import Worker
+from worker.runtime.engine import ENGINE_KINDS
+from worker.runtime.sessions import RuntimeConfig
+
+
+def build_parser() -> argparse.ArgumentParser:
+    env = os.environ.get
+    parser = argparse.ArgumentParser(prog="flashmono-worker", description="Flash-Mono worker (Redis streams).")
+    parser.add_argument("--redis-url", default=env("REDIS_URL"))
+    parser.add_argument("--worker-id", default=env("FLASHMONO_WORKER_ID"))
+    parser.add_argument("--engine", choices=ENGINE_KINDS, default=env("FLASHMONO_ENGINE", "slam"))
+    parser.add_argument("--lease-ttl-ms", type=int, default=int(env("FLASHMONO_LEASE_TTL_MS", "10000")))
+    parser.add_argument("--snapshot-every", type=int, default=int(env("FLASHMONO_SNAPSHOT_EVERY", "5")))
+    parser.add_argument("--max-sessions", type=int, default=int(env("FLASHMONO_MAX_SESSIONS", "16")))
+    parser.add_argument("--torch-threads", type=int, default=int(env("FLASHMONO_TORCH_THREADS", "0")))
+    parser.add_argument("--log-level", default=env("FLASHMONO_LOG_LEVEL", "INFO"))
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    if not args.redis_url:
+        print("error: REDIS_URL (or --redis-url) is required for a worker", file=sys.stderr)
+        return 2
+    if args.snapshot_every < 1 or args.max_sessions < 1:
+        print("error: --snapshot-every and --max-sessions must be >= 1", file=sys.stderr)
+        return 2
+    if args.torch_threads > 0:
+        import torch
+
+        torch.set_num_threads(args.torch_threads)
+    worker_id = args.worker_id or f"{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:6]}"
+    config = RuntimeConfig(engine_kind=args.engine, lease_ttl_ms=args.lease_ttl_ms,
+                           snapshot_every_keyframes=args.snapshot_every, max_sessions=args.max_sessions)
+    client = redis.Redis.from_url(args.redis_url, health_check_interval=30)
+    worker = Worker(client, worker_id, config)
+    signal.signal(signal.SIGTERM, lambda *_: worker.shutdown())
+    signal.signal(signal.SIGINT, lambda *_: worker.shutdown())
+    worker.run()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

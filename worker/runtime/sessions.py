@@ -1,0 +1,388 @@
+"""One owned session: restore its snapshot, replay what came after it, then process frames as they arrive.
+
+Delivery guarantees (see DESIGN.md): a frame's input entry is XACKed in the same atomic Lua call that stores its
+result (pose record, counters, outbound message), and the store is idempotent by seq (HSETNX), so a frame is
+counted once even when a new owner processes it again after a crash. A new owner rebuilds the engine from the
+last snapshot and replays every input entry after the snapshot's stream id: frames whose results are already
+stored are fed to the engine silently (to rebuild its state); the others are processed normally.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from typing import Any
+
+import numpy as np
+import redis
+
+from worker.runtime import keys
+from worker.runtime.engine import SessionEngine, close_engine, create_engine, restore_engine
+from worker.runtime.frames import FrameError, decode_frame
+from worker.runtime.leases import Leases
+from worker.runtime.requests import handle_request
+from worker.runtime.stats import StageStats
+from worker.serialization import pack, unpack
+
+log = logging.getLogger(__name__)
+
+_STORE_RESULT = """
+if redis.call('EXISTS', KEYS[1]) == 0 then return -1 end
+local new = redis.call('HSETNX', KEYS[2], ARGV[1], ARGV[2])
+if new == 1 then
+  redis.call('HINCRBY', KEYS[1], 'frames_processed', 1)
+  if ARGV[5] == '1' then redis.call('HINCRBY', KEYS[1], 'keyframes', 1) end
+  redis.call('XADD', KEYS[3], 'MAXLEN', '~', ARGV[8], '*', 'msg', ARGV[3])
+end
+redis.call('HSET', KEYS[1], 'revision', ARGV[6], 'updated_at', ARGV[7])
+redis.call('XACK', KEYS[4], 'workers', ARGV[4])
+return new
+"""
+_STORE_REJECTION = """
+if redis.call('EXISTS', KEYS[1]) == 0 then return -1 end
+local new = redis.call('HSETNX', KEYS[2], ARGV[1], ARGV[2])
+if new == 1 then
+  redis.call('HINCRBY', KEYS[1], 'frames_rejected', 1)
+  redis.call('XADD', KEYS[3], 'MAXLEN', '~', ARGV[5], '*', 'msg', ARGV[3])
+end
+redis.call('XACK', KEYS[4], 'workers', ARGV[4])
+return new
+"""
+
+
+@dataclass
+class RuntimeConfig:
+    """How a worker runs sessions (environment names in worker/runtime/main.py)."""
+
+    engine_kind: str = "slam"
+    lease_ttl_ms: int = 10_000
+    snapshot_every_keyframes: int = 5
+    max_sessions: int = 16
+    block_ms: int = 500
+    outbox_maxlen: int = 5000
+
+
+class SessionGone(Exception):
+    """The session was deleted while we owned it."""
+
+
+class LeaseLost(Exception):
+    """Another worker owns the session now."""
+
+
+def now_iso() -> str:
+    return datetime.now(UTC).isoformat(timespec="milliseconds")
+
+
+def stream_id_tuple(stream_id: bytes | str) -> tuple[int, int]:
+    text = stream_id.decode() if isinstance(stream_id, bytes) else stream_id
+    ms, _, seq = text.partition("-")
+    return int(ms), int(seq or 0)
+
+
+def ensure_group(client: redis.Redis, stream: str) -> None:
+    """Create the "workers" consumer group on `stream` (and the stream) if missing."""
+    try:
+        client.xgroup_create(stream, keys.GROUP, id="0", mkstream=True)
+    except redis.ResponseError as err:
+        if "BUSYGROUP" not in str(err):
+            raise
+
+
+def pose_message(seq: int, timestamp: float, pose: np.ndarray, is_keyframe: bool, revision: int) -> bytes:
+    return json.dumps({"type": "pose", "seq": seq, "timestamp": timestamp,
+                       "pose": np.asarray(pose, dtype=np.float64).reshape(-1).tolist(),
+                       "is_keyframe": bool(is_keyframe), "revision": int(revision)}).encode()
+
+
+class SessionRunner(threading.Thread):
+    """Runs one session on this worker until it finishes, fails, is deleted, loses its lease or is stopped."""
+
+    def __init__(self, client: redis.Redis, worker_id: str, session_id: str, job_id: str, leases: Leases,
+                 config: RuntimeConfig, stats: StageStats) -> None:
+        super().__init__(name=f"session-{session_id}", daemon=True)
+        self.client = client
+        self.worker_id = worker_id
+        self.session_id = session_id
+        self.job_id = job_id
+        self.leases = leases
+        self.config = config
+        self.stats = stats
+        self.engine: SessionEngine | None = None
+        self.terminal = False  # finished, failed or deleted: the job is done
+        self._stop_event = threading.Event()
+        self._lease_lost = threading.Event()
+        self._done_seqs: set[int] = set()
+        self._rejected: set[int] = set()
+        self._cursor = (0, 0)
+        self._keyframes_since_snapshot = 0
+        self._revision = 0
+        self._last_id: bytes = b"0-0"
+        self._session: dict[str, Any] = {}
+        self._store_result = client.register_script(_STORE_RESULT)
+        self._store_rejection = client.register_script(_STORE_REJECTION)
+
+    # --- control from the worker --------------------------------------------------------------------------------
+    def stop(self) -> None:
+        """Stop after the current frame (worker shutdown); the lease is released for another worker."""
+        self._stop_event.set()
+
+    def lease_lost(self) -> None:
+        self._lease_lost.set()
+
+    # --- thread body --------------------------------------------------------------------------------------------
+    def run(self) -> None:
+        try:
+            self._load_session()
+            self._restore_and_replay()
+            self._process_until_done()
+        except SessionGone:
+            log.info("session %s was deleted", self.session_id)
+            self.terminal = True
+            self.client.delete(*keys.all_session_keys(self.session_id))
+        except LeaseLost:
+            log.warning("session %s: lease lost, stopping", self.session_id)
+        except Exception as err:
+            log.exception("session %s failed", self.session_id)
+            self._fail(err)
+        finally:
+            close_engine(self.engine)
+            if not self._lease_lost.is_set():
+                self.leases.release(self.session_id)
+
+    def _load_session(self) -> None:
+        raw = self.client.hgetall(keys.session(self.session_id))
+        if not raw:
+            raise SessionGone
+        self._session = {k.decode(): v.decode() for k, v in raw.items() if k != b"owner"}
+        self._revision = int(self._session.get("revision", 0))
+        self.client.hset(keys.session(self.session_id), mapping={"worker": self.worker_id, "updated_at": now_iso()})
+
+    def _session_intrinsics(self) -> dict[str, Any] | None:
+        text = self._session.get("intrinsics")
+        return json.loads(text) if text and text != "null" else None
+
+    def _restore_and_replay(self) -> None:
+        ensure_group(self.client, keys.inbox(self.session_id))
+        ensure_group(self.client, keys.session_requests(self.session_id))
+        snap = self.client.hgetall(keys.snapshot(self.session_id))
+        if snap:
+            self.engine = restore_engine(snap[b"engine"].decode(), snap[b"data"])
+            self._last_id = snap[b"stream_id"]
+            log.info("session %s restored from snapshot at seq %s", self.session_id, snap[b"seq"].decode())
+        else:
+            intrinsics = self._session_intrinsics()
+            from worker.geometry import Intrinsics
+
+            self.engine = create_engine(self.config.engine_kind, self._session.get("preset") or None,
+                                        Intrinsics.from_dict(intrinsics) if intrinsics else None)
+        self._done_seqs = {int(s) for s in self.client.hkeys(keys.poses(self.session_id))}
+        self._rejected = {int(s) for s in self.client.hkeys(keys.rejected(self.session_id))}
+        self._done_seqs |= self._rejected
+        # take over entries a dead owner left pending, then replay everything after the snapshot
+        start = "0-0"
+        while True:
+            start, _claimed, *_ = self.client.xautoclaim(keys.inbox(self.session_id), keys.GROUP, self.worker_id,
+                                                         min_idle_time=0, start_id=start, count=100)
+            if start in (b"0-0", "0-0"):
+                break
+        after = self._last_id
+        while not self.terminal:
+            entries = self.client.xrange(keys.inbox(self.session_id), min=f"({after.decode()}", count=64)
+            if not entries:
+                break
+            for entry_id, fields in entries:
+                self._handle_entry(entry_id, fields)
+                after = entry_id
+        self._cursor = stream_id_tuple(after)
+
+    def _process_until_done(self) -> None:
+        streams = {keys.inbox(self.session_id): ">", keys.session_requests(self.session_id): ">"}
+        while not self.terminal:
+            if self._stop_event.is_set():
+                return
+            if self._lease_lost.is_set():
+                raise LeaseLost
+            t0 = time.perf_counter()
+            try:
+                reply = self.client.xreadgroup(keys.GROUP, self.worker_id, streams, count=16,
+                                               block=self.config.block_ms)
+            except redis.ResponseError as err:
+                if "NOGROUP" in str(err) and not self.client.exists(keys.session(self.session_id)):
+                    raise SessionGone from err
+                raise
+            if not reply:
+                if not self.client.exists(keys.session(self.session_id)):
+                    raise SessionGone
+                continue
+            frames = sum(len(e) for s, e in reply if s.decode() == keys.inbox(self.session_id))
+            if frames:
+                self.stats.add("read", time.perf_counter() - t0, frames)
+            for stream, entries in reply:
+                is_inbox = stream.decode() == keys.inbox(self.session_id)
+                for entry_id, fields in entries:
+                    if not is_inbox:
+                        self._handle_request(entry_id, fields)
+                    elif stream_id_tuple(entry_id) <= self._cursor:
+                        self.client.xack(keys.inbox(self.session_id), keys.GROUP, entry_id)  # replayed already
+                    else:
+                        self._handle_entry(entry_id, fields)
+                        self._cursor = stream_id_tuple(entry_id)
+        self._drain_requests()
+
+    # --- entries ------------------------------------------------------------------------------------------------
+    def _handle_entry(self, entry_id: bytes, fields: dict[bytes, bytes]) -> None:
+        kind = fields.get(b"kind", b"frame")
+        if kind == b"finish":
+            self._finish(entry_id)
+            return
+        seq = int(fields[b"seq"])
+        if seq in self._done_seqs:
+            self._replay_frame(fields)
+            self.client.xack(keys.inbox(self.session_id), keys.GROUP, entry_id)
+            return
+        self._process_frame(entry_id, seq, fields)
+
+    def _replay_frame(self, fields: dict[bytes, bytes]) -> None:
+        """Feed an already-counted frame to a restored engine so its state catches up (no results emitted)."""
+        if int(fields[b"seq"]) not in self._rejected:
+            try:
+                self.engine.push(decode_frame(unpack(fields[b"msg"]), self._session_intrinsics()))
+            except (FrameError, ValueError) as err:
+                log.warning("replay of seq %s failed: %s", fields[b"seq"], err)
+
+    def _process_frame(self, entry_id: bytes, seq: int, fields: dict[bytes, bytes]) -> None:
+        t0 = time.perf_counter()
+        try:
+            message = unpack(fields[b"msg"])
+            frame = decode_frame(message, self._session_intrinsics())
+        except FrameError as err:
+            self._reject(entry_id, seq, err.code, str(err))
+            return
+        except (ValueError, KeyError, TypeError) as err:
+            self._reject(entry_id, seq, "bad_frame", f"frame cannot be used: {err}")
+            return
+        t1 = time.perf_counter()
+        try:
+            result = self.engine.push(frame)
+        except ValueError as err:  # the engine refuses this frame (e.g. a size it cannot take); the session goes on
+            self._reject(entry_id, seq, "bad_frame", f"engine refused the frame: {err}")
+            return
+        t2 = time.perf_counter()
+        record = pack({"t": result.timestamp, "p": np.asarray(result.pose, dtype=np.float64).reshape(-1).tolist(),
+                       "kf": bool(result.is_keyframe)})
+        out = pose_message(seq, result.timestamp, result.pose, result.is_keyframe, result.revision)
+        status = self._store_result(
+            keys=[keys.session(self.session_id), keys.poses(self.session_id), keys.outbox(self.session_id),
+                  keys.inbox(self.session_id)],
+            args=[seq, record, out, entry_id, int(result.is_keyframe), result.revision, now_iso(),
+                  self.config.outbox_maxlen])
+        if status == -1:
+            raise SessionGone
+        self._done_seqs.add(seq)
+        t3 = time.perf_counter()
+        self.stats.add("decode", t1 - t0)
+        self.stats.add("engine", t2 - t1)
+        self.stats.add("store", t3 - t2)
+        self.stats.add("dispatch", (t1 - t0) + (t3 - t2))
+        if result.revision != self._revision or any(e.get("type") == "loop_closed" for e in result.events):
+            self._publish_revision(result.revision, result.events)
+        if result.is_keyframe:
+            self._keyframes_since_snapshot += 1
+            if self._keyframes_since_snapshot >= self.config.snapshot_every_keyframes:
+                self._write_snapshot(seq, entry_id)
+
+    def _reject(self, entry_id: bytes, seq: int, code: str, message: str) -> None:
+        out = json.dumps({"type": "error", "code": code, "message": message, "seq": seq}).encode()
+        status = self._store_rejection(
+            keys=[keys.session(self.session_id), keys.rejected(self.session_id), keys.outbox(self.session_id),
+                  keys.inbox(self.session_id)],
+            args=[seq, code, out, entry_id, self.config.outbox_maxlen])
+        if status == -1:
+            raise SessionGone
+        self._done_seqs.add(seq)
+        self._rejected.add(seq)
+
+    def _publish_revision(self, revision: int, events: list[dict[str, Any]]) -> None:
+        """A loop closure rewrote the past: store the whole new trajectory and tell the clients."""
+        self._revision = revision
+        self._store_trajectory()
+        loops = [e for e in events if e.get("type") == "loop_closed"] or [{"type": "loop_closed"}]
+        for event in loops:
+            message = {**{k: v for k, v in event.items() if isinstance(v, (int, float, str, bool))},
+                       "type": "loop_closed", "revision": revision}
+            self.client.xadd(keys.outbox(self.session_id), {"msg": json.dumps(message).encode()},
+                             maxlen=self.config.outbox_maxlen, approximate=True)
+
+    def _store_trajectory(self) -> None:
+        keyframes = {int(i) for i, _, _ in self.engine.trajectory("keyframes")}
+        mapping = {int(i): pack({"t": float(t), "p": np.asarray(p, dtype=np.float64).reshape(-1).tolist(),
+                                 "kf": int(i) in keyframes})
+                   for i, t, p in self.engine.trajectory("all")}
+        if mapping:
+            pipe = self.client.pipeline(transaction=True)
+            pipe.hset(keys.poses(self.session_id), mapping=mapping)
+            pipe.hset(keys.session(self.session_id), mapping={"revision": self._revision, "keyframes": len(keyframes),
+                                                             "updated_at": now_iso()})
+            pipe.execute()
+
+    def _write_snapshot(self, seq: int, entry_id: bytes) -> None:
+        t0 = time.perf_counter()
+        blob = self.engine.snapshot()
+        pipe = self.client.pipeline(transaction=True)
+        pipe.hset(keys.snapshot(self.session_id), mapping={
+            "data": blob, "seq": seq, "stream_id": entry_id, "engine": self.config.engine_kind,
+            "created_at": now_iso()})
+        pipe.xtrim(keys.inbox(self.session_id), minid=entry_id, approximate=False)
+        pipe.execute()
+        self._last_id = entry_id
+        self._keyframes_since_snapshot = 0
+        self.stats.add("snapshot", time.perf_counter() - t0)
+
+    def _finish(self, entry_id: bytes) -> None:
+        self.engine.finish()
+        self._revision = int(getattr(self.engine, "revision", self._revision))
+        self._store_trajectory()
+        last_seq = max(self._done_seqs) if self._done_seqs else -1
+        self._write_snapshot(last_seq, entry_id)
+        frames = int(self.client.hget(keys.session(self.session_id), "frames_processed") or 0)
+        pipe = self.client.pipeline(transaction=True)
+        pipe.hset(keys.session(self.session_id), mapping={"status": "finished", "updated_at": now_iso()})
+        pipe.xadd(keys.outbox(self.session_id), {"msg": json.dumps({"type": "finished", "frames": frames}).encode()},
+                  maxlen=self.config.outbox_maxlen, approximate=True)
+        pipe.xack(keys.inbox(self.session_id), keys.GROUP, entry_id)
+        pipe.execute()
+        self.terminal = True
+
+    def _fail(self, err: Exception) -> None:
+        self.terminal = True
+        try:
+            if not self.client.exists(keys.session(self.session_id)):
+                return
+            message = json.dumps({"type": "error", "code": "engine_failed", "message": f"session failed: {err}"})
+            pipe = self.client.pipeline(transaction=True)
+            pipe.hset(keys.session(self.session_id), mapping={"status": "failed", "error": str(err)[:500],
+                                                             "updated_at": now_iso()})
+            pipe.xadd(keys.outbox(self.session_id), {"msg": message.encode()})
+            pipe.execute()
+        except redis.RedisError:
+            log.exception("could not record the failure of session %s", self.session_id)
+
+    # --- requests -----------------------------------------------------------------------------------------------
+    def _handle_request(self, entry_id: bytes, fields: dict[bytes, bytes]) -> None:
+        t0 = time.perf_counter()
+        handle_request(self.client, self.engine, fields)
+        self.client.xack(keys.session_requests(self.session_id), keys.GROUP, entry_id)
+        self.stats.add("render", time.perf_counter() - t0)
+
+    def _drain_requests(self) -> None:
+        """Answer requests that arrived while the session was finishing."""
+        reply = self.client.xreadgroup(keys.GROUP, self.worker_id, {keys.session_requests(self.session_id): ">"},
+                                       count=100)
+        for _stream, entries in reply or []:
+            for entry_id, fields in entries:
+                self._handle_request(entry_id, fields)
