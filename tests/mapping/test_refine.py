@@ -1,0 +1,64 @@
+import pytest
+import torch
+from mapping_scene import camera_pose, intrinsics, pixel_surfels, psnr, view
+
+from worker.mapping import Surfels
+from worker.mapping.gaussian_map import rigid_viewmat
+from worker.mapping.rasterize import rasterize
+from worker.mapping.refine import RefineView, refine_surfels
+
+
+def make_views(poses):
+    views = []
+    for pose in poses:
+        viewmat, s = rigid_viewmat(pose)
+        v = view(pose)
+        views.append(RefineView(viewmat.float(), intrinsics(), v["image"], v["depth"], s))
+    return views
+
+
+def perturbed_map(gen: torch.Generator) -> tuple[Surfels, Surfels]:
+    pose = camera_pose()
+    clean = pixel_surfels(pose).transform(pose.float())
+    noisy = clean.clone()
+    noisy.colors = (noisy.colors + 0.25 * torch.randn(noisy.colors.shape, generator=gen)).clamp(0, 1)
+    noisy.opacities = noisy.opacities * (0.5 + 0.5 * torch.rand(len(noisy), generator=gen))
+    noisy.means = noisy.means + 0.01 * torch.randn(noisy.means.shape, generator=gen)
+    return clean, noisy
+
+
+def render_psnr(surfels: Surfels, views: list[RefineView]) -> float:
+    with torch.no_grad():
+        return sum(psnr(rasterize(surfels, v.viewmat, v.K, 64, 48).rgb, v.image) for v in views) / len(views)
+
+
+def test_refinement_raises_psnr_of_a_perturbed_map():
+    gen = torch.Generator().manual_seed(0)
+    _, noisy = perturbed_map(gen)
+    views = make_views([camera_pose(), camera_pose(0.1, 0.0, 0.05)])
+    before = render_psnr(noisy, views)
+    refined, report = refine_surfels(noisy, torch.ones(len(noisy), dtype=torch.bool), views, iterations=30)
+    after = render_psnr(refined, views)
+    assert len(report.losses) == 30 and report.views[:3] == [1, 0, 1]
+    assert after > before + 2.0, (before, after)
+    assert sum(report.losses[-4:]) < sum(report.losses[:4])
+    assert len(refined) == len(noisy)
+
+
+def test_only_the_window_is_optimised():
+    gen = torch.Generator().manual_seed(1)
+    _, noisy = perturbed_map(gen)
+    trainable = torch.arange(len(noisy)) % 2 == 0
+    refined, _ = refine_surfels(noisy, trainable, make_views([camera_pose()]), iterations=3)
+    for name in ("means", "quats", "scales", "opacities", "colors"):
+        assert torch.equal(getattr(refined, name)[~trainable], getattr(noisy, name)[~trainable]), name
+        assert not torch.equal(getattr(refined, name)[trainable], getattr(noisy, name)[trainable]), name
+    assert float(refined.colors.min()) >= 0 and float(refined.colors.max()) <= 1
+
+
+def test_bad_arguments():
+    _, noisy = perturbed_map(torch.Generator().manual_seed(2))
+    with pytest.raises(ValueError, match="trainable"):
+        refine_surfels(noisy, torch.ones(3, dtype=torch.bool), make_views([camera_pose()]))
+    with pytest.raises(ValueError, match="iterations"):
+        refine_surfels(noisy, torch.ones(len(noisy), dtype=torch.bool), make_views([camera_pose()]), iterations=-1)

@@ -1,0 +1,274 @@
+"""The backend's global 2DGS map (paper sec. 4.3): fuse keyframes, refine the recent window, follow loop closures.
+
+Keyframe poses are camera-to-world Sim(3) matrices [sR|t]. Renders use the rigid part [R|t] (world->camera
+viewmat = its inverse), so rendered depth is in world units; a keyframe's own camera-frame depth equals the
+world-unit depth divided by its scale s.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import torch
+
+from worker.geometry import make_sim3, sim3_decompose, sim3_inverse
+
+from .fusion import FusionThresholds, attribute_errors, densify_mask, prune_mask
+from .loop_correction import correct_map
+from .ply import surfels_to_ply_bytes
+from .rasterize import RenderResult, rasterize
+from .refine import RefineReport, RefineSettings, RefineView, refine_surfels
+from .surfels import Surfels
+
+
+@dataclass
+class MapConfig:
+    """Backend map settings (paper defaults where the paper gives them: K window, 20 iterations)."""
+
+    window: int = 5  # K: keyframes whose surfels are refined
+    iterations: int = 20  # refinement iterations per keyframe
+    thresholds: FusionThresholds = field(default_factory=FusionThresholds)
+    refine: RefineSettings = field(default_factory=RefineSettings)
+    min_opacity: float = 0.005  # surfels fading below this after refinement are removed
+    device: str = "cpu"
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> MapConfig:
+        d = dict(d)
+        thresholds = FusionThresholds(**d.pop("thresholds", {}))
+        refine = RefineSettings(**d.pop("refine", {}))
+        return cls(thresholds=thresholds, refine=refine, **d)
+
+
+@dataclass
+class FusionStats:
+    """What `add_keyframe` did."""
+
+    pruned: int
+    added: int
+    skipped: int
+
+
+@dataclass
+class _Keyframe:
+    pose: torch.Tensor  # [4,4] float64 camera-to-world Sim(3)
+    K: torch.Tensor  # [3,3] float32
+    width: int
+    height: int
+    image: torch.Tensor | None  # [H,W,3] float32 in [0,1]; dropped once out of the refinement window
+    depth: torch.Tensor | None  # [H,W] float32, camera-frame z (0 = unknown)
+
+
+def rigid_viewmat(pose_c2w: torch.Tensor) -> tuple[torch.Tensor, float]:
+    """(world->camera rigid 4x4 of a camera-to-world Sim(3), its scale s)."""
+    s, R, t = sim3_decompose(pose_c2w.to(torch.float64))
+    return sim3_inverse(make_sim3(R, t)), float(s)
+
+
+def _as_pose(pose: torch.Tensor | np.ndarray, what: str) -> torch.Tensor:
+    pose = torch.as_tensor(np.asarray(pose) if not torch.is_tensor(pose) else pose).to(torch.float64).cpu()
+    if tuple(pose.shape) != (4, 4) or not torch.isfinite(pose).all():
+        raise ValueError(f"{what} must be a finite 4x4 matrix, got shape {tuple(pose.shape)}")
+    s = torch.linalg.det(pose[:3, :3])
+    if s <= 0:
+        raise ValueError(f"{what} must be a proper Sim(3) (positive determinant)")
+    return pose
+
+
+class GaussianMap:
+    """The global surfel map the SLAM backend drives.
+
+    add_keyframe: prune by render error -> transform to world (eq. 17) -> add where accumulation < tau_accum.
+    refine: Adam on the surfels of the last `window` keyframes. apply_pose_updates: rigid per-keyframe correction.
+    """
+
+    def __init__(self, config: MapConfig | None = None):
+        self.config = config or MapConfig()
+        self.device = torch.device(self.config.device)
+        self._surfels = Surfels.empty(self.device)
+        self._keyframes: dict[int, _Keyframe] = {}
+
+    # -- read access -------------------------------------------------------------------------------------------
+    @property
+    def surfels(self) -> Surfels:
+        return self._surfels
+
+    @property
+    def num_gaussians(self) -> int:
+        return len(self._surfels)
+
+    @property
+    def keyframe_ids(self) -> list[int]:
+        """Keyframe ids in insertion order."""
+        return list(self._keyframes)
+
+    def keyframe_pose(self, kf_id: int) -> torch.Tensor:
+        return self._keyframes[kf_id].pose.clone()
+
+    # -- updates -----------------------------------------------------------------------------------------------
+    def add_keyframe(self, kf_id: int, pose_c2w: torch.Tensor, K: torch.Tensor, image: torch.Tensor,
+                     surfels_cam: Surfels, depth: torch.Tensor | None = None) -> FusionStats:
+        """Fuse a keyframe's camera-frame surfels into the map.
+
+        image: [H,W,3] float in [0,1] (uint8 is converted); depth: optional [H,W] camera-frame z used for pruning
+        and as the refinement's depth target (0 = unknown).
+        """
+        kf_id = int(kf_id)
+        if kf_id in self._keyframes:
+            raise ValueError(f"keyframe {kf_id} is already in the map")
+        pose = _as_pose(pose_c2w, "pose_c2w")
+        kf = self._make_keyframe(pose, K, image, depth)
+        if not isinstance(surfels_cam, Surfels):
+            raise ValueError("surfels_cam must be a Surfels")
+        surfels_cam = surfels_cam.detach().to(self.device, torch.float32)
+        viewmat, scale = rigid_viewmat(pose)
+        viewmat = viewmat.to(self.device, torch.float32)
+        th = self.config.thresholds
+
+        pruned = 0
+        accumulation = torch.zeros(kf.height, kf.width, device=self.device)
+        if len(self._surfels):
+            attribution = attribute_errors(self._surfels, viewmat, kf.K, kf.image, kf.depth, th, scale)
+            remove = prune_mask(attribution, th)
+            pruned = int(remove.sum())
+            accumulation = attribution.render.alpha
+            if pruned:
+                self._surfels = self._surfels.select(~remove)
+                with torch.no_grad():
+                    accumulation = rasterize(self._surfels, viewmat, kf.K, kf.width, kf.height).alpha
+
+        add = densify_mask(surfels_cam, kf.K, accumulation, th.tau_accum)
+        new = surfels_cam.select(add)
+        new.keyframe_ids = torch.full((len(new),), kf_id, dtype=torch.int64, device=self.device)
+        new = new.transform(pose.to(self.device, torch.float32))
+        self._surfels = Surfels.concat([self._surfels, new])
+        self._keyframes[kf_id] = kf
+        self._drop_old_images()
+        return FusionStats(pruned=pruned, added=len(new), skipped=len(surfels_cam) - len(new))
+
+    def refine(self, iterations: int | None = None) -> RefineReport:
+        """Refine the surfels of the last `config.window` keyframes against those keyframes' images."""
+        iterations = self.config.iterations if iterations is None else int(iterations)
+        window = self.keyframe_ids[-self.config.window:]
+        if not window or len(self._surfels) == 0:
+            return RefineReport()
+        views = []
+        for kf_id in window:
+            kf = self._keyframes[kf_id]
+            viewmat, scale = rigid_viewmat(kf.pose)
+            views.append(RefineView(viewmat.to(self.device, torch.float32), kf.K, kf.image, kf.depth, scale))
+        trainable = torch.isin(self._surfels.keyframe_ids, torch.tensor(window, device=self.device))
+        scene_scale = self._scene_scale(window)
+        with torch.enable_grad():
+            refined, report = refine_surfels(self._surfels, trainable, views, iterations, self.config.refine,
+                                             scene_scale)
+        keep = refined.opacities >= self.config.min_opacity
+        self._surfels = refined.select(keep) if not bool(keep.all()) else refined
+        return report
+
+    def apply_pose_updates(self, new_poses: dict[int, torch.Tensor]) -> None:
+        """Loop correction: move each keyframe's surfels by T_new T_old^-1 and store the new poses."""
+        poses = {int(k): _as_pose(v, f"pose of keyframe {k}") for k, v in new_poses.items()}
+        old = {k: kf.pose for k, kf in self._keyframes.items()}
+        self._surfels = correct_map(self._surfels, old, poses)
+        for k, pose in poses.items():
+            self._keyframes[k].pose = pose
+
+    def render(self, pose_c2w: torch.Tensor, K: torch.Tensor, width: int, height: int,
+               background: torch.Tensor | None = None) -> RenderResult:
+        """Render the map from a camera-to-world pose (depth in world units)."""
+        viewmat, _ = rigid_viewmat(_as_pose(pose_c2w, "pose_c2w"))
+        K = torch.as_tensor(K, dtype=torch.float32, device=self.device)
+        with torch.no_grad():
+            return rasterize(self._surfels, viewmat.to(self.device, torch.float32), K, width, height,
+                             background=None if background is None else background.to(self.device))
+
+    def to_ply_bytes(self, variant: str = "3dgs", include_keyframe_id: bool = False) -> bytes:
+        return surfels_to_ply_bytes(self._surfels, variant, include_keyframe_id)
+
+    # -- snapshot ----------------------------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        """Plain dict of numpy arrays / numbers (msgpack-able with worker.serialization.pack)."""
+        keyframes = []
+        for kf_id, kf in self._keyframes.items():
+            keyframes.append({
+                "id": kf_id, "pose": kf.pose.numpy(), "K": kf.K.cpu().numpy(), "width": kf.width,
+                "height": kf.height,
+                "image": None if kf.image is None else (kf.image.clamp(0, 1) * 255).round().byte().cpu().numpy(),
+                "depth": None if kf.depth is None else kf.depth.cpu().numpy(),
+            })
+        return {
+            "version": 1,
+            "config": self.config.to_dict(),
+            "surfels": {k: v.detach().cpu().numpy() for k, v in self._surfels.tensors().items()},
+            "keyframes": keyframes,
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore from `state_dict()` output (possibly round-tripped through msgpack)."""
+        if not isinstance(state, dict) or state.get("version") != 1:
+            raise ValueError("unsupported GaussianMap state (expected version 1)")
+        try:
+            surfels = Surfels(**{k: torch.from_numpy(np.array(v)).to(self.device) for k, v in state["surfels"].items()})
+            keyframes = {}
+            for entry in state["keyframes"]:
+                pose = _as_pose(torch.from_numpy(np.array(entry["pose"])), "pose")
+                K = torch.from_numpy(np.array(entry["K"])).to(self.device, torch.float32)
+                image = None if entry["image"] is None else (
+                    torch.from_numpy(np.array(entry["image"])).to(self.device, torch.float32) / 255.0)
+                depth = None if entry["depth"] is None else torch.from_numpy(np.array(entry["depth"])).to(
+                    self.device, torch.float32)
+                keyframes[int(entry["id"])] = _Keyframe(pose, K, int(entry["width"]), int(entry["height"]),
+                                                        image, depth)
+        except (KeyError, TypeError) as err:
+            raise ValueError(f"malformed GaussianMap state: {err}") from err
+        self._surfels = surfels.to(dtype=torch.float32)
+        self._keyframes = keyframes
+
+    @classmethod
+    def from_state_dict(cls, state: dict) -> GaussianMap:
+        gmap = cls(MapConfig.from_dict(state["config"]))
+        gmap.load_state_dict(state)
+        return gmap
+
+    # -- helpers -----------------------------------------------------------------------------------------------
+    def _make_keyframe(self, pose: torch.Tensor, K: torch.Tensor, image: torch.Tensor,
+                       depth: torch.Tensor | None) -> _Keyframe:
+        image = torch.as_tensor(image)
+        if image.ndim != 3 or image.shape[-1] != 3:
+            raise ValueError(f"image must be [H, W, 3], got {tuple(image.shape)}")
+        image = image.float() / 255.0 if image.dtype == torch.uint8 else image.float()
+        H, W = image.shape[:2]
+        K = torch.as_tensor(K, dtype=torch.float32)
+        if tuple(K.shape) != (3, 3):
+            raise ValueError(f"K must be 3x3, got {tuple(K.shape)}")
+        if depth is not None:
+            depth = torch.as_tensor(depth, dtype=torch.float32)
+            if tuple(depth.shape) != (H, W):
+                raise ValueError(f"depth must be [H, W] = {(H, W)}, got {tuple(depth.shape)}")
+            depth = torch.nan_to_num(depth, nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0).to(self.device)
+        return _Keyframe(pose, K.to(self.device), W, H, image.to(self.device), depth)
+
+    def _drop_old_images(self) -> None:
+        for kf_id in self.keyframe_ids[: -self.config.window]:
+            self._keyframes[kf_id].image = None
+            self._keyframes[kf_id].depth = None
+
+    def _scene_scale(self, window: list[int]) -> float:
+        """Median keyframe depth in world units (sets the position learning rate)."""
+        depths = []
+        for kf_id in window:
+            kf = self._keyframes[kf_id]
+            viewmat, _ = rigid_viewmat(kf.pose)
+            mask = self._surfels.keyframe_ids == kf_id
+            if mask.any():
+                z = self._surfels.means[mask].double() @ viewmat[:3, :3].T.to(self.device) + viewmat[:3, 3].to(
+                    self.device)
+                depths.append(z[:, 2].float())
+        if not depths:
+            return 1.0
+        return float(torch.cat(depths).median().clamp_min(1e-3))

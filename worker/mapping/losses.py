@@ -1,0 +1,68 @@
+"""Differentiable image losses for map refinement: L1, SSIM (11x11 Gaussian, sigma 1.5), masked depth L1."""
+
+from __future__ import annotations
+
+import functools
+
+import torch
+import torch.nn.functional as F
+
+SSIM_C1 = 0.01**2
+SSIM_C2 = 0.03**2
+
+
+@functools.lru_cache(maxsize=8)
+def _gaussian_window(size: int, sigma: float, channels: int, dtype: torch.dtype, device: str) -> torch.Tensor:
+    x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2
+    g = torch.exp(-(x**2) / (2 * sigma**2))
+    g = g / g.sum()
+    window = (g[:, None] * g[None, :]).to(dtype=dtype, device=device)
+    return window.expand(channels, 1, size, size).contiguous()
+
+
+def ssim(image: torch.Tensor, target: torch.Tensor, window_size: int = 11, sigma: float = 1.5) -> torch.Tensor:
+    """Mean SSIM of two [H,W,C] images in [0,1] (zero padding, same-size map, as in the 3DGS/2DGS code)."""
+    if image.shape != target.shape or image.ndim != 3:
+        raise ValueError(f"ssim needs two [H,W,C] images of equal shape, got {tuple(image.shape)}, "
+                         f"{tuple(target.shape)}")
+    C = image.shape[-1]
+    x = image.permute(2, 0, 1)[None]
+    y = target.permute(2, 0, 1)[None]
+    w = _gaussian_window(window_size, sigma, C, image.dtype, str(image.device))
+    pad = window_size // 2
+    mu_x = F.conv2d(x, w, padding=pad, groups=C)
+    mu_y = F.conv2d(y, w, padding=pad, groups=C)
+    var_x = F.conv2d(x * x, w, padding=pad, groups=C) - mu_x**2
+    var_y = F.conv2d(y * y, w, padding=pad, groups=C) - mu_y**2
+    cov = F.conv2d(x * y, w, padding=pad, groups=C) - mu_x * mu_y
+    num = (2 * mu_x * mu_y + SSIM_C1) * (2 * cov + SSIM_C2)
+    den = (mu_x**2 + mu_y**2 + SSIM_C1) * (var_x + var_y + SSIM_C2)
+    return (num / den).mean()
+
+
+def photometric_loss(image: torch.Tensor, target: torch.Tensor, lambda_ssim: float = 0.2) -> torch.Tensor:
+    """(1 - lambda) * L1 + lambda * (1 - SSIM) of [H,W,3] images."""
+    l1 = (image - target).abs().mean()
+    if lambda_ssim == 0:
+        return l1
+    return (1 - lambda_ssim) * l1 + lambda_ssim * (1 - ssim(image, target))
+
+
+def depth_l1(depth: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean |depth - target| over pixels where target > 0 (and `mask`), divided by the target's median.
+
+    Normalising by the median depth makes the term independent of the (monocular) map scale.
+    """
+    valid = target > 0
+    if mask is not None:
+        valid &= mask
+    if not bool(valid.any()):
+        return depth.sum() * 0.0
+    scale = target[valid].median().clamp_min(1e-6)
+    return (depth[valid] - target[valid]).abs().mean() / scale
+
+
+def psnr(image: torch.Tensor, target: torch.Tensor) -> float:
+    """PSNR in dB of images in [0,1] (the render is clamped first)."""
+    mse = float(((image.clamp(0, 1) - target) ** 2).mean())
+    return float("inf") if mse == 0 else -10.0 * torch.log10(torch.tensor(mse)).item()

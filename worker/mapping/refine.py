@@ -1,0 +1,129 @@
+"""Lightweight local map refinement (paper sec. 4.3): a few Adam steps on the surfels of the last K keyframes.
+
+Parameters are optimised in raw (pre-activation) form: means, log scales, logit opacities, unnormalised quaternions
+and colours (clamped to [0,1] after each step). Surfels outside the window are rendered as fixed context. Each
+iteration renders one keyframe of the window (newest first, then round robin) and minimises
+(1 - lambda) L1 + lambda (1 - SSIM) + lambda_depth * depth L1 (when that keyframe has a reference depth).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+from .losses import depth_l1, photometric_loss
+from .rasterize import rasterize
+from .surfels import Surfels
+
+_OPACITY_EPS = 1e-4
+
+
+@dataclass(frozen=True)
+class RefineSettings:
+    """Optimiser settings; position learning rate is relative to the scene's median depth (monocular scale)."""
+
+    lambda_ssim: float = 0.2
+    lambda_depth: float = 0.1
+    lr_means: float = 1e-3
+    lr_log_scales: float = 5e-3
+    lr_opacity_logits: float = 0.05
+    lr_quats: float = 1e-3
+    lr_colors: float = 0.01
+
+
+@dataclass
+class RefineView:
+    """One keyframe as seen by the refinement: rigid world-to-camera matrix, K, target image and optional depth.
+
+    `depth_scale` converts rendered depth (world units) to the reference depth's units (reference = render / scale).
+    """
+
+    viewmat: torch.Tensor
+    K: torch.Tensor
+    image: torch.Tensor  # [H, W, 3] float in [0, 1]
+    depth: torch.Tensor | None = None
+    depth_scale: float = 1.0
+
+
+@dataclass
+class RefineReport:
+    """Losses per iteration and the index (into the views) each iteration rendered."""
+
+    losses: list[float] = field(default_factory=list)
+    views: list[int] = field(default_factory=list)
+
+
+class _RawParams(torch.nn.Module):
+    def __init__(self, surfels: Surfels):
+        super().__init__()
+        s = surfels.detach()
+        self.means = torch.nn.Parameter(s.means.clone())
+        self.log_scales = torch.nn.Parameter(torch.log(s.scales.clamp_min(1e-12)))
+        self.opacity_logits = torch.nn.Parameter(torch.logit(s.opacities.clamp(_OPACITY_EPS, 1 - _OPACITY_EPS)))
+        self.quats = torch.nn.Parameter(s.quats.clone())
+        self.colors = torch.nn.Parameter(s.colors.clone())
+        self.keyframe_ids = s.keyframe_ids
+
+    def surfels(self) -> Surfels:
+        return Surfels(self.means, self.quats / self.quats.norm(dim=-1, keepdim=True).clamp_min(1e-12),
+                       torch.exp(self.log_scales), torch.sigmoid(self.opacity_logits), self.colors, self.keyframe_ids)
+
+
+def refine_surfels(
+    surfels: Surfels,
+    trainable: torch.Tensor,
+    views: list[RefineView],
+    iterations: int = 20,
+    settings: RefineSettings | None = None,
+    scene_scale: float = 1.0,
+) -> tuple[Surfels, RefineReport]:
+    """Optimise the surfels selected by `trainable` ([N] bool) against `views` (newest last) for `iterations` steps.
+
+    Returns the updated map (same order and size as `surfels`) and a report of the losses.
+    """
+    settings = settings or RefineSettings()
+    if trainable.shape != (len(surfels),) or trainable.dtype != torch.bool:
+        raise ValueError("trainable must be a [N] bool mask over the surfels")
+    if iterations < 0:
+        raise ValueError(f"iterations must be >= 0, got {iterations}")
+    report = RefineReport()
+    if iterations == 0 or not views or not bool(trainable.any()):
+        return surfels, report
+
+    params = _RawParams(surfels.select(trainable))
+    fixed = surfels.select(~trainable).detach()
+    optimizer = torch.optim.Adam(
+        [
+            {"params": [params.means], "lr": settings.lr_means * scene_scale},
+            {"params": [params.log_scales], "lr": settings.lr_log_scales},
+            {"params": [params.opacity_logits], "lr": settings.lr_opacity_logits},
+            {"params": [params.quats], "lr": settings.lr_quats},
+            {"params": [params.colors], "lr": settings.lr_colors},
+        ],
+        eps=1e-15,
+    )
+    order = list(range(len(views) - 1, -1, -1))  # newest first
+    for it in range(iterations):
+        index = order[it % len(order)]
+        view = views[index]
+        H, W = view.image.shape[:2]
+        current = Surfels.concat([params.surfels(), fixed]) if len(fixed) else params.surfels()
+        render = rasterize(current, view.viewmat, view.K, W, H)
+        loss = photometric_loss(render.rgb, view.image, settings.lambda_ssim)
+        if view.depth is not None and settings.lambda_depth > 0:
+            covered = render.alpha.detach() > 0.5
+            loss = loss + settings.lambda_depth * depth_l1(render.depth / view.depth_scale, view.depth, covered)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        with torch.no_grad():
+            params.colors.clamp_(0.0, 1.0)
+        report.losses.append(float(loss.detach()))
+        report.views.append(index)
+
+    out = surfels.detach().clone()
+    refined = params.surfels().detach()
+    for name, value in refined.tensors().items():
+        getattr(out, name)[trainable] = value
+    return out, report
