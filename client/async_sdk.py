@@ -47,6 +47,8 @@ from client.streaming import FlowControl, WireOptions, encode_frame_message, ope
 from worker.data.frame import Frame
 
 EventCallback = Callable[[StreamEvent], Any]
+# Error codes with which the gateway refuses a whole stream, and the HTTP status they stand for.
+_REFUSAL_STATUS = {"unauthorized": 401, "forbidden": 403, "not_found": 404}
 DEFAULT_SERVER = "http://127.0.0.1:8000"
 
 
@@ -146,6 +148,7 @@ class AsyncFrameStream:
             except (TimeoutError, asyncio.CancelledError):
                 self._reader.cancel()
         self._events.put_nowait(None)
+        self.summary.frames_dropped = len(self.flow.dropped)
         self.summary.elapsed_s = time.monotonic() - self._started if self._started else 0.0
 
     # ---------------------------------------------------------------------------------------------- sending
@@ -259,6 +262,10 @@ class AsyncFrameStream:
             self._finished.set()
 
     def _handle_error(self, message: dict[str, Any]) -> None:
+        status = _REFUSAL_STATUS.get(str(message.get("code")))
+        if status is not None and message.get("seq") is None:  # the server refused the stream itself
+            self._failure = error_for_status(status, {"detail": message.get("message") or message.get("code")})
+            return
         error = stream_error_from_frame(message)
         if error.seq is not None and error.code == "backpressure":
             self.flow.on_refused(error.seq)

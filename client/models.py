@@ -165,6 +165,7 @@ class StreamSummary:
     poses: list[PoseEvent] = field(default_factory=list)
     loop_closures: list[LoopClosedEvent] = field(default_factory=list)
     backpressure_retries: int = 0
+    frames_dropped: int = 0  # refused for backpressure after a later frame got in: re-sending would reorder
     errors: list[dict[str, Any]] = field(default_factory=list)
     finished_frames: int | None = None
     elapsed_s: float = 0.0

