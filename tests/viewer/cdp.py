@@ -141,11 +141,16 @@ class Browser:
     async def wait_for(self, expression: str, timeout_s: float = 30.0) -> Any:
         deadline = time.monotonic() + timeout_s
         while True:
-            value = await self.evaluate(expression)
+            try:
+                value = await self.evaluate(expression)
+            except RuntimeError as err:  # e.g. the page's module has not defined its globals yet
+                value, last_error = None, err
+            else:
+                last_error = None
             if value:
                 return value
             if time.monotonic() > deadline:
-                raise TimeoutError(f"{expression!r} stayed falsy for {timeout_s} s")
+                raise TimeoutError(f"{expression!r} stayed falsy for {timeout_s} s (last error: {last_error})")
             await asyncio.sleep(0.25)
 
     async def screenshot(self, clip: dict[str, float] | None = None) -> bytes:
