@@ -24,12 +24,11 @@ API_VERSION = "0.1.0"
 
 
 def _validate_preset(name: str) -> None:
-    """Known presets of the real engine (imported on first use only: it pulls in torch)."""
-    try:
-        from worker.slam import SlamConfig
-    except ImportError:  # the engine is not installed here: the worker will report an unknown preset
-        return
-    SlamConfig.preset(name)
+    """Raise ValueError unless `name` is a preset of the engine (worker.config is light: no torch)."""
+    from worker.config import PRESETS
+
+    if name not in PRESETS:
+        raise ValueError(f"choose one of {sorted(PRESETS)}")
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:

@@ -101,38 +101,30 @@ class Registry:
 
     async def list_sessions(self, *, status: str | None, device_id: str | None, name: str | None, limit: int,
                             cursor: str | None, owner: str | None) -> tuple[list[dict[str, Any]], str | None]:
-        """Newest first. `cursor` is the index member of the last session of the previous page."""
-        results: list[dict[str, Any]] = []
+        """Newest first. `cursor` is the index member of the last session of the previous page; next_cursor is
+        None exactly when no further session matches."""
+        matches: list[tuple[str, dict[str, Any]]] = []
         upper = f"({cursor}" if cursor else "+"
         batch = max(limit * 2, 50)
-        while len(results) < limit:
+        while len(matches) <= limit:
             members = await self.client.zrevrangebylex(keys.SESSIONS_INDEX, upper, "-", start=0, num=batch)
             if not members:
-                return results, None
+                break
             pipe = self.client.pipeline(transaction=False)
             for member in members:
                 pipe.hgetall(keys.session(member.decode().split(":", 1)[1]))
-            records = await pipe.execute()
-            for member, raw in zip(members, records):
+            for member, raw in zip(members, await pipe.execute()):
                 upper = f"({member.decode()}"
-                if not raw:
-                    continue
                 record = {k.decode(): v.decode() for k, v in raw.items()}
-                if owner is not None and record.get("owner") != owner:
-                    continue
-                if status and record["status"] != status:
-                    continue
-                if device_id is not None and record.get("device_id") != device_id:
-                    continue
-                if name is not None and record.get("name") != name:
-                    continue
-                results.append(parse_session(record))
-                if len(results) == limit:
-                    more = await self.client.zrevrangebylex(keys.SESSIONS_INDEX, upper, "-", start=0, num=1)
-                    return results, (upper[1:] if more else None)
+                if record and _matches(record, status, device_id, name, owner):
+                    matches.append((member.decode(), parse_session(record)))
+                    if len(matches) > limit:
+                        break
             if len(members) < batch:
-                return results, None
-        return results, None
+                break
+        page = matches[:limit]
+        next_cursor = page[-1][0] if len(matches) > limit else None
+        return [session for _, session in page], next_cursor
 
     async def delete_session(self, session_id: str, record: dict[str, str]) -> None:
         pipe = self.client.pipeline(transaction=True)
@@ -194,6 +186,13 @@ class Registry:
     async def lease_holder(self, session_id: str) -> str | None:
         value = await self.client.get(keys.lease(session_id))
         return value.decode() if value else None
+
+
+def _matches(record: dict[str, str], status: str | None, device_id: str | None, name: str | None,
+             owner: str | None) -> bool:
+    return ((owner is None or record.get("owner") == owner) and (not status or record["status"] == status)
+            and (device_id is None or record.get("device_id") == device_id)
+            and (name is None or record.get("name") == name))
 
 
 def parse_session(record: dict[str, Any]) -> dict[str, Any]:

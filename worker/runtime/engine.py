@@ -9,6 +9,8 @@
 
 from __future__ import annotations
 
+import os
+import time
 from typing import Any, Protocol
 
 import numpy as np
@@ -46,8 +48,13 @@ def create_engine(kind: str, preset: str | None, intrinsics: Intrinsics | None) 
 
         return SlamSystem(SlamConfig.preset(preset) if preset else None, intrinsics=intrinsics)
     if kind == "passthrough":
-        return PassthroughEngine(intrinsics=intrinsics)
+        return PassthroughEngine(intrinsics=intrinsics, delay_s=_passthrough_delay_s())
     raise ValueError(f"unknown engine kind {kind!r}; expected one of {ENGINE_KINDS}")
+
+
+def _passthrough_delay_s() -> float:
+    """FLASHMONO_PASSTHROUGH_DELAY_MS: simulated compute per frame (tests that need a worker busy mid-stream)."""
+    return float(os.environ.get("FLASHMONO_PASSTHROUGH_DELAY_MS", "0")) / 1000.0
 
 
 def restore_engine(kind: str, blob: bytes) -> SessionEngine:
@@ -57,7 +64,9 @@ def restore_engine(kind: str, blob: bytes) -> SessionEngine:
 
         return SlamSystem.restore(blob)
     if kind == "passthrough":
-        return PassthroughEngine.restore(blob)
+        engine = PassthroughEngine.restore(blob)
+        engine.delay_s = _passthrough_delay_s()
+        return engine
     raise ValueError(f"unknown engine kind {kind!r}; expected one of {ENGINE_KINDS}")
 
 
@@ -73,8 +82,9 @@ class PassthroughEngine:
 
     KEYFRAME_EVERY = 4
 
-    def __init__(self, intrinsics: Intrinsics | None = None) -> None:
+    def __init__(self, intrinsics: Intrinsics | None = None, delay_s: float = 0.0) -> None:
         self.intrinsics = intrinsics
+        self.delay_s = delay_s
         self.revision = 0
         self._poses: list[tuple[int, float, np.ndarray, bool]] = []
         self._colors: list[np.ndarray] = []
@@ -83,6 +93,8 @@ class PassthroughEngine:
     def push(self, frame: Frame) -> FrameResult:
         if self.finished:
             raise RuntimeError("push after finish")
+        if self.delay_s:
+            time.sleep(self.delay_s)
         pose = np.eye(4) if frame.pose is None else np.asarray(frame.pose, dtype=np.float64)
         is_keyframe = len(self._poses) % self.KEYFRAME_EVERY == 0
         self._poses.append((frame.index, frame.timestamp, pose, is_keyframe))
