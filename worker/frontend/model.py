@@ -171,6 +171,12 @@ class FeedForwardModel(nn.Module):
     def forward(self, image: torch.Tensor, state: HiddenState, update: bool = True) -> StepOutput:
         return self.step(image, state, update)
 
+    def compile_step(self, height: int, width: int, precision: str = "bf16"):
+        """An AcceleratedStepper: CUDA-graph replay of batch-1 steps at height x width (plain `step` on CPU)."""
+        from .accelerate import AcceleratedStepper
+
+        return AcceleratedStepper(self, height, width, precision)
+
 
 def build_model(name: str | FrontendConfig = "tiny", device: torch.device | str = "cpu") -> FeedForwardModel:
     """Build the named model (`tiny`, `small`, `base`, `paper`, or a FrontendConfig) on `device` in eval mode.
