@@ -50,14 +50,14 @@ class Material:
         """RGB albedo in [0, 1] [N, 3] at surface coordinates uv [N, 2] (metres) on faces [N]."""
         detail = np.sin((uv @ self.wave_dirs.T) * self.wave_freqs + self.wave_phases).mean(axis=1)
         if self.kind == "checker":
-            cells = np.floor(uv / self.period).sum(axis=1)
-            mix = np.mod(cells, 2.0)
+            cells = np.floor(uv / np.float32(self.period)).sum(axis=1)
+            mix = np.mod(cells, np.float32(2.0))
         elif self.kind == "stripes":
-            mix = 0.5 + 0.5 * np.sin(2 * np.pi * uv[:, 0] / self.period)
+            mix = np.float32(0.5) + np.float32(0.5) * np.sin(np.float32(2 * np.pi / self.period) * uv[:, 0])
         else:
-            mix = np.clip(0.5 + 1.2 * detail, 0.0, 1.0)
-        color = self.color_a * (1 - mix[:, None]) + self.color_b * mix[:, None]
-        color = color * self.face_tint[face] * (1.0 + 0.12 * detail[:, None])
+            mix = np.clip(np.float32(0.5) + np.float32(1.2) * detail, 0.0, 1.0)
+        color = self.color_a + (self.color_b - self.color_a) * mix[:, None]
+        color *= self.face_tint[face] * (np.float32(1.0) + np.float32(0.12) * detail[:, None])
         return np.clip(color, 0.0, 1.0)
 
 
@@ -85,11 +85,12 @@ def _random_material(rng: np.random.Generator) -> Material:
     color_b = np.clip(color_a + rng.uniform(0.35, 0.6) * offset / np.linalg.norm(offset), 0.05, 0.95)
     k = 6
     angles = rng.uniform(0, np.pi, k)
+    f32 = np.float32
     return Material(
-        kind=kind, color_a=color_a, color_b=color_b, period=float(rng.uniform(0.15, 0.6)),
-        face_tint=rng.uniform(0.75, 1.15, (6, 3)),
-        wave_dirs=np.stack([np.cos(angles), np.sin(angles)], axis=1),
-        wave_freqs=rng.uniform(4.0, 30.0, k), wave_phases=rng.uniform(0, 2 * np.pi, k),
+        kind=kind, color_a=color_a.astype(f32), color_b=color_b.astype(f32), period=float(rng.uniform(0.15, 0.6)),
+        face_tint=rng.uniform(0.75, 1.15, (6, 3)).astype(f32),
+        wave_dirs=np.stack([np.cos(angles), np.sin(angles)], axis=1).astype(f32),
+        wave_freqs=rng.uniform(4.0, 30.0, k).astype(f32), wave_phases=rng.uniform(0, 2 * np.pi, k).astype(f32),
     )
 
 
@@ -182,7 +183,7 @@ class SyntheticScene:
         self.room_materials = {"walls": self.materials[0], "floor": _random_material(rng),
                                "ceiling": _random_material(rng)}
         light = np.array([rng.uniform(-0.5, 0.5), rng.uniform(-0.5, 0.5), 1.0])
-        self.light_dir = light / np.linalg.norm(light)
+        self.light_dir = (light / np.linalg.norm(light)).astype(np.float32)
         self._path_phase = float(rng.uniform(0, 2 * np.pi))
         self._look_out = float(rng.uniform(0.35, 0.9))
         self._wobble = rng.uniform(0, 2 * np.pi, 3)
@@ -224,21 +225,48 @@ class SyntheticScene:
         R = pose[:3, :3].astype(np.float32)
         origin = pose[:3, 3].astype(np.float32)
         dirs = d_cam @ R.T  # world directions scaled so that t is the camera z-depth
-        t, prim = self._nearest_hit(origin, dirs)
+        visible = self._in_frustum(pose, intrinsics)
+        t, prim = self._nearest_hit(origin, dirs, visible)
         rgb = self._shade(origin, dirs, t, prim)
         return (np.clip(rgb * 255.0 + 0.5, 0, 255).astype(np.uint8).reshape(H, W, 3),
                 t.astype(np.float32).reshape(H, W))
 
-    def _nearest_hit(self, origin: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _bounding_spheres(self) -> tuple[np.ndarray, np.ndarray]:
+        """Centres [P, 3] and radii [P] enclosing every primitive (room first, then boxes, cylinders, spheres)."""
+        L = self.layout
+        cyl_centres = L.cyl_bases + np.stack([0 * L.cyl_heights, 0 * L.cyl_heights, L.cyl_heights / 2], axis=1)
+        centres = np.concatenate([L.box_centers, cyl_centres, L.sphere_centers])
+        radii = np.concatenate([np.linalg.norm(L.box_halves, axis=1), np.hypot(L.cyl_radii, L.cyl_heights / 2),
+                                L.sphere_radii])
+        return centres, radii
+
+    def _in_frustum(self, pose: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
+        """Which primitives may be seen [P] (bounding sphere against the four side planes and the image plane)."""
+        centres, radii = self._bounding_spheres()
+        local = (centres - pose[:3, 3]) @ pose[:3, :3]  # camera frame
+        x_min, x_max = -intrinsics.cx / intrinsics.fx, (intrinsics.width - intrinsics.cx) / intrinsics.fx
+        y_min, y_max = -intrinsics.cy / intrinsics.fy, (intrinsics.height - intrinsics.cy) / intrinsics.fy
+        normals = np.array([[1.0, 0.0, -x_min], [-1.0, 0.0, x_max], [0.0, 1.0, -y_min], [0.0, -1.0, y_max]])
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        visible = np.all(local @ normals.T >= -radii[:, None], axis=1) & (local[:, 2] >= -radii)
+        visible[0] = True  # the room surrounds the camera
+        return visible
+
+    def _nearest_hit(self, origin: np.ndarray, dirs: np.ndarray, visible: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Distance along each ray [N] (as z-depth) to its first hit and the primitive hit [N]."""
         d = np.ascontiguousarray(dirs.T)  # [3, N]: per-axis rows keep the inner loops contiguous
-        t_all = np.concatenate([self._room_hits(origin, d), self._box_hits(origin, d), self._cylinder_hits(origin, d),
-                                self._sphere_hits(origin, d)], axis=0)
-        prim = np.argmin(t_all, axis=0)
-        t = np.take_along_axis(t_all, prim[None], axis=0)[0]
+        n_box, n_cyl = len(self.layout.box_yaws), len(self.layout.cyl_radii)
+        boxes = np.flatnonzero(visible[1:n_box]) + 1
+        cylinders = np.flatnonzero(visible[n_box:n_box + n_cyl])
+        spheres = np.flatnonzero(visible[n_box + n_cyl:])
+        t_all = np.concatenate([self._room_hits(origin, d), self._box_hits(origin, d, boxes),
+                                self._cylinder_hits(origin, d, cylinders), self._sphere_hits(origin, d, spheres)])
+        ids = np.concatenate([[0], boxes, cylinders + n_box, spheres + n_box + n_cyl])
+        best = np.argmin(t_all, axis=0)
+        t = np.take_along_axis(t_all, best[None], axis=0)[0]
         if not np.all(np.isfinite(t)):
             raise RuntimeError("a ray left the room: the camera is outside the scene")
-        return t, prim
+        return t, ids[best]
 
     def _room_hits(self, origin: np.ndarray, d: np.ndarray) -> np.ndarray:
         """Exit distance [1, N] from inside the room (box 0, axis-aligned)."""
@@ -250,12 +278,12 @@ class SyntheticScene:
                 t = np.minimum(t, np.where(d[k] != 0, (wall - origin[k]) / d[k], np.inf))
         return t[None]
 
-    def _box_hits(self, origin: np.ndarray, d: np.ndarray) -> np.ndarray:
-        """Entry distances [B-1, N] (inf for misses) into the furniture boxes (yawed about z)."""
+    def _box_hits(self, origin: np.ndarray, d: np.ndarray, indices: np.ndarray) -> np.ndarray:
+        """Entry distances [len(indices), N] (inf for misses) into furniture boxes (yawed about z)."""
         L = self.layout
-        yaws, centres, halves = L.box_yaws[1:], L.box_centers[1:], L.box_halves[1:].astype(np.float32)
-        if not len(yaws):
+        if not len(indices):
             return np.zeros((0, d.shape[1]), np.float32)
+        yaws, centres, halves = L.box_yaws[indices], L.box_centers[indices], L.box_halves[indices].astype(np.float32)
         c, s = np.cos(yaws).astype(np.float32)[:, None], np.sin(yaws).astype(np.float32)[:, None]
         rel = (origin[None, :] - centres).astype(np.float32)
         o_local = [c[:, 0] * rel[:, 0] + s[:, 0] * rel[:, 1], -s[:, 0] * rel[:, 0] + c[:, 0] * rel[:, 1], rel[:, 2]]
@@ -271,14 +299,15 @@ class SyntheticScene:
                 t_far = np.minimum(t_far, np.maximum(t1, t2))
         return np.where((t_near <= t_far) & (t_near > _EPS), t_near, np.inf).astype(np.float32)
 
-    def _cylinder_hits(self, origin: np.ndarray, d: np.ndarray) -> np.ndarray:
-        """Distances [C, N] to the vertical cylinders (side or top cap)."""
+    def _cylinder_hits(self, origin: np.ndarray, d: np.ndarray, indices: np.ndarray) -> np.ndarray:
+        """Distances [len(indices), N] to vertical cylinders (side or top cap)."""
         L = self.layout
-        if not len(L.cyl_radii):
+        if not len(indices):
             return np.zeros((0, d.shape[1]), np.float32)
-        rel = (origin[None, :] - L.cyl_bases).astype(np.float32)
+        rel = (origin[None, :] - L.cyl_bases[indices]).astype(np.float32)
         ox, oy, oz = rel[:, 0:1], rel[:, 1:2], rel[:, 2:3]
-        radii, heights = L.cyl_radii.astype(np.float32)[:, None], L.cyl_heights.astype(np.float32)[:, None]
+        radii = L.cyl_radii[indices].astype(np.float32)[:, None]
+        heights = L.cyl_heights[indices].astype(np.float32)[:, None]
         dx, dy, dz = d[0][None], d[1][None], d[2][None]
         a = dx * dx + dy * dy
         b = 2 * (ox * dx + oy * dy)
@@ -293,15 +322,15 @@ class SyntheticScene:
             cap_ok = (t_cap > _EPS) & (cap_x * cap_x + cap_y * cap_y <= radii ** 2)
         return np.minimum(np.where(side_ok, t_side, np.inf), np.where(cap_ok, t_cap, np.inf)).astype(np.float32)
 
-    def _sphere_hits(self, origin: np.ndarray, d: np.ndarray) -> np.ndarray:
-        """Distances [S, N] to the spheres."""
+    def _sphere_hits(self, origin: np.ndarray, d: np.ndarray, indices: np.ndarray) -> np.ndarray:
+        """Distances [len(indices), N] to spheres."""
         L = self.layout
-        if not len(L.sphere_radii):
+        if not len(indices):
             return np.zeros((0, d.shape[1]), np.float32)
-        rel = (origin[None, :] - L.sphere_centers).astype(np.float32)  # [S, 3]
+        rel = (origin[None, :] - L.sphere_centers[indices]).astype(np.float32)
         a = (d * d).sum(axis=0)[None]
-        b = 2 * (rel @ d)
-        c = ((rel * rel).sum(axis=1) - L.sphere_radii.astype(np.float32) ** 2)[:, None]
+        b = 2 * (rel[:, 0:1] * d[0] + rel[:, 1:2] * d[1] + rel[:, 2:3] * d[2])  # not BLAS: same bits when culled
+        c = ((rel * rel).sum(axis=1) - L.sphere_radii[indices].astype(np.float32) ** 2)[:, None]
         disc = b * b - 4 * a * c
         with np.errstate(invalid="ignore"):
             t = (-b - np.sqrt(disc)) / (2 * a)
@@ -336,37 +365,39 @@ class SyntheticScene:
 
     def _box_surface(self, index: int, points: np.ndarray, dirs: np.ndarray):
         L = self.layout
-        c, s = math.cos(L.box_yaws[index]), math.sin(L.box_yaws[index])
-        rel = points - L.box_centers[index]
-        local = np.stack([c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1], rel[:, 2]], axis=1)
-        ratio = np.abs(local) / L.box_halves[index]
-        axis = ratio.argmax(axis=1)
-        sign = np.sign(local[np.arange(len(axis)), axis])
-        normal_local = np.zeros_like(local)
-        normal_local[np.arange(len(axis)), axis] = sign if index else -sign  # the room's normals point inwards
-        normal = np.stack([c * normal_local[:, 0] - s * normal_local[:, 1],
-                           s * normal_local[:, 0] + c * normal_local[:, 1], normal_local[:, 2]], axis=1)
-        shifted = local + L.box_halves[index]
-        uv_choices = np.stack([shifted[:, [1, 2]], shifted[:, [0, 2]], shifted[:, [0, 1]]], axis=1)
-        uv = uv_choices[np.arange(len(axis)), axis]
-        face = axis * 2 + (sign > 0)
-        return normal, uv, face
+        c, s = np.float32(math.cos(L.box_yaws[index])), np.float32(math.sin(L.box_yaws[index]))
+        rel = points - L.box_centers[index].astype(np.float32)
+        lx, ly, lz = c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1], rel[:, 2]
+        hx, hy, hz = L.box_halves[index].astype(np.float32)
+        rx, ry, rz = np.abs(lx) / hx, np.abs(ly) / hy, np.abs(lz) / hz
+        axis = np.where((rx >= ry) & (rx >= rz), 0, np.where(ry >= rz, 1, 2))
+        positive = np.choose(axis, [lx, ly, lz]) > 0
+        sign = np.where(positive, np.float32(1), np.float32(-1))
+        if index == 0:
+            sign = -sign  # the room is seen from inside: its normals point inwards
+        nx, ny, nz = (axis == 0) * sign, (axis == 1) * sign, (axis == 2) * sign
+        normal = np.stack([c * nx - s * ny, s * nx + c * ny, nz], axis=1)
+        u = np.choose(axis, [ly + hy, lx + hx, lx + hx])
+        v = np.choose(axis, [lz + hz, lz + hz, ly + hy])
+        return normal, np.stack([u, v], axis=1), axis * 2 + positive
 
     def _cylinder_surface(self, index: int, points: np.ndarray):
         L = self.layout
-        rel = points - L.cyl_bases[index]
+        rel = points - L.cyl_bases[index].astype(np.float32)
         on_cap = rel[:, 2] >= L.cyl_heights[index] - 1e-3
         radial = rel[:, :2] / max(L.cyl_radii[index], 1e-9)
-        normal = np.where(on_cap[:, None], np.array([0.0, 0.0, 1.0]), np.concatenate([radial, 0 * rel[:, :1]], 1))
-        azimuth = np.arctan2(rel[:, 1], rel[:, 0]) * L.cyl_radii[index]
+        up = np.array([0.0, 0.0, 1.0], np.float32)
+        normal = np.where(on_cap[:, None], up, np.concatenate([radial, 0 * rel[:, :1]], 1))
+        azimuth = np.arctan2(rel[:, 1], rel[:, 0]) * np.float32(L.cyl_radii[index])
         uv = np.where(on_cap[:, None], rel[:, :2], np.stack([azimuth, rel[:, 2]], axis=1))
         return normal, uv, on_cap.astype(np.int64)
 
     def _sphere_surface(self, index: int, points: np.ndarray):
         L = self.layout
-        rel = points - L.sphere_centers[index]
-        normal = rel / L.sphere_radii[index]
-        uv = np.stack([np.arctan2(rel[:, 1], rel[:, 0]) * L.sphere_radii[index], rel[:, 2]], axis=1)
+        radius = np.float32(L.sphere_radii[index])
+        rel = points - L.sphere_centers[index].astype(np.float32)
+        normal = rel / radius
+        uv = np.stack([np.arctan2(rel[:, 1], rel[:, 0]) * radius, rel[:, 2]], axis=1)
         return normal, uv, np.zeros(len(points), np.int64)
 
 
