@@ -19,7 +19,7 @@ import json
 import time
 from collections import deque
 from collections.abc import AsyncIterator, Awaitable, Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 from urllib.parse import quote
 
 import httpx
@@ -44,7 +44,9 @@ from client.models import (
     event_from_message,
 )
 from client.streaming import FlowControl, WireOptions, encode_frame_message, open_frames
-from worker.data.frame import Frame
+
+if TYPE_CHECKING:
+    from worker.data.frame import Frame
 
 EventCallback = Callable[[StreamEvent], Any]
 # Error codes with which the gateway refuses a whole stream, and the HTTP status they stand for.

@@ -15,13 +15,15 @@ from __future__ import annotations
 import time
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
 
-from worker.data.frame import Frame
 from worker.serialization import pack
+
+if TYPE_CHECKING:  # worker.data.frame pulls in torch; REST-only users of the SDK should not pay for it
+    from worker.data.frame import Frame
 
 WEBCAM_PREFIX = "webcam:"
 MAX_DEPTH_MM = 65535
@@ -40,6 +42,8 @@ class WebcamSource:
         self.name = f"webcam{index}"
 
     def __iter__(self) -> Iterator[Frame]:
+        from worker.data.frame import Frame
+
         capture = cv2.VideoCapture(self.index)
         if not capture.isOpened():
             capture.release()
@@ -97,6 +101,8 @@ def open_frames(source: Any, *, stride: int = 1, max_frames: int | None = None,
 
 
 def _limit(frames: Iterable[Frame], stride: int, max_frames: int | None) -> Iterator[Frame]:
+    from worker.data.frame import Frame
+
     sent = 0
     for i, frame in enumerate(frames):
         if i % stride:

@@ -1,0 +1,46 @@
+"""`flashmono demo` end to end, as `make demo` runs it: embedded stack (serve), the bundled sequence streamed over
+the WebSocket, ATE and PSNR printed, trajectory/map/renders written, viewer URL printed."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_demo_runs_the_whole_system_and_writes_its_outputs(tmp_path: Path) -> None:
+    out = tmp_path / "demo_out"
+    env = {**os.environ, "FLASHMONO_TORCH_THREADS": "1"}
+    env.pop("REDIS_URL", None)
+    result = subprocess.run([sys.executable, "-m", "client.cli", "demo", "--out", str(out), "--max-frames", "12",
+                             "--renders", "3"], cwd=REPO_ROOT, env=env, capture_output=True, text=True, timeout=600)
+    log = (out / "serve.log").read_text() if (out / "serve.log").exists() else ""
+    assert result.returncode == 0, f"{result.stdout}\n{result.stderr}\n{log[-3000:]}"
+
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["frames"] == 12 and metrics["poses"] == 12
+    assert metrics["frame_errors"] == 0
+    assert math.isfinite(metrics["ate_rmse_m"]) and 0 <= metrics["ate_rmse_m"] < 0.5
+    assert math.isfinite(metrics["psnr_db"]) and metrics["psnr_db"] > 10
+    assert re.search(r"ATE RMSE\s+\d+\.\d+ cm", result.stdout)
+    assert re.search(r"PSNR\s+\d+\.\d+ dB", result.stdout)
+    viewer = re.search(r"viewer\s+(http://127\.0\.0\.1:\d+/viewer\?session=(\w+))", result.stdout)
+    assert viewer and viewer.group(2) == metrics["session_id"]
+
+    tum = [line for line in (out / "trajectory.tum").read_text().splitlines() if not line.startswith("#")]
+    assert len(tum) == 12 and all(len(line.split()) == 8 for line in tum)
+    assert (out / "keyframes.tum").read_text().strip()
+    assert len([line for line in (out / "groundtruth.tum").read_text().splitlines() if not line.startswith("#")]) == 12
+    assert (out / "map.ply").read_bytes().startswith(b"ply\n")
+    renders = sorted((out / "renders").glob("*.png"))
+    assert len(renders) == 3
+    side_by_side = cv2.imread(str(renders[0]))
+    assert side_by_side.shape == (240, 640, 3)  # rendered | captured, at the sequence's 320x240
