@@ -8,6 +8,7 @@ import torch
 
 from worker.geometry import make_sim3, pixel_grid, rotmat_to_quat, so3_exp
 from worker.mapping import Surfels
+from worker.mapping.voxelize import voxelize
 
 WIDTH, HEIGHT = 64, 48
 FOCAL = 60.0
@@ -28,9 +29,10 @@ def texture(xy: torch.Tensor) -> torch.Tensor:
     ], dim=-1)
 
 
-def camera_pose(tx: float = 0.0, ty: float = 0.0, yaw: float = 0.0, scale: float = 1.0) -> torch.Tensor:
-    """Camera-to-world Sim(3) of a camera at (tx, ty, 0) turned by `yaw` radians about the y axis."""
-    R = so3_exp(torch.tensor([0.0, yaw, 0.0], dtype=torch.float64))
+def camera_pose(tx: float = 0.0, ty: float = 0.0, yaw: float = 0.0, scale: float = 1.0,
+                pitch: float = 0.0) -> torch.Tensor:
+    """Camera-to-world Sim(3) of a camera at (tx, ty, 0) with rotation vector (pitch, yaw, 0) radians."""
+    R = so3_exp(torch.tensor([pitch, yaw, 0.0], dtype=torch.float64))
     return make_sim3(R, torch.tensor([tx, ty, 0.0], dtype=torch.float64), scale)
 
 
@@ -75,6 +77,13 @@ def pixel_surfels(pose_c2w: torch.Tensor, footprint: float = 0.8) -> Surfels:
         colors=v["image"].reshape(n, 3),
         keyframe_ids=torch.zeros(n, dtype=torch.int64),
     )
+
+
+def voxelized_surfels(pose_c2w: torch.Tensor, keyframe_id: int = 0) -> Surfels:
+    """The per-pixel surfels merged into 2x2 blocks (a quarter of the count; scales doubled to keep coverage)."""
+    g = pixel_surfels(pose_c2w)
+    grid = {k: v.reshape(HEIGHT, WIDTH, *v.shape[1:]) for k, v in g.tensors().items() if k != "keyframe_ids"}
+    return voxelize(**grid, keyframe_id=keyframe_id, merged_scale_factor=2.0).surfels
 
 
 def psnr(a: torch.Tensor, b: torch.Tensor) -> float:

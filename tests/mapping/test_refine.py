@@ -1,6 +1,6 @@
 import pytest
 import torch
-from mapping_scene import camera_pose, intrinsics, pixel_surfels, psnr, view
+from mapping_scene import camera_pose, intrinsics, psnr, view, voxelized_surfels
 
 from worker.mapping import Surfels
 from worker.mapping.gaussian_map import rigid_viewmat
@@ -19,7 +19,7 @@ def make_views(poses):
 
 def perturbed_map(gen: torch.Generator) -> tuple[Surfels, Surfels]:
     pose = camera_pose()
-    clean = pixel_surfels(pose).transform(pose.float())
+    clean = voxelized_surfels(pose).transform(pose.float())
     noisy = clean.clone()
     noisy.colors = (noisy.colors + 0.25 * torch.randn(noisy.colors.shape, generator=gen)).clamp(0, 1)
     noisy.opacities = noisy.opacities * (0.5 + 0.5 * torch.rand(len(noisy), generator=gen))
@@ -37,9 +37,9 @@ def test_refinement_raises_psnr_of_a_perturbed_map():
     _, noisy = perturbed_map(gen)
     views = make_views([camera_pose(), camera_pose(0.1, 0.0, 0.05)])
     before = render_psnr(noisy, views)
-    refined, report = refine_surfels(noisy, torch.ones(len(noisy), dtype=torch.bool), views, iterations=30)
+    refined, report = refine_surfels(noisy, torch.ones(len(noisy), dtype=torch.bool), views, iterations=20)
     after = render_psnr(refined, views)
-    assert len(report.losses) == 30 and report.views[:3] == [1, 0, 1]
+    assert len(report.losses) == 20 and report.views[:3] == [1, 0, 1]
     assert after > before + 2.0, (before, after)
     assert sum(report.losses[-4:]) < sum(report.losses[:4])
     assert len(refined) == len(noisy)

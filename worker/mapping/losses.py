@@ -12,29 +12,33 @@ SSIM_C2 = 0.03**2
 
 
 @functools.lru_cache(maxsize=8)
-def _gaussian_window(size: int, sigma: float, channels: int, dtype: torch.dtype, device: str) -> torch.Tensor:
+def _gaussian_1d(size: int, sigma: float, dtype: torch.dtype, device: str) -> torch.Tensor:
     x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2
     g = torch.exp(-(x**2) / (2 * sigma**2))
-    g = g / g.sum()
-    window = (g[:, None] * g[None, :]).to(dtype=dtype, device=device)
-    return window.expand(channels, 1, size, size).contiguous()
+    return (g / g.sum()).to(dtype=dtype, device=device)
+
+
+def _gaussian_blur(x: torch.Tensor, size: int, sigma: float) -> torch.Tensor:
+    """Separable Gaussian blur of [1, C, H, W] with zero padding (two 1-D depthwise convs: much faster on CPU)."""
+    C = x.shape[1]
+    g = _gaussian_1d(size, sigma, x.dtype, str(x.device))
+    pad = size // 2
+    x = F.conv2d(x, g.view(1, 1, 1, size).expand(C, 1, 1, size), padding=(0, pad), groups=C)
+    return F.conv2d(x, g.view(1, 1, size, 1).expand(C, 1, size, 1), padding=(pad, 0), groups=C)
 
 
 def ssim(image: torch.Tensor, target: torch.Tensor, window_size: int = 11, sigma: float = 1.5) -> torch.Tensor:
-    """Mean SSIM of two [H,W,C] images in [0,1] (zero padding, same-size map, as in the 3DGS/2DGS code)."""
+    """Mean SSIM of two [H,W,C] images in [0,1] (11x11 Gaussian window, zero padding, as in the 3DGS/2DGS code)."""
     if image.shape != target.shape or image.ndim != 3:
         raise ValueError(f"ssim needs two [H,W,C] images of equal shape, got {tuple(image.shape)}, "
                          f"{tuple(target.shape)}")
-    C = image.shape[-1]
     x = image.permute(2, 0, 1)[None]
-    y = target.permute(2, 0, 1)[None]
-    w = _gaussian_window(window_size, sigma, C, image.dtype, str(image.device))
-    pad = window_size // 2
-    mu_x = F.conv2d(x, w, padding=pad, groups=C)
-    mu_y = F.conv2d(y, w, padding=pad, groups=C)
-    var_x = F.conv2d(x * x, w, padding=pad, groups=C) - mu_x**2
-    var_y = F.conv2d(y * y, w, padding=pad, groups=C) - mu_y**2
-    cov = F.conv2d(x * y, w, padding=pad, groups=C) - mu_x * mu_y
+    y = target.to(image.dtype).permute(2, 0, 1)[None]
+    mu_x, mu_y, xx, yy, xy = _gaussian_blur(torch.cat([x, y, x * x, y * y, x * y], dim=1), window_size,
+                                            sigma).chunk(5, dim=1)
+    var_x = xx - mu_x**2
+    var_y = yy - mu_y**2
+    cov = xy - mu_x * mu_y
     num = (2 * mu_x * mu_y + SSIM_C1) * (2 * cov + SSIM_C2)
     den = (mu_x**2 + mu_y**2 + SSIM_C1) * (var_x + var_y + SSIM_C2)
     return (num / den).mean()
