@@ -1,0 +1,140 @@
+"""Appearance descriptors for loop detection, two behind one interface.
+
+* `EncoderGeMDescriptor`: GeM pooling of our own encoder tokens (model.encode_image). Tokens are signed, so the
+  positive and negative parts are pooled separately and concatenated, then L2-normalised; similarity is the
+  cosine. No extra weights, one encoder pass per keyframe.
+* `OrbDescriptor`: classical, needs no weights: ORB keypoints through OpenCV, direct descriptor matching with
+  Lowe's ratio test, then RANSAC on the fundamental matrix; similarity is the fraction of geometrically
+  consistent matches. Its features are also what the PnP relocalizer matches.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import cv2
+import numpy as np
+import torch
+
+
+class GlobalDescriptor(Protocol):
+    name: str
+
+    def describe(self, image: torch.Tensor) -> Any:
+        """Descriptor of one keyframe image [1,3,H,W] in [0,1]."""
+
+    def similarities(self, query: Any, database: list[Any]) -> np.ndarray:
+        """Scores in [0,1] of `query` against each database entry (higher = more alike)."""
+
+
+def _check_image(image: torch.Tensor) -> None:
+    if image.ndim != 4 or image.shape[0] != 1 or image.shape[1] != 3:
+        raise ValueError(f"descriptors take one image [1,3,H,W], got {tuple(image.shape)}")
+
+
+class EncoderGeMDescriptor:
+    """Generalised-mean pooled encoder tokens (signed GeM), L2-normalised."""
+
+    name = "encoder_gem"
+
+    def __init__(self, model, p: float = 3.0) -> None:
+        if p < 1:
+            raise ValueError(f"GeM power must be >= 1, got {p}")
+        self.model = model
+        self.p = p
+
+    @torch.no_grad()
+    def describe(self, image: torch.Tensor) -> torch.Tensor:
+        _check_image(image)
+        tokens, _ = self.model.encode_image(image)
+        x = tokens[0].float()
+        x = x - x.mean(dim=0, keepdim=True).mean(dim=1, keepdim=True)  # remove the global offset, keep structure
+
+        def gem(v: torch.Tensor) -> torch.Tensor:
+            return v.clamp_min(1e-6).pow(self.p).mean(dim=0).pow(1.0 / self.p)
+
+        d = torch.cat([gem(x), gem(-x)])
+        return d / d.norm().clamp_min(1e-12)
+
+    def similarities(self, query: torch.Tensor, database: list[torch.Tensor]) -> np.ndarray:
+        if not database:
+            return np.zeros(0)
+        return (torch.stack(database) @ query).clamp(0, 1).numpy().astype(np.float64)
+
+
+@dataclass
+class OrbFeatures:
+    """ORB keypoints [N,2] (x, y pixels) and binary descriptors [N,32] of one image of width x height."""
+
+    keypoints: np.ndarray
+    descriptors: np.ndarray
+    width: int
+    height: int
+
+    def __len__(self) -> int:
+        return len(self.keypoints)
+
+
+def to_gray_uint8(image: torch.Tensor) -> np.ndarray:
+    """[1,3,H,W] float in [0,1] -> H x W uint8 grey."""
+    _check_image(image)
+    rgb = (image[0].permute(1, 2, 0).clamp(0, 1) * 255).round().to(torch.uint8).cpu().numpy()
+    return cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+
+
+class OrbDescriptor:
+    """ORB + ratio-test matching + fundamental-matrix RANSAC; score = inliers / min(#features)."""
+
+    name = "orb"
+
+    def __init__(self, n_features: int = 1000, ratio: float = 0.8, ransac_px: float = 2.0,
+                 min_matches: int = 12) -> None:
+        self.n_features = n_features
+        self._orbs: dict[int, cv2.ORB] = {}
+        self.matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+        self.ratio = ratio
+        self.ransac_px = ransac_px
+        self.min_matches = min_matches
+
+    def _orb_for(self, height: int, width: int) -> cv2.ORB:
+        # OpenCV's 31-pixel patch wastes most of a small image's border; shrink it for low resolutions.
+        patch = 31 if min(height, width) >= 300 else 15
+        if patch not in self._orbs:
+            self._orbs[patch] = cv2.ORB_create(nfeatures=self.n_features, edgeThreshold=patch, patchSize=patch,
+                                               fastThreshold=10)
+        return self._orbs[patch]
+
+    def describe(self, image: torch.Tensor) -> OrbFeatures:
+        gray = to_gray_uint8(image)
+        kps, desc = self._orb_for(*gray.shape).detectAndCompute(gray, None)
+        pts = np.array([k.pt for k in kps], dtype=np.float32).reshape(-1, 2)
+        desc = np.zeros((0, 32), np.uint8) if desc is None else desc
+        return OrbFeatures(pts, desc, gray.shape[1], gray.shape[0])
+
+    def match(self, a: OrbFeatures, b: OrbFeatures, ratio: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Indices (ia, ib) of ratio-test matches from a to b (ratio defaults to the descriptor's)."""
+        ratio = self.ratio if ratio is None else ratio
+        if len(a) < 2 or len(b) < 2:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        pairs = self.matcher.knnMatch(a.descriptors, b.descriptors, k=2)
+        good = [m[0] for m in pairs if len(m) == 2 and m[0].distance < ratio * m[1].distance]
+        return (np.array([m.queryIdx for m in good], np.int64), np.array([m.trainIdx for m in good], np.int64))
+
+    def geometric_matches(self, a: OrbFeatures, b: OrbFeatures) -> tuple[np.ndarray, np.ndarray]:
+        """Matches that survive RANSAC on the fundamental matrix (empty when too few)."""
+        ia, ib = self.match(a, b)
+        if len(ia) < self.min_matches:
+            return ia[:0], ib[:0]
+        _, mask = cv2.findFundamentalMat(a.keypoints[ia], b.keypoints[ib], cv2.FM_RANSAC, self.ransac_px, 0.999)
+        if mask is None:
+            return ia[:0], ib[:0]
+        keep = mask.ravel().astype(bool)
+        return ia[keep], ib[keep]
+
+    def similarities(self, query: OrbFeatures, database: list[OrbFeatures]) -> np.ndarray:
+        scores = np.zeros(len(database))
+        for n, entry in enumerate(database):
+            ia, _ = self.geometric_matches(query, entry)
+            scores[n] = len(ia) / max(1, min(len(query), len(entry)))
+        return scores
