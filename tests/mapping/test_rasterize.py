@@ -15,7 +15,7 @@ from raster_oracle import render_oracle
 from worker.mapping import RenderResult, Surfels, rasterize
 
 W, H = 64, 48
-BACKENDS = ["reference"]  # "cpu" joins once the compiled path lands
+BACKENDS = ["reference", "cpu"]
 
 
 def camera(dtype=torch.float64) -> torch.Tensor:

@@ -27,6 +27,7 @@ class ProjectedSurfels(NamedTuple):
     """The visible surfels of one view, compacted (M of the N input surfels)."""
 
     ids: torch.Tensor  # [M] int64 index into the input surfels
+    ray_transforms: torch.Tensor  # [M, 3, 3] T (rows T0, T1, T2)
     uv_planes: torch.Tensor  # [M, 3, 3] rows A, B, C (see module docstring)
     means2d: torch.Tensor  # [M, 2] conic centre in pixels (also the low-pass filter centre)
     depths: torch.Tensor  # [M] camera z of the surfel centre
@@ -80,4 +81,4 @@ def project_surfels(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tens
     planes = torch.stack([torch.cross(T1, T2, dim=-1), torch.cross(T2, T0, dim=-1), torch.cross(T0, T1, dim=-1)], 1)
     normals = R_c[:, :, 2]
     facing = torch.where((normals * mean_c).sum(-1) < 0, 1.0, -1.0).to(normals.dtype).detach()
-    return ProjectedSurfels(ids, planes, centre, T[:, 2, 2], normals * facing[:, None], radii)
+    return ProjectedSurfels(ids, T, planes, centre, T[:, 2, 2], normals * facing[:, None], radii)

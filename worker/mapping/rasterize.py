@@ -108,8 +108,8 @@ def _composite_cpu(surfels: Surfels, viewmat: torch.Tensor, K: torch.Tensor, wid
         from . import raster_cpu
 
         if raster_cpu.available():
-            return raster_cpu.composite_cpu(proj.uv_planes, proj.means2d, opacities, features, proj.radii,
-                                            proj.depths, width, height)
+            return raster_cpu.composite_cpu(proj.uv_planes, proj.ray_transforms, proj.means2d, opacities, features,
+                                            proj.radii, proj.depths, width, height)
         global _warned_fallback
         if not _warned_fallback:
             logger.warning("compiled CPU rasterizer unavailable (%s); using the pure-torch reference",
