@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from live_stack import LiveStack, free_port
@@ -154,3 +155,23 @@ def test_refused_frames_are_reported_and_the_stream_continues(stack, frames) -> 
     assert [(e["code"], e["seq"]) for e in summary.errors] == [("bad_intrinsics", 1)]
     assert "aspect ratio" in summary.errors[0]["message"]
     assert [p.seq for p in summary.poses] == [0, 2]
+
+
+def test_streams_from_a_video_file_and_an_image_folder(stack, frames, tmp_path: Path) -> None:
+    video = tmp_path / "walk.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10, (160, 120))
+    for frame in frames[:5]:
+        writer.write(cv2.cvtColor(frame.image, cv2.COLOR_RGB2BGR))
+    writer.release()
+    folder = tmp_path / "images"
+    folder.mkdir()
+    for i, frame in enumerate(frames[:4]):
+        cv2.imwrite(str(folder / f"{i:04d}.png"), cv2.cvtColor(frame.image, cv2.COLOR_RGB2BGR))
+    k = frames[0].intrinsics
+    options = {"intrinsics": k}  # neither a video nor a folder of images knows its camera
+    with FlashMonoClient(stack.url, api_key="streamer") as client:
+        for source, count in ((video, 5), (folder, 4)):
+            session = client.create_session(intrinsics=k, preset=PRESET, name=source.name)
+            summary = client.stream(session.id, str(source), source_options=options, max_pending=3)
+            assert [p.seq for p in summary.poses] == list(range(count)), source
+            assert client.get_session(session.id).frames_processed == count
