@@ -107,3 +107,12 @@ def test_bad_input_is_rejected(icl_frames):
         TrackerConfig(submap_length=1)
     with pytest.raises(ValueError, match="not a keyframe"):
         tracker.keyframe_points(3)
+
+
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    """Many small tensor ops: a 2-thread pool on the shared 2-core machine mostly waits."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)

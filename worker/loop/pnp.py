@@ -43,12 +43,12 @@ class PnPRelocalizer:
 
     def __init__(self, tracker, orb: OrbDescriptor | None = None,
                  points_of: Callable[[int], torch.Tensor] | None = None,
-                 thresholds: VerificationThresholds | None = None, min_inliers: int = 20,
-                 reprojection_px: float = 3.0, match_ratio: float = 0.9) -> None:
+                 thresholds: VerificationThresholds | None = None, min_inliers: int = 30,
+                 reprojection_px: float = 3.0, match_ratio: float = 0.85) -> None:
         self.tracker = tracker
         self.orb = orb or OrbDescriptor()
         self.points_of = points_of or (lambda k: tracker.keyframe_points(k)[0])
-        self.thresholds = thresholds or VerificationThresholds(min_point_agreement=0.0)
+        self.thresholds = thresholds or VerificationThresholds(min_point_agreement=0.0, min_support=0.3)
         self.min_inliers = min_inliers
         self.reprojection_px = reprojection_px
         self.match_ratio = match_ratio  # looser than for detection: RANSAC removes the wrong matches
