@@ -12,7 +12,7 @@ import logging
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 log = logging.getLogger(__name__)
 
@@ -28,20 +28,18 @@ class FrontendConfig(_Section):
 
     model: str = Field("tiny", description="model config name for worker.frontend.build_model")
     checkpoint: str | None = Field(None, description="safetensors checkpoint; None = the shipped default if present")
-    long_side: int = Field(224, ge=32, le=2048, description="images are resized so the long side is this (then /16)")
+    long_side: int = Field(224, ge=32, le=2048, multiple_of=16,
+                           description="images are resized so the long side is this, then cropped to /16")
     submap_size: int = Field(8, ge=2, le=256, description="frames per submap")
-    submap_overlap: int = Field(1, ge=1, description="frames shared by consecutive submaps")
-    keyframe_every: int = Field(4, ge=1, description="a keyframe at least every N frames")
-    keyframe_translation: float = Field(0.05, gt=0, description="or when the camera moved this far (map units)")
-    keyframe_rotation_deg: float = Field(10.0, gt=0, description="or turned this much")
+    submap_overlap: Literal[1] = Field(1, description="frames shared by consecutive submaps (the paper's one)")
+    keyframe_every: int = Field(4, ge=1, description="posed mode: a keyframe at least every N frames")
+    keyframe_depth_ratio: float = Field(
+        0.10, gt=0, description="monocular: a keyframe once the camera moved this fraction of the scene depth")
+    keyframe_translation: float = Field(0.2, gt=0, description="posed mode: or when it moved this far (pose units)")
+    keyframe_rotation_deg: float = Field(15.0, gt=0, description="or turned this much")
     min_confidence: float = Field(1.5, ge=1.0, description="per-pixel confidence below which surfels are dropped")
     seed: int = Field(0, description="seed of the randomly initialised model when no checkpoint exists")
 
-    @model_validator(mode="after")
-    def _overlap_below_size(self) -> FrontendConfig:
-        if self.submap_overlap >= self.submap_size:
-            raise ValueError(f"submap_overlap ({self.submap_overlap}) must be < submap_size ({self.submap_size})")
-        return self
 
 
 class LoopConfig(_Section):
@@ -52,9 +50,9 @@ class LoopConfig(_Section):
     relocalization: Literal["hidden_state", "pnp"] = Field(
         "hidden_state", description="hidden_state = f(I_j, M_a) (paper); pnp needs depth (given or predicted)")
     top_k: int = Field(3, ge=1, description="candidates verified per keyframe")
-    min_score: float = Field(0.3, ge=0.0, le=1.0, description="descriptor similarity needed to verify a candidate")
-    exclusion_keyframes: int = Field(10, ge=0, description="recent keyframes never proposed as loop candidates")
-    min_inliers: int = Field(30, ge=4, description="geometric verification: inliers needed")
+    min_score: float = Field(0.1, ge=0.0, le=1.0, description="descriptor similarity needed to verify a candidate")
+    exclusion_frames: int = Field(30, ge=0, description="keyframes this many frames back or closer are not candidates")
+    min_inliers: int = Field(20, ge=4, description="PnP verification: inliers needed")
     robust_kernel: Literal["cauchy", "huber", "none"] = "cauchy"
     robust_k: float = Field(1.0, gt=0)
     pgo_iterations: int = Field(50, ge=1, le=10000)
@@ -69,15 +67,14 @@ class MappingConfig(_Section):
     merged_scale_factor: float = Field(
         2.0, gt=0, description="scale multiplier of a merged block's surfel: a 2x2 block covers twice the width")
     tau_depth: float = Field(0.05, gt=0, description="relative depth range above which a block is not merged")
-    tau_accum: float = Field(0.9, gt=0, le=1.0, description="add new surfels only where accumulation < tau_accum")
-    prune_rgb_error: float = Field(0.3, gt=0, description="prune surfels on pixels with this L1 colour error")
+    tau_accum: float = Field(0.7, gt=0, le=1.0, description="add new surfels only where accumulation < tau_accum")
+    prune_rgb_error: float = Field(0.25, gt=0, description="prune surfels on pixels with this L1 colour error")
     prune_depth_error: float = Field(0.1, gt=0, description="... or this relative depth error")
     refine_keyframes: int = Field(5, ge=1, description="K: refine the surfels of the last K keyframes")
     refine_iterations: int = Field(20, ge=0, le=10000, description="iterations after each keyframe")
     ssim_weight: float = Field(0.2, ge=0, le=1)
     depth_weight: float = Field(0.1, ge=0)
     final_refine_iterations: int = Field(0, ge=0, description="extra refinement over all keyframes at finish()")
-    render_backend: Literal["auto", "cpu", "reference", "gsplat"] = "auto"
 
 
 class InputConfig(_Section):
@@ -157,7 +154,7 @@ PRESETS: dict[str, dict[str, Any]] = {
              "mapping": {"refine_keyframes": 3, "refine_iterations": 8}},
     # Unit tests: tiny images, few iterations, single-threaded and deterministic.
     "test": {"frontend": {"long_side": 64, "submap_size": 4, "keyframe_every": 2},
-             "loop": {"exclusion_keyframes": 4, "pgo_iterations": 30},
+             "loop": {"exclusion_frames": 12, "pgo_iterations": 30},
              "mapping": {"refine_keyframes": 2, "refine_iterations": 3},
              "threaded": False, "queue_size": 4},
 }

@@ -28,7 +28,8 @@ from worker.config import SlamConfig
 from worker.data.frame import Frame, FrameResult
 from worker.engine.backend import KeyframeJob, MapBackend, PoseUpdateJob
 from worker.engine.keyframes import MotionKeyframeSelector
-from worker.engine.surfel_init import grid_from_depth
+from worker.engine.loop_closer import DepthKeyframePoints, LoopCloser
+from worker.engine.surfel_init import grid_from_depth, grid_from_prediction
 from worker.engine.trajectory import Trajectory
 from worker.geometry import Intrinsics, sim3_inverse
 from worker.loop.pose_graph import EdgeSigmas, Sim3PoseGraph
@@ -61,16 +62,23 @@ class SlamSystem:
         self.backend = (MapBackend(self.config.mapping, self.config.threaded, self.config.queue_size,
                                    self.config.device) if self.config.mapping.enabled else None)
         self.counters: dict[str, float] = {"frames": 0, "keyframes": 0, "loops": 0, "frontend_seconds": 0.0,
-                                           "wall_seconds": 0.0}
+                                           "wall_seconds": 0.0, "path_given": 0.0, "path_tracked": 0.0}
         self._last_keyframe: int | None = None
         self._submap_of: dict[int, int] = {}
         self._frame_size: tuple[int, int] | None = None
         self._keyframe_images: dict[int, np.ndarray] = {}
         self._finished = False
-        self._model = None
-        self._tracker = None
-        self._loop = None
+        self.model_id: str | None = None
+        self.model = None
+        self.tracker = None
+        self.bag = None
+        self.loop_closer: LoopCloser | None = None
+        self.depth_points: DepthKeyframePoints | None = None
+        self.model_intrinsics: Intrinsics | None = None  # the camera at model resolution (given or estimated)
         self._started: float | None = None
+        self._pending_jobs: list[tuple[KeyframeJob, bool]] = []
+        self._with_depth = False
+        self._previous_poses: tuple[np.ndarray, np.ndarray] | None = None
 
     # ------------------------------------------------------------------------------------------------ public API
     @property
@@ -107,6 +115,7 @@ class SlamSystem:
         if self._finished:
             return
         if self.backend is not None:
+            self._flush_posed_jobs(force=True)
             self.backend.wait_idle()
             if self.config.mapping.final_refine_iterations:
                 self.backend.refine_all(self.config.mapping.final_refine_iterations)
@@ -165,7 +174,8 @@ class SlamSystem:
         if self._frame_size is None:
             self._frame_size = size
             posed = frame.pose is not None and self.config.input.pose_mode != "ignore"
-            self.mode = "posed" if posed else "monocular"
+            self._with_depth = self._uses_depth(frame)
+            self._setup("posed" if posed else "monocular", with_depth=self._with_depth)
         elif size != self._frame_size:
             raise ValueError(f"frame {frame.index} is {size[0]}x{size[1]}, the session's frames are "
                              f"{self._frame_size[0]}x{self._frame_size[1]}")
@@ -190,12 +200,23 @@ class SlamSystem:
         pose = np.asarray(frame.pose, np.float64)
         events: list[dict[str, Any]] = []
         is_kf = self.selector.is_keyframe(pose)
+        tracked = prep = None
+        if self.tracker is not None:  # the model predicts the surfels
+            prep = self._prepare(frame)
+            tracked = self.tracker.track(frame.index, prep.tensor, prep.intrinsics or self.model_intrinsics)
+            self.bag.add_finished(self.tracker.pop_finished_submaps())
+            if self.model_intrinsics is None:
+                self.model_intrinsics = prep.intrinsics or self._estimate_intrinsics(tracked.surfels, prep)
+            self._accumulate_path(pose, tracked.pose_world.numpy())
         if is_kf:
             self._add_keyframe(frame.index, pose, submap_id=0)
-            events += self._close_loops_posed(frame)
+            if self.loop_closer is not None:
+                events += self._posed_loop(frame)
         world = self._traj.add_frame(frame.index, frame.timestamp, self._last_keyframe, pose, is_kf, 0)
         if is_kf and self.backend is not None:
-            self.backend.submit(self._posed_keyframe_job(frame, self._traj.keyframe_poses[frame.index]))
+            self._pending_jobs.append(self._posed_keyframe_job(frame, prep, tracked))
+        if self.backend is not None:
+            self._flush_posed_jobs()
         return FrameResult(frame.index, frame.timestamp, world, is_kf, 0, self.revision, events)
 
     def _add_keyframe(self, kf_id: int, tracked_pose: np.ndarray, submap_id: int) -> np.ndarray:
@@ -213,36 +234,181 @@ class SlamSystem:
         self.counters["keyframes"] += 1
         return world
 
-    def _posed_keyframe_job(self, frame: Frame, world_pose: np.ndarray) -> KeyframeJob:
-        K_intr = self.frame_intrinsics(frame)
-        if K_intr is None:
-            raise ValueError("posed mapping needs intrinsics: give them with the frames or to SlamSystem()")
-        image = torch.from_numpy(frame.image).to(torch.float32) / 255.0
-        K = K_intr.matrix()
-        depth = torch.from_numpy(np.asarray(frame.depth, np.float32)) if self._uses_depth(frame) else None
-        if depth is None:
-            grid = self._model_grid(frame, K_intr, depth=None)
-        elif self.config.input.surfel_init == "depth":
-            grid = grid_from_depth(image, depth, K)
-        else:
-            grid = self._model_grid(frame, K_intr, depth=depth)
-        return KeyframeJob(frame.index, world_pose, K, image, grid, depth)
+    def _posed_loop(self, frame: Frame) -> list[dict[str, Any]]:
+        intr = self.frame_intrinsics(frame)
+        if intr is None:
+            raise ValueError("posed RGB-D mode needs intrinsics: give them with the frames or to SlamSystem()")
+        self.depth_points.add(frame.index, torch.from_numpy(np.asarray(frame.depth, np.float32)), intr.matrix())
+        image = torch.from_numpy(frame.image).permute(2, 0, 1)[None].float() / 255.0
+        return self._close_loop(frame.index, image, intr)
 
-    def _close_loops_posed(self, frame: Frame) -> list[dict[str, Any]]:
-        if self.config.input.pose_mode == "fixed" or not self.config.loop.enabled:
-            return []
-        return self._detect_and_close(frame)
+    def _accumulate_path(self, given: np.ndarray, tracked: np.ndarray) -> None:
+        """Path lengths of the given and the tracked trajectories: their ratio converts model units to pose units."""
+        if self._previous_poses is not None:
+            g0, t0 = self._previous_poses
+            self.counters["path_given"] += float(np.linalg.norm(given[:3, 3] - g0[:3, 3]))
+            self.counters["path_tracked"] += float(np.linalg.norm(tracked[:3, 3] - t0[:3, 3]))
+        self._previous_poses = (given.copy(), tracked.copy())
+
+    def _flush_posed_jobs(self, force: bool = False) -> None:
+        """Submit keyframe jobs; model-unit surfels wait until the path gives their scale (or `force`)."""
+        while self._pending_jobs:
+            job, needs_scale = self._pending_jobs[0]
+            if needs_scale:
+                tracked_path = self.counters["path_tracked"]
+                if tracked_path < 1e-9 and not force:
+                    return
+                scale = self.counters["path_given"] / tracked_path if tracked_path >= 1e-9 else 1.0
+                job.grid = {**job.grid, "means": job.grid["means"] * scale, "scales": job.grid["scales"] * scale}
+            self._pending_jobs.pop(0)
+            self.backend.submit(job)
+
+    def _posed_keyframe_job(self, frame: Frame, prep, tracked) -> tuple[KeyframeJob, bool]:
+        """(the keyframe's map job, whether its surfels are still in model units)."""
+        world_pose = self._traj.keyframe_poses[frame.index]
+        if self._uses_depth(frame) and self.config.input.surfel_init == "depth":
+            intr = self.frame_intrinsics(frame)
+            if intr is None:
+                raise ValueError("posed RGB-D mode needs intrinsics: give them with the frames or to SlamSystem()")
+            image = torch.from_numpy(frame.image).to(torch.float32) / 255.0
+            depth = torch.from_numpy(np.asarray(frame.depth, np.float32))
+            return KeyframeJob(frame.index, world_pose, intr.matrix(), image, grid_from_depth(image, depth,
+                                                                                           intr.matrix()), depth), False
+        grid, depth = self._prediction_grid(frame, prep, tracked.surfels)
+        image = prep.tensor[0].permute(1, 2, 0).contiguous()
+        job = KeyframeJob(frame.index, world_pose, self.model_intrinsics.matrix(), image, grid, depth)
+        return job, depth is None
+
+    # ------------------------------------------------------------------------------------------------- set-up
+    def _setup(self, mode: str, with_depth: bool) -> None:
+        """Build what the mode needs: the model and tracker (monocular, or posed without depth-initialised
+        surfels), the bag of hidden states and the loop closer."""
+        self.mode = mode
+        cfg = self.config
+        needs_model = mode == "monocular" or not (with_depth and cfg.input.surfel_init == "depth")
+        if needs_model:
+            self._build_frontend()
+        loops = cfg.loop.enabled and not (mode == "posed" and cfg.input.pose_mode == "fixed")
+        if not loops:
+            return
+        if mode == "posed":
+            if not with_depth:
+                log.warning("posed mode without depth: loop closure is off (no metric points to relocalize with)")
+                return
+            self.depth_points = DepthKeyframePoints()
+            self.loop_closer = LoopCloser(cfg.loop, model=self.model, depth_points=self.depth_points)
+        else:
+            self.loop_closer = LoopCloser(cfg.loop, model=self.model, tracker=self.tracker, bag=self.bag)
+
+    def _build_frontend(self) -> None:
+        from worker.frontend import build_model
+        from worker.frontend.checkpoint import load_checkpoint
+        from worker.frontend.tracker import SubmapTracker, TrackerConfig
+        from worker.loop.bag import HiddenStateBag
+
+        fc = self.config.frontend
+        path = self.config.checkpoint_path()
+        if path is not None:
+            self.model = load_checkpoint(path, device=self.config.device)
+            self.model_id = f"checkpoint:{path.name}"
+        else:
+            log.warning("no checkpoint for model %r: using a randomly initialised model (seed %d); poses and maps "
+                        "will be meaningless until trained weights are given", fc.model, fc.seed)
+            with torch.random.fork_rng():
+                torch.manual_seed(fc.seed)
+                self.model = build_model(fc.model, device=self.config.device)
+            self.model_id = f"random:{fc.model}:seed={fc.seed}"
+        self.tracker = SubmapTracker(self.model, TrackerConfig(
+            submap_length=fc.submap_size, keyframe_translation=fc.keyframe_depth_ratio,
+            keyframe_rotation_deg=fc.keyframe_rotation_deg))
+        self.bag = HiddenStateBag()
 
     # ----------------------------------------------------------------------------------------- monocular mode
-    def _push_monocular(self, frame: Frame) -> FrameResult:
-        raise NotImplementedError("monocular tracking is integrated once worker.frontend.tracker lands")
+    def _prepare(self, frame: Frame):
+        from worker.frontend.preprocess import prepare_image
 
-    def _model_grid(self, frame: Frame, K: Intrinsics, depth: torch.Tensor | None) -> dict[str, torch.Tensor]:
-        raise NotImplementedError("model-predicted surfels are integrated once worker.frontend lands")
+        return prepare_image(frame.image, self.frame_intrinsics(frame), long_side=self.config.frontend.long_side)
+
+    def _push_monocular(self, frame: Frame) -> FrameResult:
+        prep = self._prepare(frame)
+        tracked = self.tracker.track(frame.index, prep.tensor, prep.intrinsics or self.model_intrinsics)
+        self.bag.add_finished(self.tracker.pop_finished_submaps())
+        if self.model_intrinsics is None:
+            self.model_intrinsics = prep.intrinsics or self._estimate_intrinsics(tracked.surfels, prep)
+        events: list[dict[str, Any]] = []
+        if tracked.is_keyframe:
+            self._add_keyframe(frame.index, tracked.pose_world.numpy(), submap_id=tracked.submap_id)
+            if self.loop_closer is not None:
+                events += self._close_loop(frame.index, prep.tensor, self.model_intrinsics)
+        world = self._traj.add_frame(frame.index, frame.timestamp, tracked.keyframe_id, tracked.pose_world.numpy(),
+                                     tracked.is_keyframe, tracked.submap_id)
+        if tracked.is_keyframe and self.backend is not None:
+            grid, depth = self._prediction_grid(frame, prep, tracked.surfels)
+            image = prep.tensor[0].permute(1, 2, 0).contiguous()
+            self.backend.submit(KeyframeJob(frame.index, self._traj.keyframe_poses[frame.index],
+                                            self.model_intrinsics.matrix(), image, grid, depth))
+        return FrameResult(frame.index, frame.timestamp, world, tracked.is_keyframe, tracked.submap_id,
+                           self.revision, events)
+
+    def _estimate_intrinsics(self, surfels, prep) -> Intrinsics:
+        from worker.frontend.focal import estimate_focal, intrinsics_from_focal
+
+        h, w = prep.tensor.shape[-2:]
+        focal = estimate_focal(surfels.points.float(), surfels.conf.float())
+        intr = intrinsics_from_focal(focal, w, h)
+        log.info("estimated focal length %.1f px at %dx%d", focal, w, h)
+        return intr
+
+    def estimated_intrinsics(self) -> Intrinsics | None:
+        """The camera at the input frames' resolution: given, or estimated from the model's points."""
+        if self.intrinsics is not None or self.model_intrinsics is None or self._frame_size is None:
+            return self.intrinsics
+        return _uncrop_intrinsics(self.model_intrinsics, self._prep_geometry(), *self._frame_size)
+
+    def _prep_geometry(self) -> tuple[float, tuple[int, int, int, int]]:
+        from worker.frontend.preprocess import centre_crop_box, resized_size
+
+        w, h = self._frame_size
+        new_w, new_h = resized_size(w, h, self.config.frontend.long_side)
+        return new_w / w, centre_crop_box(new_w, new_h)
+
+    def _model_depth(self, frame: Frame, prep) -> torch.Tensor | None:
+        """The frame's depth at model resolution (nearest neighbour, then the same crop), or None."""
+        if not self._uses_depth(frame):
+            return None
+        import cv2
+
+        h, w = frame.depth.shape
+        new_w, new_h = round(w * prep.scale), round(h * prep.scale)
+        depth = cv2.resize(np.asarray(frame.depth, np.float32), (new_w, new_h), interpolation=cv2.INTER_NEAREST)
+        left, top, cw, ch = prep.crop
+        return torch.from_numpy(np.ascontiguousarray(depth[top:top + ch, left:left + cw]))
+
+    def _prediction_grid(self, frame: Frame, prep, surfels) -> tuple[dict[str, torch.Tensor], torch.Tensor | None]:
+        """A keyframe's surfel grid from the model; with depth, means from the depth brought to the tracker's
+        units (the median ratio of predicted to measured depth), so the map stays consistent with the poses."""
+        depth = self._model_depth(frame, prep)
+        if depth is not None and self.mode == "monocular":
+            valid = (depth > 0) & (surfels.points[..., 2] > 0)
+            if bool(valid.any()):
+                depth = depth * float((surfels.points[..., 2][valid].float() / depth[valid]).median())
+        K = self.model_intrinsics.matrix()
+        grid = grid_from_prediction(surfels.points.float(), surfels.conf.float(), surfels.quats.float(),
+                                    surfels.scales.float(), surfels.opacity.float(), surfels.colors.float(),
+                                    self.config.frontend.min_confidence, depth=depth, K=K if depth is not None
+                                    else None)
+        return grid, depth
 
     # ------------------------------------------------------------------------------------------ loop closure
-    def _detect_and_close(self, frame: Frame) -> list[dict[str, Any]]:
-        return []
+    def _close_loop(self, index: int, image: torch.Tensor, intrinsics: Intrinsics | None) -> list[dict[str, Any]]:
+        constraint = self.loop_closer.process_keyframe(index, image, intrinsics)
+        if constraint is None:
+            return []
+        self.pose_graph.add_edge(constraint.i, constraint.j, constraint.relative, kind="loop")
+        event = self._apply_pgo(constraint.j, constraint.i)
+        event["source"] = constraint.source
+        event["scale"] = float(constraint.scale)
+        return [event]
 
     def _apply_pgo(self, loop_from: int, loop_to: int) -> dict[str, Any]:
         """Optimise the pose graph, move the trajectory and the map; returns the loop event."""
@@ -261,19 +427,28 @@ class SlamSystem:
     def snapshot(self) -> bytes:
         """Everything needed to continue this session, as msgpack bytes (waits for the backend to be idle)."""
         if self.backend is not None:
+            self._flush_posed_jobs(force=True)
             self.backend.wait_idle()
         state = {
             "format": SNAPSHOT_FORMAT,
             "config": self.config.model_dump(mode="json"),
+            "model_id": self.model_id,
             "intrinsics": None if self.intrinsics is None else self.intrinsics.to_dict(),
+            "model_intrinsics": None if self.model_intrinsics is None else self.model_intrinsics.to_dict(),
             "mode": self.mode,
+            "with_depth": self._with_depth,
             "frame_size": None if self._frame_size is None else list(self._frame_size),
             "last_keyframe": self._last_keyframe,
             "submap_of": [[k, v] for k, v in self._submap_of.items()],
+            "previous_poses": None if self._previous_poses is None else list(self._previous_poses),
             "counters": dict(self.counters),
             "trajectory": self._traj.state_dict(),
             "pose_graph": self.pose_graph.state_dict(),
             "selector": self.selector.state_dict(),
+            "tracker": None if self.tracker is None else self.tracker.state_dict(),
+            "bag": None if self.bag is None else self.bag.to_bytes(torch.float32),
+            "loop": None if self.loop_closer is None else self.loop_closer.state_dict(),
+            "depth_points": None if self.depth_points is None else self.depth_points.state_dict(),
             "map": None if self.backend is None else self.backend.state_dict(),
         }
         return pack(state)
@@ -284,17 +459,44 @@ class SlamSystem:
         state = unpack(data)
         if not isinstance(state, dict) or state.get("format") != SNAPSHOT_FORMAT:
             raise ValueError("not a Flash-Mono SLAM snapshot")
+        from worker.loop.bag import HiddenStateBag
+
         config = SlamConfig.from_dict(state["config"])
         intrinsics = None if state["intrinsics"] is None else Intrinsics.from_dict(state["intrinsics"])
         system = cls(config, intrinsics)
-        system.mode = state["mode"]
+        if state["mode"] is not None:
+            system._with_depth = bool(state["with_depth"])
+            system._setup(state["mode"], with_depth=system._with_depth)
+        if system.model_id != state["model_id"]:
+            raise ValueError(f"the snapshot was made with model {state['model_id']!r}, this machine has "
+                             f"{system.model_id!r}")
+        if state["model_intrinsics"] is not None:
+            system.model_intrinsics = Intrinsics.from_dict(state["model_intrinsics"])
         system._frame_size = None if state["frame_size"] is None else tuple(state["frame_size"])
         system._last_keyframe = state["last_keyframe"]
         system._submap_of = {int(k): int(v) for k, v in state["submap_of"]}
+        if state["previous_poses"] is not None:
+            system._previous_poses = tuple(np.asarray(p, np.float64) for p in state["previous_poses"])
         system.counters.update(state["counters"])
         system._traj.load_state_dict(state["trajectory"])
         system.pose_graph.load_state_dict(state["pose_graph"])
         system.selector.load_state_dict(state["selector"])
+        if system.tracker is not None:
+            system.tracker.load_state_dict(state["tracker"])
+            system.bag = HiddenStateBag.from_bytes(state["bag"])
+            if system.loop_closer is not None and system.loop_closer.pnp is None:
+                system.loop_closer.relocalizer.bag = system.bag
+        if system.loop_closer is not None:
+            system.loop_closer.load_state_dict(state["loop"])
+        if system.depth_points is not None:
+            system.depth_points.load_state_dict(state["depth_points"])
         if system.backend is not None and state["map"] is not None:
             system.backend.load_state_dict(state["map"])
         return system
+
+def _uncrop_intrinsics(intr: Intrinsics, geometry: tuple[float, tuple[int, int, int, int]], width: int,
+                       height: int) -> Intrinsics:
+    """Model-resolution intrinsics back at the input resolution (undo the centre crop, then the resize)."""
+    scale, (left, top, _, _) = geometry
+    return Intrinsics(intr.fx / scale, intr.fy / scale, (intr.cx + left) / scale, (intr.cy + top) / scale, width,
+                      height)

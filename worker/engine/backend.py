@@ -47,18 +47,18 @@ _STOP = object()
 
 def build_gaussian_map(cfg: MappingConfig, device: str):
     """The map object with this engine's mapping settings."""
-    from worker.mapping.gaussian_map import GaussianMap, GaussianMapConfig
+    from worker.mapping.fusion import FusionThresholds
+    from worker.mapping.gaussian_map import GaussianMap, MapConfig
+    from worker.mapping.refine import RefineSettings
 
-    return GaussianMap(GaussianMapConfig(
-        tau_accum=cfg.tau_accum,
-        prune_rgb_error=cfg.prune_rgb_error,
-        prune_depth_error=cfg.prune_depth_error,
-        refine_keyframes=cfg.refine_keyframes,
-        refine_iterations=cfg.refine_iterations,
-        ssim_weight=cfg.ssim_weight,
-        depth_weight=cfg.depth_weight,
-        backend=cfg.render_backend,
-    ), device=device)
+    return GaussianMap(MapConfig(
+        window=cfg.refine_keyframes,
+        iterations=cfg.refine_iterations,
+        thresholds=FusionThresholds(rgb_error=cfg.prune_rgb_error, depth_error=cfg.prune_depth_error,
+                                    tau_accum=cfg.tau_accum),
+        refine=RefineSettings(lambda_ssim=cfg.ssim_weight, lambda_depth=cfg.depth_weight),
+        device=device,
+    ))
 
 
 class MapBackend:

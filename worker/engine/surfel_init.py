@@ -14,7 +14,7 @@ import torch.nn.functional as F
 from worker.geometry import rotmat_to_quat, unproject_depth
 
 # A per-pixel surfel's standard deviation in pixels: ~0.7 px covers the pixel without blurring its neighbours.
-PIXEL_SIGMA = 0.7
+PIXEL_SIGMA = 0.5
 INITIAL_OPACITY = 0.95
 
 
@@ -46,7 +46,7 @@ def normals_to_quats(normals: torch.Tensor) -> torch.Tensor:
 def grid_from_depth(image: torch.Tensor, depth: torch.Tensor, K: torch.Tensor) -> dict[str, torch.Tensor]:
     """Surfels from an RGB image float [H,W,3] in [0,1] and metric depth [H,W] (0 = invalid): one per pixel at
     the unprojected depth, oriented along the depth's surface normal, coloured by the pixel, ~1 pixel wide."""
-    depth = depth.to(torch.float32)
+    depth = fill_invalid_depth(depth.to(torch.float32))
     means = unproject_depth(depth, K.to(torch.float32))
     normals = depth_normals(means)
     footprint = depth / float(K[0, 0])
@@ -62,6 +62,15 @@ def grid_from_depth(image: torch.Tensor, depth: torch.Tensor, K: torch.Tensor) -
         "colors": image.to(torch.float32).clamp(0, 1),
         "valid": depth > 0,
     }
+
+
+def fill_invalid_depth(depth: torch.Tensor) -> torch.Tensor:
+    """Depth with holes (0, non-finite) filled by the frame's farthest valid depth: sensors drop far or glassy
+    surfaces, and a surfel there (coloured by its pixel, behind everything else) renders them instead of black."""
+    valid = torch.isfinite(depth) & (depth > 0)
+    if bool(valid.all()) or not bool(valid.any()):
+        return depth
+    return torch.where(valid, depth, depth[valid].max())
 
 
 def grid_from_prediction(points: torch.Tensor, conf: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,

@@ -1,0 +1,86 @@
+"""`flashmono run SOURCE --out DIR`: run the SLAM engine offline on a sequence and write trajectories, the map,
+renders and metrics.json (see worker.engine.offline)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from client.commands._options import parse_size
+
+
+def add_run_options(parser: argparse.ArgumentParser) -> None:
+    """Options shared by `run` and `eval`."""
+    parser.add_argument("--out", required=True, help="output folder")
+    parser.add_argument("--use-gt-depth", action="store_true", help="RGB-D mode: use the dataset's depth")
+    parser.add_argument("--use-gt-poses", action="store_true", help="posed mode: use the dataset's poses")
+    parser.add_argument("--preset", default="default", help="SlamConfig preset: paper, default, fast, test")
+    parser.add_argument("--max-frames", type=int, default=None, help="stop after N frames")
+    parser.add_argument("--stride", type=int, default=1, help="keep every S-th frame")
+    parser.add_argument("--resize", type=parse_size, default=None, help="resize frames to WxH, e.g. 320x240")
+    parser.add_argument("--config", default=None, help="JSON file of SlamConfig overrides (nested sections)")
+    parser.add_argument("--drift", type=float, nargs=2, default=None, metavar=("DEG", "M"),
+                        help="posed mode: inject odometry drift of DEG degrees and M metres per frame")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def load_config(args: argparse.Namespace):
+    """The SlamConfig from --preset and --config."""
+    from worker.config import SlamConfig
+
+    overrides = {}
+    if args.config:
+        try:
+            with open(args.config) as fh:
+                overrides = json.load(fh)
+        except (OSError, json.JSONDecodeError) as err:
+            raise ValueError(f"cannot read config overrides {args.config}: {err}") from err
+        if not isinstance(overrides, dict):
+            raise ValueError("--config must hold a JSON object")
+    return SlamConfig.preset(args.preset, **overrides)
+
+
+def run_one(args: argparse.Namespace, source: str, out_dir: str) -> dict:
+    """Run one sequence with a tqdm progress bar; returns its metrics."""
+    from tqdm import tqdm
+
+    from worker.engine.offline import PoseDrift, run_sequence
+
+    config = load_config(args)
+    drift = PoseDrift(*args.drift) if args.drift else None
+    bar = tqdm(desc=str(source), unit="frame", disable=args.no_progress, file=sys.stderr)
+
+    def progress(done: int, total: int | None) -> None:
+        bar.total = total
+        bar.update(done - bar.n)
+
+    try:
+        return run_sequence(source, out_dir, config, use_gt_depth=args.use_gt_depth, use_gt_poses=args.use_gt_poses,
+                            max_frames=args.max_frames, stride=args.stride, resize=args.resize, drift=drift,
+                            progress=progress)
+    finally:
+        bar.close()
+
+
+def _run(args: argparse.Namespace) -> int:
+    from worker.data import DatasetError
+
+    try:
+        metrics = run_one(args, args.source, args.out)
+    except (ValueError, DatasetError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    keys = ("ate_rmse", "psnr", "ssim", "lpips", "depth_l1", "fps", "num_gaussians", "num_keyframes", "loops")
+    for key in keys:
+        print(f"{key:>14}: {metrics.get(key)}")
+    print(f"wrote {args.out}")
+    return 0
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser("run", help="run SLAM offline on a sequence and evaluate it",
+                                   description=__doc__)
+    parser.add_argument("source", help="dataset folder, video, image folder or synthetic:// URI")
+    add_run_options(parser)
+    parser.set_defaults(func=_run)

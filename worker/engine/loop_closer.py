@@ -1,0 +1,129 @@
+"""Loop closure as the engine runs it: detect candidates for each new keyframe, relocalize, keep the first verified
+constraint (paper 4.2). Detection and relocalization are worker.loop's; this module wires them to the engine's
+modes and makes their state snapshot-able.
+
+Relocalization sources: "hidden_state" (f(I_j, M_a) with the bag of hidden states, monocular) and "pnp" (ORB + PnP
+with keyframe i's 3D points: the tracker's predicted points or, in posed RGB-D mode, the given depth through
+`DepthKeyframePoints`, which makes the constraint metric like the given poses).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from worker.config import LoopConfig
+from worker.geometry import Intrinsics, unproject_depth
+from worker.loop.descriptors import EncoderGeMDescriptor, OrbDescriptor, OrbFeatures
+from worker.loop.detector import LoopDetector
+from worker.loop.pnp import PnPRelocalizer
+from worker.loop.relocalize import LoopConstraint
+
+
+class DepthKeyframePoints:
+    """Keyframe camera-frame points from given depth, stored in float16 (snapshots reproduce them exactly); offers
+    the tracker's `keyframe_points(index) -> (points [H,W,3], conf [H,W])` so the PnP relocalizer can use them."""
+
+    def __init__(self) -> None:
+        self.points: dict[int, torch.Tensor] = {}
+
+    def add(self, index: int, depth: torch.Tensor, K: torch.Tensor) -> None:
+        self.points[int(index)] = unproject_depth(depth.to(torch.float32), K.to(torch.float32)).to(torch.float16)
+
+    def keyframe_points(self, index: int) -> tuple[torch.Tensor, torch.Tensor]:
+        if index not in self.points:
+            raise ValueError(f"frame {index} is not a keyframe with depth")
+        p = self.points[index].float()
+        return p, (p[..., 2] > 0).float() + 1.0
+
+    def state_dict(self) -> dict:
+        return {"keys": list(self.points), "points": [p.numpy() for p in self.points.values()]}
+
+    def load_state_dict(self, d: dict) -> None:
+        self.points = {int(k): torch.from_numpy(np.asarray(p)) for k, p in zip(d["keys"], d["points"])}
+
+
+def _entry_to_dict(entry: Any) -> dict:
+    if isinstance(entry, OrbFeatures):
+        return {"kind": "orb", "keypoints": entry.keypoints, "descriptors": entry.descriptors,
+                "width": entry.width, "height": entry.height}
+    return {"kind": "vector", "value": entry.detach().cpu().numpy()}
+
+
+def _entry_from_dict(d: dict) -> Any:
+    if d["kind"] == "orb":
+        return OrbFeatures(np.asarray(d["keypoints"], np.float32), np.asarray(d["descriptors"], np.uint8),
+                           int(d["width"]), int(d["height"]))
+    return torch.from_numpy(np.asarray(d["value"]))
+
+
+class LoopCloser:
+    """Per keyframe: query the detector, relocalize the candidates best first, return the first verified one."""
+
+    def __init__(self, cfg: LoopConfig, model=None, tracker=None, bag=None, depth_points: DepthKeyframePoints | None
+                 = None) -> None:
+        self.cfg = cfg
+        orb = OrbDescriptor()
+        if cfg.descriptor == "encoder":
+            if model is None:
+                raise ValueError("the encoder loop descriptor needs the model")
+            descriptor = EncoderGeMDescriptor(model)
+        else:
+            descriptor = orb
+        self.detector = LoopDetector(descriptor, exclusion_window=cfg.exclusion_frames, top_k=cfg.top_k,
+                                     min_score=cfg.min_score)
+        self.pnp: PnPRelocalizer | None = None
+        if depth_points is not None:
+            self.relocalizer = self.pnp = PnPRelocalizer(depth_points, orb, min_inliers=cfg.min_inliers)
+        elif cfg.relocalization == "pnp":
+            self.relocalizer = self.pnp = PnPRelocalizer(tracker, orb, min_inliers=cfg.min_inliers)
+        else:
+            from worker.loop.relocalize import HiddenStateRelocalizer
+
+            self.relocalizer = HiddenStateRelocalizer(model, bag, tracker)
+        self.last_loop_keyframe_count = -10**9
+        self.keyframes_seen = 0
+        self.rejected = 0
+
+    def process_keyframe(self, index: int, image: torch.Tensor, intrinsics: Intrinsics | None
+                         ) -> LoopConstraint | None:
+        """Register keyframe `index` (image [1,3,H,W] in [0,1]); a verified loop constraint (i, index) or None."""
+        candidates = self.detector.detect(index, image)
+        descriptor = self.detector.descriptor_of(index)
+        if self.pnp is not None:
+            self.pnp.add_keyframe(index, image, descriptor if isinstance(descriptor, OrbFeatures) else None)
+        self.keyframes_seen += 1
+        if self.keyframes_seen - self.last_loop_keyframe_count <= self.cfg.loop_cooldown_keyframes:
+            return None
+        for candidate in candidates:
+            try:
+                constraint = self.relocalizer.relocalize(candidate.match, index, image, intrinsics)
+            except ValueError:  # e.g. the candidate's submap is still open: no cached state yet
+                continue
+            if constraint.accepted:
+                self.last_loop_keyframe_count = self.keyframes_seen
+                return constraint
+            self.rejected += 1
+        return None
+
+    def state_dict(self) -> dict:
+        return {
+            "indices": list(self.detector.indices),
+            "entries": [_entry_to_dict(e) for e in self.detector.entries],
+            "pnp_keys": [] if self.pnp is None else list(self.pnp.features),
+            "pnp_features": [] if self.pnp is None else [_entry_to_dict(f) for f in self.pnp.features.values()],
+            "last_loop_keyframe_count": self.last_loop_keyframe_count,
+            "keyframes_seen": self.keyframes_seen,
+            "rejected": self.rejected,
+        }
+
+    def load_state_dict(self, d: dict) -> None:
+        self.detector.indices = [int(i) for i in d["indices"]]
+        self.detector.entries = [_entry_from_dict(e) for e in d["entries"]]
+        if self.pnp is not None:
+            self.pnp.features = {int(k): _entry_from_dict(f) for k, f in zip(d["pnp_keys"], d["pnp_features"])}
+        self.last_loop_keyframe_count = int(d["last_loop_keyframe_count"])
+        self.keyframes_seen = int(d["keyframes_seen"])
+        self.rejected = int(d["rejected"])

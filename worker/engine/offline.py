@@ -1,0 +1,181 @@
+"""Offline runs for researchers: a sequence through the SlamSystem, then the paper's metrics and files.
+
+`run_sequence` writes into `out_dir`: trajectory_all.tum and trajectory_keyframes.tum (SE(3) part of the poses),
+intrinsics.json (given or estimated), map.ply, renders/NNNNN.png (rendered | ground truth side by side, for
+evaluated non-keyframes) and metrics.json (ate_rmse, psnr, ssim, lpips or its unavailability, depth_l1, fps,
+num_gaussians, ...), and returns the metrics dict.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from worker.config import SlamConfig
+from worker.data.frame import Frame
+from worker.geometry import se3_exp
+
+MAX_SAVED_RENDERS = 12
+
+
+@dataclass
+class PoseDrift:
+    """Synthetic odometry drift injected into given poses (to test loop closure): frame k's pose becomes
+    D_k T_k with D_k = exp(k * (rotation about the world z axis, translation)) per frame."""
+
+    rotation_deg_per_frame: float = 0.0
+    translation_per_frame: float = 0.0
+
+    def apply(self, k: int, pose: np.ndarray) -> np.ndarray:
+        xi = torch.tensor([0.0, 0.0, 0.0, 0.0, 0.0, math.radians(self.rotation_deg_per_frame) * k],
+                          dtype=torch.float64)
+        xi[:3] = self.translation_per_frame * k / math.sqrt(3.0)
+        return se3_exp(xi).numpy() @ pose
+
+
+def _se3_part(pose: np.ndarray) -> np.ndarray:
+    """The rigid part of a Sim(3) c2w pose (rotation without scale), for TUM files and rendering."""
+    out = np.array(pose, np.float64)
+    s = np.cbrt(np.linalg.det(out[:3, :3]))
+    out[:3, :3] /= s
+    return out
+
+
+def _write_trajectory(path: Path, entries: list[tuple[int, float, np.ndarray]]) -> None:
+    from worker.eval import Trajectory, write_tum
+
+    if entries:
+        write_tum(path, Trajectory(np.array([t for _, t, _ in entries]), np.stack([_se3_part(p)
+                                                                                    for _, _, p in entries])))
+    else:
+        path.write_text("# timestamp tx ty tz qx qy qz qw\n")
+
+
+def run_sequence(
+    source: str | Path,
+    out_dir: str | Path,
+    config: SlamConfig,
+    use_gt_depth: bool = False,
+    use_gt_poses: bool = False,
+    max_frames: int | None = None,
+    stride: int = 1,
+    resize: tuple[int, int] | None = None,
+    drift: PoseDrift | None = None,
+    eval_every: int = 1,
+    progress: Callable[[int, int | None], None] | None = None,
+) -> dict[str, Any]:
+    """Run one sequence end to end and evaluate it (see the module docstring)."""
+    from worker.data import open_source
+    from worker.slam import SlamSystem
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    # Depth is always read when the dataset has it (the evaluation needs it); the engine uses it only when asked.
+    config = config.model_copy(update={"input": config.input.model_copy(update={"use_depth": use_gt_depth})})
+    src = open_source(str(source), stride=stride, max_frames=max_frames, resize=resize, use_gt_depth=True,
+                      use_gt_poses=use_gt_poses)
+    try:
+        total = len(src)
+    except TypeError:
+        total = None
+    system = SlamSystem(config, intrinsics=src.intrinsics)
+    frames: list[Frame] = []
+    results = []
+    start = time.perf_counter()
+    for k, frame in enumerate(src):
+        if drift is not None and frame.pose is not None:
+            frame.pose = drift.apply(k, np.asarray(frame.pose, np.float64))
+        results.append(system.push(frame))
+        frames.append(frame)
+        if progress is not None:
+            progress(k + 1, total)
+    system.finish()
+    runtime = time.perf_counter() - start
+    if not frames:
+        raise ValueError(f"{source} yielded no frames")
+
+    all_poses = system.trajectory("all")
+    _write_trajectory(out / "trajectory_all.tum", all_poses)
+    _write_trajectory(out / "trajectory_keyframes.tum", system.trajectory("keyframes"))
+    intrinsics = system.estimated_intrinsics()
+    (out / "intrinsics.json").write_text(json.dumps(
+        {**(intrinsics.to_dict() if intrinsics else {}), "estimated": src.intrinsics is None}, indent=1))
+    metrics: dict[str, Any] = {
+        "sequence": src.name, "dataset": _dataset_name(source), "method": "Flash-Mono",
+        "mode": system.mode, "preset": config.name, "num_frames": len(frames),
+        "num_keyframes": sum(r.is_keyframe for r in results), "loops": int(system.counters["loops"]),
+        "revision": system.revision, "runtime_s": runtime, "fps": len(frames) / runtime,
+        "use_gt_depth": use_gt_depth, "use_gt_poses": use_gt_poses,
+        "drift": None if drift is None else vars(drift),
+    }
+    metrics.update(_trajectory_metrics(frames, all_poses, drift))
+    if system.backend is not None:
+        (out / "map.ply").write_bytes(system.export_ply())
+        metrics["num_gaussians"] = system.num_gaussians
+        metrics.update(_render_metrics(system, frames, results, all_poses, intrinsics, out, eval_every))
+    else:
+        metrics.update({"num_gaussians": 0, "psnr": None, "ssim": None, "lpips": None, "depth_l1": None,
+                        "lpips_note": "mapping disabled"})
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
+    system.close()
+    return metrics
+
+
+def _dataset_name(source: str | Path) -> str:
+    text = str(source)
+    return text.split("://", 1)[0] if "://" in text else Path(text).resolve().parent.name or "data"
+
+
+def _trajectory_metrics(frames: list[Frame], poses: list, drift: PoseDrift | None) -> dict[str, Any]:
+    from worker.eval import absolute_trajectory_error
+
+    pairs = [(p, f.gt_pose) for (_, _, p), f in zip(poses, frames) if f.gt_pose is not None]
+    if len(pairs) < 3:
+        return {"ate_rmse": None, "ate_note": "no ground-truth poses"}
+    est = np.stack([p for p, _ in pairs])
+    gt = np.stack([np.asarray(g, np.float64) for _, g in pairs])
+    out = {"ate_rmse": absolute_trajectory_error(est, gt, "sim3").rmse}
+    if drift is not None:
+        drifted = np.stack([drift.apply(k, np.asarray(f.gt_pose, np.float64)) for k, f in enumerate(frames)
+                            if f.gt_pose is not None])
+        out["ate_rmse_drift_only"] = absolute_trajectory_error(drifted, gt, "sim3").rmse
+    return out
+
+
+def _render_metrics(system, frames: list[Frame], results, poses, intrinsics, out: Path, every: int
+                    ) -> dict[str, Any]:
+    """PSNR/SSIM/LPIPS and depth L1 on non-keyframes rendered from their estimated poses."""
+    import cv2
+
+    from worker.eval import evaluate_renders, non_keyframe_indices
+
+    if intrinsics is None:
+        return {"psnr": None, "ssim": None, "lpips": None, "depth_l1": None, "lpips_note": "no intrinsics"}
+    chosen = non_keyframe_indices([r.is_keyframe for r in results], every) or list(range(len(frames)))
+    metric_depth = system.config.input.use_depth
+    K = intrinsics.matrix().numpy()
+    (out / "renders").mkdir(exist_ok=True)
+    saved = {i for i in chosen[:: max(1, len(chosen) // MAX_SAVED_RENDERS)]}
+
+    def render(pose: np.ndarray, _intr) -> tuple[np.ndarray, np.ndarray]:
+        return system.render_view(pose, K, intrinsics.width, intrinsics.height)
+
+    eval_frames = [frames[i] for i in chosen]
+    eval_poses = [_se3_part(poses[i][2]) for i in chosen]
+    for i, frame, pose in zip(chosen, eval_frames, eval_poses):
+        if i in saved:
+            rgb, _ = render(pose, None)
+            side = np.concatenate([rgb, frame.image], axis=1)
+            cv2.imwrite(str(out / "renders" / f"{frame.index:05d}.png"), cv2.cvtColor(side, cv2.COLOR_RGB2BGR))
+    scores = evaluate_renders(render, eval_frames, eval_poses, depth_scaling="none" if metric_depth else "median")
+    return {"psnr": scores.psnr, "ssim": scores.ssim, "lpips": scores.lpips, "lpips_note": scores.lpips_note,
+            "depth_l1": scores.depth_l1, "depth_scaling": "none" if metric_depth else "median",
+            "eval_frames": scores.num_frames}
