@@ -116,3 +116,14 @@ def test_uri_options_and_errors():
 def test_held_out_seed_split():
     assert HELD_OUT_SEED_START == 10_000
     assert not is_held_out_seed(9_999) and is_held_out_seed(10_000)
+
+
+def test_frustum_culling_does_not_change_a_single_bit(monkeypatch):
+    seq = make_sequence(10_004, num_frames=12, width=40, height=30)
+    culled = [seq.scene.render(pose, seq.intrinsics) for pose in seq.poses]
+    everything = np.ones(len(seq.scene._bounding_spheres()[1]), bool)
+    monkeypatch.setattr(seq.scene, "_in_frustum", lambda pose, intrinsics: everything)
+    for pose, (rgb, depth) in zip(seq.poses, culled):
+        full_rgb, full_depth = seq.scene.render(pose, seq.intrinsics)
+        np.testing.assert_array_equal(rgb, full_rgb)
+        np.testing.assert_array_equal(depth, full_depth)

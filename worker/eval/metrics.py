@@ -17,9 +17,9 @@ import math
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass, field
 
+import cv2
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from worker.geometry import umeyama
 
@@ -154,28 +154,28 @@ def psnr(prediction, target, mask: np.ndarray | torch.Tensor | None = None) -> f
     return float(np.mean(values))
 
 
-def gaussian_window(size: int = 11, sigma: float = 1.5) -> torch.Tensor:
-    """Normalised 2D Gaussian [size, size]."""
+def gaussian_kernel_1d(size: int = 11, sigma: float = 1.5) -> torch.Tensor:
+    """Normalised 1D Gaussian [size]; the 2D SSIM window is its outer product."""
     x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2
     g = torch.exp(-(x ** 2) / (2 * sigma ** 2))
-    g = g / g.sum()
-    return g[:, None] * g[None, :]
+    return g / g.sum()
 
 
 def ssim_map(prediction, target, window: int = 11, sigma: float = 1.5, c1: float = 1e-4, c2: float = 9e-4):
-    """The per-pixel, per-channel SSIM map [B, 3, H, W] (zero-padded Gaussian window)."""
+    """The per-pixel, per-channel SSIM map [B, 3, H, W] (zero-padded Gaussian window, applied separably)."""
     pred, gt = _pair(prediction, target)
-    kernel = gaussian_window(window, sigma).expand(3, 1, window, window)
-    pad = window // 2
+    g = gaussian_kernel_1d(window, sigma).numpy()
 
-    def blur(x: torch.Tensor) -> torch.Tensor:
-        return F.conv2d(x, kernel, padding=pad, groups=3)
+    def blur(x: np.ndarray) -> np.ndarray:  # [H, W, 3] float64; zero padding like the 3DGS conv2d
+        return cv2.sepFilter2D(x, cv2.CV_64F, g, g, borderType=cv2.BORDER_CONSTANT)
 
-    mu_x, mu_y = blur(pred), blur(gt)
-    var_x = blur(pred * pred) - mu_x ** 2
-    var_y = blur(gt * gt) - mu_y ** 2
-    cov = blur(pred * gt) - mu_x * mu_y
-    return ((2 * mu_x * mu_y + c1) * (2 * cov + c2)) / ((mu_x ** 2 + mu_y ** 2 + c1) * (var_x + var_y + c2))
+    maps = []
+    for x, y in zip(pred.permute(0, 2, 3, 1).numpy(), gt.permute(0, 2, 3, 1).numpy()):
+        x, y = np.ascontiguousarray(x), np.ascontiguousarray(y)
+        mu_x, mu_y = blur(x), blur(y)
+        var_x, var_y, cov = blur(x * x) - mu_x ** 2, blur(y * y) - mu_y ** 2, blur(x * y) - mu_x * mu_y
+        maps.append(((2 * mu_x * mu_y + c1) * (2 * cov + c2)) / ((mu_x ** 2 + mu_y ** 2 + c1) * (var_x + var_y + c2)))
+    return torch.from_numpy(np.stack(maps)).permute(0, 3, 1, 2)
 
 
 def ssim(prediction, target) -> float:
