@@ -20,6 +20,7 @@ use that submap's units), so every keyframe belongs to exactly one submap.
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -33,6 +34,8 @@ from worker.loop.pose_graph import PoseGraphEdge
 from worker.serialization import pack, unpack
 
 from .types import HiddenState, StepOutput
+
+logger = logging.getLogger(__name__)
 
 
 class RecurrentModel(Protocol):
@@ -174,6 +177,7 @@ class SubmapTracker:
         self.constraints: list[PoseGraphEdge] = []  # sequential and inter-submap keyframe edges
         self.submap_links: list[tuple[int, int, torch.Tensor]] = []  # (a, b, G_a^-1 G_b)
         self.overlap_scales: list[float] = []
+        self.scale_failures = 0
         self.finished: list[FinishedSubmap] = []
         self.last_keyframe: int | None = None
         self.frames_tracked = 0
@@ -233,8 +237,13 @@ class SubmapTracker:
         pose_submap = out.pose_c2w[0].double()
         if previous is not None:
             prev_out, prev_pose = previous
-            s = relative_scale(prev_out.points_cam[0], out.points_cam[0],
-                               (prev_out.conf[0] * out.conf[0]).sqrt(), min_points=self.config.min_scale_points)
+            try:
+                s = relative_scale(prev_out.points_cam[0], out.points_cam[0],
+                                   (prev_out.conf[0] * out.conf[0]).sqrt(), min_points=self.config.min_scale_points)
+            except ValueError as err:  # degenerate predictions: keep the scale and say so, rather than stop
+                logger.warning("submap %d: overlap scale fit failed (%s); using 1.0", self.submap_id, err)
+                s = 1.0
+                self.scale_failures += 1
             self.overlap_scales.append(s)
             # camera of the overlap frame: world <- camera (old units) <- camera (new units) <- new submap frame
             new_to_world = self.submap_to_world @ prev_pose @ _scale_matrix(s) @ torch.linalg.inv(pose_submap)
@@ -294,6 +303,7 @@ class SubmapTracker:
             "constraints": [e.to_dict() for e in self.constraints],
             "submap_links": [{"a": a, "b": b, "link": link} for a, b, link in self.submap_links],
             "overlap_scales": self.overlap_scales,
+            "scale_failures": self.scale_failures,
             "finished": [{"submap_id": f.submap_id, "state": f.state.to_bytes(torch.float32),
                           "keyframe_ids": f.keyframe_ids, "frame_ids": f.frame_ids} for f in self.finished],
             "last_keyframe": self.last_keyframe,
@@ -313,6 +323,7 @@ class SubmapTracker:
         self.submap_links = [(int(x["a"]), int(x["b"]), torch.from_numpy(np.asarray(x["link"])))
                              for x in d["submap_links"]]
         self.overlap_scales = [float(s) for s in d["overlap_scales"]]
+        self.scale_failures = int(d.get("scale_failures", 0))
         self.finished = [FinishedSubmap(int(f["submap_id"]), HiddenState.from_bytes(f["state"]),
                                         [int(i) for i in f["keyframe_ids"]], [int(i) for i in f["frame_ids"]])
                          for f in d["finished"]]

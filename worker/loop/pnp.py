@@ -69,7 +69,10 @@ class PnPRelocalizer:
             raise ValueError(f"no ORB features stored for keyframe {i}")
         points_i = self.points_of(i).float()
         points_j_b, conf_j_b = self.tracker.keyframe_points(j)
-        K = intrinsics_for(points_j_b, intrinsics, conf_j_b).matrix(torch.float64)
+        try:
+            K = intrinsics_for(points_j_b, intrinsics, conf_j_b).matrix(torch.float64)
+        except ValueError as err:
+            return self._rejected(i, j, str(err))
         fi = self.features[i]
         fj = self.features.get(j) or self.orb.describe(image_j)
         ia, ib = self.orb.match(fi, fj, self.match_ratio)

@@ -152,9 +152,13 @@ class HiddenStateRelocalizer:
         pose_j_a = out.pose_c2w[0].double()
         points_j_a, conf_j_a = out.points_cam[0], out.conf[0]
         weights = (conf_j_a.float() * conf_j_b.float()).sqrt()
-        s = relative_scale(points_j_a, points_j_b, weights)
+        try:
+            s = relative_scale(points_j_a, points_j_b, weights)
+            K = intrinsics_for(points_j_b, intrinsics, conf_j_b).matrix(torch.float64)
+        except ValueError as err:  # degenerate point maps: no constraint, say why
+            return LoopConstraint(i, j, np.eye(4), 1.0, self.source, support=0.0, point_agreement=0.0,
+                                  confidence=float(conf_j_a.float().mean()), accepted=False, reason=str(err))
         relative = relative_transform(pose_i_a, pose_j_a) @ scale_matrix(s)
-        K = intrinsics_for(points_j_b, intrinsics, conf_j_b).matrix(torch.float64)
         th = self.thresholds
         constraint = LoopConstraint(
             i, j, relative.numpy(), s, self.source,
