@@ -1,0 +1,95 @@
+"""Frontend model latency: ms per `step` (batch 1, inference mode) on CPU, and on GPU when CUDA is present.
+
+`python -m bench frontend [--configs tiny,small,base] [--threads 1,2] [--iters 20] [--paper]`
+CPU: each config at 224x160 (a 224-wide 4:3 frame) and at its own long side. GPU (if present): the paper model at
+512x384 in fp32 eager, bf16 eager and bf16 + CUDA graphs. Prints a markdown table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import torch
+
+from worker.frontend import build_model, get_config, parameter_tally
+
+
+def _time_steps(step, image, state, iters: int, warmup: int = 3, sync=lambda: None) -> list[float]:
+    for _ in range(warmup):
+        state = step(image, state).state
+    sync()
+    times = []
+    for _ in range(iters):
+        start = time.perf_counter()
+        out = step(image, state)
+        sync()
+        times.append((time.perf_counter() - start) * 1000.0)
+        state = out.state
+    return times
+
+
+def _row(label: str, size: tuple[int, int], times: list[float]) -> str:
+    return (f"| {label} | {size[1]}x{size[0]} | {statistics.median(times):.1f} | {min(times):.1f} | "
+            f"{len(times)} |")
+
+
+def bench_cpu(configs: list[str], threads: list[int], iters: int) -> list[str]:
+    rows = []
+    for name in configs:
+        model = build_model(name)
+        params = parameter_tally(model)["total"] / 1e6
+        long_side = get_config(name).image_long_side
+        sizes = [(160, 224)] + ([(long_side * 3 // 4, long_side)] if long_side != 224 else [])
+        for n_threads in threads:
+            torch.set_num_threads(n_threads)
+            for h, w in sizes:
+                image = torch.rand(1, 3, h, w)
+                with torch.inference_mode():
+                    times = _time_steps(model.step, image, model.init_state(), iters)
+                rows.append(_row(f"{name} ({params:.1f} M), CPU fp32, {n_threads} thread(s)", (h, w), times))
+                print(rows[-1], flush=True)
+    return rows
+
+
+def bench_gpu(iters: int) -> list[str]:
+    rows = []
+    model = build_model("paper", device="cuda")
+    image = torch.rand(1, 3, 384, 512, device="cuda")
+    sync = torch.cuda.synchronize
+    for precision in ("fp32", "bf16"):
+        model.set_precision(precision)
+        with torch.inference_mode():
+            times = _time_steps(model.step, image, model.init_state(), iters, sync=sync)
+        rows.append(_row(f"paper, GPU {precision} eager", (384, 512), times))
+        print(rows[-1], flush=True)
+    stepper = model.compile_step(384, 512, precision="bf16")
+    times = _time_steps(stepper.step, image, model.init_state(), iters, sync=sync)
+    rows.append(_row("paper, GPU bf16 + CUDA graphs", (384, 512), times))
+    print(rows[-1], flush=True)
+    return rows
+
+
+def main(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(prog="python -m bench frontend")
+    parser.add_argument("--configs", default="tiny,small,base")
+    parser.add_argument("--threads", default="2,1")
+    parser.add_argument("--iters", type=int, default=20)
+    parser.add_argument("--paper", action="store_true", help="also time the paper model on CPU (slow, 3 GB)")
+    args = parser.parse_args(argv)
+    configs = [c for c in args.configs.split(",") if c] + (["paper"] if args.paper else [])
+    print("| model, device | frame (WxH) | median ms/frame | min ms | frames |")
+    print("|---|---|---|---|---|")
+    bench_cpu(configs, [int(t) for t in args.threads.split(",")], args.iters)
+    if torch.cuda.is_available():
+        bench_gpu(args.iters)
+    else:
+        print("(no CUDA device: GPU rows skipped)")
+    return 0
+
+
+if __name__ == "__main__":
+    import sys
+
+    sys.exit(main(sys.argv[1:]))
