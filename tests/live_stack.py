@@ -60,7 +60,7 @@ class LiveStack:
         log = open(Path(self.logs) / f"{name}.log", "w")
         self.processes.append(subprocess.Popen(argv, env=env, cwd=REPO_ROOT, stdout=log, stderr=subprocess.STDOUT))
 
-    def wait_ready(self, timeout_s: float = 90.0) -> None:
+    def wait_ready(self, timeout_s: float = 240.0) -> None:
         deadline = time.monotonic() + timeout_s
         while True:
             for process in self.processes:

@@ -1,5 +1,9 @@
-"""The sync and async SDK against a real stack: Redis, the gateway under uvicorn, a worker process running the
-SLAM engine. Frames come from the bundled ICL subset, sent like a phone with depth and device poses."""
+"""The sync and async SDK against a real stack: Redis, the gateway under uvicorn and a worker process. Frames come
+from the bundled ICL subset, sent like a phone with depth and device poses.
+
+The worker runs the runtime's passthrough engine with a simulated 150 ms per frame: these tests are about the SDK
+and the wire protocol (flow control, backpressure, events, errors), and the SLAM engine's CPU compute would make
+them minutes long on 2 cores. The real engine runs behind the same API in tests/e2e (the demo)."""
 
 from __future__ import annotations
 
@@ -25,7 +29,7 @@ from client.streaming import WireOptions, open_frames
 from worker.data.frame import Frame
 
 KEYS = "streamer=stream,read;reader=read;admin=admin"
-ENGINE = "passthrough"
+ENGINE = "passthrough"  # see the module docstring
 PRESET = "test"
 RGBD_POSED = WireOptions(send_depth=True, send_pose=True)
 
@@ -33,7 +37,8 @@ RGBD_POSED = WireOptions(send_depth=True, send_pose=True)
 @pytest.fixture(scope="module")
 def stack():
     # A small server queue so that a greedy client meets backpressure.
-    with LiveStack(workers=1, api_keys=KEYS, engine=ENGINE, extra_env={"FLASHMONO_MAX_QUEUE": "3"}) as live:
+    env = {"FLASHMONO_MAX_QUEUE": "3", "FLASHMONO_PASSTHROUGH_DELAY_MS": "150"}
+    with LiveStack(workers=1, api_keys=KEYS, engine=ENGINE, extra_env=env) as live:
         yield live
 
 
