@@ -152,7 +152,8 @@ def gaussian_attributes(raw: torch.Tensor, points_cam: torch.Tensor) -> tuple[to
     H, W = raw.shape[1:3]
     colors = torch.sigmoid(raw[..., 0:3])
     opacity = torch.sigmoid(raw[..., 3])
-    identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=raw.dtype, device=raw.device)
+    identity = torch.zeros(4, dtype=raw.dtype, device=raw.device)
+    identity[0] = 1.0  # a fill kernel, not a host-to-device copy: keeps the step CUDA-graph capturable
     quats = quat_normalize(raw[..., 4:8] + identity)
     quats = torch.where(quats[..., :1] < 0, -quats, quats)
     footprint = points_cam.norm(dim=-1, keepdim=True).clamp_min(1e-6) / (_BASE_FOCAL_FACTOR * max(H, W))
