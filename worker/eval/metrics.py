@@ -124,7 +124,7 @@ def as_image_batch(image: np.ndarray | torch.Tensor) -> torch.Tensor:
         raise ValueError(f"images must be channels-last RGB [H, W, 3] or [B, H, W, 3], got {tuple(tensor.shape)}")
     tensor = tensor.detach().cpu()
     tensor = tensor.double() / 255.0 if tensor.dtype == torch.uint8 else tensor.double().clamp(0.0, 1.0)
-    return tensor.permute(0, 3, 1, 2).contiguous()
+    return tensor.permute(0, 3, 1, 2)  # a view: SSIM goes back to channels-last for free
 
 
 def _pair(prediction, target) -> tuple[torch.Tensor, torch.Tensor]:
