@@ -65,14 +65,19 @@ class LocalStack:
     def ws_url(self) -> str:
         return f"ws://{self.host}:{self.port}"
 
-    def start(self, timeout_s: float = 60.0) -> LocalStack:
-        if not self.redis_url:
-            self.redis = EmbeddedRedis().start()
-            self.redis_url = self.redis.url
-        self.gateway = start_gateway_process(self.redis_url, self.host, self.port, self.gateway_env)
-        for _ in range(self.initial_workers):
-            self.add_worker()
-        self.wait_ready(timeout_s, need_workers=self.initial_workers)
+    def start(self, timeout_s: float = 300.0) -> LocalStack:
+        """Start everything and wait until it is ready; on failure, stop what was started and re-raise."""
+        try:
+            if not self.redis_url:
+                self.redis = EmbeddedRedis().start()
+                self.redis_url = self.redis.url
+            self.gateway = start_gateway_process(self.redis_url, self.host, self.port, self.gateway_env)
+            for _ in range(self.initial_workers):
+                self.add_worker()
+            self.wait_ready(timeout_s, need_workers=self.initial_workers)
+        except BaseException:
+            self.stop()
+            raise
         return self
 
     def add_worker(self, env: dict[str, str] | None = None, worker_id: str | None = None) -> subprocess.Popen:

@@ -10,7 +10,7 @@ from service.launcher import LocalStack
 STREAM_KEY, OTHER_STREAM_KEY, READ_KEY, ADMIN_KEY = "k-stream", "k-stream-2", "k-read", "k-admin"
 API_KEYS = f"{STREAM_KEY}=stream;{OTHER_STREAM_KEY}=stream;{READ_KEY}=read;{ADMIN_KEY}=admin"
 MAX_FRAME_BYTES = 256 * 1024
-FAST_WORKER_ENV = {"FLASHMONO_ENGINE": "passthrough", "FLASHMONO_LEASE_TTL_MS": "1500",
+FAST_WORKER_ENV = {"FLASHMONO_ENGINE": "passthrough", "FLASHMONO_LEASE_TTL_MS": "4000",
                    "FLASHMONO_SNAPSHOT_EVERY": "2", "FLASHMONO_LOG_LEVEL": "WARNING"}
 
 

@@ -30,8 +30,10 @@ from worker.serialization import pack, unpack
 
 log = logging.getLogger(__name__)
 
+# Both scripts fence on the lease: a worker that lost its session (paused past its lease) stores nothing more.
 _STORE_RESULT = """
 if redis.call('EXISTS', KEYS[1]) == 0 then return -1 end
+if redis.call('GET', KEYS[5]) ~= ARGV[9] then return -2 end
 local new = redis.call('HSETNX', KEYS[2], ARGV[1], ARGV[2])
 if new == 1 then
   redis.call('HINCRBY', KEYS[1], 'frames_processed', 1)
@@ -44,6 +46,7 @@ return new
 """
 _STORE_REJECTION = """
 if redis.call('EXISTS', KEYS[1]) == 0 then return -1 end
+if redis.call('GET', KEYS[5]) ~= ARGV[6] then return -2 end
 local new = redis.call('HSETNX', KEYS[2], ARGV[1], ARGV[2])
 if new == 1 then
   redis.call('HINCRBY', KEYS[1], 'frames_rejected', 1)
@@ -51,6 +54,14 @@ if new == 1 then
 end
 redis.call('XACK', KEYS[4], 'workers', ARGV[4])
 return new
+"""
+
+_STORE_SNAPSHOT = """
+if redis.call('GET', KEYS[3]) ~= ARGV[1] then return -2 end
+redis.call('HSET', KEYS[1], 'data', ARGV[2], 'seq', ARGV[3], 'stream_id', ARGV[4], 'engine', ARGV[5],
+           'created_at', ARGV[6])
+redis.call('XTRIM', KEYS[2], 'MINID', ARGV[4])
+return 1
 """
 
 
@@ -125,6 +136,7 @@ class SessionRunner(threading.Thread):
         self._session: dict[str, Any] = {}
         self._store_result = client.register_script(_STORE_RESULT)
         self._store_rejection = client.register_script(_STORE_REJECTION)
+        self._store_snapshot = client.register_script(_STORE_SNAPSHOT)
 
     # --- control from the worker --------------------------------------------------------------------------------
     def stop(self) -> None:
@@ -278,11 +290,10 @@ class SessionRunner(threading.Thread):
         out = pose_message(seq, result.timestamp, result.pose, result.is_keyframe, result.revision)
         status = self._store_result(
             keys=[keys.session(self.session_id), keys.poses(self.session_id), keys.outbox(self.session_id),
-                  keys.inbox(self.session_id)],
+                  keys.inbox(self.session_id), keys.lease(self.session_id)],
             args=[seq, record, out, entry_id, int(result.is_keyframe), result.revision, now_iso(),
-                  self.config.outbox_maxlen])
-        if status == -1:
-            raise SessionGone
+                  self.config.outbox_maxlen, self.worker_id])
+        self._check_store_status(status)
         self._done_seqs.add(seq)
         t3 = time.perf_counter()
         self.stats.add("decode", t1 - t0)
@@ -300,12 +311,18 @@ class SessionRunner(threading.Thread):
         out = json.dumps({"type": "error", "code": code, "message": message, "seq": seq}).encode()
         status = self._store_rejection(
             keys=[keys.session(self.session_id), keys.rejected(self.session_id), keys.outbox(self.session_id),
-                  keys.inbox(self.session_id)],
-            args=[seq, code, out, entry_id, self.config.outbox_maxlen])
-        if status == -1:
-            raise SessionGone
+                  keys.inbox(self.session_id), keys.lease(self.session_id)],
+            args=[seq, code, out, entry_id, self.config.outbox_maxlen, self.worker_id])
+        self._check_store_status(status)
         self._done_seqs.add(seq)
         self._rejected.add(seq)
+
+    def _check_store_status(self, status: int) -> None:
+        if status == -1:
+            raise SessionGone
+        if status == -2:
+            self._lease_lost.set()
+            raise LeaseLost
 
     def _publish_revision(self, revision: int, events: list[dict[str, Any]]) -> None:
         """A loop closure rewrote the past: store the whole new trajectory and tell the clients."""
@@ -333,18 +350,19 @@ class SessionRunner(threading.Thread):
     def _write_snapshot(self, seq: int, entry_id: bytes) -> None:
         t0 = time.perf_counter()
         blob = self.engine.snapshot()
-        pipe = self.client.pipeline(transaction=True)
-        pipe.hset(keys.snapshot(self.session_id), mapping={
-            "data": blob, "seq": seq, "stream_id": entry_id, "engine": self.config.engine_kind,
-            "created_at": now_iso()})
-        pipe.xtrim(keys.inbox(self.session_id), minid=entry_id, approximate=False)
-        pipe.execute()
+        status = self._store_snapshot(
+            keys=[keys.snapshot(self.session_id), keys.inbox(self.session_id), keys.lease(self.session_id)],
+            args=[self.worker_id, blob, seq, entry_id, self.config.engine_kind, now_iso()])
+        self._check_store_status(status)
         self._last_id = entry_id
         self._keyframes_since_snapshot = 0
         self.stats.add("snapshot", time.perf_counter() - t0)
 
     def _finish(self, entry_id: bytes) -> None:
         self.engine.finish()
+        if not self.leases.renew(self.session_id):
+            self._lease_lost.set()
+            raise LeaseLost
         self._revision = int(getattr(self.engine, "revision", self._revision))
         self._store_trajectory()
         last_seq = max(self._done_seqs) if self._done_seqs else -1
