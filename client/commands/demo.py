@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -78,12 +79,14 @@ class EmbeddedStack:
         env.pop("FLASHMONO_API_KEYS", None)
         env.pop("FLASHMONO_API_KEYS_FILE", None)
         self.log = open(self.log_path, "w")
+        # A process group of its own, so that the workers `serve` starts can be ended with it (see __exit__).
         self.process = subprocess.Popen(
             [sys.executable, "-m", "client.cli", "serve", "--host", "127.0.0.1", "--port", str(self.port),
-             "--workers", "1"], stdout=self.log, stderr=subprocess.STDOUT, env=env, cwd=REPO_ROOT)
+             "--workers", "1"], stdout=self.log, stderr=subprocess.STDOUT, env=env, cwd=REPO_ROOT,
+            start_new_session=True)
         return self
 
-    def wait_ready(self, client: Any, timeout_s: float = 180.0) -> None:
+    def wait_ready(self, client: Any, timeout_s: float = 600.0) -> None:
         from client.errors import FlashMonoError
 
         deadline = time.monotonic() + timeout_s
@@ -99,17 +102,25 @@ class EmbeddedStack:
                 time.sleep(0.5)
 
     def __exit__(self, *exc: Any) -> None:
-        if self.process and self.process.poll() is None:
-            self.process.terminate()
-            try:
-                self.process.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                self.process.kill()
+        if self.process is not None:
+            if self.process.poll() is None:
+                self.process.terminate()  # serve stops its workers and Redis
+                try:
+                    self.process.wait(timeout=60)
+                except subprocess.TimeoutExpired:
+                    pass
+            try:  # whatever of the group outlived serve (a worker stuck in a long step) ends now
+                os.killpg(self.process.pid, signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                pass
+            if self.process.poll() is None:
                 self.process.wait()
         self.log.close()
 
 
 def run(args: argparse.Namespace) -> int:
+    # SIGTERM (e.g. from `timeout`) unwinds like Ctrl-C, so the embedded stack is always stopped.
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     source = args.source or (str(BUNDLED_SEQUENCE) if BUNDLED_SEQUENCE.is_dir() else SYNTHETIC_FALLBACK)
@@ -190,6 +201,7 @@ def evaluate(client: Any, session_id: str, trajectory: Any, keyframe_seqs: set[i
     import cv2
     import numpy as np
 
+    from worker.eval.metrics import ate_rmse, psnr
     from worker.eval.trajectory import Trajectory, format_tum
 
     by_time = {round(f.timestamp, 6): f for f in frames}
@@ -201,7 +213,7 @@ def evaluate(client: Any, session_id: str, trajectory: Any, keyframe_seqs: set[i
         estimated = np.stack([p.pose for p, _ in with_gt])
         truth = np.stack([np.asarray(f.gt_pose, dtype=np.float64) for _, f in with_gt])
         timestamps = np.array([p.timestamp for p, _ in with_gt])
-        metrics["ate_rmse_m"] = ate_rmse(estimated, truth)
+        metrics["ate_rmse_m"] = ate_rmse(estimated, truth, align="sim3")
         (out / "groundtruth.tum").write_text(format_tum(Trajectory(timestamps, truth)))
     # Render preferably at non-keyframes (views the map was not refined on), spread over the sequence.
     candidates = [(p, f) for p, f in matched if p.seq not in keyframe_seqs] or matched
@@ -220,27 +232,6 @@ def evaluate(client: Any, session_id: str, trajectory: Any, keyframe_seqs: set[i
         metrics["psnr_db"] = float(np.mean(values))
         metrics["psnr_per_view_db"] = [float(v) for v in values]
     return metrics
-
-
-def ate_rmse(estimated: Any, truth: Any) -> float:
-    """ATE RMSE (m) of camera centres after Sim(3) Umeyama alignment of the estimate onto the ground truth."""
-    import torch
-
-    from worker.geometry import umeyama
-
-    src = torch.as_tensor(estimated[:, :3, 3], dtype=torch.float64)
-    dst = torch.as_tensor(truth[:, :3, 3], dtype=torch.float64)
-    s, rot, t = umeyama(src, dst, with_scale=True)
-    aligned = s * src @ rot.T + t
-    return float(torch.sqrt(((aligned - dst) ** 2).sum(-1).mean()))
-
-
-def psnr(rendered: Any, reference: Any) -> float:
-    import numpy as np
-
-    diff = rendered.astype(np.float64) / 255.0 - reference.astype(np.float64) / 255.0
-    mse = float(np.mean(diff**2))
-    return float("inf") if mse == 0 else -10.0 * np.log10(mse)
 
 
 def print_report(metrics: dict[str, Any], out: Path, viewer_url: str) -> None:
