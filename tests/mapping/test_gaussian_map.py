@@ -98,3 +98,18 @@ def test_bad_input_is_rejected():
         gmap.add_keyframe(1, torch.eye(3), intrinsics(), torch.zeros(HEIGHT, WIDTH, 3), surfels)
     with pytest.raises(ValueError, match="depth"):
         gmap.add_keyframe(1, pose, intrinsics(), torch.zeros(HEIGHT, WIDTH, 3), surfels, torch.zeros(3, 3))
+
+
+def test_numpy_inputs_and_intrinsics_object_are_accepted():
+    from worker.geometry import Intrinsics
+
+    pose = camera_pose()
+    v = view(pose)
+    gmap = GaussianMap()
+    image_u8 = (v["image"] * 255).round().to(torch.uint8).numpy()
+    intr = Intrinsics.from_matrix(intrinsics(), WIDTH, HEIGHT)
+    gmap.add_keyframe(0, pose.numpy(), intr, image_u8, voxelized_surfels(pose), v["depth"].numpy())
+    a = gmap.render(pose.numpy(), intr, WIDTH, HEIGHT)
+    b = gmap.render(pose, intrinsics(), WIDTH, HEIGHT)
+    assert torch.equal(a.rgb, b.rgb)
+    assert psnr(a.rgb, v["image"]) > 20

@@ -69,6 +69,16 @@ def rigid_viewmat(pose_c2w: torch.Tensor) -> tuple[torch.Tensor, float]:
     return sim3_inverse(make_sim3(R, t)), float(s)
 
 
+def _as_K(K) -> torch.Tensor:
+    """3x3 float32 intrinsics from a tensor, an array or an `Intrinsics`."""
+    if hasattr(K, "matrix"):
+        K = K.matrix()
+    K = torch.as_tensor(np.asarray(K) if not torch.is_tensor(K) else K, dtype=torch.float32).cpu()
+    if tuple(K.shape) != (3, 3):
+        raise ValueError(f"K must be 3x3, got {tuple(K.shape)}")
+    return K
+
+
 def _as_pose(pose: torch.Tensor | np.ndarray, what: str) -> torch.Tensor:
     pose = torch.as_tensor(np.asarray(pose) if not torch.is_tensor(pose) else pose).to(torch.float64).cpu()
     if tuple(pose.shape) != (4, 4) or not torch.isfinite(pose).all():
@@ -182,7 +192,7 @@ class GaussianMap:
                background: torch.Tensor | None = None) -> RenderResult:
         """Render the map from a camera-to-world pose (depth in world units)."""
         viewmat, _ = rigid_viewmat(_as_pose(pose_c2w, "pose_c2w"))
-        K = torch.as_tensor(K, dtype=torch.float32, device=self.device)
+        K = _as_K(K).to(self.device)
         with torch.no_grad():
             return rasterize(self._surfels, viewmat.to(self.device, torch.float32), K, width, height,
                              background=None if background is None else background.to(self.device))
@@ -238,16 +248,15 @@ class GaussianMap:
     # -- helpers -----------------------------------------------------------------------------------------------
     def _make_keyframe(self, pose: torch.Tensor, K: torch.Tensor, image: torch.Tensor,
                        depth: torch.Tensor | None) -> _Keyframe:
-        image = torch.as_tensor(image)
+        image = torch.as_tensor(np.asarray(image) if not torch.is_tensor(image) else image).cpu()
         if image.ndim != 3 or image.shape[-1] != 3:
             raise ValueError(f"image must be [H, W, 3], got {tuple(image.shape)}")
         image = image.float() / 255.0 if image.dtype == torch.uint8 else image.float()
         H, W = image.shape[:2]
-        K = torch.as_tensor(K, dtype=torch.float32)
-        if tuple(K.shape) != (3, 3):
-            raise ValueError(f"K must be 3x3, got {tuple(K.shape)}")
+        K = _as_K(K)
         if depth is not None:
-            depth = torch.as_tensor(depth, dtype=torch.float32)
+            depth = torch.as_tensor(np.asarray(depth) if not torch.is_tensor(depth) else depth,
+                                    dtype=torch.float32).cpu()
             if tuple(depth.shape) != (H, W):
                 raise ValueError(f"depth must be [H, W] = {(H, W)}, got {tuple(depth.shape)}")
             depth = torch.nan_to_num(depth, nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0).to(self.device)
