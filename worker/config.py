@@ -49,12 +49,13 @@ class LoopConfig(_Section):
     descriptor: Literal["encoder", "orb"] = "orb"
     relocalization: Literal["hidden_state", "pnp"] = Field(
         "hidden_state", description="hidden_state = f(I_j, M_a) (paper); pnp needs depth (given or predicted)")
-    top_k: int = Field(3, ge=1, description="candidates verified per keyframe")
-    min_score: float = Field(0.1, ge=0.0, le=1.0, description="descriptor similarity needed to verify a candidate")
-    exclusion_frames: int = Field(30, ge=0, description="keyframes this many frames back or closer are not candidates")
-    min_inliers: int = Field(20, ge=4, description="PnP verification: inliers needed")
+    top_k: int = Field(5, ge=1, description="candidates verified per keyframe")
+    min_score: float = Field(0.03, ge=0.0, le=1.0, description="descriptor similarity needed to verify a candidate")
+    exclusion_frames: int = Field(20, ge=0, description="keyframes this many frames back or closer are not candidates")
+    min_inliers: int = Field(12, ge=4, description="PnP verification: inliers needed")
+    loop_weight: float = Field(1.0, gt=0, description="information weight of loop edges relative to odometry")
     robust_kernel: Literal["cauchy", "huber", "none"] = "cauchy"
-    robust_k: float = Field(1.0, gt=0)
+    robust_k: float = Field(1.0, gt=0, description="robust kernel threshold on the whitened loop residual")
     pgo_iterations: int = Field(50, ge=1, le=10000)
     loop_cooldown_keyframes: int = Field(2, ge=0, description="keyframes between two accepted loop closures")
 
@@ -156,5 +157,5 @@ PRESETS: dict[str, dict[str, Any]] = {
     "test": {"frontend": {"long_side": 64, "submap_size": 4, "keyframe_every": 2},
              "loop": {"exclusion_frames": 12, "pgo_iterations": 30},
              "mapping": {"refine_keyframes": 2, "refine_iterations": 3},
-             "threaded": False, "queue_size": 4},
+             "threaded": False, "queue_size": 4, "num_threads": 1},
 }

@@ -404,7 +404,8 @@ class SlamSystem:
         constraint = self.loop_closer.process_keyframe(index, image, intrinsics)
         if constraint is None:
             return []
-        self.pose_graph.add_edge(constraint.i, constraint.j, constraint.relative, kind="loop")
+        self.pose_graph.add_edge(constraint.i, constraint.j, constraint.relative, kind="loop",
+                                 weight=self.config.loop.loop_weight)
         event = self._apply_pgo(constraint.j, constraint.i)
         event["source"] = constraint.source
         event["scale"] = float(constraint.scale)

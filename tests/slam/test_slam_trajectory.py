@@ -1,0 +1,58 @@
+"""Trajectory bookkeeping: frames follow their keyframe through pose-graph updates; revisions count rewrites."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from worker.engine.keyframes import MotionKeyframeSelector
+from worker.engine.trajectory import Trajectory
+from worker.geometry import make_sim3, so3_exp
+
+
+def pose(x: float, yaw: float = 0.0, s: float = 1.0) -> np.ndarray:
+    R = so3_exp(torch.tensor([0.0, yaw, 0.0], dtype=torch.float64))
+    return make_sim3(R, torch.tensor([x, 0.0, 0.0], dtype=torch.float64), s).numpy()
+
+
+def test_frames_move_rigidly_with_their_keyframe() -> None:
+    traj = Trajectory()
+    traj.add_keyframe(0, pose(0.0))
+    assert np.allclose(traj.add_frame(0, 0.0, 0, pose(0.0), True, 0), pose(0.0))
+    assert np.allclose(traj.add_frame(1, 0.1, 0, pose(0.1, 0.05), False, 0), pose(0.1, 0.05))
+    traj.add_keyframe(2, pose(0.2), reference=0)
+    traj.add_frame(2, 0.2, 2, pose(0.2), True, 0)
+    correction = pose(0.5, 0.3, 1.2)
+    revision = traj.update_keyframes({0: correction @ pose(0.0), 2: correction @ pose(0.2)})
+    assert revision == traj.revision == 1
+    poses = dict((i, p) for i, _, p in traj.listing("all"))
+    assert np.allclose(poses[1], correction @ pose(0.1, 0.05))  # kept its pose relative to keyframe 0
+    assert [i for i, _, _ in traj.listing("keyframes")] == [0, 2]
+    # a keyframe added after the correction starts from the corrected trajectory, not the raw odometry
+    new = traj.add_keyframe(3, pose(0.3), reference=2)
+    assert np.allclose(new, correction @ pose(0.3))
+
+
+def test_state_dict_round_trip_and_order_checks() -> None:
+    traj = Trajectory()
+    traj.add_keyframe(0, pose(0.0))
+    traj.add_frame(0, 0.0, 0, pose(0.0), True, 0)
+    traj.add_frame(1, 0.1, 0, pose(0.1), False, 0)
+    other = Trajectory()
+    other.load_state_dict(traj.state_dict())
+    assert [(i, t) for i, t, _ in other.listing()] == [(0, 0.0), (1, 0.1)]
+    assert np.allclose(other.listing()[1][2], pose(0.1))
+    with pytest.raises(ValueError, match="not after"):
+        other.add_frame(1, 0.2, 0, pose(0.2), False, 0)
+    with pytest.raises(ValueError, match="'all' or 'keyframes'"):
+        other.listing("some")
+
+
+def test_motion_keyframe_selector() -> None:
+    sel = MotionKeyframeSelector(every=5, translation=0.2, rotation_deg=15.0)
+    flags = [sel.is_keyframe(pose(0.01 * k)) for k in range(12)]
+    assert flags == [True, False, False, False, False, True, False, False, False, False, True, False]
+    sel = MotionKeyframeSelector(every=100, translation=0.2, rotation_deg=15.0)
+    assert [sel.is_keyframe(pose(x)) for x in (0.0, 0.1, 0.25, 0.3)] == [True, False, True, False]
+    assert sel.is_keyframe(pose(0.3, yaw=0.3))  # 17 degrees
