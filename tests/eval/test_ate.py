@@ -80,10 +80,15 @@ def test_sim3_ate_matches_evo_ape_cli(noisy_pair):
 def test_se3_ate_matches_evo_api(noisy_pair):
     evo_sync = pytest.importorskip("evo.core.sync")
     from evo.core import metrics
-    from evo.tools import file_interface
+    from evo.core.trajectory import PoseTrajectory3D
+
+    def load(path: Path) -> PoseTrajectory3D:  # np.loadtxt, not our reader: evo sees the file independently
+        rows = np.loadtxt(path)
+        return PoseTrajectory3D(positions_xyz=rows[:, 1:4], orientations_quat_wxyz=rows[:, [7, 4, 5, 6]],
+                                timestamps=rows[:, 0])
 
     ref_path, est_path = noisy_pair
-    ref, est = file_interface.read_tum_trajectory_file(ref_path), file_interface.read_tum_trajectory_file(est_path)
+    ref, est = load(ref_path), load(est_path)
     ref, est = evo_sync.associate_trajectories(ref, est, max_diff=0.01)
     est.align(ref, correct_scale=False)
     ape = metrics.APE(metrics.PoseRelation.translation_part)
