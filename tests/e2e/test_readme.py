@@ -31,6 +31,7 @@ def test_readme_cli_and_sdk_examples_run(tmp_path: Path) -> None:
     cli = _block("cli-example")
     sdk = _block("sdk-example")
     work = _workspace(tmp_path)
+    # The commands and the SDK calls are under test; the passthrough engine keeps this test short on 2 cores.
     with LiveStack(workers=1, engine="passthrough") as stack:
         port = stack.url.rsplit(":", 1)[1]
         # The stack is already serving: drop the README's `flashmono serve` line, keep everything else verbatim.

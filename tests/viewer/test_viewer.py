@@ -19,7 +19,7 @@ from client.streaming import WireOptions, open_frames
 sys.path.insert(0, str(Path(__file__).parent))
 from cdp import Browser, ensure_chromium  # noqa: E402
 
-ENGINE = "passthrough"
+ENGINE = "passthrough"  # the page is under test, not the engine; the SLAM compute would only add minutes
 PRESET = "test"
 BACKGROUND = np.array([17, 14, 11])  # the canvas background #0b0e11, in BGR
 
