@@ -78,6 +78,7 @@ class SlamSystem:
         self._started: float | None = None
         self._pending_jobs: list[tuple[KeyframeJob, bool]] = []
         self._with_depth = False
+        self._wall_offset = 0.0  # wall time of the run before a restore
         self._previous_poses: tuple[np.ndarray, np.ndarray] | None = None
 
     # ------------------------------------------------------------------------------------------------ public API
@@ -107,7 +108,7 @@ class SlamSystem:
             result = self._push_monocular(frame)
         self.counters["frames"] += 1
         self.counters["frontend_seconds"] += time.perf_counter() - start
-        self.counters["wall_seconds"] = time.perf_counter() - self._started
+        self.counters["wall_seconds"] = self._wall_offset + time.perf_counter() - self._started
         return result
 
     def finish(self) -> None:
@@ -121,7 +122,7 @@ class SlamSystem:
                 self.backend.refine_all(self.config.mapping.final_refine_iterations)
             self.backend.close()
         if self._started is not None:
-            self.counters["wall_seconds"] = time.perf_counter() - self._started
+            self.counters["wall_seconds"] = self._wall_offset + time.perf_counter() - self._started
         self._finished = True
 
     def close(self) -> None:
@@ -479,6 +480,7 @@ class SlamSystem:
         if state["previous_poses"] is not None:
             system._previous_poses = tuple(np.asarray(p, np.float64) for p in state["previous_poses"])
         system.counters.update(state["counters"])
+        system._wall_offset = float(system.counters["wall_seconds"])
         system._traj.load_state_dict(state["trajectory"])
         system.pose_graph.load_state_dict(state["pose_graph"])
         system.selector.load_state_dict(state["selector"])

@@ -15,8 +15,8 @@ from worker.config import SlamConfig
 from worker.data import open_source
 from worker.slam import SlamSystem
 
-FRAMES = 6
-SNAPSHOT_AT = 3  # after frames 0..2; the run crosses a submap boundary (submaps of 4) after the restore
+FRAMES = 4
+SNAPSHOT_AT = 2  # after frames 0..1; the run crosses a submap boundary (submaps of 3) after the restore
 
 CHILD = """
 import json, sys
@@ -36,7 +36,7 @@ print(json.dumps({"poses": [p.tolist() for _, _, p in system.trajectory("all")],
 
 
 def config() -> SlamConfig:
-    return SlamConfig.preset("test", mapping={"refine_iterations": 1})
+    return SlamConfig.preset("test", frontend={"submap_size": 3}, mapping={"refine_iterations": 1})
 
 
 def test_restored_run_continues_identically(data_dir: Path, tmp_path: Path) -> None:
