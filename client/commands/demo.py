@@ -179,8 +179,13 @@ def run_demo(server: str, api_key: str | None, source: str, args: argparse.Names
             (out / "keyframes.tum").write_text(client.trajectory_tum(session.id, "keyframes"))
             keyframe_seqs = {p.seq for p in client.trajectory(session.id, "keyframes").poses}
             metrics = evaluate(client, session.id, trajectory, keyframe_seqs, frames, args.renders, out)
-            map_bytes = client.download_map(session.id)
-            (out / "map.ply").write_bytes(map_bytes)
+            try:
+                map_bytes = client.download_map(session.id)
+                (out / "map.ply").write_bytes(map_bytes)
+            except FlashMonoError as err:
+                map_bytes = b""
+                metrics["map_error"] = str(err)
+                print(f"warning: map export failed: {err}", file=sys.stderr)
     except FlashMonoError as err:
         print(f"error: {err}", file=sys.stderr)
         return 1
@@ -192,7 +197,7 @@ def run_demo(server: str, api_key: str | None, source: str, args: argparse.Names
     })
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
     print_report(metrics, out, f"{server.rstrip('/')}/viewer?session={session.id}")
-    return 0
+    return 1 if "render_error" in metrics or "map_error" in metrics else 0
 
 
 def evaluate(client: Any, session_id: str, trajectory: Any, keyframe_seqs: set[int], frames: list,
@@ -221,10 +226,17 @@ def evaluate(client: Any, session_id: str, trajectory: Any, keyframe_seqs: set[i
     render_dir = out / "renders"
     render_dir.mkdir(exist_ok=True)
     values = []
+    from client.errors import FlashMonoError
+
     for pose, frame in picks:
         k = frame.intrinsics
-        rendered = client.render_array(session_id, pose.pose, width=k.width, height=k.height, fx=k.fx, fy=k.fy,
-                                       cx=k.cx, cy=k.cy)
+        try:
+            rendered = client.render_array(session_id, pose.pose, width=k.width, height=k.height, fx=k.fx,
+                                           fy=k.fy, cx=k.cx, cy=k.cy)
+        except FlashMonoError as err:  # report what was measured and why the rest is missing
+            metrics["render_error"] = str(err)
+            print(f"warning: rendering failed: {err}", file=sys.stderr)
+            break
         values.append(psnr(rendered, frame.image))
         side_by_side = np.concatenate([rendered, frame.image], axis=1)
         cv2.imwrite(str(render_dir / f"frame_{pose.seq:05d}.png"), cv2.cvtColor(side_by_side, cv2.COLOR_RGB2BGR))
