@@ -10,7 +10,16 @@ from pathlib import Path
 
 import pytest
 import torch
-from test_rasterize import SMALL_K, camera, look_from, random_scene, random_weights, surfels_of, weighted_sum
+from test_rasterize import (  # noqa: F401 (single_thread is a fixture)
+    SMALL_K,
+    camera,
+    look_from,
+    random_scene,
+    random_weights,
+    single_thread,
+    surfels_of,
+    weighted_sum,
+)
 
 from worker.mapping import Surfels, raster_cpu, rasterize
 
@@ -64,6 +73,7 @@ def test_fast_path_equals_reference_values_and_gradients(dtype, tol, grad_tol):
         assert_close_scaled(cpu_grads[name], g, grad_tol, f"d/d{name}")
 
 
+@pytest.mark.usefixtures("single_thread")
 def test_fast_path_gradients_match_finite_differences():
     """float64 gradcheck of the whole pipeline with the compiled compositor."""
     scene = random_scene(12, seed=5, scale_range=(0.1, 0.3))
@@ -76,10 +86,11 @@ def test_fast_path_gradients_match_finite_differences():
         return weighted_sum(out, weights)
 
     inputs = [getattr(scene, k).clone().requires_grad_(True) for k in ATTRIBUTES]
-    assert torch.autograd.gradcheck(f, (*inputs, look_from(0.05).requires_grad_(True)), eps=1e-7, atol=1e-5,
-                                    rtol=1e-4)
+    pose = look_from(0.05).requires_grad_(True)
+    assert torch.autograd.gradcheck(f, (*inputs, pose), eps=1e-7, atol=1e-5, rtol=1e-4, fast_mode=True)
 
 
+@pytest.mark.usefixtures("single_thread")
 def test_compositor_gradients_match_finite_differences_with_early_termination():
     """gradcheck of the compiled compositing stage alone, on a pile of opaque surfels that stops pixels early."""
     g = torch.Generator().manual_seed(4)

@@ -64,21 +64,21 @@ def _conic_box(T: torch.Tensor, r2: float | torch.Tensor) -> tuple[torch.Tensor,
 def project_surfels(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, viewmat: torch.Tensor,
                     K: torch.Tensor, width: int, height: int) -> ProjectedSurfels:
     """Project and cull surfels for one camera (gsplat 1.5.3 `fully_fused_projection_2dgs` semantics)."""
+    with torch.no_grad():  # depth cull first: it needs only the centres, and a map is mostly out of view
+        z = means @ viewmat[2, :3] + viewmat[2, 3]
+        candidates = ((z > NEAR_PLANE) & (z < FAR_PLANE)).nonzero()[:, 0]
+    T, mean_c, R_c = _ray_transforms(means[candidates], quats[candidates], scales[candidates], viewmat, K)
+    centre, half_sq, d = _conic_box(T, 1.0)
     with torch.no_grad():
-        T, mean_c, _ = _ray_transforms(means, quats, scales, viewmat, K)
-        centre, half_sq, d = _conic_box(T, 1.0)
-        radii = torch.ceil(RADIUS_SIGMAS * half_sq.clamp_min(1e-4).sqrt())
-        z = mean_c[:, 2]
-        visible = (z > NEAR_PLANE) & (z < FAR_PLANE) & (d != 0)
+        radii = torch.ceil(RADIUS_SIGMAS * half_sq.detach().clamp_min(1e-4).sqrt())
+        visible = d != 0
         visible &= (centre[:, 0] + radii[:, 0] > 0) & (centre[:, 0] - radii[:, 0] < width)
         visible &= (centre[:, 1] + radii[:, 1] > 0) & (centre[:, 1] - radii[:, 1] < height)
-        ids = visible.nonzero()[:, 0]
-        radii = radii[ids].to(torch.int32)
-    # Recompute for the visible subset only, so autograd records (and back-propagates through) M rows, not N.
-    T, mean_c, R_c = _ray_transforms(means[ids], quats[ids], scales[ids], viewmat, K)
-    centre, _, _ = _conic_box(T, 1.0)
+        keep = visible.nonzero()[:, 0]
+    T, mean_c, R_c, centre = T[keep], mean_c[keep], R_c[keep], centre[keep]
     T0, T1, T2 = T[:, 0], T[:, 1], T[:, 2]
     planes = torch.stack([torch.cross(T1, T2, dim=-1), torch.cross(T2, T0, dim=-1), torch.cross(T0, T1, dim=-1)], 1)
     normals = R_c[:, :, 2]
     facing = torch.where((normals * mean_c).sum(-1) < 0, 1.0, -1.0).to(normals.dtype).detach()
-    return ProjectedSurfels(ids, T, planes, centre, T[:, 2, 2], normals * facing[:, None], radii)
+    return ProjectedSurfels(candidates[keep], T, planes, centre, T[:, 2, 2], normals * facing[:, None],
+                            radii[keep].to(torch.int32))

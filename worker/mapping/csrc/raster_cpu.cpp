@@ -121,7 +121,7 @@ void reach_rect(const scalar_t* T, const scalar_t* c, scalar_t opacity, int W, i
         xmin = ymin = -1e30;
         xmax = ymax = 1e30;
     }
-    constexpr double margin = 1.0;
+    constexpr double margin = 0.01;  // pixels; covers rounding only (the bounds are exact)
     auto lo = [](double v, int n) { return int(std::min<double>(std::max<double>(std::ceil(v - 0.5), 0.0), n)); };
     auto hi = [](double v, int n) { return int(std::min<double>(std::max<double>(std::floor(v - 0.5) + 1, 0.0), n)); };
     out[0] = lo(xmin - margin, W);
@@ -165,19 +165,20 @@ struct Hit {
 
 template <typename scalar_t>
 inline bool evaluate(const SurfelView<scalar_t>& s, scalar_t x, scalar_t y, Hit<scalar_t>& h) {
+    h.dx = x - s.cx;
+    h.dy = y - s.cy;
+    h.rho2 = scalar_t(2) * (h.dx * h.dx + h.dy * h.dy);
     h.p[0] = x * s.A[0] + y * s.B[0] + s.C[0];
     h.p[1] = x * s.A[1] + y * s.B[1] + s.C[1];
     h.p[2] = x * s.A[2] + y * s.B[2] + s.C[2];
     if (h.p[2] == scalar_t(0)) return false;
+    // cheap rejection (no division, no exp): both rho's beyond the cut, rho3 > cut <=> p0^2 + p1^2 > cut p2^2
+    if (h.rho2 > s.rho_cut && h.p[0] * h.p[0] + h.p[1] * h.p[1] > s.rho_cut * h.p[2] * h.p[2]) return false;
     h.u = h.p[0] / h.p[2];
     h.v = h.p[1] / h.p[2];
     h.rho3 = h.u * h.u + h.v * h.v;
-    h.dx = x - s.cx;
-    h.dy = y - s.cy;
-    h.rho2 = scalar_t(2) * (h.dx * h.dx + h.dy * h.dy);
     h.use3d = h.rho3 <= h.rho2;
     const scalar_t rho = h.use3d ? h.rho3 : h.rho2;
-    if (!(rho <= s.rho_cut)) return false;
     h.G = std::exp(scalar_t(-0.5) * rho);
     h.alpha = std::min(scalar_t(0.999), s.o * h.G);
     return h.alpha >= scalar_t(1.0 / 255.0);
