@@ -5,11 +5,16 @@ from __future__ import annotations
 import pytest
 import torch
 
-from worker.frontend import CONFIGS, FrontendConfig, build_model, get_config, parameter_tally
+from worker.frontend import CONFIGS, FeedForwardModel, FrontendConfig, build_model, get_config, parameter_tally
 
 
-def test_paper_config_matches_table_7() -> None:
-    tally = parameter_tally(build_model("paper", device="meta"))
+@pytest.fixture(scope="module")
+def paper() -> FeedForwardModel:
+    return build_model("paper", device="meta")
+
+
+def test_paper_config_matches_table_7(paper: FeedForwardModel) -> None:
+    tally = parameter_tally(paper)
     assert tally["total"] == pytest.approx(795.7e6, rel=0.005)
     assert tally["encoder"] == pytest.approx(303.1e6, rel=0.005)
     assert tally["decoder"] == pytest.approx(380.8e6, rel=0.005)
@@ -20,8 +25,8 @@ def test_paper_config_matches_table_7() -> None:
     assert tally["total"] == 793_307_858 + 129 * 7 + 2_361_600
 
 
-def test_paper_model_without_the_2dgs_additions_is_cut3r_512() -> None:
-    model = build_model("paper", device="meta")
+def test_paper_model_without_the_2dgs_additions_is_cut3r_512(paper: FeedForwardModel) -> None:
+    model = paper
     head = model.downstream_head
     extra = sum(p.numel() for p in head.gs_adapter.parameters())
     gs_extra = head.dpt_gs.head[4].weight.numel() + head.dpt_gs.head[4].bias.numel() - (3 * 128 + 3)
@@ -62,6 +67,5 @@ def test_dpt_hooks_are_layers_6_9_12_at_paper_depth() -> None:
     assert get_config("paper").dpt_hooks == (6, 9, 12)
 
 
-def test_meta_model_allocates_nothing() -> None:
-    model = build_model("paper", device="meta")
-    assert all(p.device == torch.device("meta") for p in model.parameters())
+def test_meta_model_allocates_nothing(paper: FeedForwardModel) -> None:
+    assert all(p.device == torch.device("meta") for p in paper.parameters())

@@ -46,6 +46,12 @@ def synthetic_cut3r_512() -> dict[str, torch.Tensor]:
 
 
 @pytest.fixture(scope="module")
+def expected() -> dict[str, torch.Tensor]:
+    """The paper model's state dict on the meta device (names and shapes only)."""
+    return build_model("paper", device="meta").state_dict()
+
+
+@pytest.fixture(scope="module")
 def cut3r_file(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("cut3r") / "cut3r_512_dpt_4_64.pth"
     args = argparse.Namespace(model="ARCroco3DStereo(...)", seed=0)
@@ -61,8 +67,7 @@ def test_synthetic_checkpoint_is_small_and_holds_1248_keys(cut3r_file: Path) -> 
     assert float(state["enc_norm.weight"][5]) == float(state["enc_norm.weight"][0])
 
 
-def test_512_keys_map_onto_paper_model_with_only_the_2dgs_adapter_fresh(cut3r_file: Path) -> None:
-    expected = build_model("paper", device="meta").state_dict()
+def test_512_keys_map_onto_paper_model_with_only_the_2dgs_adapter_fresh(cut3r_file: Path, expected) -> None:
     cut3r = read_cut3r_state_dict(cut3r_file)
     mapped, fresh = map_cut3r_state_dict(cut3r, expected)
     assert fresh and all(k.startswith("downstream_head.gs_adapter.") for k in fresh)
@@ -78,8 +83,7 @@ def test_512_keys_map_onto_paper_model_with_only_the_2dgs_adapter_fresh(cut3r_fi
     assert torch.equal(mapped["dec_blocks_state.3.attn.qkv.weight"], cut3r["dec_blocks_state.3.attn.qkv.weight"])
 
 
-def test_alias_only_names_are_accepted_and_missing_state_decoder_is_copied() -> None:
-    expected = build_model("paper", device="meta").state_dict()
+def test_alias_only_names_are_accepted_and_missing_state_decoder_is_copied(expected) -> None:
     cut3r = synthetic_cut3r_512()
     for key in [k for k in cut3r if re.search(r"scratch\.layer\d_rn\.weight$", k)]:
         del cut3r[key]  # keep only the scratch.layer_rn.{0..3} spelling
@@ -91,8 +95,7 @@ def test_alias_only_names_are_accepted_and_missing_state_decoder_is_copied() -> 
     assert torch.equal(mapped["dec_blocks_state.7.mlp.fc1.weight"], cut3r["dec_blocks.7.mlp.fc1.weight"])
 
 
-def test_unexpected_and_misshapen_keys_are_refused() -> None:
-    expected = build_model("paper", device="meta").state_dict()
+def test_unexpected_and_misshapen_keys_are_refused(expected) -> None:
     cut3r = synthetic_cut3r_512()
     cut3r["downstream_head.proj.fc1.weight"] = torch.zeros(3072, 768)  # a 224 linear-head key
     with pytest.raises(ValueError, match="unexpected"):
