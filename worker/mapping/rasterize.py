@@ -1,9 +1,10 @@
 """Differentiable 2DGS (surfel) rasterizer: one entry point, three backends.
 
 `rasterize(surfels, viewmat, K, width, height)` renders colour, expected depth, accumulation and normals.
-Backends: "cpu" (compiled C++ forward/backward kernels, `raster_cpu`), "reference" (pure torch, `raster_reference`;
-the test oracle), "gsplat" (CUDA, `gsplat.rasterization_2dgs`), "auto" (gsplat when the surfels are on a CUDA
-device and gsplat imports, else cpu).
+Backends: "cpu" (compiled C++ forward/backward kernels, `raster_cpu`; falls back to the reference with a logged
+warning when it cannot be compiled), "reference" (pure torch, `raster_reference`; the test oracle; any device),
+"gsplat" (CUDA, `gsplat.rasterization_2dgs`), "auto" (CPU tensors: cpu; CUDA tensors: gsplat when it imports, else
+the reference).
 
 Conventions (gsplat 1.5.3's, so CPU and GPU images agree up to float summation order):
 - OpenCV camera (x right, y down, z forward); viewmat = world->camera 4x4; K = 3x3 pixel intrinsics; pixel (row i,
@@ -72,8 +73,8 @@ def _choose_backend(backend: str, device: torch.device) -> str:
     if device.type == "cuda":
         from . import raster_gsplat
 
-        if raster_gsplat.available():
-            return "gsplat"
+        # without gsplat, the pure-torch reference still runs on the GPU; the compiled kernels are CPU-only
+        return "gsplat" if raster_gsplat.available() else "reference"
     return "cpu"
 
 
