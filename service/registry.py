@@ -12,6 +12,7 @@ from datetime import UTC, datetime
 from typing import Any
 
 import msgpack
+import redis
 import redis.asyncio as aioredis
 
 from worker.runtime import keys
@@ -166,7 +167,10 @@ class Registry:
         fields = {"id": request_id, "kind": kind, "params": json.dumps(params), "session_id": session_id}
         stream = keys.session_requests(session_id) if live else keys.REQUESTS
         await self.client.xadd(stream, fields, maxlen=1000, approximate=True)
-        reply = await self.client.blpop([keys.reply(request_id)], timeout=timeout_s)
+        try:
+            reply = await self.client.blpop([keys.reply(request_id)], timeout=timeout_s)
+        except redis.TimeoutError as err:
+            raise RequestTimeout(f"no worker answered within {timeout_s:.0f} s") from err
         if reply is None:
             raise RequestTimeout(f"no worker answered within {timeout_s:.0f} s")
         return msgpack.unpackb(reply[1], raw=False)

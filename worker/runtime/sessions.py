@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import redis
 
+from worker.geometry import Intrinsics
 from worker.runtime import keys
 from worker.runtime.engine import SessionEngine, close_engine, create_engine, restore_engine
 from worker.runtime.frames import FrameError, decode_frame
@@ -188,8 +189,6 @@ class SessionRunner(threading.Thread):
             log.info("session %s restored from snapshot at seq %s", self.session_id, snap[b"seq"].decode())
         else:
             intrinsics = self._session_intrinsics()
-            from worker.geometry import Intrinsics
-
             self.engine = create_engine(self.config.engine_kind, self._session.get("preset") or None,
                                         Intrinsics.from_dict(intrinsics) if intrinsics else None)
         self._done_seqs = {int(s) for s in self.client.hkeys(keys.poses(self.session_id))}
