@@ -14,7 +14,7 @@ import torch
 
 # Parameter-name fragments of each trainable group (names follow CUT3R's checkpoint layout).
 PARAMETER_GROUPS: dict[str, tuple[str, ...]] = {
-    "gs_head": ("gs_head", "dpt_gs"),
+    "gs_head": ("gs_head", "dpt_gs", "gs_adapter"),
     "decoder": ("dec_blocks", "decoder_embed", "dec_norm", "pose_retriever", "register_tokens", "pose_token"),
     "pose_head": ("pose_head",),
     "means_head": ("dpt_self", "dpt_cross", "final_transform"),

@@ -27,15 +27,16 @@ def build_trainer(model_name: str, data: list[str], out_dir: Path, init: Path | 
                   steps: int, lr: float, width: int, height: int, synthetic_sequences: int, frames: int,
                   checkpoint_every: int) -> Trainer:
     """Model, data and curriculum ready to train."""
+    from safetensors.torch import load_file
+
     from worker.data import open_source
     from worker.frontend import build_model
-    from worker.frontend.checkpoint import load_state_dict
 
     if width % 16 or height % 16:
         raise ValueError(f"--width and --height must be multiples of 16, got {width}x{height}")
     model = build_model(model_name)
     if init is not None:
-        missing, unexpected = model.load_state_dict(load_state_dict(init), strict=False)
+        missing, unexpected = model.load_state_dict(load_file(str(init)), strict=False)
         log.info("initialised from %s (%d missing, %d unexpected keys)", init, len(missing), len(unexpected))
     bank = SequenceBank(width, height)
     for source in training_sources(data, synthetic_sequences, frames, width, height):

@@ -31,7 +31,8 @@ class TrainConfig:
     geo_weight: float = 1.0
     conf_alpha: float = 0.2
     render: RenderLossWeights = field(default_factory=RenderLossWeights)
-    render_stride: int = 2
+    render_stride: int = 2  # every n-th pixel's surfel is rendered (scales multiplied by n)
+    render_downscale: int = 2  # rendering losses at 1/n of the model resolution
     grad_clip: float = 1.0
     weight_decay: float = 0.05
     checkpoint_every: int = 200
@@ -50,6 +51,20 @@ class StepLosses:
     geo: float
     render: float
     seconds: float
+
+
+def downscaled(images: torch.Tensor, depths: torch.Tensor, K: torch.Tensor, factor: int
+               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Images [L,B,H,W,3] area-averaged and depths [L,B,H,W] subsampled by `factor`, with K to match."""
+    if factor == 1:
+        return images, depths, K
+    L, B, H, W, _ = images.shape
+    small = torch.nn.functional.avg_pool2d(images.reshape(L * B, H, W, 3).permute(0, 3, 1, 2), factor)
+    small = small.permute(0, 2, 3, 1).reshape(L, B, H // factor, W // factor, 3)
+    start = factor // 2
+    K_small = K.clone()
+    K_small[:2] /= factor
+    return small, depths[:, :, start::factor, start::factor].contiguous(), K_small
 
 
 def clip_losses(model, clip: Clip, stage: Stage, cfg: TrainConfig, perceptual=None) -> dict[str, float]:
@@ -78,11 +93,12 @@ def clip_losses(model, clip: Clip, stage: Stage, cfg: TrainConfig, perceptual=No
         render = clip.images.new_zeros(())
         if stage.render_weight > 0:
             sl = slice(start, end)
-            render = per_frame_render_loss(outputs, clip.images[sl], clip.depths[sl], clip.K, cfg.render,
-                                           perceptual, stride=cfg.render_stride)
+            images, depths, K = downscaled(clip.images[sl], clip.depths[sl], clip.K, cfg.render_downscale)
+            render = per_frame_render_loss(outputs, images, depths, K, cfg.render, perceptual,
+                                           stride=cfg.render_stride)
             if end - start > 1:
-                render = render + merged_render_loss(outputs, clip.images[sl], clip.depths[sl], clip.c2w[sl], clip.K,
-                                                     cfg.render, perceptual, stride=2 * cfg.render_stride)
+                render = render + merged_render_loss(outputs, images, depths, clip.c2w[sl], K, cfg.render,
+                                                     perceptual, stride=2 * cfg.render_stride)
         n = end - start
         total = (cfg.pose_weight * pose + cfg.geo_weight * geo + stage.render_weight * render) / n
         total.backward()
@@ -90,7 +106,7 @@ def clip_losses(model, clip: Clip, stage: Stage, cfg: TrainConfig, perceptual=No
         state.state_tokens = state.state_tokens.detach()
         state.pose_memory = state.pose_memory.detach()
         for key, value in (("pose", pose), ("geo", geo), ("render", render), ("total", total * n)):
-            terms[key] += float(value) / L
+            terms[key] += float(value.detach()) / L
     return terms
 
 
@@ -163,13 +179,11 @@ class Trainer:
 
     def resume(self) -> bool:
         """Load the latest checkpoint of out_dir if there is one; True when resumed."""
-        from worker.frontend.checkpoint import load_state_dict
-
         state_path = self.out_dir / "trainer.json"
         if not state_path.exists():
             return False
         state = json.loads(state_path.read_text())
-        self.model.load_state_dict(load_state_dict(self.out_dir / "model.safetensors"))
+        self.model.load_state_dict(load_file(str(self.out_dir / "model.safetensors")))
         self.step = int(state["step"])
         self.history = [StepLosses(**h) for h in state["history"]]
         index, stage = self.curriculum.stage_at(self.step)

@@ -1,0 +1,124 @@
+"""Training: losses, curriculum freezing, clip sampling, a real optimisation run, checkpoint and resume."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from worker.data.frame import Frame
+from worker.frontend import build_model
+from worker.frontend.configs import get_config
+from worker.geometry import Intrinsics, sim3_from_quat, unproject_depth
+from worker.training.clips import SequenceBank, fit_frame
+from worker.training.curriculum import Curriculum, Stage, set_trainable
+from worker.training.losses import geometry_loss, pose_loss, render_loss, ssim
+from worker.training.trainer import TrainConfig, Trainer, clip_losses
+
+MICRO = replace(get_config("tiny"), name="micro", enc_dim=48, enc_depth=2, enc_heads=2, dec_dim=32, dec_heads=2,
+                state_dec_heads=2, state_size=16, memory_size=4, memory_heads=2, dpt_layer_dims=(8, 8, 16, 16),
+                dpt_feature_dim=16, dpt_last_dim=8, gs_adapter_hidden=32, image_long_side=64)
+
+
+def test_pose_loss_is_zero_for_equal_poses_and_grows_with_error():
+    q = torch.tensor([[0.9, 0.1, -0.2, 0.3]])
+    T = sim3_from_quat(q, torch.tensor([[0.1, 0.2, 0.3]]))
+    assert pose_loss(T, T) < 1e-6
+    moved = T.clone()
+    moved[:, 0, 3] += 0.5
+    assert pose_loss(moved, T) == pytest.approx(0.5, abs=1e-5)
+    flipped = sim3_from_quat(-q, torch.tensor([[0.1, 0.2, 0.3]]))  # same rotation, other quaternion sign
+    assert pose_loss(flipped, T) < 1e-5
+
+
+def test_geometry_loss_prefers_accurate_confident_points():
+    gt = torch.rand(1, 4, 5, 3)
+    valid = torch.ones(1, 4, 5, dtype=torch.bool)
+    conf = torch.full((1, 4, 5), 2.0)
+    exact = geometry_loss(gt, conf, gt, valid)
+    off = geometry_loss(gt + 0.1, conf, gt, valid)
+    assert exact == pytest.approx(-0.2 * np.log(2.0), abs=1e-6)
+    assert off > exact
+    valid[..., :2] = False
+    assert geometry_loss(torch.where(valid[..., None], gt, gt + 5), conf, gt, valid) == pytest.approx(float(exact))
+
+
+def test_ssim_and_render_loss():
+    img = torch.rand(1, 32, 32, 3)
+    assert float(ssim(img, img)) == pytest.approx(1.0, abs=1e-5)
+    assert float(ssim(img, torch.rand(1, 32, 32, 3))) < 0.5
+    depth = torch.rand(1, 32, 32) + 1
+    assert float(render_loss(img, depth, img, depth)) == pytest.approx(0.0, abs=1e-5)
+    assert float(render_loss(img * 0.5, depth, img, depth)) > 0.01
+
+
+def test_curriculum_stages_and_freezing():
+    plan = Curriculum.paper()
+    assert [s.lr for s in plan.stages] == [2e-4, 1e-5, 5e-6]
+    assert plan.stages[2].max_frames == 32 and plan.stages[1].min_frames == plan.stages[1].max_frames == 4
+    assert plan.stage_at(0)[1].name == "gs_warmup" and plan.stage_at(5000)[1].name == "adapt"
+    assert plan.scaled(0.01).total_steps == 150
+    model = build_model(MICRO)
+    trainable = set_trainable(model, plan.stages[0])
+    names = {n for n, p in model.named_parameters() if p.requires_grad}
+    assert trainable and all("gs" in n for n in names)
+    assert not any(p.requires_grad for n, p in model.named_parameters() if n.startswith("enc_blocks"))
+    with pytest.raises(ValueError, match="unknown parameter groups"):
+        Stage("bad", 1, 1e-3, 1, 2, ("nonsense",))
+
+
+def synthetic_frames(n: int, width: int = 80, height: int = 60) -> list[Frame]:
+    """A camera sliding past a slanted textured plane (exact depth), enough for a real optimisation signal."""
+    intr = Intrinsics(70.0, 70.0, width / 2, height / 2, width, height)
+    gen = np.random.default_rng(0)
+    texture = gen.integers(0, 255, size=(height, width + 4 * n, 3), dtype=np.uint8)
+    frames = []
+    for i in range(n):
+        depth = np.tile(np.linspace(1.5, 2.5, width, dtype=np.float32), (height, 1))
+        pose = np.eye(4)
+        pose[0, 3] = 0.05 * i
+        frames.append(Frame(i, i / 30, np.ascontiguousarray(texture[:, 4 * i:4 * i + width]), intr, depth,
+                            gt_pose=pose))
+    return frames
+
+
+def test_fit_frame_resizes_and_crops_consistently():
+    frame = synthetic_frames(1)[0]
+    image, depth, intr = fit_frame(frame, 64, 48)
+    assert image.shape == (48, 64, 3) and depth.shape == (48, 64)
+    assert intr.width == 64 and intr.fx == pytest.approx(70.0 * 0.8)
+    with pytest.raises(ValueError, match="needs depth"):
+        fit_frame(Frame(0, 0.0, frame.image), 64, 48)
+
+
+def test_sequence_bank_clips_are_relative_to_their_first_frame():
+    bank = SequenceBank(64, 48)
+    bank.add(synthetic_frames(6))
+    clip = bank.sample(4)
+    assert clip.images.shape == (4, 1, 48, 64, 3) and clip.chw(0).shape == (1, 3, 48, 64)
+    assert torch.allclose(clip.c2w[0, 0], torch.eye(4), atol=1e-6)
+    pts = unproject_depth(clip.depths[0, 0], clip.K)
+    assert pts[..., 2].min() > 1.0
+
+
+def test_training_reduces_the_loss_and_resumes(tmp_path):
+    torch.manual_seed(0)
+    bank = SequenceBank(64, 48)
+    bank.add(synthetic_frames(2))  # one 2-frame sequence: every sampled clip is this one
+    model = build_model(MICRO)
+    stage = Stage("all", 30, 3e-3, 2, 2, ("all",), render_weight=0.2)
+    fixed = bank.sample(2)
+    before = clip_losses(model, fixed, stage, TrainConfig())["total"]
+    model.zero_grad(set_to_none=True)
+    trainer = Trainer(model, bank, Curriculum((stage,)), tmp_path, TrainConfig(checkpoint_every=4))
+    trainer.train(steps=8)
+    after = clip_losses(model, fixed, stage, TrainConfig())["total"]
+    assert after < before
+    assert (tmp_path / "model.safetensors").exists() and (tmp_path / "loss_curves.png").stat().st_size > 1000
+    resumed = Trainer(build_model(MICRO), bank, Curriculum((stage,)), tmp_path, TrainConfig())
+    assert resumed.resume() and resumed.step == 8 and len(resumed.history) == 8
+    for (name, p), q in zip(model.named_parameters(), resumed.model.parameters()):
+        assert torch.equal(p, q), name
+    assert resumed.optimizer.state_dict()["state"], "optimizer state restored"
+    resumed.train(steps=1)
+    assert resumed.step == 9
