@@ -1,4 +1,8 @@
-"""Run every benchmark module (or those named): `python -m bench [render frontend ...]`."""
+"""Run benchmarks: `python -m bench [NAME ...] [-- OPTIONS]` (all modules when no name is given).
+
+Leading arguments without a dash name modules `bench/<name>.py`; the remaining arguments are passed to each
+module's `main(argv)`.
+"""
 
 from __future__ import annotations
 
@@ -9,13 +13,16 @@ from pathlib import Path
 
 
 def main(argv: list[str]) -> int:
-    names = argv or sorted(m.name for m in pkgutil.iter_modules([str(Path(__file__).parent)]) if m.name != "__main__")
+    split = next((i for i, a in enumerate(argv) if a.startswith("-")), len(argv))
+    names, options = argv[:split], [a for a in argv[split:] if a != "--"]
+    if not names:
+        names = sorted(m.name for m in pkgutil.iter_modules([str(Path(__file__).parent)]) if m.name != "__main__")
     status = 0
     for name in names:
         module = importlib.import_module(f"bench.{name}")
         if hasattr(module, "main"):
             print(f"== bench.{name}", flush=True)
-            status |= int(module.main([]) or 0)
+            status |= int(module.main(options) or 0)
     return status
 
 
