@@ -10,7 +10,7 @@ import time
 import httpx
 import pytest
 import redis
-from conftest import WORKER_ENV, receive_until, synthetic_frame, wait_for
+from runtime_helpers import WORKER_ENV, receive_until, synthetic_frame, wait_for
 from websockets.sync.client import connect
 
 from service.launcher import LocalStack
@@ -47,10 +47,15 @@ def test_sessions_spread_over_workers_each_owned_by_one():
             assert r.xpending(keys.inbox(sid), keys.GROUP)["pending"] == 0  # every frame acked after its result
             assert r.xlen(keys.inbox(sid)) <= 1  # acknowledged frames covered by a snapshot are trimmed
             assert r.get(keys.lease(sid)) is None  # released once finished
-        text = httpx.get(f"{stack.base_url}/metrics").text
-        engine_counts = [float(line.rsplit(" ", 1)[1]) for line in text.splitlines()
-                         if line.startswith("flashmono_worker_stage_events_total") and 'stage="engine"' in line]
-        assert len(engine_counts) == 2 and sum(engine_counts) > 0  # both workers report their stage timings
+
+        def engine_counts() -> list[float] | None:
+            """Per-worker engine event counts once both workers have published them (on their heartbeat)."""
+            text = httpx.get(f"{stack.base_url}/metrics").text
+            counts = [float(line.rsplit(" ", 1)[1]) for line in text.splitlines()
+                      if line.startswith("flashmono_worker_stage_events_total") and 'stage="engine"' in line]
+            return counts if len(counts) == 2 and all(c > 0 for c in counts) else None
+
+        assert sum(wait_for(engine_counts, timeout_s=20)) == 40  # both workers report their stage timings
 
 
 def test_lease_acquire_renew_release_and_expiry():
