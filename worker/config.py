@@ -151,8 +151,11 @@ PRESETS: dict[str, dict[str, Any]] = {
     # Paper settings with the shipped default model on whatever device is there.
     "default": {},
     # CPU-friendly: smaller images and fewer refinement iterations.
+    # With RGB-D input its surfels come from the depth and image alone: no 2DGS-head pass, and maps that do not
+    # depend on the frontend's weights (the default until trained weights ship).
     "fast": {"frontend": {"long_side": 224, "keyframe_every": 6},
-             "mapping": {"refine_keyframes": 3, "refine_iterations": 8}},
+             "mapping": {"refine_keyframes": 3, "refine_iterations": 8},
+             "input": {"surfel_init": "depth"}},
     # Unit tests: tiny images, few iterations, single-threaded and deterministic.
     "test": {"frontend": {"long_side": 64, "submap_size": 4, "keyframe_every": 2},
              "loop": {"exclusion_frames": 12, "pgo_iterations": 30},

@@ -44,7 +44,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                    description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--source", default=None, help="sequence to stream (default: the bundled ICL subset)")
     parser.add_argument("--out", default="demo_out", help="output folder (default %(default)s)")
-    parser.add_argument("--mode", choices=sorted(MODES), default="rgbd",
+    # "posed" (an ARKit/ARCore phone with LiDAR) is the default while no trained frontend weights ship: with a
+    # randomly initialised model the monocular and rgbd modes track nothing meaningful.
+    parser.add_argument("--mode", choices=sorted(MODES), default="posed",
                         help="what the 'phone' sends: mono (images), rgbd (+ depth, as LiDAR phones), posed "
                              "(+ depth and device poses); default %(default)s")
     parser.add_argument("--preset", default="fast", help="SLAM preset (default %(default)s, CPU-friendly)")
