@@ -54,7 +54,8 @@ async def _clip(page: Browser, element_id: str) -> dict:
         " return {x: r.x, y: r.y, width: r.width, height: r.height}; })()")
 
 
-@pytest.mark.xfail(reason="map download in headless Chromium timed out once on a clean clone (18:57 run); under investigation", strict=False)
+@pytest.mark.xfail(reason="map download in headless Chromium timed out once on a clean clone; under investigation",
+                   strict=False)
 def test_viewer_draws_a_live_session_renders_and_downloads(chromium, live_session) -> None:
     stack, session_id, frame_count = live_session
 
