@@ -116,3 +116,14 @@ def _one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(previous)
+
+
+def test_uncalibrated_frames_get_intrinsics_estimated_from_the_point_map(icl_frames):
+    tracker = SubmapTracker(OracleModel(icl_frames), TrackerConfig(submap_length=4))
+    tracked = [tracker.track(n, icl_frames[n].image) for n in range(5)]
+    truth = icl_frames[0].intrinsics
+    for t in tracked:
+        assert (t.intrinsics.width, t.intrinsics.height) == (truth.width, truth.height)
+        assert t.intrinsics.fx == pytest.approx(truth.fx, rel=0.01)
+    given = tracker.track(5, icl_frames[5].image, truth)
+    assert given.intrinsics == truth

@@ -7,27 +7,12 @@ from pathlib import Path
 import pytest
 import torch
 
-from worker.geometry import project_points, sim3_apply, unproject_depth
 from worker.loop.oracle import load_rgbd_folder
 
 
 @pytest.fixture(scope="session")
 def icl_frames(request):
     return load_rgbd_folder(Path(request.config.rootpath) / "tests" / "data" / "icl_mini", downscale=2)
-
-
-def ground_truth_overlap(frames, i: int, j: int, depth_tolerance: float = 0.1) -> float:
-    """Fraction of frame i's depth points seen by frame j with a consistent depth (from ground truth)."""
-    K = frames[i].intrinsics.matrix(torch.float64)
-    d = frames[i].depth.double()
-    P = unproject_depth(d, K)[d > 0][::4]
-    Pj = sim3_apply(torch.linalg.inv(frames[j].pose), sim3_apply(frames[i].pose, P))
-    uv, z = project_points(Pj, K)
-    H, W = frames[j].depth.shape
-    inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
-    zj = frames[j].depth.double()[uv[inside, 1].long(), uv[inside, 0].long()]
-    good = (zj > 0) & ((z[inside] - zj).abs() < depth_tolerance * zj)
-    return float(good.sum()) / max(1, len(P))
 
 
 @pytest.fixture(autouse=True)

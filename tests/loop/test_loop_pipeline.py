@@ -9,14 +9,13 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import pytest
 import torch
-from conftest import ground_truth_overlap
 
 from worker.frontend.tracker import SubmapTracker
 from worker.geometry import make_sim3, relative_transform, sim3_decompose, so3_exp, so3_log
 from worker.loop.bag import HiddenStateBag
 from worker.loop.descriptors import OrbDescriptor
 from worker.loop.detector import LoopCandidate, LoopDetector
-from worker.loop.oracle import OracleModel
+from worker.loop.oracle import OracleModel, ground_truth_overlap
 from worker.loop.pose_graph import Sim3PoseGraph
 from worker.loop.relocalize import HiddenStateRelocalizer, LoopConstraint
 from worker.loop.synthetic import ate_rmse

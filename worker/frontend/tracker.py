@@ -178,6 +178,7 @@ class SubmapTracker:
         self.submap_links: list[tuple[int, int, torch.Tensor]] = []  # (a, b, G_a^-1 G_b)
         self.overlap_scales: list[float] = []
         self.scale_failures = 0
+        self.estimated_intrinsics: Intrinsics | None = None
         self.finished: list[FinishedSubmap] = []
         self.last_keyframe: int | None = None
         self.frames_tracked = 0
@@ -186,7 +187,11 @@ class SubmapTracker:
 
     @torch.no_grad()
     def track(self, index: int, image: torch.Tensor, intrinsics: Intrinsics | None = None) -> TrackedFrame:
-        """Track one frame (image [1,3,H,W] in [0,1] at model resolution; intrinsics at that resolution)."""
+        """Track one frame (image [1,3,H,W] in [0,1] at model resolution; intrinsics at that resolution).
+
+        Without intrinsics (uncalibrated input) the frame reports ones estimated from the first frame of its
+        submap's point map (focal by a robust fit, principal point at the centre), or None if that fit fails.
+        """
         if image.ndim != 4 or image.shape[0] != 1 or image.shape[1] != 3:
             raise ValueError(f"track expects one image [1,3,H,W], got {tuple(image.shape)}")
         if self.state is None:
@@ -234,6 +239,7 @@ class SubmapTracker:
         self.state = out.state
         self.frames_in_submap = 1
         self.submap_frames, self.submap_keyframes = [], []
+        self.estimated_intrinsics = self._estimate_intrinsics(out)
         pose_submap = out.pose_c2w[0].double()
         if previous is not None:
             prev_out, prev_pose = previous
@@ -251,6 +257,16 @@ class SubmapTracker:
             self.submap_links.append((self.submap_id - 1, self.submap_id, link))
             self.submap_to_world = new_to_world
         return self._emit(index, out, pose_submap, intrinsics, force_keyframe=True)
+
+    @staticmethod
+    def _estimate_intrinsics(out: StepOutput) -> Intrinsics | None:
+        from .focal import estimate_focal, intrinsics_from_focal
+
+        H, W = out.points_cam.shape[1:3]
+        try:
+            return intrinsics_from_focal(estimate_focal(out.points_cam[0], out.conf[0]), W, H)
+        except ValueError:
+            return None
 
     def _is_keyframe(self, pose_world: torch.Tensor) -> bool:
         if self.last_keyframe is None:
@@ -281,7 +297,8 @@ class SubmapTracker:
             self.submap_keyframes.append(index)
         self.submap_frames.append(index)
         self.frames_tracked += 1
-        return TrackedFrame(index, pose_world, pose_submap, CameraSurfels.from_step(out), intrinsics, self.submap_id,
+        return TrackedFrame(index, pose_world, pose_submap, CameraSurfels.from_step(out),
+                            intrinsics if intrinsics is not None else self.estimated_intrinsics, self.submap_id,
                             is_keyframe, index if is_keyframe else int(self.last_keyframe))
 
     # ---- snapshot ---------------------------------------------------------------------------------------------
@@ -304,6 +321,7 @@ class SubmapTracker:
             "submap_links": [{"a": a, "b": b, "link": link} for a, b, link in self.submap_links],
             "overlap_scales": self.overlap_scales,
             "scale_failures": self.scale_failures,
+            "estimated_intrinsics": None if self.estimated_intrinsics is None else self.estimated_intrinsics.to_dict(),
             "finished": [{"submap_id": f.submap_id, "state": f.state.to_bytes(torch.float32),
                           "keyframe_ids": f.keyframe_ids, "frame_ids": f.frame_ids} for f in self.finished],
             "last_keyframe": self.last_keyframe,
@@ -324,6 +342,8 @@ class SubmapTracker:
                              for x in d["submap_links"]]
         self.overlap_scales = [float(s) for s in d["overlap_scales"]]
         self.scale_failures = int(d.get("scale_failures", 0))
+        est = d.get("estimated_intrinsics")
+        self.estimated_intrinsics = None if est is None else Intrinsics.from_dict(est)
         self.finished = [FinishedSubmap(int(f["submap_id"]), HiddenState.from_bytes(f["state"]),
                                         [int(i) for i in f["keyframe_ids"]], [int(i) for i in f["frame_ids"]])
                          for f in d["finished"]]

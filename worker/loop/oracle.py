@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from worker.frontend.types import HiddenState, StepOutput
-from worker.geometry import Intrinsics, make_sim3, quat_to_rotmat, so3_exp, unproject_depth
+from worker.geometry import Intrinsics, make_sim3, project_points, quat_to_rotmat, sim3_apply, so3_exp, unproject_depth
 
 
 @dataclass
@@ -61,6 +61,20 @@ def load_rgbd_folder(path: str | Path, stride: int = 1, downscale: int = 1) -> l
         frames.append(OracleFrame(image, torch.from_numpy(depth.astype(np.float32) / meta["depth_scale"]), pose,
                                   intr))
     return frames
+
+
+def ground_truth_overlap(frames, i: int, j: int, depth_tolerance: float = 0.1) -> float:
+    """Fraction of frame i's depth points seen by frame j with a consistent depth (from ground truth)."""
+    K = frames[i].intrinsics.matrix(torch.float64)
+    d = frames[i].depth.double()
+    P = unproject_depth(d, K)[d > 0][::4]
+    Pj = sim3_apply(torch.linalg.inv(frames[j].pose), sim3_apply(frames[i].pose, P))
+    uv, z = project_points(Pj, K)
+    H, W = frames[j].depth.shape
+    inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
+    zj = frames[j].depth.double()[uv[inside, 1].long(), uv[inside, 0].long()]
+    good = (zj > 0) & ((z[inside] - zj).abs() < depth_tolerance * zj)
+    return float(good.sum()) / max(1, len(P))
 
 
 def _fingerprint(image: torch.Tensor) -> str:
