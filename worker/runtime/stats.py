@@ -7,7 +7,7 @@ from collections import deque
 
 import numpy as np
 
-STAGES = ("read", "decode", "engine", "store", "dispatch", "snapshot", "render")
+STAGES = ("read", "decode", "engine", "store", "dispatch", "dispatch_cpu", "snapshot", "render")
 
 
 class StageStats:
