@@ -17,6 +17,7 @@ import subprocess
 import tempfile
 import threading
 from pathlib import Path
+from typing import NamedTuple
 
 import torch
 
@@ -65,16 +66,24 @@ def _build() -> Path:
 
 def _declare(lib: ctypes.CDLL) -> None:
     p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
+    lib.raster_projected_features.restype = i32
+    lib.raster_projected_features.argtypes = []
+    lib.raster_build_surfel_index.restype = None
+    lib.raster_build_surfel_index.argtypes = [p, i64, i64, p, p]
     for suffix in ("f32", "f64"):
-        getattr(lib, f"raster_bin_count_{suffix}").restype = i64
-        getattr(lib, f"raster_bin_count_{suffix}").argtypes = [p, p, i64, i32, i32, p, p]
-        getattr(lib, f"raster_bin_fill_{suffix}").argtypes = [p, p, p, i64, i32, i32, p, p, p, p]
-        getattr(lib, f"raster_reach_rects_{suffix}").argtypes = [p, p, p, i64, i32, i32, i32, p]
-        getattr(lib, f"raster_forward_{suffix}").argtypes = [p, p, p, p, p, p, p, i32, i32, i32, i32, p, p, p]
-        getattr(lib, f"raster_backward_{suffix}").argtypes = [p, p, p, p, p, p, p, p, p, i64, i32, i32, i32, i32,
-                                                              p, p, p, p, p, p, p, p, p]
-        for name in ("bin_fill", "reach_rects", "forward", "backward"):
-            getattr(lib, f"raster_{name}_{suffix}").restype = None
+        signatures = {
+            "project": [i64, p, p, p, p, p, p, p, i32, i32, i32, p, p, p, p, p, p, p],
+            "project_backward": [i64, p, p, p, p, p, p, p, p, p, i32, p, p, p, p, p],
+            "bin_count": [p, p, i64, i32, i32, p],
+            "bin_fill": [p, p, p, i64, i32, i32, i32, p, p],
+            "reach_rects": [p, p, p, i64, i32, i32, i32, p],
+            "forward": [p, p, p, p, p, p, p, i32, i32, i32, i32, p, p, p],
+            "backward": [p, p, p, p, p, p, p, p, p, i64, i32, i32, i32, i32, p, p, p, p, p, p, p, p, p],
+        }
+        for name, argtypes in signatures.items():
+            fn = getattr(lib, f"raster_{name}_{suffix}")
+            fn.argtypes = argtypes
+            fn.restype = i64 if name == "bin_count" else None
 
 
 def _load() -> ctypes.CDLL | None:
@@ -112,65 +121,149 @@ def _ptr(t: torch.Tensor) -> int:
     return t.data_ptr()
 
 
+class _Binned(NamedTuple):
+    """Tile lists and the forward state the backward pass needs."""
+
+    tile_offsets: torch.Tensor  # [tiles + 1] int64
+    pair_surfel: torch.Tensor  # [P] int32, per tile front to back
+    T_final: torch.Tensor  # [H, W] transmittance left after the last contributor
+    counts: torch.Tensor  # [H, W] int32 list entries up to the last contributor
+
+
+def _bin_and_composite(planes, means2d, opacities, features, radii, depths, rects, width, height):
+    """Tile binning and the forward compositing: (sum w f [H, W, F], binning state)."""
+    dtype, N, F = planes.dtype, planes.shape[0], features.shape[1]
+    threads = torch.get_num_threads()
+    tiles_x, tiles_y = tile_grid(width, height)
+    tile_offsets = torch.empty(tiles_x * tiles_y + 1, dtype=torch.int64)
+    n_pairs = _kernel("bin_count", dtype)(_ptr(means2d), _ptr(radii), N, width, height, _ptr(tile_offsets))
+    pair_surfel = torch.empty(n_pairs, dtype=torch.int32)
+    _kernel("bin_fill", dtype)(_ptr(means2d), _ptr(radii), _ptr(depths), N, width, height, threads,
+                               _ptr(tile_offsets), _ptr(pair_surfel))
+    out_feat = torch.empty(height, width, F, dtype=dtype)
+    T_final = torch.empty(height, width, dtype=dtype)
+    counts = torch.empty(height, width, dtype=torch.int32)
+    _kernel("forward", dtype)(_ptr(tile_offsets), _ptr(pair_surfel), _ptr(rects), _ptr(planes), _ptr(means2d),
+                              _ptr(opacities), _ptr(features), F, width, height, threads, _ptr(out_feat),
+                              _ptr(T_final), _ptr(counts))
+    return out_feat, _Binned(tile_offsets, pair_surfel, T_final, counts)
+
+
+def _composite_backward(binned: _Binned, planes, means2d, opacities, features, rects, g_feat, g_alpha, width,
+                        height):
+    """Gradients of the compositing w.r.t. (uv planes, means2d, opacities, features), one row per surfel."""
+    dtype, N, F = planes.dtype, planes.shape[0], features.shape[1]
+    n_pairs = binned.pair_surfel.shape[0]
+    surfel_offsets = torch.empty(N + 1, dtype=torch.int64)
+    surfel_pairs = torch.empty(n_pairs, dtype=torch.int64)
+    _library.raster_build_surfel_index(_ptr(binned.pair_surfel), n_pairs, N, _ptr(surfel_offsets),
+                                       _ptr(surfel_pairs))
+    pair_grads = torch.empty(n_pairs, _PAIR_FIXED + F, dtype=dtype)
+    d_planes, d_means2d = torch.empty_like(planes), torch.empty_like(means2d)
+    d_opac, d_feat = torch.empty_like(opacities), torch.empty_like(features)
+    _kernel("backward", dtype)(
+        _ptr(binned.tile_offsets), _ptr(binned.pair_surfel), _ptr(surfel_offsets), _ptr(surfel_pairs), _ptr(rects),
+        _ptr(planes), _ptr(means2d), _ptr(opacities), _ptr(features), N, F, width, height,
+        torch.get_num_threads(), _ptr(binned.T_final), _ptr(binned.counts), _ptr(g_feat.to(dtype).contiguous()),
+        _ptr(g_alpha.to(dtype).contiguous()), _ptr(pair_grads), _ptr(d_planes), _ptr(d_means2d), _ptr(d_opac),
+        _ptr(d_feat))
+    return d_planes, d_means2d, d_opac, d_feat
+
+
 class _Composite(torch.autograd.Function):
+    """Compositing of already projected surfels (the stage `composite_reference` mirrors)."""
+
     @staticmethod
-    def forward(ctx, planes, means2d, opacities, features, rays, radii, order, width, height):
-        dtype, M, F = planes.dtype, planes.shape[0], features.shape[1]
-        threads = torch.get_num_threads()
-        tiles_x, tiles_y = tile_grid(width, height)
-        tile_offsets = torch.empty(tiles_x * tiles_y + 1, dtype=torch.int64)
-        surfel_offsets = torch.empty(M + 1, dtype=torch.int64)
-        n_pairs = _kernel("bin_count", dtype)(_ptr(means2d), _ptr(radii), M, width, height, _ptr(tile_offsets),
-                                              _ptr(surfel_offsets))
-        pair_surfel = torch.empty(n_pairs, dtype=torch.int32)
-        surfel_pairs = torch.empty(n_pairs, dtype=torch.int64)
-        _kernel("bin_fill", dtype)(_ptr(means2d), _ptr(radii), _ptr(order), M, width, height, _ptr(tile_offsets),
-                                   _ptr(surfel_offsets), _ptr(pair_surfel), _ptr(surfel_pairs))
-        rects = torch.empty(M, 4, dtype=torch.int32)
-        _kernel("reach_rects", dtype)(_ptr(rays), _ptr(means2d), _ptr(opacities), M, width, height, threads,
-                                      _ptr(rects))
-        out_feat = torch.empty(height, width, F, dtype=dtype)
-        T_final = torch.empty(height, width, dtype=dtype)
-        counts = torch.empty(height, width, dtype=torch.int32)
-        _kernel("forward", dtype)(_ptr(tile_offsets), _ptr(pair_surfel), _ptr(rects), _ptr(planes), _ptr(means2d),
-                                  _ptr(opacities), _ptr(features), F, width, height, threads, _ptr(out_feat),
-                                  _ptr(T_final), _ptr(counts))
-        ctx.save_for_backward(planes, means2d, opacities, features, T_final, counts, tile_offsets, pair_surfel,
-                              surfel_offsets, surfel_pairs, rects)
+    def forward(ctx, planes, means2d, opacities, features, rays, radii, depths, width, height):
+        rects = torch.empty(planes.shape[0], 4, dtype=torch.int32)
+        _kernel("reach_rects", planes.dtype)(_ptr(rays), _ptr(means2d), _ptr(opacities), planes.shape[0], width,
+                                             height, torch.get_num_threads(), _ptr(rects))
+        out_feat, binned = _bin_and_composite(planes, means2d, opacities, features, radii, depths, rects, width,
+                                              height)
+        ctx.save_for_backward(planes, means2d, opacities, features, rects, *binned)
         ctx.size = (width, height)
-        ctx.mark_non_differentiable(T_final)
-        return out_feat, 1.0 - T_final
+        ctx.mark_non_differentiable(binned.T_final)
+        return out_feat, 1.0 - binned.T_final
 
     @staticmethod
     def backward(ctx, g_feat, g_alpha):
-        width, height = ctx.size
-        (planes, means2d, opacities, features, T_final, counts, tile_offsets, pair_surfel, surfel_offsets,
-         surfel_pairs, rects) = ctx.saved_tensors
-        dtype, M, F = planes.dtype, planes.shape[0], features.shape[1]
-        g_feat = g_feat.to(dtype).contiguous()
-        g_alpha = g_alpha.to(dtype).contiguous()
-        pair_grads = torch.zeros(pair_surfel.shape[0], _PAIR_FIXED + F, dtype=dtype)
-        d_planes, d_means2d = torch.empty_like(planes), torch.empty_like(means2d)
-        d_opac, d_feat = torch.empty_like(opacities), torch.empty_like(features)
-        _kernel("backward", dtype)(
-            _ptr(tile_offsets), _ptr(pair_surfel), _ptr(surfel_offsets), _ptr(surfel_pairs), _ptr(rects),
-            _ptr(planes), _ptr(means2d), _ptr(opacities), _ptr(features), M, F, width, height,
-            torch.get_num_threads(), _ptr(T_final), _ptr(counts), _ptr(g_feat), _ptr(g_alpha), _ptr(pair_grads),
-            _ptr(d_planes), _ptr(d_means2d), _ptr(d_opac), _ptr(d_feat))
-        return d_planes, d_means2d, d_opac, d_feat, None, None, None, None, None
+        planes, means2d, opacities, features, rects, *binned = ctx.saved_tensors
+        grads = _composite_backward(_Binned(*binned), planes, means2d, opacities, features, rects, g_feat, g_alpha,
+                                    *ctx.size)
+        return (*grads, None, None, None, None, None)
 
 
 def composite_cpu(uv_planes: torch.Tensor, ray_transforms: torch.Tensor, means2d: torch.Tensor,
                   opacities: torch.Tensor, features: torch.Tensor, radii: torch.Tensor, depths: torch.Tensor,
                   width: int, height: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """(sum_i w_i f_i [H, W, F], alpha [H, W]) like `composite_reference`, with the compiled kernels."""
-    if not available():
-        raise RuntimeError(f"compiled CPU rasterizer unavailable: {_error}")
-    if uv_planes.device.type != "cpu":
-        raise ValueError(f"the compiled CPU rasterizer needs CPU tensors, got {uv_planes.device}")
+    """(sum_i w_i f_i [H, W, F], alpha [H, W]) like `composite_reference`, with the compiled kernels.
+
+    A surfel with a zero radius is treated as culled.
+    """
+    _require(uv_planes)
     dtype = uv_planes.dtype
-    order = torch.sort(depths.detach(), stable=True).indices
     return _Composite.apply(
         uv_planes.reshape(-1, 9).contiguous(), means2d.contiguous(), opacities.to(dtype).contiguous(),
         features.to(dtype).contiguous(), ray_transforms.detach().reshape(-1, 9).to(dtype).contiguous(),
-        radii.to(torch.int32).contiguous(), order.contiguous(), int(width), int(height))
+        radii.to(torch.int32).contiguous(), depths.detach().to(dtype).contiguous(), int(width), int(height))
+
+
+class _Rasterize(torch.autograd.Function):
+    """Projection, binning and compositing in the compiled library, and the backward of all three."""
+
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, colors, viewmat, K, width, height):
+        dtype, N = means.dtype, means.shape[0]
+        F = _library.raster_projected_features()
+        rays, planes = torch.empty(N, 9, dtype=dtype), torch.empty(N, 9, dtype=dtype)
+        means2d, depths = torch.empty(N, 2, dtype=dtype), torch.empty(N, dtype=dtype)
+        features = torch.empty(N, F, dtype=dtype)
+        radii, rects = torch.empty(N, 2, dtype=torch.int32), torch.empty(N, 4, dtype=torch.int32)
+        _kernel("project", dtype)(N, _ptr(means), _ptr(quats), _ptr(scales), _ptr(opacities), _ptr(colors),
+                                  _ptr(viewmat), _ptr(K), width, height, torch.get_num_threads(), _ptr(rays),
+                                  _ptr(planes), _ptr(means2d), _ptr(depths), _ptr(features), _ptr(radii),
+                                  _ptr(rects))
+        out_feat, binned = _bin_and_composite(planes, means2d, opacities, features, radii, depths, rects, width,
+                                              height)
+        ctx.save_for_backward(means, quats, scales, opacities, viewmat, K, planes, means2d, features, radii, rects,
+                              *binned)
+        ctx.size = (width, height)
+        ctx.mark_non_differentiable(binned.T_final)
+        return out_feat, 1.0 - binned.T_final
+
+    @staticmethod
+    def backward(ctx, g_feat, g_alpha):
+        (means, quats, scales, opacities, viewmat, K, planes, means2d, features, radii, rects,
+         *binned) = ctx.saved_tensors
+        d_planes, d_means2d, d_opac, d_feat = _composite_backward(_Binned(*binned), planes, means2d, opacities,
+                                                                  features, rects, g_feat, g_alpha, *ctx.size)
+        dtype, N = means.dtype, means.shape[0]
+        d_means, d_quats, d_scales = torch.empty_like(means), torch.empty_like(quats), torch.empty_like(scales)
+        d_colors, d_viewmat = torch.empty(N, 3, dtype=dtype), torch.empty(4, 4, dtype=dtype)
+        _kernel("project_backward", dtype)(N, _ptr(means), _ptr(quats), _ptr(scales), _ptr(viewmat), _ptr(K),
+                                           _ptr(radii), _ptr(d_planes), _ptr(d_means2d), _ptr(d_feat),
+                                           torch.get_num_threads(), _ptr(d_means), _ptr(d_quats), _ptr(d_scales),
+                                           _ptr(d_colors), _ptr(d_viewmat))
+        return d_means, d_quats, d_scales, d_opac, d_colors, d_viewmat, None, None, None
+
+
+def rasterize_cpu(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
+                  colors: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, width: int,
+                  height: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Project and composite surfels in one compiled pass.
+
+    Returns (sum_i w_i [colour, depth, camera-frame normal] [H, W, 7], alpha [H, W]): the same values as
+    `project_surfels` followed by `composite_reference` with those features. Differentiable w.r.t. means, quats
+    (any norm), scales, opacities, colours and viewmat; K gets no gradient.
+    """
+    _require(means)
+    dtype = means.dtype
+    inputs = [t.to(dtype).contiguous() for t in (means, quats, scales, opacities, colors, viewmat)]
+    return _Rasterize.apply(*inputs, K.detach().to(dtype).contiguous(), int(width), int(height))
+
+
+def _require(t: torch.Tensor) -> None:
+    if not available():
+        raise RuntimeError(f"compiled CPU rasterizer unavailable: {_error}")
+    if t.device.type != "cpu":
+        raise ValueError(f"the compiled CPU rasterizer needs CPU tensors, got {t.device}")

@@ -101,20 +101,20 @@ def rasterize(surfels: Surfels, viewmat: torch.Tensor, K: torch.Tensor, width: i
 
 def _composite_cpu(surfels: Surfels, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int,
                    backend: str) -> tuple[torch.Tensor, torch.Tensor]:
-    """(sum w [colour, depth, camera normal] [H, W, 7], alpha [H, W]) with a CPU compositor."""
-    proj = project_surfels(surfels.means, surfels.quats, surfels.scales, viewmat, K, width, height)
-    opacities = surfels.opacities[proj.ids]
-    features = torch.cat([surfels.colors[proj.ids], proj.depths[:, None], proj.normals], dim=-1)
+    """(sum w [colour, depth, camera normal] [H, W, 7], alpha [H, W]) with a CPU backend."""
     if backend == "cpu":
         from . import raster_cpu
 
         if raster_cpu.available():
-            return raster_cpu.composite_cpu(proj.uv_planes, proj.ray_transforms, proj.means2d, opacities, features,
-                                            proj.radii, proj.depths, width, height)
+            return raster_cpu.rasterize_cpu(surfels.means, surfels.quats, surfels.scales, surfels.opacities,
+                                            surfels.colors, viewmat, K, width, height)
         global _warned_fallback
         if not _warned_fallback:
             logger.warning("compiled CPU rasterizer unavailable (%s); using the pure-torch reference",
                            raster_cpu.load_error())
             _warned_fallback = True
+    proj = project_surfels(surfels.means, surfels.quats, surfels.scales, viewmat, K, width, height)
+    opacities = surfels.opacities[proj.ids]
+    features = torch.cat([surfels.colors[proj.ids], proj.depths[:, None], proj.normals], dim=-1)
     return composite_reference(proj.uv_planes, proj.means2d, opacities, features, proj.radii, proj.depths,
                                width, height)

@@ -1,109 +1,139 @@
-// Compiled CPU compositor for 2D Gaussian surfels (gsplat 1.5.3 rules): forward and backward, OpenMP over tiles.
+// Compiled CPU rasterizer for 2D Gaussian surfels (gsplat 1.5.3 rules): projection, tile binning, compositing,
+// and the backward of all three, parallel with OpenMP.
 //
 // Plain C ABI (no torch headers, so it compiles in seconds); worker/mapping/raster_cpu.py owns every buffer and
 // calls these functions through ctypes. Suffix _f32 / _f64 gives the float type.
 //
-// Inputs are the projected visible surfels (see worker/mapping/raster_projection.py):
-//   planes [M,9]   uv planes A, B, C: the pixel centre (x, y) meets the surfel plane at p = x A + y B + C,
-//                  (u, v) = (p0 / p2, p1 / p2)
-//   rays   [M,9]   ray transform T (rows T0, T1, T2); only used to bound where a surfel can reach alpha >= 1/255
-//   means2d [M,2]  conic centre (low-pass filter centre), opacities [M], features [M,F] (composited channels),
-//   radii [M,2]    gsplat's per-axis pixel radius (tile binning), order [M]: surfel indices by centre depth (stable).
-// Per pixel, front to back: rho = min(u^2 + v^2, 2 |x - c|^2), alpha = min(0.999, o exp(-rho / 2)), skip
-// alpha < 1/255, stop before a surfel whose next T would be <= 1e-4; out = sum alpha T f, T_final kept with the
-// number of list entries up to the last contributor. The backward pass walks each pixel's list back to front,
-// recovering T by division (as gsplat does), and writes per-(tile, surfel) gradients that are then summed per
-// surfel in a fixed order (deterministic).
+// Projection (per surfel, float64 internally; see worker/mapping/raster_projection.py for the torch twin):
+//   mu_c = R_cw mu + t, R_c = R_cw R(q / |q|), T = K [s_u R_c[:,0] | s_v R_c[:,1] | mu_c] (rows T0, T1, T2),
+//   uv planes A = T1 x T2, B = T2 x T0, C = T0 x T1 (pixel centre (x, y) meets the surfel plane at
+//   p = x A + y B + C, (u, v) = (p0 / p2, p1 / p2)), centre c and half extents h of the r = 1 conic's bounding box,
+//   radius ceil(3.33 h) per axis, depth T22, camera-frame normal R_c[:,2] flipped towards the camera. Culled (radius
+//   0): centre depth outside (0.01, 1e10), degenerate conic, box off-screen.
+// Per-surfel arrays keep all N input surfels (culled ones are simply never binned):
+//   planes [N,9], rays [N,9] (T; only used to bound where a surfel can reach alpha >= 1/255), means2d [N,2],
+//   depths [N], opacities [N], features [N,F] (composited channels), radii [N,2], rects [N,4] (reach rectangles).
+// Compositing, per pixel front to back (by centre depth, ties by index): rho = min(u^2 + v^2, 2 |x - c|^2),
+// alpha = min(0.999, o exp(-rho / 2)), skip alpha < 1/255, stop before a surfel whose next T would be <= 1e-4;
+// out = sum alpha T f, T_final kept with the number of list entries up to the last contributor. The backward pass
+// walks each pixel's list back to front, recovering T by division (as gsplat does), and writes per-(tile, surfel)
+// gradients that are then summed per surfel in a fixed order (deterministic for any thread count).
 
 #include <omp.h>
 
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <vector>
 
 namespace {
 
 constexpr int kTile = 16;
 constexpr int kTilePixels = kTile * kTile;
-
-// Tile lists: tile t holds pair_surfel[tile_offsets[t] .. tile_offsets[t+1]) front to back; surfel i's pairs are
-// surfel_pairs[surfel_offsets[i] .. surfel_offsets[i+1]).
-struct Binning {
-    int tiles_x, tiles_y;
-    const int64_t* tile_offsets;
-    const int32_t* pair_surfel;
-    const int64_t* surfel_offsets;
-    const int64_t* surfel_pairs;
-};
+constexpr double kNearPlane = 0.01;
+constexpr double kFarPlane = 1e10;
+constexpr double kRadiusSigmas = 3.33;
+constexpr int kProjectedFeatures = 7;  // colour (3), depth, camera-frame normal (3)
 
 int tiles_along(int n) { return (n + kTile - 1) / kTile; }
 
-template <typename scalar_t>
-void tile_rect(const scalar_t* means2d, const int32_t* radii, int64_t i, int tiles_x, int tiles_y, int* r) {
-    // gsplat: floor((c - r) / ts) .. ceil((c + r) / ts), clamped to the grid; same arithmetic as raster_tiles.py
-    const scalar_t cx = means2d[2 * i] / scalar_t(kTile), cy = means2d[2 * i + 1] / scalar_t(kTile);
-    const scalar_t rx = scalar_t(radii[2 * i]) / scalar_t(kTile), ry = scalar_t(radii[2 * i + 1]) / scalar_t(kTile);
-    auto clampi = [](double v, int hi) { return int(std::min<double>(std::max<double>(v, 0.0), hi)); };
-    r[0] = clampi(std::floor(cx - rx), tiles_x);
-    r[1] = clampi(std::floor(cy - ry), tiles_y);
-    r[2] = clampi(std::ceil(cx + rx), tiles_x);
-    r[3] = clampi(std::ceil(cy + ry), tiles_y);
-}
+// ---------------------------------------------------------------------------------------------------------------
+// Projection
 
-// Counts pairs per tile and per surfel into prefix sums tile_offsets [tiles+1], surfel_offsets [M+1]; returns P.
+struct Camera {
+    double R[9], t[3], K[9];  // world -> camera rotation and translation (row-major), intrinsics
+};
+
 template <typename scalar_t>
-int64_t bin_count(const scalar_t* means2d, const int32_t* radii, int64_t M, int W, int H, int64_t* tile_offsets,
-                  int64_t* surfel_offsets) {
-    const int tx_n = tiles_along(W), ty_n = tiles_along(H);
-    const int64_t n_tiles = int64_t(tx_n) * ty_n;
-    std::fill(tile_offsets, tile_offsets + n_tiles + 1, 0);
-    surfel_offsets[0] = 0;
-    for (int64_t i = 0; i < M; ++i) {
-        int r[4];
-        tile_rect(means2d, radii, i, tx_n, ty_n, r);
-        surfel_offsets[i + 1] = surfel_offsets[i] + int64_t(std::max(0, r[2] - r[0])) * std::max(0, r[3] - r[1]);
-        for (int ty = r[1]; ty < r[3]; ++ty)
-            for (int tx = r[0]; tx < r[2]; ++tx) tile_offsets[int64_t(ty) * tx_n + tx + 1]++;
+Camera load_camera(const scalar_t* viewmat, const scalar_t* K) {
+    Camera cam;
+    for (int r = 0; r < 3; ++r) {
+        for (int j = 0; j < 3; ++j) {
+            cam.R[3 * r + j] = viewmat[4 * r + j];
+            cam.K[3 * r + j] = K[3 * r + j];
+        }
+        cam.t[r] = viewmat[4 * r + 3];
     }
-    for (int64_t t = 0; t < n_tiles; ++t) tile_offsets[t + 1] += tile_offsets[t];
-    return tile_offsets[n_tiles];
+    return cam;
 }
 
-// Fills the tile lists walking the surfels front to back (order), so every list comes out depth-ordered.
+// One surfel's projection in float64; the backward pass recomputes it instead of storing it.
+struct Projection {
+    double q[4], q_norm;  // unit quaternion (wxyz) and the clamped norm it was divided by
+    bool q_clamped;       // |q| < 1e-12: the norm is a constant (no gradient through it)
+    double Rq[9];         // surfel rotation (world)
+    double Rc[9];         // camera-frame rotation R_cw Rq
+    double mc[3];         // camera-frame centre
+    double su, sv;
+    double T[9];          // ray transform, rows T0, T1, T2
+    double d, cx, cy, hx2, hy2;
+    double facing;        // +1 when the normal R_c[:,2] already faces the camera, else -1
+};
+
+inline void rotmat_from_unit_quat(const double* q, double* R) {
+    const double w = q[0], x = q[1], y = q[2], z = q[3];
+    R[0] = 1 - 2 * (y * y + z * z), R[1] = 2 * (x * y - w * z), R[2] = 2 * (x * z + w * y);
+    R[3] = 2 * (x * y + w * z), R[4] = 1 - 2 * (x * x + z * z), R[5] = 2 * (y * z - w * x);
+    R[6] = 2 * (x * z - w * y), R[7] = 2 * (y * z + w * x), R[8] = 1 - 2 * (x * x + y * y);
+}
+
+// Fills p; false when the surfel is culled by depth or has a degenerate conic (screen bounds are checked apart).
 template <typename scalar_t>
-void bin_fill(const scalar_t* means2d, const int32_t* radii, const int64_t* order, int64_t M, int W, int H,
-              const int64_t* tile_offsets, const int64_t* surfel_offsets, int32_t* pair_surfel,
-              int64_t* surfel_pairs) {
-    const int tx_n = tiles_along(W), ty_n = tiles_along(H);
-    std::vector<int64_t> cursor(tile_offsets, tile_offsets + int64_t(tx_n) * ty_n);
-    std::vector<int64_t> surfel_cursor(surfel_offsets, surfel_offsets + M);
-    for (int64_t k = 0; k < M; ++k) {
-        const int64_t i = order[k];
-        int r[4];
-        tile_rect(means2d, radii, i, tx_n, ty_n, r);
-        for (int ty = r[1]; ty < r[3]; ++ty)
-            for (int tx = r[0]; tx < r[2]; ++tx) {
-                const int64_t pos = cursor[int64_t(ty) * tx_n + tx]++;
-                pair_surfel[pos] = int32_t(i);
-                surfel_pairs[surfel_cursor[i]++] = pos;
-            }
+bool project_one(const Camera& cam, const scalar_t* mu, const scalar_t* quat, const scalar_t* scale, Projection& p) {
+    for (int r = 0; r < 3; ++r)
+        p.mc[r] = cam.R[3 * r] * double(mu[0]) + cam.R[3 * r + 1] * double(mu[1]) + cam.R[3 * r + 2] * double(mu[2]) +
+                  cam.t[r];
+    if (!(p.mc[2] > kNearPlane && p.mc[2] < kFarPlane)) return false;
+    const double n = std::sqrt(double(quat[0]) * quat[0] + double(quat[1]) * quat[1] + double(quat[2]) * quat[2] +
+                               double(quat[3]) * quat[3]);
+    p.q_clamped = !(n >= 1e-12);
+    p.q_norm = p.q_clamped ? 1e-12 : n;
+    for (int j = 0; j < 4; ++j) p.q[j] = double(quat[j]) / p.q_norm;
+    rotmat_from_unit_quat(p.q, p.Rq);
+    for (int r = 0; r < 3; ++r)
+        for (int c = 0; c < 3; ++c)
+            p.Rc[3 * r + c] = cam.R[3 * r] * p.Rq[c] + cam.R[3 * r + 1] * p.Rq[3 + c] + cam.R[3 * r + 2] * p.Rq[6 + c];
+    p.su = scale[0];
+    p.sv = scale[1];
+    double WH[9];  // columns: s_u R_c[:,0], s_v R_c[:,1], mu_c
+    for (int k = 0; k < 3; ++k) {
+        WH[3 * k] = p.Rc[3 * k] * p.su;
+        WH[3 * k + 1] = p.Rc[3 * k + 1] * p.sv;
+        WH[3 * k + 2] = p.mc[k];
     }
+    for (int r = 0; r < 3; ++r)
+        for (int c = 0; c < 3; ++c)
+            p.T[3 * r + c] = cam.K[3 * r] * WH[c] + cam.K[3 * r + 1] * WH[3 + c] + cam.K[3 * r + 2] * WH[6 + c];
+    const double* T = p.T;
+    p.d = T[6] * T[6] + T[7] * T[7] - T[8] * T[8];
+    if (p.d == 0.0) return false;
+    // tangent lines x T2 - T0 (and y T2 - T1) to the disc u^2 + v^2 = 1, with t = (1, 1, -1)
+    p.cx = (T[0] * T[6] + T[1] * T[7] - T[2] * T[8]) / p.d;
+    p.cy = (T[3] * T[6] + T[4] * T[7] - T[5] * T[8]) / p.d;
+    p.hx2 = p.cx * p.cx - (T[0] * T[0] + T[1] * T[1] - T[2] * T[2]) / p.d;
+    p.hy2 = p.cy * p.cy - (T[3] * T[3] + T[4] * T[4] - T[5] * T[5]) / p.d;
+    p.facing = (p.Rc[2] * p.mc[0] + p.Rc[5] * p.mc[1] + p.Rc[8] * p.mc[2]) < 0 ? 1.0 : -1.0;
+    return true;
 }
 
-// Pixel rectangle [x0, x1) x [y0, y1) outside which alpha < 1/255 for sure (conservative by a 1 px margin):
-// the bounding box of the disc u^2 + v^2 <= R^2 (R^2 = 2 ln(255 o)) when the disc is wholly in front of the
-// camera, united with the low-pass disc 2 |x - c|^2 <= R^2. Unbounded (whole image) otherwise.
-template <typename scalar_t>
-void reach_rect(const scalar_t* T, const scalar_t* c, scalar_t opacity, int W, int H, int32_t* out) {
-    const double o = double(opacity);
+inline void cross3(const double* a, const double* b, double* out) {
+    out[0] = a[1] * b[2] - a[2] * b[1];
+    out[1] = a[2] * b[0] - a[0] * b[2];
+    out[2] = a[0] * b[1] - a[1] * b[0];
+}
+
+// Pixel rectangle [x0, x1) x [y0, y1) outside which alpha < 1/255 for sure: the bounding box of the disc
+// u^2 + v^2 <= R^2 (R^2 = 2 ln(255 o)) when the disc is wholly in front of the camera, united with the low-pass disc
+// 2 |x - c|^2 <= R^2. Unbounded (whole image) otherwise.
+inline void reach_rect(const double* T, double cx0, double cy0, double o, int W, int H, int32_t* out) {
     if (!(o >= 1.0 / 255.0)) {
         out[0] = out[1] = out[2] = out[3] = 0;
         return;
     }
     const double R2 = 2.0 * std::log(255.0 * o) * (1.0 + 1e-4) + 1e-4;
     const double lp = std::sqrt(R2 / 2.0);
-    double xmin = double(c[0]) - lp, xmax = double(c[0]) + lp, ymin = double(c[1]) - lp, ymax = double(c[1]) + lp;
+    double xmin = cx0 - lp, xmax = cx0 + lp, ymin = cy0 - lp, ymax = cy0 + lp;
     const double t20 = T[6], t21 = T[7], t22 = T[8];
     const double lateral = R2 * (t20 * t20 + t21 * t21);
     const double d = lateral - t22 * t22;
@@ -131,11 +161,248 @@ void reach_rect(const scalar_t* T, const scalar_t* c, scalar_t opacity, int W, i
 }
 
 template <typename scalar_t>
+void project(int64_t N, const scalar_t* means, const scalar_t* quats, const scalar_t* scales, const scalar_t* opac,
+             const scalar_t* colors, const scalar_t* viewmat, const scalar_t* K, int W, int H, int threads,
+             scalar_t* rays, scalar_t* planes, scalar_t* means2d, scalar_t* depths, scalar_t* feats, int32_t* radii,
+             int32_t* rects) {
+    const Camera cam = load_camera(viewmat, K);
+    constexpr int F = kProjectedFeatures;
+#pragma omp parallel for num_threads(threads) schedule(static, 1024)
+    for (int64_t i = 0; i < N; ++i) {
+        Projection p;
+        bool visible = project_one(cam, means + 3 * i, quats + 4 * i, scales + 2 * i, p);
+        double rx = 0, ry = 0;
+        if (visible) {
+            rx = std::ceil(kRadiusSigmas * std::sqrt(std::max(p.hx2, 1e-4)));
+            ry = std::ceil(kRadiusSigmas * std::sqrt(std::max(p.hy2, 1e-4)));
+            visible = p.cx + rx > 0 && p.cx - rx < W && p.cy + ry > 0 && p.cy - ry < H;
+        }
+        if (!visible) {
+            std::fill(rays + 9 * i, rays + 9 * i + 9, scalar_t(0));
+            std::fill(planes + 9 * i, planes + 9 * i + 9, scalar_t(0));
+            std::fill(feats + F * i, feats + F * i + F, scalar_t(0));
+            means2d[2 * i] = means2d[2 * i + 1] = depths[i] = scalar_t(0);
+            radii[2 * i] = radii[2 * i + 1] = 0;
+            std::fill(rects + 4 * i, rects + 4 * i + 4, 0);
+            continue;
+        }
+        const double* T = p.T;
+        double A[3], B[3], C[3];
+        cross3(T + 3, T + 6, A);
+        cross3(T + 6, T, B);
+        cross3(T, T + 3, C);
+        for (int j = 0; j < 3; ++j) {
+            planes[9 * i + j] = scalar_t(A[j]);
+            planes[9 * i + 3 + j] = scalar_t(B[j]);
+            planes[9 * i + 6 + j] = scalar_t(C[j]);
+        }
+        for (int j = 0; j < 9; ++j) rays[9 * i + j] = scalar_t(T[j]);
+        means2d[2 * i] = scalar_t(p.cx);
+        means2d[2 * i + 1] = scalar_t(p.cy);
+        depths[i] = scalar_t(T[8]);
+        scalar_t* f = feats + F * i;
+        for (int j = 0; j < 3; ++j) {
+            f[j] = colors[3 * i + j];
+            f[4 + j] = scalar_t(p.Rc[3 * j + 2] * p.facing);
+        }
+        f[3] = scalar_t(T[8]);
+        radii[2 * i] = int32_t(rx);
+        radii[2 * i + 1] = int32_t(ry);
+        reach_rect(T, double(means2d[2 * i]), double(means2d[2 * i + 1]), double(opac[i]), W, H, rects + 4 * i);
+    }
+}
+
+// Chain rule from the projected quantities' gradients (uv planes, means2d, features) to means, quats, scales, colours
+// and the view matrix. Culled surfels get zero gradients. The view matrix gradient is summed over fixed blocks of
+// surfels, then over blocks in order: deterministic for any thread count.
+template <typename scalar_t>
+void project_backward(int64_t N, const scalar_t* means, const scalar_t* quats, const scalar_t* scales,
+                      const scalar_t* viewmat, const scalar_t* K, const int32_t* radii, const scalar_t* d_planes,
+                      const scalar_t* d_means2d, const scalar_t* d_feats, int threads, scalar_t* d_means,
+                      scalar_t* d_quats, scalar_t* d_scales, scalar_t* d_colors, scalar_t* d_viewmat) {
+    const Camera cam = load_camera(viewmat, K);
+    constexpr int F = kProjectedFeatures;
+    constexpr int64_t kBlock = 1024;
+    const int64_t n_blocks = (N + kBlock - 1) / kBlock;
+    std::vector<double> block_dV(n_blocks * 12, 0.0);  // per block: d R_cw (9, row-major), d t (3)
+#pragma omp parallel for num_threads(threads) schedule(static)
+    for (int64_t b = 0; b < n_blocks; ++b) {
+        double* dV = &block_dV[12 * b];
+        for (int64_t i = b * kBlock; i < std::min(N, (b + 1) * kBlock); ++i) {
+            for (int j = 0; j < 3; ++j) d_colors[3 * i + j] = d_feats[F * i + j];
+            Projection p;
+            if (radii[2 * i] <= 0 || !project_one(cam, means + 3 * i, quats + 4 * i, scales + 2 * i, p)) {
+                std::fill(d_means + 3 * i, d_means + 3 * i + 3, scalar_t(0));
+                std::fill(d_quats + 4 * i, d_quats + 4 * i + 4, scalar_t(0));
+                std::fill(d_scales + 2 * i, d_scales + 2 * i + 2, scalar_t(0));
+                continue;
+            }
+            const double* T = p.T;
+            double gA[3], gB[3], gC[3], tmp[3];
+            for (int j = 0; j < 3; ++j) {
+                gA[j] = d_planes[9 * i + j];
+                gB[j] = d_planes[9 * i + 3 + j];
+                gC[j] = d_planes[9 * i + 6 + j];
+            }
+            double dT[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
+            double* dT0 = dT;
+            double* dT1 = dT + 3;
+            double* dT2 = dT + 6;
+            auto add = [](double* to, const double* v) { to[0] += v[0], to[1] += v[1], to[2] += v[2]; };
+            // c = a x b: dc/da^T g = b x g, dc/db^T g = g x a
+            cross3(T + 6, gA, tmp), add(dT1, tmp);  // A = T1 x T2
+            cross3(gA, T + 3, tmp), add(dT2, tmp);
+            cross3(T, gB, tmp), add(dT2, tmp);  // B = T2 x T0
+            cross3(gB, T + 6, tmp), add(dT0, tmp);
+            cross3(T + 3, gC, tmp), add(dT0, tmp);  // C = T0 x T1
+            cross3(gC, T, tmp), add(dT1, tmp);
+            const double gcx = d_means2d[2 * i], gcy = d_means2d[2 * i + 1];
+            const double sgn[3] = {1.0, 1.0, -1.0};
+            for (int j = 0; j < 3; ++j) {
+                dT0[j] += gcx * sgn[j] * T[6 + j] / p.d;
+                dT1[j] += gcy * sgn[j] * T[6 + j] / p.d;
+                dT2[j] += (gcx * (T[j] - 2 * p.cx * T[6 + j]) + gcy * (T[3 + j] - 2 * p.cy * T[6 + j])) * sgn[j] / p.d;
+            }
+            dT[8] += d_feats[F * i + 3];  // depth feature = T22
+            double dWH[9];                // K^T dT
+            for (int k = 0; k < 3; ++k)
+                for (int c = 0; c < 3; ++c)
+                    dWH[3 * k + c] = cam.K[k] * dT[c] + cam.K[3 + k] * dT[3 + c] + cam.K[6 + k] * dT[6 + c];
+            double dRc[9], dmc[3];
+            double dsu = 0, dsv = 0;
+            for (int k = 0; k < 3; ++k) {
+                dRc[3 * k] = dWH[3 * k] * p.su;
+                dRc[3 * k + 1] = dWH[3 * k + 1] * p.sv;
+                dRc[3 * k + 2] = double(d_feats[F * i + 4 + k]) * p.facing;
+                dsu += dWH[3 * k] * p.Rc[3 * k];
+                dsv += dWH[3 * k + 1] * p.Rc[3 * k + 1];
+                dmc[k] = dWH[3 * k + 2];
+            }
+            const scalar_t* mu = means + 3 * i;
+            for (int j = 0; j < 3; ++j)
+                d_means[3 * i + j] = scalar_t(cam.R[j] * dmc[0] + cam.R[3 + j] * dmc[1] + cam.R[6 + j] * dmc[2]);
+            double G[9];  // d Rq = R_cw^T dRc
+            for (int j = 0; j < 3; ++j)
+                for (int c = 0; c < 3; ++c)
+                    G[3 * j + c] = cam.R[j] * dRc[c] + cam.R[3 + j] * dRc[3 + c] + cam.R[6 + j] * dRc[6 + c];
+            for (int k = 0; k < 3; ++k) {
+                for (int j = 0; j < 3; ++j)
+                    dV[3 * k + j] += dmc[k] * double(mu[j]) + dRc[3 * k] * p.Rq[3 * j] +
+                                     dRc[3 * k + 1] * p.Rq[3 * j + 1] + dRc[3 * k + 2] * p.Rq[3 * j + 2];
+                dV[9 + k] += dmc[k];
+            }
+            const double w = p.q[0], x = p.q[1], y = p.q[2], z = p.q[3];
+            double dq[4];
+            dq[0] = 2 * (-z * G[1] + y * G[2] + z * G[3] - x * G[5] - y * G[6] + x * G[7]);
+            dq[1] = 2 * (y * G[1] + z * G[2] + y * G[3] - 2 * x * G[4] - w * G[5] + z * G[6] + w * G[7] - 2 * x * G[8]);
+            dq[2] = 2 * (-2 * y * G[0] + x * G[1] + w * G[2] + x * G[3] + z * G[5] - w * G[6] + z * G[7] - 2 * y * G[8]);
+            dq[3] = 2 * (-2 * z * G[0] - w * G[1] + x * G[2] + w * G[3] - 2 * z * G[4] + y * G[5] + x * G[6] + y * G[7]);
+            const double radial = p.q_clamped ? 0.0 : w * dq[0] + x * dq[1] + y * dq[2] + z * dq[3];
+            for (int j = 0; j < 4; ++j) d_quats[4 * i + j] = scalar_t((dq[j] - p.q[j] * radial) / p.q_norm);
+            d_scales[2 * i] = scalar_t(dsu);
+            d_scales[2 * i + 1] = scalar_t(dsv);
+        }
+    }
+    double dV[12] = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
+    for (int64_t b = 0; b < n_blocks; ++b)
+        for (int j = 0; j < 12; ++j) dV[j] += block_dV[12 * b + j];
+    std::fill(d_viewmat, d_viewmat + 16, scalar_t(0));
+    for (int r = 0; r < 3; ++r) {
+        for (int j = 0; j < 3; ++j) d_viewmat[4 * r + j] = scalar_t(dV[3 * r + j]);
+        d_viewmat[4 * r + 3] = scalar_t(dV[9 + r]);
+    }
+}
+
+// ---------------------------------------------------------------------------------------------------------------
+// Tile binning
+
+// Tile lists: tile t holds pair_surfel[tile_offsets[t] .. tile_offsets[t+1]) front to back; surfel i's pairs are
+// surfel_pairs[surfel_offsets[i] .. surfel_offsets[i+1]).
+struct Binning {
+    int tiles_x, tiles_y;
+    const int64_t* tile_offsets;
+    const int32_t* pair_surfel;
+    const int64_t* surfel_offsets;
+    const int64_t* surfel_pairs;
+};
+
+// gsplat: floor((c - r) / ts) .. ceil((c + r) / ts), clamped to the grid; same arithmetic as raster_tiles.py.
+// A surfel with a zero radius is culled: no tiles.
+template <typename scalar_t>
+void tile_rect(const scalar_t* means2d, const int32_t* radii, int64_t i, int tiles_x, int tiles_y, int* r) {
+    if (radii[2 * i] <= 0 || radii[2 * i + 1] <= 0) {
+        r[0] = r[1] = r[2] = r[3] = 0;
+        return;
+    }
+    const scalar_t cx = means2d[2 * i] / scalar_t(kTile), cy = means2d[2 * i + 1] / scalar_t(kTile);
+    const scalar_t rx = scalar_t(radii[2 * i]) / scalar_t(kTile), ry = scalar_t(radii[2 * i + 1]) / scalar_t(kTile);
+    auto clampi = [](double v, int hi) { return int(std::min<double>(std::max<double>(v, 0.0), hi)); };
+    r[0] = clampi(std::floor(cx - rx), tiles_x);
+    r[1] = clampi(std::floor(cy - ry), tiles_y);
+    r[2] = clampi(std::ceil(cx + rx), tiles_x);
+    r[3] = clampi(std::ceil(cy + ry), tiles_y);
+}
+
+// Counts pairs per tile into the prefix sums tile_offsets [tiles + 1]; returns the number of pairs P.
+template <typename scalar_t>
+int64_t bin_count(const scalar_t* means2d, const int32_t* radii, int64_t N, int W, int H, int64_t* tile_offsets) {
+    const int tx_n = tiles_along(W), ty_n = tiles_along(H);
+    const int64_t n_tiles = int64_t(tx_n) * ty_n;
+    std::fill(tile_offsets, tile_offsets + n_tiles + 1, 0);
+    for (int64_t i = 0; i < N; ++i) {
+        int r[4];
+        tile_rect(means2d, radii, i, tx_n, ty_n, r);
+        for (int ty = r[1]; ty < r[3]; ++ty)
+            for (int tx = r[0]; tx < r[2]; ++tx) tile_offsets[int64_t(ty) * tx_n + tx + 1]++;
+    }
+    for (int64_t t = 0; t < n_tiles; ++t) tile_offsets[t + 1] += tile_offsets[t];
+    return tile_offsets[n_tiles];
+}
+
+// Fills the tile lists in surfel order, then sorts every list by (centre depth, index) in parallel: the order of a
+// stable sort by depth, as gsplat's.
+template <typename scalar_t>
+void bin_fill(const scalar_t* means2d, const int32_t* radii, const scalar_t* depths, int64_t N, int W, int H,
+              int threads, const int64_t* tile_offsets, int32_t* pair_surfel) {
+    const int tx_n = tiles_along(W), ty_n = tiles_along(H);
+    const int64_t n_tiles = int64_t(tx_n) * ty_n;
+    std::vector<int64_t> cursor(tile_offsets, tile_offsets + n_tiles);
+    for (int64_t i = 0; i < N; ++i) {
+        int r[4];
+        tile_rect(means2d, radii, i, tx_n, ty_n, r);
+        for (int ty = r[1]; ty < r[3]; ++ty)
+            for (int tx = r[0]; tx < r[2]; ++tx) pair_surfel[cursor[int64_t(ty) * tx_n + tx]++] = int32_t(i);
+    }
+#pragma omp parallel for num_threads(threads) schedule(dynamic, 4)
+    for (int64_t t = 0; t < n_tiles; ++t)
+        std::sort(pair_surfel + tile_offsets[t], pair_surfel + tile_offsets[t + 1], [depths](int32_t a, int32_t b) {
+            return depths[a] < depths[b] || (depths[a] == depths[b] && a < b);
+        });
+}
+
+// surfel -> its pair positions, in ascending position order.
+void build_surfel_index(const int32_t* pair_surfel, int64_t P, int64_t N, int64_t* surfel_offsets,
+                        int64_t* surfel_pairs) {
+    std::fill(surfel_offsets, surfel_offsets + N + 1, 0);
+    for (int64_t k = 0; k < P; ++k) surfel_offsets[pair_surfel[k] + 1]++;
+    for (int64_t i = 0; i < N; ++i) surfel_offsets[i + 1] += surfel_offsets[i];
+    std::vector<int64_t> cursor(surfel_offsets, surfel_offsets + N);
+    for (int64_t k = 0; k < P; ++k) surfel_pairs[cursor[pair_surfel[k]]++] = k;
+}
+
+template <typename scalar_t>
 void reach_rects(const scalar_t* rays, const scalar_t* means2d, const scalar_t* opac, int64_t M, int W, int H,
                  int threads, int32_t* rects) {
 #pragma omp parallel for num_threads(threads) schedule(static)
-    for (int64_t i = 0; i < M; ++i) reach_rect(rays + 9 * i, means2d + 2 * i, opac[i], W, H, rects + 4 * i);
+    for (int64_t i = 0; i < M; ++i) {
+        double T[9];
+        for (int j = 0; j < 9; ++j) T[j] = rays[9 * i + j];
+        reach_rect(T, double(means2d[2 * i]), double(means2d[2 * i + 1]), double(opac[i]), W, H, rects + 4 * i);
+    }
 }
+
+// ---------------------------------------------------------------------------------------------------------------
+// Compositing
 
 // Everything the per-pixel maths needs for one surfel.
 template <typename scalar_t>
@@ -267,6 +534,8 @@ void backward_impl(const Binning& b, const int32_t* rects, const scalar_t* plane
         for (int64_t t = 0; t < n_tiles; ++t) {
             const int x0 = int(t % b.tiles_x) * kTile, y0 = int(t / b.tiles_x) * kTile;
             const int tw = std::min(kTile, W - x0), th = std::min(kTile, H - y0);
+            const int64_t start = b.tile_offsets[t], end = b.tile_offsets[t + 1];
+            std::memset(pair_grads + start * stride, 0, sizeof(scalar_t) * size_t((end - start) * stride));
             int max_count = 0;
             std::fill(count.begin(), count.end(), 0);
             for (int ly = 0; ly < th; ++ly)
@@ -280,7 +549,6 @@ void backward_impl(const Binning& b, const int32_t* rects, const scalar_t* plane
                     max_count = std::max(max_count, int(counts[pix]));
                     for (int c = 0; c < F; ++c) gf[l * F + c] = g_feat[pix * F + c];
                 }
-            const int64_t start = b.tile_offsets[t];
             for (int64_t k = start + max_count - 1; k >= start; --k) {
                 const int64_t g = b.pair_surfel[k];
                 const int32_t* r = rects + 4 * g;
@@ -368,19 +636,38 @@ void reduce_pairs(const Binning& b, const scalar_t* pair_grads, int F, int64_t M
     }
 }
 
-
 }  // namespace
 
+extern "C" int raster_projected_features() { return kProjectedFeatures; }
+
+extern "C" void raster_build_surfel_index(const int32_t* pair_surfel, int64_t P, int64_t N, int64_t* surfel_offsets,
+                                          int64_t* surfel_pairs) {
+    build_surfel_index(pair_surfel, P, N, surfel_offsets, surfel_pairs);
+}
+
 #define RASTER_CPU_API(SUFFIX, T)                                                                                   \
-    extern "C" int64_t raster_bin_count_##SUFFIX(const T* means2d, const int32_t* radii, int64_t M, int W, int H,  \
-                                                 int64_t* tile_offsets, int64_t* surfel_offsets) {                \
-        return bin_count(means2d, radii, M, W, H, tile_offsets, surfel_offsets);                                   \
+    extern "C" void raster_project_##SUFFIX(int64_t N, const T* means, const T* quats, const T* scales,             \
+                                            const T* opac, const T* colors, const T* viewmat, const T* K, int W,   \
+                                            int H, int threads, T* rays, T* planes, T* means2d, T* depths,         \
+                                            T* feats, int32_t* radii, int32_t* rects) {                            \
+        project(N, means, quats, scales, opac, colors, viewmat, K, W, H, threads, rays, planes, means2d, depths,   \
+                feats, radii, rects);                                                                              \
     }                                                                                                              \
-    extern "C" void raster_bin_fill_##SUFFIX(const T* means2d, const int32_t* radii, const int64_t* order,          \
-                                             int64_t M, int W, int H, const int64_t* tile_offsets,                 \
-                                             const int64_t* surfel_offsets, int32_t* pair_surfel,                  \
-                                             int64_t* surfel_pairs) {                                              \
-        bin_fill(means2d, radii, order, M, W, H, tile_offsets, surfel_offsets, pair_surfel, surfel_pairs);         \
+    extern "C" void raster_project_backward_##SUFFIX(                                                              \
+        int64_t N, const T* means, const T* quats, const T* scales, const T* viewmat, const T* K,                  \
+        const int32_t* radii, const T* d_planes, const T* d_means2d, const T* d_feats, int threads, T* d_means,    \
+        T* d_quats, T* d_scales, T* d_colors, T* d_viewmat) {                                                      \
+        project_backward(N, means, quats, scales, viewmat, K, radii, d_planes, d_means2d, d_feats, threads,        \
+                         d_means, d_quats, d_scales, d_colors, d_viewmat);                                         \
+    }                                                                                                              \
+    extern "C" int64_t raster_bin_count_##SUFFIX(const T* means2d, const int32_t* radii, int64_t N, int W, int H,  \
+                                                 int64_t* tile_offsets) {                                          \
+        return bin_count(means2d, radii, N, W, H, tile_offsets);                                                   \
+    }                                                                                                              \
+    extern "C" void raster_bin_fill_##SUFFIX(const T* means2d, const int32_t* radii, const T* depths, int64_t N,   \
+                                             int W, int H, int threads, const int64_t* tile_offsets,               \
+                                             int32_t* pair_surfel) {                                               \
+        bin_fill(means2d, radii, depths, N, W, H, threads, tile_offsets, pair_surfel);                             \
     }                                                                                                              \
     extern "C" void raster_reach_rects_##SUFFIX(const T* rays, const T* means2d, const T* opac, int64_t M, int W,  \
                                                 int H, int threads, int32_t* rects) {                              \
