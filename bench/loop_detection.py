@@ -59,11 +59,27 @@ def _retrieval(descriptor, images, overlap: np.ndarray, window: int) -> dict[str
             "queries": len(ratios)}
 
 
+def _orb_query_scaling(images, sizes: list[int]) -> None:
+    """ORB query time against large databases (copies of the ICL keyframes), vocabulary shortlist vs verify-all."""
+    with_vocabulary = OrbDescriptor()
+    for label, descriptor in ((f"vocabulary shortlist {with_vocabulary.shortlist} above "
+                               f"{with_vocabulary.shortlist_above}", with_vocabulary),
+                              ("verify every entry", OrbDescriptor(vocabulary=None))):
+        features = [descriptor.describe(image) for image in images]
+        for n in sizes:
+            database = [features[k % len(features)] for k in range(n)]
+            descriptor.similarities(features[-1], database[:2])  # warm-up (bags, ORB objects)
+            t0 = time.perf_counter()
+            descriptor.similarities(features[-1], database)
+            print(f"orb query, database {n:5d}, {label}: {1e3 * (time.perf_counter() - t0):8.1f} ms", flush=True)
+
+
 def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench loop_detection")
     parser.add_argument("--window", type=int, default=20)
     parser.add_argument("--descriptors", default="encoder_gem,orb", help="comma-separated subset to measure")
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--scaling", default="100,500,2000", help="database sizes for the ORB query-time scaling")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     frames = load_rgbd_folder(DATA)
@@ -81,6 +97,8 @@ def main(argv: list[str]) -> int:
         print(f"{descriptor.name:12s} describe {r['describe_ms']:6.1f} ms  query {r['query_ms']:6.1f} ms "
               f"(database up to {r['db_size']})  top-1 true overlap {r['top1_overlap']:.3f} = "
               f"{100 * r['overlap_ratio']:.1f}% of the best available ({r['queries']} queries)")
+    if "orb" in wanted and args.scaling:
+        _orb_query_scaling(images, [int(n) for n in args.scaling.split(",")])
     with torch.no_grad():
         state = model.init_state(1)
         for image in images[:8]:

@@ -5,17 +5,22 @@
   cosine. No extra weights, one encoder pass per keyframe.
 * `OrbDescriptor`: classical, needs no weights: ORB keypoints through OpenCV, direct descriptor matching with
   Lowe's ratio test, then RANSAC on the fundamental matrix; similarity is the fraction of geometrically
-  consistent matches. Its features are also what the PnP relocalizer matches.
+  consistent matches. A visual vocabulary (worker.loop.vocabulary) ranks the database first so that only a short
+  list is verified geometrically: the query cost stays flat as the map grows. Its features are also what the PnP
+  relocalizer matches.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Any, Protocol
 
 import cv2
 import numpy as np
 import torch
+
+from .vocabulary import DEFAULT_PATH, Vocabulary
 
 
 class GlobalDescriptor(Protocol):
@@ -65,12 +70,14 @@ class EncoderGeMDescriptor:
 
 @dataclass
 class OrbFeatures:
-    """ORB keypoints [N,2] (x, y pixels) and binary descriptors [N,32] of one image of width x height."""
+    """ORB keypoints [N,2] (x, y pixels) and binary descriptors [N,32] of one image of width x height; `bag` is
+    the tf-idf bag of words under the descriptor's vocabulary (filled on first use)."""
 
     keypoints: np.ndarray
     descriptors: np.ndarray
     width: int
     height: int
+    bag: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.keypoints)
@@ -83,13 +90,31 @@ def to_gray_uint8(image: torch.Tensor) -> np.ndarray:
     return cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
 
 
+@lru_cache(maxsize=1)
+def default_vocabulary() -> Vocabulary:
+    """The shipped ORB vocabulary (loaded once per process)."""
+    return Vocabulary.load(DEFAULT_PATH)
+
+
 class OrbDescriptor:
-    """ORB + ratio-test matching + fundamental-matrix RANSAC; score = inliers / min(#features)."""
+    """ORB + ratio-test matching + fundamental-matrix RANSAC; score = inliers / min(#features).
+
+    With a vocabulary (the shipped one by default; None = verify everything), a database of more than
+    `shortlist_above` entries is ranked by bag-of-words score and only the `shortlist` best entries are verified
+    (the rest score 0): the query cost stops growing with the map. Smaller databases are verified entirely, since
+    within one room the bag of words ranks places less reliably than geometric verification.
+    """
 
     name = "orb"
 
     def __init__(self, n_features: int = 1000, ratio: float = 0.8, ransac_px: float = 2.0,
-                 min_matches: int = 12) -> None:
+                 min_matches: int = 12, vocabulary: Vocabulary | None | str = "default", shortlist: int = 30,
+                 shortlist_above: int = 100) -> None:
+        if shortlist < 1 or shortlist_above < shortlist:
+            raise ValueError(f"need 1 <= shortlist <= shortlist_above, got {shortlist} and {shortlist_above}")
+        self.vocabulary = default_vocabulary() if vocabulary == "default" else vocabulary
+        self.shortlist = shortlist
+        self.shortlist_above = shortlist_above
         self.n_features = n_features
         self._orbs: dict[int, cv2.ORB] = {}
         self.matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
@@ -132,9 +157,23 @@ class OrbDescriptor:
         keep = mask.ravel().astype(bool)
         return ia[keep], ib[keep]
 
+    def bag_of(self, features: OrbFeatures) -> np.ndarray:
+        """The features' bag of words (computed once and kept on them)."""
+        if features.bag is None:
+            features.bag = self.vocabulary.bag_of_words(features.descriptors)
+        return features.bag
+
+    def shortlisted(self, query: OrbFeatures, database: list[OrbFeatures]) -> np.ndarray:
+        """Indices of the database entries to verify: all, or the vocabulary's `shortlist` best."""
+        if self.vocabulary is None or len(database) <= self.shortlist_above:
+            return np.arange(len(database))
+        scores = Vocabulary.score(self.bag_of(query), np.stack([self.bag_of(e) for e in database]))
+        return np.argsort(-scores, kind="stable")[: self.shortlist]
+
     def similarities(self, query: OrbFeatures, database: list[OrbFeatures]) -> np.ndarray:
         scores = np.zeros(len(database))
-        for n, entry in enumerate(database):
+        for n in self.shortlisted(query, database):
+            entry = database[n]
             ia, _ = self.geometric_matches(query, entry)
             scores[n] = len(ia) / max(1, min(len(query), len(entry)))
         return scores
