@@ -22,6 +22,8 @@ from test_rasterize import (  # noqa: F401 (single_thread is a fixture)
 )
 
 from worker.mapping import Surfels, raster_cpu, rasterize
+from worker.mapping.raster_projection import project_surfels
+from worker.mapping.rasterize import visible_mask
 
 W, H = 64, 48
 ATTRIBUTES = ("means", "quats", "scales", "opacities", "colors")
@@ -142,6 +144,21 @@ def test_culled_surfels_get_zero_gradients_and_leave_the_image_unchanged():
     for name in ATTRIBUTES:
         assert not grads[name][40:].any(), name
         assert grads[name][:40].abs().max() > 0, name
+
+
+def test_visible_mask_is_the_rasterizers_culling():
+    """Rendering only the surfels `visible_mask` keeps gives the same image; compiled and torch culling agree."""
+    scene = Surfels.concat([random_scene(200, seed=8, scale_range=(0.05, 0.2), extent=(3.0, 2.5)),
+                            surfels_of([[0.0, 0.0, -1.0]], [[1.0, 0, 0, 0]], [[0.2, 0.2]], [0.9], [[1.0, 0, 0]])])
+    V = look_from(0.3)
+    mask = visible_mask(scene, V, camera(), W, H)
+    assert mask.dtype == torch.bool and mask.shape == (len(scene),)
+    assert 0 < int(mask.sum()) < len(scene) - 20 and not mask[-1]
+    torch_ids = project_surfels(scene.means, scene.quats, scene.scales, V, camera(), W, H).ids
+    assert torch.equal(mask.nonzero()[:, 0], torch_ids)
+    full, subset = rasterize(scene, V, camera(), W, H), rasterize(scene.select(mask), V, camera(), W, H)
+    for a, b in zip(full, subset):
+        assert torch.equal(a, b)
 
 
 def test_pose_gradient_descends():

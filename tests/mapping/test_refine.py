@@ -4,8 +4,8 @@ from mapping_scene import camera_pose, intrinsics, psnr, view, voxelized_surfels
 
 from worker.mapping import Surfels
 from worker.mapping.gaussian_map import rigid_viewmat
-from worker.mapping.rasterize import rasterize
-from worker.mapping.refine import RefineView, refine_surfels
+from worker.mapping.rasterize import rasterize, visible_mask
+from worker.mapping.refine import RefineSettings, RefineView, refine_surfels
 
 
 def make_views(poses):
@@ -62,3 +62,23 @@ def test_bad_arguments():
         refine_surfels(noisy, torch.ones(3, dtype=torch.bool), make_views([camera_pose()]))
     with pytest.raises(ValueError, match="iterations"):
         refine_surfels(noisy, torch.ones(len(noisy), dtype=torch.bool), make_views([camera_pose()]), iterations=-1)
+
+
+def test_surfels_no_view_can_draw_stay_untouched_and_ssim_resolution_is_a_setting():
+    gen = torch.Generator().manual_seed(3)
+    _, noisy = perturbed_map(gen)
+    behind = noisy.select(torch.arange(5)).clone()
+    behind.means = behind.means - 100.0 * torch.tensor([0.0, 0.0, 1.0])  # far behind every camera
+    scene = Surfels.concat([noisy, behind])
+    views = make_views([camera_pose()])
+    assert not visible_mask(behind, views[0].viewmat, views[0].K, 64, 48).any()
+    for factor in (1, 2):
+        refined, report = refine_surfels(scene, torch.ones(len(scene), dtype=torch.bool), views, iterations=3,
+                                         settings=RefineSettings(ssim_downsample=factor))
+        assert len(report.losses) == 3
+        for name in ("means", "quats", "scales", "opacities", "colors"):
+            assert torch.equal(getattr(refined, name)[-5:], getattr(behind, name)), name
+            assert not torch.equal(getattr(refined, name)[:-5], getattr(noisy, name)), name
+    with pytest.raises(ValueError, match="ssim_downsample"):
+        refine_surfels(scene, torch.ones(len(scene), dtype=torch.bool), views, iterations=1,
+                       settings=RefineSettings(ssim_downsample=0))

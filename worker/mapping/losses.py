@@ -44,25 +44,43 @@ def ssim(image: torch.Tensor, target: torch.Tensor, window_size: int = 11, sigma
     return (num / den).mean()
 
 
-def photometric_loss(image: torch.Tensor, target: torch.Tensor, lambda_ssim: float = 0.2) -> torch.Tensor:
-    """(1 - lambda) * L1 + lambda * (1 - SSIM) of [H,W,3] images."""
+def downsample(image: torch.Tensor, factor: int) -> torch.Tensor:
+    """[H,W,C] image averaged over factor x factor blocks (trailing rows/columns that do not fill a block dropped)."""
+    if factor == 1:
+        return image
+    return F.avg_pool2d(image.permute(2, 0, 1)[None], factor)[0].permute(1, 2, 0)
+
+
+def photometric_loss(image: torch.Tensor, target: torch.Tensor, lambda_ssim: float = 0.2,
+                     ssim_downsample: int = 1) -> torch.Tensor:
+    """(1 - lambda) * L1 + lambda * (1 - SSIM) of [H,W,3] images.
+
+    `ssim_downsample` > 1 computes the SSIM term on block-averaged copies of both images (factor^2 cheaper; L1 stays
+    at full resolution).
+    """
+    if int(ssim_downsample) != ssim_downsample or ssim_downsample < 1:
+        raise ValueError(f"ssim_downsample must be a positive integer, got {ssim_downsample}")
     l1 = (image - target).abs().mean()
     if lambda_ssim == 0:
         return l1
-    return (1 - lambda_ssim) * l1 + lambda_ssim * (1 - ssim(image, target))
+    structure = ssim(downsample(image, ssim_downsample), downsample(target.to(image.dtype), ssim_downsample))
+    return (1 - lambda_ssim) * l1 + lambda_ssim * (1 - structure)
 
 
-def depth_l1(depth: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
-    """Mean |depth - target| over pixels where target > 0 (and `mask`), divided by the target's median.
+def depth_l1(depth: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None,
+             scale: float | torch.Tensor | None = None) -> torch.Tensor:
+    """Mean |depth - target| over pixels where target > 0 (and `mask`), divided by `scale`.
 
-    Normalising by the median depth makes the term independent of the (monocular) map scale.
+    `scale` defaults to the median of the target over those pixels: normalising by the median depth makes the term
+    independent of the (monocular) map scale.
     """
     valid = target > 0
     if mask is not None:
         valid &= mask
     if not bool(valid.any()):
         return depth.sum() * 0.0
-    scale = target[valid].median().clamp_min(1e-6)
+    if scale is None:
+        scale = target[valid].median().clamp_min(1e-6)
     return (depth[valid] - target[valid]).abs().mean() / scale
 
 

@@ -262,6 +262,22 @@ def rasterize_cpu(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
     return _Rasterize.apply(*inputs, K.detach().to(dtype).contiguous(), int(width), int(height))
 
 
+def visible_cpu(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
+                colors: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """[N] bool: the surfels `rasterize_cpu` would draw for this camera (its own culling, no gradients)."""
+    _require(means)
+    dtype, N = means.dtype, means.shape[0]
+    inputs = [t.detach().to(dtype).contiguous() for t in (means, quats, scales, opacities, colors, viewmat, K)]
+    rays, planes = torch.empty(N, 9, dtype=dtype), torch.empty(N, 9, dtype=dtype)
+    means2d, depths = torch.empty(N, 2, dtype=dtype), torch.empty(N, dtype=dtype)
+    features = torch.empty(N, _library.raster_projected_features(), dtype=dtype)
+    radii, rects = torch.empty(N, 2, dtype=torch.int32), torch.empty(N, 4, dtype=torch.int32)
+    _kernel("project", dtype)(N, *(_ptr(t) for t in inputs), int(width), int(height), torch.get_num_threads(),
+                              _ptr(rays), _ptr(planes), _ptr(means2d), _ptr(depths), _ptr(features), _ptr(radii),
+                              _ptr(rects))
+    return radii[:, 0] > 0
+
+
 def _require(t: torch.Tensor) -> None:
     if not available():
         raise RuntimeError(f"compiled CPU rasterizer unavailable: {_error}")

@@ -99,6 +99,25 @@ def rasterize(surfels: Surfels, viewmat: torch.Tensor, K: torch.Tensor, width: i
     return RenderResult(rgb, depth, alpha, normals)
 
 
+def visible_mask(surfels: Surfels, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """[N] bool: the surfels a render from this camera can touch (the rasterizer's own culling rule: centre depth,
+    degenerate conic, screen box). Rendering only these gives the same image and the same gradients."""
+    _check_inputs(surfels, viewmat, K, width, height, None, "auto")
+    dtype = surfels.means.dtype
+    viewmat, K = viewmat.detach().to(dtype), K.detach().to(dtype)
+    if surfels.device.type == "cpu":
+        from . import raster_cpu
+
+        if raster_cpu.available():
+            return raster_cpu.visible_cpu(surfels.means, surfels.quats, surfels.scales, surfels.opacities,
+                                          surfels.colors, viewmat, K, int(width), int(height))
+    with torch.no_grad():
+        ids = project_surfels(surfels.means, surfels.quats, surfels.scales, viewmat, K, int(width), int(height)).ids
+    mask = torch.zeros(len(surfels), dtype=torch.bool, device=surfels.device)
+    mask[ids] = True
+    return mask
+
+
 def _composite_cpu(surfels: Surfels, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int,
                    backend: str) -> tuple[torch.Tensor, torch.Tensor]:
     """(sum w [colour, depth, camera normal] [H, W, 7], alpha [H, W]) with a CPU backend."""

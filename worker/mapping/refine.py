@@ -3,7 +3,12 @@
 Parameters are optimised in raw (pre-activation) form: means, log scales, logit opacities, unnormalised quaternions
 and colours (clamped to [0,1] after each step). Surfels outside the window are rendered as fixed context. Each
 iteration renders one keyframe of the window (newest first, then round robin) and minimises
-(1 - lambda) L1 + lambda (1 - SSIM) + lambda_depth * depth L1 (when that keyframe has a reference depth).
+(1 - lambda) L1 + lambda (1 - SSIM) + lambda_depth * depth L1 (when that keyframe has a reference depth; normalised
+by the median reference depth).
+
+Cost: only the surfels that some window view can draw (the rasterizer's own culling rule) take part, so the
+rendered images and the gradients are those of the whole map while the rest of the map costs nothing per
+iteration; SSIM is computed on 2x2 block averages by default (`ssim_downsample`), L1 and depth at full resolution.
 """
 
 from __future__ import annotations
@@ -13,7 +18,7 @@ from dataclasses import dataclass, field
 import torch
 
 from .losses import depth_l1, photometric_loss
-from .rasterize import rasterize
+from .rasterize import rasterize, visible_mask
 from .surfels import Surfels
 
 _OPACITY_EPS = 1e-4
@@ -30,6 +35,7 @@ class RefineSettings:
     lr_opacity_logits: float = 0.05
     lr_quats: float = 1e-3
     lr_colors: float = 0.01
+    ssim_downsample: int = 2  # SSIM on factor x factor block averages (factor^2 cheaper); 1 = full resolution
 
 
 @dataclass
@@ -91,8 +97,12 @@ def refine_surfels(
     if iterations == 0 or not views or not bool(trainable.any()):
         return surfels, report
 
-    params = _RawParams(surfels.select(trainable))
-    fixed = surfels.select(~trainable).detach()
+    in_view = _drawn_by_any_view(surfels, views)
+    optimised = trainable & in_view
+    if not bool(optimised.any()):
+        return surfels, report
+    params = _RawParams(surfels.select(optimised))
+    fixed = surfels.select(~trainable & in_view).detach()
     optimizer = torch.optim.Adam(
         [
             {"params": [params.means], "lr": settings.lr_means * scene_scale},
@@ -103,6 +113,7 @@ def refine_surfels(
         ],
         eps=1e-15,
     )
+    depth_scales = [_median_depth(v.depth) for v in views]
     order = list(range(len(views) - 1, -1, -1))  # newest first
     for it in range(iterations):
         index = order[it % len(order)]
@@ -110,10 +121,11 @@ def refine_surfels(
         H, W = view.image.shape[:2]
         current = Surfels.concat([params.surfels(), fixed]) if len(fixed) else params.surfels()
         render = rasterize(current, view.viewmat, view.K, W, H)
-        loss = photometric_loss(render.rgb, view.image, settings.lambda_ssim)
-        if view.depth is not None and settings.lambda_depth > 0:
+        loss = photometric_loss(render.rgb, view.image, settings.lambda_ssim, settings.ssim_downsample)
+        if view.depth is not None and settings.lambda_depth > 0 and depth_scales[index] is not None:
             covered = render.alpha.detach() > 0.5
-            loss = loss + settings.lambda_depth * depth_l1(render.depth / view.depth_scale, view.depth, covered)
+            loss = loss + settings.lambda_depth * depth_l1(render.depth / view.depth_scale, view.depth, covered,
+                                                           depth_scales[index])
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
@@ -125,5 +137,21 @@ def refine_surfels(
     out = surfels.detach().clone()
     refined = params.surfels().detach()
     for name, value in refined.tensors().items():
-        getattr(out, name)[trainable] = value
+        getattr(out, name)[optimised] = value
     return out, report
+
+
+def _drawn_by_any_view(surfels: Surfels, views: list[RefineView]) -> torch.Tensor:
+    """[N] bool: surfels that at least one view's render can touch."""
+    mask = torch.zeros(len(surfels), dtype=torch.bool, device=surfels.device)
+    for view in views:
+        H, W = view.image.shape[:2]
+        mask |= visible_mask(surfels, view.viewmat, view.K, W, H)
+    return mask
+
+
+def _median_depth(depth: torch.Tensor | None) -> torch.Tensor | None:
+    """Median of the valid (> 0) reference depth, the depth term's normaliser; None without valid depth."""
+    if depth is None or not bool((depth > 0).any()):
+        return None
+    return depth[depth > 0].median().clamp_min(1e-6)
