@@ -4,9 +4,12 @@
 Surfels: pixels of several ICL living-room frames unprojected with their depth and ground-truth pose (one surfel
 per sampled pixel, facing its source camera, radius = one source pixel, opacity 0.9, the pixel's colour); the
 view rendered is a frame in the middle of those. Backward = gradients of a weighted sum of all four outputs w.r.t.
-every surfel attribute and the view matrix. Figures are medians (and minima) over repeats, wall clock.
+every surfel attribute and the view matrix. Figures are medians (and minima) over repeats, wall clock, after one
+warm-up call. The compiled path runs `--repeats` times, the (seconds-slow) reference `--reference-repeats` times.
 
-`python -m bench render [--quick] [--threads N] [--repeats N] [--no-reference] [--device cpu|cuda]`
+`python -m bench render -- [--quick] [--threads N] [--repeats N] [--reference-repeats N] [--no-reference]
+[--sizes 320x240,640x480] [--counts 50000,200000] [--device cpu|cuda]`; each row is also printed as a markdown
+table row (`| size | surfels | backend | fwd ms | fwd+bwd ms | notes |`) for bench/RESULTS.md.
 """
 
 from __future__ import annotations
@@ -117,6 +120,20 @@ def bench_backend(surfels, viewmat, K, width, height, backend: str, repeats: int
     return {"fwd": fwd, "fwd_min": fwd_min, "fb": fb, "fb_min": fb_min, "coverage": coverage}
 
 
+def _sizes(text: str) -> tuple[tuple[int, int], ...]:
+    try:
+        return tuple((int(w), int(h)) for w, h in (item.lower().split("x") for item in text.split(",")))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"sizes must look like 320x240,640x480, got {text!r}") from None
+
+
+def _counts(text: str) -> tuple[int, ...]:
+    try:
+        return tuple(int(c) for c in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"counts must look like 50000,200000, got {text!r}") from None
+
+
 def machine() -> str:
     cpu = platform.processor() or platform.machine()
     try:
@@ -136,11 +153,14 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--quick", action="store_true", help="320x240 / 50k only, 3 repeats")
     parser.add_argument("--threads", type=int, default=min(2, os.cpu_count() or 1))
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--reference-repeats", type=int, default=2)
     parser.add_argument("--no-reference", action="store_true")
+    parser.add_argument("--sizes", type=_sizes, default=SIZES, help="comma-separated WxH list")
+    parser.add_argument("--counts", type=_counts, default=COUNTS, help="comma-separated surfel counts")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
-    sizes, counts, repeats = (SIZES[:1], COUNTS[:1], 3) if args.quick else (SIZES, COUNTS, args.repeats)
+    sizes, counts, repeats = (SIZES[:1], COUNTS[:1], 3) if args.quick else (args.sizes, args.counts, args.repeats)
 
     from worker.mapping import raster_cpu, raster_gsplat
 
@@ -153,7 +173,7 @@ def main(argv: list[str]) -> int:
     view = frames[len(frames) // 2]
     header = f"{'size':>9} {'surfels':>8} {'backend':>9} {'fwd ms':>10} {'fwd+bwd ms':>12} {'alpha':>6}"
     print(header)
-    rows = []
+    markdown = []
     for count in counts:
         surfels = surfels_from_frames(frames, count)
         for width, height in sizes:
@@ -164,12 +184,18 @@ def main(argv: list[str]) -> int:
                     print(f"{width}x{height:<4} {count:>8} {backend:>9}  skipped (too slow / too much memory)")
                     continue
                 device = "cuda" if backend == "gsplat" else "cpu"
-                r = bench_backend(surfels, viewmat, K, width, height, backend, repeats, device)
+                n = args.reference_repeats if backend == "reference" else repeats
+                r = bench_backend(surfels, viewmat, K, width, height, backend, n, device)
                 results[backend] = r
-                rows.append((f"{width}x{height}", count, backend, r))
                 print(f"{width}x{height:<4} {count:>8} {backend:>9} {r['fwd']:>6.1f} ({r['fwd_min']:.1f}) "
                       f"{r['fb']:>7.1f} ({r['fb_min']:.1f}) {r['coverage']:>6.3f}", flush=True)
+                markdown.append(f"| {width}x{height} | {count // 1000}k | {backend} | {r['fwd']:.1f} "
+                                f"({r['fwd_min']:.1f}) | {r['fb']:.1f} ({r['fb_min']:.1f}) | {args.threads} threads, "
+                                f"{n} repeats |")
             if "reference" in results:
-                print(f"{'':>28} speed-up vs reference: fwd {results['reference']['fwd'] / results['cpu']['fwd']:.0f}x,"
-                      f" fwd+bwd {results['reference']['fb'] / results['cpu']['fb']:.0f}x")
+                fwd_x = results["reference"]["fwd"] / results["cpu"]["fwd"]
+                fb_x = results["reference"]["fb"] / results["cpu"]["fb"]
+                print(f"{'':>28} speed-up vs reference: fwd {fwd_x:.0f}x, fwd+bwd {fb_x:.0f}x")
+                markdown[-1] = markdown[-1][:-2] + f"; compiled path {fwd_x:.0f}x / {fb_x:.0f}x faster |"
+    print("\n".join(markdown))
     return 0
