@@ -22,6 +22,7 @@ def _source(stride_full: int) -> tuple[Path, int]:
 def main(argv: list[str]) -> int:
     from worker.config import SlamConfig
     from worker.engine.offline import PoseDrift, run_sequence
+    from worker.engine.stage_times import breakdown_table
 
     parser = argparse.ArgumentParser(prog="python -m bench slam")
     parser.add_argument("--frames", type=int, default=None)
@@ -44,6 +45,7 @@ def main(argv: list[str]) -> int:
     print("| mode | frames | keyframes | loops | ATE (cm) | ATE drift only (cm) | PSNR | SSIM | depth L1 (cm) "
           "| Gaussians | FPS |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
+    breakdowns = {}
     for mode in args.modes.split(","):
         with tempfile.TemporaryDirectory() as out:
             m = run_sequence(source, out, stride=stride, max_frames=args.frames, resize=(width, height),
@@ -58,4 +60,7 @@ def main(argv: list[str]) -> int:
         print(f"| {mode} | {m['num_frames']} | {m['num_keyframes']} | {m['loops']} | {cm(m['ate_rmse'])} | "
               f"{cm(m.get('ate_rmse_drift_only'))} | {num(m['psnr'])} | {num(m['ssim'], 3)} | {cm(m['depth_l1'])} | "
               f"{m['num_gaussians']} | {num(m['fps'], 3)} |", flush=True)
+        breakdowns[mode] = (m["runtime_breakdown"], m["num_frames"])
+    for mode, (breakdown, frames) in breakdowns.items():  # paper appendix E, Table 8
+        print(f"\nruntime breakdown, {mode}:\n{breakdown_table(breakdown, frames)}")
     return 0

@@ -29,6 +29,7 @@ from worker.data.frame import Frame, FrameResult
 from worker.engine.backend import KeyframeJob, MapBackend, PoseUpdateJob
 from worker.engine.keyframes import MotionKeyframeSelector
 from worker.engine.loop_closer import DepthKeyframePoints, LoopCloser
+from worker.engine.stage_times import StageTimes
 from worker.engine.surfel_init import grid_from_depth, grid_from_prediction
 from worker.engine.trajectory import Trajectory
 from worker.geometry import Intrinsics, sim3_inverse
@@ -59,8 +60,9 @@ class SlamSystem:
         self.selector = MotionKeyframeSelector(self.config.frontend.keyframe_every,
                                                self.config.frontend.keyframe_translation,
                                                self.config.frontend.keyframe_rotation_deg)
+        self.timings = StageTimes()  # the runtime breakdown of paper appendix E
         self.backend = (MapBackend(self.config.mapping, self.config.threaded, self.config.queue_size,
-                                   self.config.device) if self.config.mapping.enabled else None)
+                                   self.config.device, self.timings) if self.config.mapping.enabled else None)
         self.counters: dict[str, float] = {"frames": 0, "keyframes": 0, "loops": 0, "frontend_seconds": 0.0,
                                            "wall_seconds": 0.0, "path_given": 0.0, "path_tracked": 0.0}
         self._last_keyframe: int | None = None
@@ -162,7 +164,8 @@ class SlamSystem:
         return {**self.counters, "revision": self.revision, "mode": self.mode,
                 "num_gaussians": self.num_gaussians, "fps": frames / wall if wall > 0 else 0.0,
                 "backend_pending": 0 if self.backend is None else self.backend.pending,
-                "backend_seconds": 0.0 if self.backend is None else self.backend.busy_seconds}
+                "backend_seconds": 0.0 if self.backend is None else self.backend.busy_seconds,
+                "runtime_breakdown": self.timings.breakdown(int(frames))}
 
     # ------------------------------------------------------------------------------------------------- helpers
     def _new_pose_graph(self) -> Sim3PoseGraph:
@@ -204,7 +207,8 @@ class SlamSystem:
         tracked = prep = None
         if self.tracker is not None:  # the model predicts the surfels
             prep = self._prepare(frame)
-            tracked = self.tracker.track(frame.index, prep.tensor, prep.intrinsics or self.model_intrinsics)
+            with self.timings.measure("frontend_inference"):
+                tracked = self.tracker.track(frame.index, prep.tensor, prep.intrinsics or self.model_intrinsics)
             self.bag.add_finished(self.tracker.pop_finished_submaps())
             if self.model_intrinsics is None:
                 self.model_intrinsics = prep.intrinsics or self._estimate_intrinsics(tracked.surfels, prep)
@@ -297,9 +301,11 @@ class SlamSystem:
                 log.warning("posed mode without depth: loop closure is off (no metric points to relocalize with)")
                 return
             self.depth_points = DepthKeyframePoints()
-            self.loop_closer = LoopCloser(cfg.loop, model=self.model, depth_points=self.depth_points)
+            self.loop_closer = LoopCloser(cfg.loop, model=self.model, depth_points=self.depth_points,
+                                          timings=self.timings)
         else:
-            self.loop_closer = LoopCloser(cfg.loop, model=self.model, tracker=self.tracker, bag=self.bag)
+            self.loop_closer = LoopCloser(cfg.loop, model=self.model, tracker=self.tracker, bag=self.bag,
+                                          timings=self.timings)
 
     def _build_frontend(self) -> None:
         from worker.frontend import build_model
@@ -332,7 +338,8 @@ class SlamSystem:
 
     def _push_monocular(self, frame: Frame) -> FrameResult:
         prep = self._prepare(frame)
-        tracked = self.tracker.track(frame.index, prep.tensor, prep.intrinsics or self.model_intrinsics)
+        with self.timings.measure("frontend_inference"):
+            tracked = self.tracker.track(frame.index, prep.tensor, prep.intrinsics or self.model_intrinsics)
         self.bag.add_finished(self.tracker.pop_finished_submaps())
         if self.model_intrinsics is None:
             self.model_intrinsics = prep.intrinsics or self._estimate_intrinsics(tracked.surfels, prep)
@@ -415,7 +422,8 @@ class SlamSystem:
     def _apply_pgo(self, loop_from: int, loop_to: int) -> dict[str, Any]:
         """Optimise the pose graph, move the trajectory and the map; returns the loop event."""
         old = {k: v.copy() for k, v in self._traj.keyframe_poses.items()}
-        result = self.pose_graph.optimize(max_iterations=self.config.loop.pgo_iterations)
+        with self.timings.measure("pgo"):
+            result = self.pose_graph.optimize(max_iterations=self.config.loop.pgo_iterations)
         revision = self._traj.update_keyframes(result.poses)
         if self.backend is not None:
             changed = {k: p for k, p in result.poses.items() if not np.allclose(p, old[k], atol=1e-9)}

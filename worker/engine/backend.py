@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from worker.config import MappingConfig
+from worker.engine.stage_times import StageTimes
 from worker.mapping.voxelize import voxelize
 
 log = logging.getLogger(__name__)
@@ -64,8 +65,10 @@ def build_gaussian_map(cfg: MappingConfig, device: str):
 class MapBackend:
     """Runs map jobs in its own thread (or inline) and serves renders/exports under a lock."""
 
-    def __init__(self, cfg: MappingConfig, threaded: bool, queue_size: int, device: str = "cpu") -> None:
+    def __init__(self, cfg: MappingConfig, threaded: bool, queue_size: int, device: str = "cpu",
+                 timings: StageTimes | None = None) -> None:
         self.cfg = cfg
+        self.timings = timings or StageTimes()
         self.device = device
         self.map = build_gaussian_map(cfg, device)
         self.lock = threading.RLock()
@@ -130,17 +133,22 @@ class MapBackend:
             if isinstance(job, KeyframeJob):
                 self._map_keyframe(job)
             else:
-                self.map.apply_pose_updates({k: torch.as_tensor(v) for k, v in job.poses.items()})
+                with self.timings.measure("map_loop_correction"):
+                    self.map.apply_pose_updates({k: torch.as_tensor(v) for k, v in job.poses.items()})
         self.busy_seconds += time.perf_counter() - start
 
     def _map_keyframe(self, job: KeyframeJob) -> None:
         g = job.grid
-        vox = voxelize(g["means"], g["quats"], g["scales"], g["opacities"], g["colors"], valid=g["valid"],
-                       tau_d=self.cfg.tau_depth, keyframe_id=job.kf_id, merged_scale_factor=self.cfg.merged_scale_factor
-                       ) if self.cfg.voxel_block > 1 else _unmerged(g, job.kf_id)
-        self.map.add_keyframe(job.kf_id, torch.as_tensor(job.pose), job.K, job.image, vox.surfels, depth=job.depth)
+        with self.timings.measure("map_merge"):
+            vox = voxelize(g["means"], g["quats"], g["scales"], g["opacities"], g["colors"], valid=g["valid"],
+                           tau_d=self.cfg.tau_depth, keyframe_id=job.kf_id,
+                           merged_scale_factor=self.cfg.merged_scale_factor
+                           ) if self.cfg.voxel_block > 1 else _unmerged(g, job.kf_id)
+            self.map.add_keyframe(job.kf_id, torch.as_tensor(job.pose), job.K, job.image, vox.surfels,
+                                  depth=job.depth)
         if self.cfg.refine_iterations > 0:
-            self.map.refine(self.cfg.refine_iterations)
+            with self.timings.measure("map_refine"):
+                self.map.refine(self.cfg.refine_iterations)
         self.keyframes_mapped += 1
 
     def refine_all(self, iterations: int) -> None:

@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from worker.config import LoopConfig
+from worker.engine.stage_times import StageTimes
 from worker.geometry import Intrinsics, unproject_depth
 from worker.loop.descriptors import EncoderGeMDescriptor, OrbDescriptor, OrbFeatures
 from worker.loop.detector import LoopDetector
@@ -63,8 +64,9 @@ class LoopCloser:
     """Per keyframe: query the detector, relocalize the candidates best first, return the first verified one."""
 
     def __init__(self, cfg: LoopConfig, model=None, tracker=None, bag=None, depth_points: DepthKeyframePoints | None
-                 = None) -> None:
+                 = None, timings: StageTimes | None = None) -> None:
         self.cfg = cfg
+        self.timings = timings or StageTimes()
         orb = OrbDescriptor()
         if cfg.descriptor == "encoder":
             if model is None:
@@ -90,7 +92,8 @@ class LoopCloser:
     def process_keyframe(self, index: int, image: torch.Tensor, intrinsics: Intrinsics | None
                          ) -> LoopConstraint | None:
         """Register keyframe `index` (image [1,3,H,W] in [0,1]); a verified loop constraint (i, index) or None."""
-        candidates = self.detector.detect(index, image)
+        with self.timings.measure("loop_detection"):
+            candidates = self.detector.detect(index, image)
         descriptor = self.detector.descriptor_of(index)
         if self.pnp is not None:
             self.pnp.add_keyframe(index, image, descriptor if isinstance(descriptor, OrbFeatures) else None)
@@ -99,7 +102,8 @@ class LoopCloser:
             return None
         for candidate in candidates:
             try:
-                constraint = self.relocalizer.relocalize(candidate.match, index, image, intrinsics)
+                with self.timings.measure("loop_relocalization"):
+                    constraint = self.relocalizer.relocalize(candidate.match, index, image, intrinsics)
             except ValueError:  # e.g. the candidate's submap is still open: no cached state yet
                 continue
             if constraint.accepted:

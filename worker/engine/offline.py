@@ -115,6 +115,7 @@ def run_sequence(
         "revision": system.revision, "runtime_s": runtime, "fps": len(frames) / runtime,
         "use_gt_depth": use_gt_depth, "use_gt_poses": use_gt_poses,
         "drift": None if drift is None else vars(drift),
+        "runtime_breakdown": system.timings.breakdown(len(frames)),
     }
     metrics.update(_trajectory_metrics(frames, all_poses, drift))
     if system.backend is not None:
