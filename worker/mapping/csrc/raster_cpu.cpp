@@ -360,24 +360,31 @@ int64_t bin_count(const scalar_t* means2d, const int32_t* radii, int64_t N, int 
 }
 
 // Fills the tile lists in surfel order, then sorts every list by (centre depth, index) in parallel: the order of a
-// stable sort by depth, as gsplat's.
+// stable sort by depth, as gsplat's. The sort keys carry the depth (no indirection while sorting).
 template <typename scalar_t>
 void bin_fill(const scalar_t* means2d, const int32_t* radii, const scalar_t* depths, int64_t N, int W, int H,
               int threads, const int64_t* tile_offsets, int32_t* pair_surfel) {
+    struct Key {
+        scalar_t depth;
+        int32_t index;
+        bool operator<(const Key& o) const { return depth < o.depth || (depth == o.depth && index < o.index); }
+    };
     const int tx_n = tiles_along(W), ty_n = tiles_along(H);
     const int64_t n_tiles = int64_t(tx_n) * ty_n;
+    std::vector<Key> keys(tile_offsets[n_tiles]);
     std::vector<int64_t> cursor(tile_offsets, tile_offsets + n_tiles);
     for (int64_t i = 0; i < N; ++i) {
         int r[4];
         tile_rect(means2d, radii, i, tx_n, ty_n, r);
+        const Key key{depths[i], int32_t(i)};
         for (int ty = r[1]; ty < r[3]; ++ty)
-            for (int tx = r[0]; tx < r[2]; ++tx) pair_surfel[cursor[int64_t(ty) * tx_n + tx]++] = int32_t(i);
+            for (int tx = r[0]; tx < r[2]; ++tx) keys[cursor[int64_t(ty) * tx_n + tx]++] = key;
     }
 #pragma omp parallel for num_threads(threads) schedule(dynamic, 4)
-    for (int64_t t = 0; t < n_tiles; ++t)
-        std::sort(pair_surfel + tile_offsets[t], pair_surfel + tile_offsets[t + 1], [depths](int32_t a, int32_t b) {
-            return depths[a] < depths[b] || (depths[a] == depths[b] && a < b);
-        });
+    for (int64_t t = 0; t < n_tiles; ++t) {
+        std::sort(keys.begin() + tile_offsets[t], keys.begin() + tile_offsets[t + 1]);
+        for (int64_t k = tile_offsets[t]; k < tile_offsets[t + 1]; ++k) pair_surfel[k] = keys[k].index;
+    }
 }
 
 // surfel -> its pair positions, in ascending position order.
@@ -570,8 +577,8 @@ void backward_impl(const Binning& b, const int32_t* rects, const scalar_t* plane
                         const scalar_t x = scalar_t(px) + scalar_t(0.5);
                         if (!evaluate(s, x, y, h)) continue;
                         touched = true;
-                        const double keep = 1.0 - double(h.alpha);
-                        const double T_i = T[l] / keep;
+                        const double keep = 1.0 - double(h.alpha), inv_keep = 1.0 / keep;
+                        const double T_i = T[l] * inv_keep;
                         const double w = double(h.alpha) * T_i;
                         const scalar_t* gl = &gf[l * F];
                         double fdot = 0;
@@ -579,7 +586,7 @@ void backward_impl(const Binning& b, const int32_t* rects, const scalar_t* plane
                             fdot += double(gl[c]) * double(f[c]);
                             acc[kPairFixed + c] += w * double(gl[c]);
                         }
-                        const scalar_t d_alpha = scalar_t(T_i * fdot - (S[l] - gA[l] * Tf[l]) / keep);
+                        const scalar_t d_alpha = scalar_t(T_i * fdot - (S[l] - gA[l] * Tf[l]) * inv_keep);
                         S[l] += w * fdot;
                         T[l] = T_i;
                         if (s.o * h.G > scalar_t(0.999)) continue;  // clamped alpha: no gradient (as in gsplat)
