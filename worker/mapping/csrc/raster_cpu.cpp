@@ -433,7 +433,7 @@ struct SurfelView {
 // The quantities of one (surfel, pixel) evaluation the backward pass needs.
 template <typename scalar_t>
 struct Hit {
-    scalar_t p[3], u, v, rho3, dx, dy, rho2, G, alpha;
+    scalar_t p[3], inv_p2, u, v, rho3, dx, dy, rho2, G, alpha;
     bool use3d;
 };
 
@@ -448,8 +448,9 @@ inline bool evaluate(const SurfelView<scalar_t>& s, scalar_t x, scalar_t y, Hit<
     if (h.p[2] == scalar_t(0)) return false;
     // cheap rejection (no division, no exp): both rho's beyond the cut, rho3 > cut <=> p0^2 + p1^2 > cut p2^2
     if (h.rho2 > s.rho_cut && h.p[0] * h.p[0] + h.p[1] * h.p[1] > s.rho_cut * h.p[2] * h.p[2]) return false;
-    h.u = h.p[0] / h.p[2];
-    h.v = h.p[1] / h.p[2];
+    h.inv_p2 = scalar_t(1) / h.p[2];
+    h.u = h.p[0] * h.inv_p2;
+    h.v = h.p[1] * h.inv_p2;
     h.rho3 = h.u * h.u + h.v * h.v;
     h.use3d = h.rho3 <= h.rho2;
     const scalar_t rho = h.use3d ? h.rho3 : h.rho2;
@@ -593,7 +594,7 @@ void backward_impl(const Binning& b, const int32_t* rects, const scalar_t* plane
                         acc[11] += double(d_alpha * h.G);
                         const scalar_t d_rho = scalar_t(-0.5) * h.G * s.o * d_alpha;
                         if (h.use3d) {
-                            const scalar_t inv = scalar_t(1) / h.p[2];
+                            const scalar_t inv = h.inv_p2;
                             const scalar_t du = scalar_t(2) * h.u * d_rho, dv = scalar_t(2) * h.v * d_rho;
                             const scalar_t dp0 = du * inv, dp1 = dv * inv, dp2 = -(du * h.u + dv * h.v) * inv;
                             acc[0] += double(x * dp0);
