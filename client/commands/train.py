@@ -30,6 +30,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--synthetic-sequences", type=int, default=16, help="synthetic training scenes when no data given")
     p.add_argument("--frames", type=int, default=48, help="frames per synthetic scene")
     p.add_argument("--checkpoint-every", type=int, default=100)
+    p.add_argument("--keep-every", type=int, default=0, help="also keep model_step<N>.safetensors every N steps")
+    p.add_argument("--cache", type=Path, nargs="+", help="pre-rendered windows (python -m worker.training.cache)")
+    p.add_argument("--max-frames", type=int, default=8, help="longest clip of the last ('long') stage")
+    p.add_argument("--stage-fractions", type=float, nargs=3, default=(0.5, 0.2, 0.2),
+                   metavar=("BACKBONE", "WARMUP", "ADAPT"), help="'scratch': shares of the steps (rest: long clips)")
+    p.add_argument("--lr-warmup", type=int, default=0, help="linear warm-up steps at the start of each stage")
+    p.add_argument("--cosine", action="store_true", help="cosine-decay each stage's rate to 10%%")
+    p.add_argument("--render-downscale", type=int, default=2, help="rendering losses at 1/N of the model resolution")
+    p.add_argument("--render-stride", type=int, default=2, help="render every N-th pixel's surfel")
     p.add_argument("--resume", action="store_true", help="continue from the checkpoint in --out")
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: all cores)")
     p.set_defaults(func=run)
@@ -43,6 +52,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from worker.training.session import build_trainer
+    from worker.training.trainer import TrainConfig
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     torch.set_num_threads(args.threads or os.cpu_count() or 1)
@@ -51,7 +61,10 @@ def run(args: argparse.Namespace) -> int:
             model_name=args.model, data=args.data, out_dir=args.out, init=args.init, curriculum=args.curriculum,
             steps=args.steps, lr=args.lr, width=args.width, height=args.height,
             synthetic_sequences=args.synthetic_sequences, frames=args.frames,
-            checkpoint_every=args.checkpoint_every,
+            checkpoint_every=args.checkpoint_every, cache=args.cache, max_frames=args.max_frames,
+            fractions=tuple(args.stage_fractions),
+            config=TrainConfig(keep_every=args.keep_every, lr_warmup=args.lr_warmup, lr_cosine=args.cosine,
+                               render_downscale=args.render_downscale, render_stride=args.render_stride),
         )
     except (ValueError, FileNotFoundError) as err:
         print(f"flashmono train: {err}")

@@ -122,3 +122,60 @@ def test_training_reduces_the_loss_and_resumes(tmp_path):
     assert resumed.optimizer.state_dict()["state"], "optimizer state restored"
     resumed.train(steps=1)
     assert resumed.step == 9
+
+
+def test_prerendered_windows_round_trip_into_a_bank(tmp_path):
+    from worker.training.cache import load_windows, render_synthetic_windows, save_windows
+
+    windows = render_synthetic_windows([3, 4], window=3, width=48, height=32)
+    assert windows[0][0].shape == (3, 32, 48, 3) and windows[0][0].dtype == np.uint8
+    assert windows[0][1].shape == (3, 32, 48) and windows[0][1].min() > 0
+    assert not np.array_equal(windows[0][0], windows[1][0])
+    save_windows(windows, 48, 32, tmp_path / "w.safetensors")
+    bank = SequenceBank(48, 32)
+    assert load_windows([tmp_path / "w.safetensors"], bank) == 2
+    images, depths, c2w, K = bank.sequences[0]
+    assert torch.equal(images, torch.from_numpy(windows[0][0]))
+    assert torch.allclose(depths, torch.from_numpy(windows[0][1]), rtol=1e-3)  # stored as fp16
+    assert torch.allclose(c2w, torch.from_numpy(windows[0][2]))
+    assert float(K[0, 0]) == pytest.approx(0.8 * 48)
+    clip = bank.sample(3)
+    assert clip.images.dtype == torch.float32 and 0.0 <= float(clip.images.min()) and float(clip.images.max()) <= 1.0
+    with pytest.raises(ValueError, match="64x48"):
+        load_windows([tmp_path / "w.safetensors"], SequenceBank(64, 48))
+
+
+def test_held_out_seeds_are_refused_for_training():
+    from worker.training.cache import render_synthetic_windows
+    from worker.training.session import HELD_OUT_SEED_START
+
+    with pytest.raises(ValueError, match="held out"):
+        render_synthetic_windows([1, HELD_OUT_SEED_START + 2], window=2, width=32, height=32)
+
+
+def test_from_scratch_fractions_and_learning_rate_schedule(tmp_path):
+    plan = Curriculum.from_scratch(steps=100, lr=1e-3, max_frames=6, fractions=(0.6, 0.1, 0.2))
+    assert [s.steps for s in plan.stages] == [60, 10, 20, 10] and plan.stages[-1].max_frames == 6
+    with pytest.raises(ValueError, match="fractions"):
+        Curriculum.from_scratch(fractions=(0.8, 0.2, 0.2))
+    bank = SequenceBank(64, 48)
+    bank.add(synthetic_frames(2))
+    trainer = Trainer(build_model(MICRO), bank, plan, tmp_path, TrainConfig(lr_warmup=10, lr_cosine=True))
+    trainer._enter_stage(0, plan.stages[0])
+    rates = []
+    for step in range(60):
+        trainer.step = step
+        rates.append(trainer.learning_rate(plan.stages[0]))
+    assert rates[0] == pytest.approx(1e-4) and rates[9] == pytest.approx(1e-3, rel=0.06)
+    assert rates[-1] == pytest.approx(1e-4) and all(a >= b for a, b in zip(rates[9:], rates[10:]))
+
+
+def test_keep_every_leaves_weight_snapshots(tmp_path):
+    bank = SequenceBank(64, 48)
+    bank.add(synthetic_frames(2))
+    stage = Stage("all", 4, 1e-3, 2, 2, ("all",), render_weight=0.0)
+    trainer = Trainer(build_model(MICRO), bank, Curriculum((stage,)), tmp_path,
+                      TrainConfig(checkpoint_every=100, keep_every=2))
+    trainer.train()
+    assert sorted(p.name for p in tmp_path.glob("model_step*.safetensors")) == [
+        "model_step2.safetensors", "model_step4.safetensors"]

@@ -49,7 +49,7 @@ def fit_frame(frame: Frame, width: int, height: int) -> tuple[np.ndarray, np.nda
 
 
 class SequenceBank:
-    """Whole sequences held in memory at the model resolution; clips are drawn from them at random."""
+    """Whole sequences held in memory at the model resolution (images as uint8); clips are drawn at random."""
 
     def __init__(self, width: int, height: int, seed: int = 0) -> None:
         self.width, self.height = width, height
@@ -61,13 +61,26 @@ class SequenceBank:
         images, depths, poses, K = [], [], [], None
         for frame in frames:
             image, depth, intr = fit_frame(frame, self.width, self.height)
-            images.append(torch.from_numpy(image).float() / 255.0)
-            depths.append(torch.from_numpy(depth))
+            images.append(torch.from_numpy(np.ascontiguousarray(image)))
+            depths.append(torch.from_numpy(np.ascontiguousarray(depth)))
             poses.append(torch.from_numpy(np.asarray(frame.gt_pose, dtype=np.float64)))
             K = intr.matrix()
         if len(images) < 2:
             raise ValueError("a training sequence needs at least 2 frames")
-        self.sequences.append((torch.stack(images), torch.stack(depths), torch.stack(poses), K))
+        self.add_tensors(torch.stack(images), torch.stack(depths), torch.stack(poses), K)
+
+    def add_tensors(self, images: torch.Tensor, depths: torch.Tensor, c2w: torch.Tensor, K) -> None:
+        """Store one sequence already at the bank's resolution: images uint8 [L,H,W,3], depths [L,H,W] metres,
+        c2w [L,4,4], K [3,3]."""
+        L = images.shape[0]
+        if images.dtype != torch.uint8 or images.shape[1:] != (self.height, self.width, 3):
+            raise ValueError(f"images must be uint8 [L,{self.height},{self.width},3], got {images.dtype} "
+                             f"{tuple(images.shape)}")
+        if depths.shape != (L, self.height, self.width) or c2w.shape != (L, 4, 4):
+            raise ValueError(f"depths {tuple(depths.shape)} / poses {tuple(c2w.shape)} do not match {L} images")
+        if L < 2:
+            raise ValueError("a training sequence needs at least 2 frames")
+        self.sequences.append((images, depths.float(), c2w.double(), torch.as_tensor(K, dtype=torch.float32)))
 
     def sample(self, length: int, max_gap: int = 2) -> Clip:
         """A random clip of `length` frames (consecutive frames at a random stride of 1..max_gap)."""
@@ -82,4 +95,4 @@ class SequenceBank:
         start = int(self.rng.integers(0, n - (length - 1) * gap))
         idx = torch.arange(start, start + length * gap, gap)[:length]
         c2w = sim3_inverse(poses[idx[0]]) @ poses[idx]
-        return Clip(images[idx][:, None], depths[idx][:, None], c2w[:, None].float(), K)
+        return Clip(images[idx][:, None].float() / 255.0, depths[idx][:, None], c2w[:, None].float(), K)

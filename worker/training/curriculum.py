@@ -60,13 +60,21 @@ class Curriculum:
         ))
 
     @classmethod
-    def from_scratch(cls, steps: int = 3000, lr: float = 1e-3, max_frames: int = 8) -> Curriculum:
-        """For small models without CUT3R weights: a full-model stage 0, then D.3's stages with rates scaled up."""
+    def from_scratch(cls, steps: int = 3000, lr: float = 1e-3, max_frames: int = 8,
+                     fractions: tuple[float, float, float] = (0.5, 0.2, 0.2)) -> Curriculum:
+        """For small models without CUT3R weights: a full-model stage 0, then D.3's stages with rates scaled up.
+
+        `fractions` are the shares of `steps` of stage 0, the head warm-up and the 4-frame stage; the long-clip
+        stage gets the rest.
+        """
+        if len(fractions) != 3 or min(fractions) < 0 or sum(fractions) > 1:
+            raise ValueError(f"fractions must be 3 non-negative shares summing to at most 1, got {fractions}")
+        n0, n1, n2 = (int(steps * f) for f in fractions)
         return cls((
-            Stage("backbone", int(steps * 0.5), lr, 2, 4, ("all",), render_weight=0.1),
-            Stage("gs_warmup", int(steps * 0.2), lr, 1, 4, ("gs_head",)),
-            Stage("adapt", int(steps * 0.2), lr * 0.2, 4, 4, ("gs_head", "decoder", "pose_head", "means_head")),
-            Stage("long", steps - int(steps * 0.5) - 2 * int(steps * 0.2), lr * 0.1, 4, max_frames,
+            Stage("backbone", n0, lr, 2, 4, ("all",), render_weight=0.1),
+            Stage("gs_warmup", n1, lr, 1, 4, ("gs_head",)),
+            Stage("adapt", n2, lr * 0.2, 4, 4, ("gs_head", "decoder", "pose_head", "means_head")),
+            Stage("long", steps - n0 - n1 - n2, lr * 0.1, 4, max_frames,
                   ("gs_head", "decoder", "pose_head", "means_head")),
         ))
 

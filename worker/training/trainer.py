@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import shutil
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -36,6 +37,9 @@ class TrainConfig:
     grad_clip: float = 1.0
     weight_decay: float = 0.05
     checkpoint_every: int = 200
+    keep_every: int = 0  # also keep a copy of the weights every n steps (model_step{n}.safetensors); 0 = never
+    lr_warmup: int = 0  # steps of linear warm-up at the start of every stage
+    lr_cosine: bool = False  # cosine decay to 10% of the stage's rate over the stage
     log_every: int = 10
     seed: int = 0
 
@@ -147,6 +151,7 @@ class Trainer:
             started = time.perf_counter()
             length = int(self.bank.rng.integers(stage.min_frames, stage.max_frames + 1))
             clip = self.bank.sample(length)
+            self._set_learning_rate(stage)
             self.optimizer.zero_grad(set_to_none=True)
             terms = clip_losses(self.model, clip, stage, self.config, self.perceptual)
             if not math.isfinite(terms["total"]):
@@ -160,8 +165,34 @@ class Trainer:
             self.history.append(record)
             if progress is not None:
                 progress(record)
-            if self.step % self.config.checkpoint_every == 0 or self.step == end:
+            keep = self.config.keep_every > 0 and self.step % self.config.keep_every == 0
+            if keep or self.step % self.config.checkpoint_every == 0 or self.step == end:
                 self.save_checkpoint()
+            if keep:
+                shutil.copyfile(self.out_dir / "model.safetensors", self.out_dir / f"model_step{self.step}.safetensors")
+            if self.step % self.config.log_every == 0:
+                recent = self.history[-self.config.log_every:]
+                log.info("step %d %s lr %.2e loss %.4f pose %.4f geo %.4f render %.4f (%.2f s/step)", self.step,
+                         stage.name, self.learning_rate(stage), *(sum(getattr(h, k) for h in recent) / len(recent)
+                                                                  for k in ("total", "pose", "geo", "render",
+                                                                            "seconds")))
+
+    def learning_rate(self, stage: Stage) -> float:
+        """The rate of the current step: the stage's rate, warmed up and cosine-decayed as configured."""
+        start = sum(s.steps for s in self.curriculum.stages[:self._stage_index])
+        local = self.step - start
+        factor = 1.0
+        if self.config.lr_warmup > 0:
+            factor *= min(1.0, (local + 1) / self.config.lr_warmup)
+        if self.config.lr_cosine and stage.steps > 1:
+            progress = min(1.0, local / (stage.steps - 1))
+            factor *= 0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * progress))
+        return stage.lr * factor
+
+    def _set_learning_rate(self, stage: Stage) -> None:
+        lr = self.learning_rate(stage)
+        for group in self.optimizer.param_groups:
+            group["lr"] = lr
 
     # ---- checkpoints -------------------------------------------------------------------------------------
     def save_checkpoint(self) -> Path:
