@@ -1,11 +1,17 @@
-"""Compiled CPU compositor (C++ forward and backward kernels, OpenMP over tiles) behind a torch.autograd.Function.
+"""Compiled CPU rasterizer: projection, tile binning, compositing and the backward of all three in C++ (OpenMP),
+behind torch.autograd.Functions.
+
+`rasterize_cpu` is the fast path `rasterize(backend="cpu")` uses: one forward call chain from surfel attributes to
+the composited [colour, depth, camera normal] channels, one backward chain to the gradients of means, quats, scales,
+opacities, colours and the view matrix. `composite_cpu` runs the compositing stage alone on already projected
+surfels (the stage `raster_reference.composite_reference` implements in torch); `visible_cpu` is the culling rule.
 
 `csrc/raster_cpu.cpp` has a plain C ABI and no torch headers, so the first use compiles it in a few seconds with
 the system C++ compiler ($CXX, default c++; -O3 -fopenmp) into $FLASHMONO_EXT_DIR (default
 ~/.cache/flashmono/torch_extensions), keyed by a hash of the source, flags and compiler; later uses load the cached
 library. Python owns every buffer and calls the kernels through ctypes (the GIL is released during a call). If the
 build fails, `available()` is False, `load_error()` says why, and `rasterize` falls back to the pure-torch reference.
-Same inputs and outputs as `raster_reference.composite_reference`; float32 and float64.
+float32 and float64; results and gradients are bitwise independent of the thread count.
 """
 
 from __future__ import annotations

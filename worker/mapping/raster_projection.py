@@ -1,4 +1,6 @@
-"""Surfel -> screen projection shared by the CPU rasterizer backends (pure torch, differentiable by autograd).
+"""Surfel -> screen projection in pure torch (differentiable by autograd): the reference backend's first stage.
+
+The compiled CPU path runs the same maths in C++ (`csrc/raster_cpu.cpp`, float64 internally).
 
 For each surfel it builds gsplat 1.5.3's ray transform T = K [s_u R_c[:,0] | s_v R_c[:,1] | mu_c] (rows T0, T1, T2;
 T (u, v, 1) = (x w, y w, w) for the surfel-local point (u, v)), the screen centre and per-axis radius of the r = 1
