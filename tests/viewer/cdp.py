@@ -1,7 +1,7 @@
 """A minimal Chrome DevTools Protocol driver for headless Chromium (over `websockets`), for the viewer tests.
 
 Starts `chromium --headless --remote-debugging-port=0`, opens one page, records console errors, uncaught
-exceptions and failed loads, evaluates JavaScript and captures screenshots.
+exceptions and failed loads, evaluates JavaScript, captures screenshots and lets downloads land in a folder.
 """
 
 from __future__ import annotations
@@ -130,6 +130,11 @@ class Browser:
 
     async def navigate(self, url: str) -> None:
         await self.send("Page.navigate", {"url": url})
+
+    async def allow_downloads(self, directory: Path) -> None:
+        """Save the page's downloads under `directory` with their suggested names (headless denies them otherwise)."""
+        await self.send("Browser.setDownloadBehavior", {"behavior": "allow", "downloadPath": str(directory),
+                                                        "eventsEnabled": True}, browser=True)
 
     async def evaluate(self, expression: str) -> Any:
         result = await self.send("Runtime.evaluate", {"expression": expression, "returnByValue": True,

@@ -27,7 +27,7 @@ const state = {
   renderUrl: null,
 };
 // What tests and curious users can read: how much has been drawn and rendered.
-window.viewerState = { posesDrawn: 0, renders: 0, lastError: null, loopClosures: 0 };
+window.viewerState = { posesDrawn: 0, renders: 0, lastError: null, loopClosures: 0, mapDownloads: 0, lastMap: null };
 
 const orbit = new OrbitView($("view3d"));
 
@@ -189,19 +189,32 @@ function move(name) {
 async function downloadMap() {
   const id = state.sessionId;
   if (!id) return;
+  // The result goes to its own line next to the button: the status line is rewritten by every trajectory poll,
+  // which would hide the outcome within a second.
+  const button = $("download-map");
+  const mapStatus = $("map-status");
+  button.disabled = true;
+  mapStatus.classList.remove("error");
+  mapStatus.textContent = "downloading…";
   try {
-    setStatus("downloading the map…");
     const blob = await state.api.map(id);
+    const name = `${id}.ply`;
     const link = document.createElement("a");
     link.href = URL.createObjectURL(blob);
-    link.download = `${id}.ply`;
+    link.download = name;
     document.body.append(link);
     link.click();
     link.remove();
-    setTimeout(() => URL.revokeObjectURL(link.href), 10000);
-    setStatus(`map downloaded (${blob.size} bytes)`);
+    setTimeout(() => URL.revokeObjectURL(link.href), 60000);
+    window.viewerState.mapDownloads += 1;
+    window.viewerState.lastMap = { name, bytes: blob.size };
+    mapStatus.textContent = `map downloaded: ${name} (${blob.size} bytes)`;
   } catch (err) {
+    mapStatus.textContent = `map: ${err.message}`;
+    mapStatus.classList.add("error");
     setStatus(`map: ${err.message}`, true);
+  } finally {
+    button.disabled = !state.sessionId;
   }
 }
 
