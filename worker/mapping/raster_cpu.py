@@ -221,12 +221,12 @@ class _Rasterize(torch.autograd.Function):
     def forward(ctx, means, quats, scales, opacities, colors, viewmat, K, width, height):
         dtype, N = means.dtype, means.shape[0]
         F = _library.raster_projected_features()
-        rays, planes = torch.empty(N, 9, dtype=dtype), torch.empty(N, 9, dtype=dtype)
+        planes = torch.empty(N, 9, dtype=dtype)
         means2d, depths = torch.empty(N, 2, dtype=dtype), torch.empty(N, dtype=dtype)
         features = torch.empty(N, F, dtype=dtype)
         radii, rects = torch.empty(N, 2, dtype=torch.int32), torch.empty(N, 4, dtype=torch.int32)
         _kernel("project", dtype)(N, _ptr(means), _ptr(quats), _ptr(scales), _ptr(opacities), _ptr(colors),
-                                  _ptr(viewmat), _ptr(K), width, height, torch.get_num_threads(), _ptr(rays),
+                                  _ptr(viewmat), _ptr(K), width, height, torch.get_num_threads(), None,
                                   _ptr(planes), _ptr(means2d), _ptr(depths), _ptr(features), _ptr(radii),
                                   _ptr(rects))
         out_feat, binned = _bin_and_composite(planes, means2d, opacities, features, radii, depths, rects, width,
@@ -274,13 +274,12 @@ def visible_cpu(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, 
     _require(means)
     dtype, N = means.dtype, means.shape[0]
     inputs = [t.detach().to(dtype).contiguous() for t in (means, quats, scales, opacities, colors, viewmat, K)]
-    rays, planes = torch.empty(N, 9, dtype=dtype), torch.empty(N, 9, dtype=dtype)
+    planes = torch.empty(N, 9, dtype=dtype)
     means2d, depths = torch.empty(N, 2, dtype=dtype), torch.empty(N, dtype=dtype)
     features = torch.empty(N, _library.raster_projected_features(), dtype=dtype)
     radii, rects = torch.empty(N, 2, dtype=torch.int32), torch.empty(N, 4, dtype=torch.int32)
-    _kernel("project", dtype)(N, *(_ptr(t) for t in inputs), int(width), int(height), torch.get_num_threads(),
-                              _ptr(rays), _ptr(planes), _ptr(means2d), _ptr(depths), _ptr(features), _ptr(radii),
-                              _ptr(rects))
+    _kernel("project", dtype)(N, *(_ptr(t) for t in inputs), int(width), int(height), torch.get_num_threads(), None,
+                              _ptr(planes), _ptr(means2d), _ptr(depths), _ptr(features), _ptr(radii), _ptr(rects))
     return radii[:, 0] > 0
 
 

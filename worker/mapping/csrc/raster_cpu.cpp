@@ -11,7 +11,7 @@
 //   radius ceil(3.33 h) per axis, depth T22, camera-frame normal R_c[:,2] flipped towards the camera. Culled (radius
 //   0): centre depth outside (0.01, 1e10), degenerate conic, box off-screen.
 // Per-surfel arrays keep all N input surfels (culled ones are simply never binned):
-//   planes [N,9], rays [N,9] (T; only used to bound where a surfel can reach alpha >= 1/255), means2d [N,2],
+//   planes [N,9], rays [N,9] (T, optional output; composite_cpu bounds the reach rectangles with it), means2d [N,2],
 //   depths [N], opacities [N], features [N,F] (composited channels), radii [N,2], rects [N,4] (reach rectangles).
 // Compositing, per pixel front to back (by centre depth, ties by index): rho = min(u^2 + v^2, 2 |x - c|^2),
 // alpha = min(0.999, o exp(-rho / 2)), skip alpha < 1/255, stop before a surfel whose next T would be <= 1e-4;
@@ -178,7 +178,7 @@ void project(int64_t N, const scalar_t* means, const scalar_t* quats, const scal
             visible = p.cx + rx > 0 && p.cx - rx < W && p.cy + ry > 0 && p.cy - ry < H;
         }
         if (!visible) {
-            std::fill(rays + 9 * i, rays + 9 * i + 9, scalar_t(0));
+            if (rays) std::fill(rays + 9 * i, rays + 9 * i + 9, scalar_t(0));
             std::fill(planes + 9 * i, planes + 9 * i + 9, scalar_t(0));
             std::fill(feats + F * i, feats + F * i + F, scalar_t(0));
             means2d[2 * i] = means2d[2 * i + 1] = depths[i] = scalar_t(0);
@@ -196,7 +196,8 @@ void project(int64_t N, const scalar_t* means, const scalar_t* quats, const scal
             planes[9 * i + 3 + j] = scalar_t(B[j]);
             planes[9 * i + 6 + j] = scalar_t(C[j]);
         }
-        for (int j = 0; j < 9; ++j) rays[9 * i + j] = scalar_t(T[j]);
+        if (rays)
+            for (int j = 0; j < 9; ++j) rays[9 * i + j] = scalar_t(T[j]);
         means2d[2 * i] = scalar_t(p.cx);
         means2d[2 * i + 1] = scalar_t(p.cy);
         depths[i] = scalar_t(T[8]);
