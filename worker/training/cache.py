@@ -33,17 +33,25 @@ def render_synthetic_windows(seeds: list[int], window: int, width: int, height: 
     if held_out:
         raise ValueError(f"seeds {held_out[:5]} are held out for evaluation and must not be used for training")
     rng = np.random.default_rng(rng_seed)
-    intrinsics = default_intrinsics(width, height)
     windows = []
     for seed in seeds:
-        scene = SyntheticScene(seed)
         n = int(rng.integers(path_frames[0], path_frames[1] + 1))
-        poses = scene.camera_path(n)
-        start = int(rng.integers(0, n - window + 1))
-        rendered = [scene.render(poses[i], intrinsics) for i in range(start, start + window)]
-        windows.append((np.stack([r[0] for r in rendered]), np.stack([r[1] for r in rendered]),
-                        poses[start:start + window].copy()))
+        windows.append(render_window(seed, n, int(rng.integers(0, n - window + 1)), window, width, height))
     return windows
+
+
+def render_window(seed: int, path_frames: int, start: int, window: int, width: int, height: int
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Frames start..start+window-1 of scene `seed`'s camera path sampled at `path_frames` frames per loop:
+    (images uint8 [L,H,W,3], depths float32 [L,H,W], c2w float64 [L,4,4])."""
+    if not 0 <= start <= path_frames - window:
+        raise ValueError(f"window {start}..{start + window} does not fit a {path_frames}-frame path")
+    scene = SyntheticScene(seed)
+    intrinsics = default_intrinsics(width, height)
+    poses = scene.camera_path(path_frames)
+    rendered = [scene.render(poses[i], intrinsics) for i in range(start, start + window)]
+    return (np.stack([r[0] for r in rendered]), np.stack([r[1] for r in rendered]),
+            poses[start:start + window].copy())
 
 
 def save_windows(windows: list[tuple[np.ndarray, np.ndarray, np.ndarray]], width: int, height: int,

@@ -1,0 +1,92 @@
+"""The trained frontend against trajectory baselines, in one run (issue 6's table).
+
+`python -m bench training -- --checkpoints A.safetensors [B ...] [--untrained] [--synthetic 10] [--frames 32]
+[--icl DIR ...] [--threads 2] [--json OUT]`
+
+Data: held-out synthetic scenes (seeds 10000.., never used for training; the first `--frames` frames of a 64-frame
+loop at 224x160) and ICL living room (tests/data/icl_mini, and /work/shared/data/icl_livingroom1_micro every 3rd
+frame when present), fitted to 224x160. Methods: identity poses, constant velocity from the first two ground-truth
+poses, and each checkpoint run through the SubmapTracker (submaps of 8, no backend). Metrics: ATE RMSE after Sim(3)
+alignment (metres), depth AbsRel with a per-frame median scale, and PSNR of each frame's raw per-pixel surfels
+rendered from its own camera (no refinement). Prints a markdown table of means per dataset.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from collections import defaultdict
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ICL_DEFAULTS = (("tests/data/icl_mini", 1), ("/work/shared/data/icl_livingroom1_micro", 3))
+
+
+def _fmt(value: float, digits: int) -> str:
+    return "-" if math.isnan(value) else f"{value:.{digits}f}"
+
+
+def main(argv: list[str] | None = None) -> int:
+    from worker.frontend import build_model
+    from worker.frontend.checkpoint import load_checkpoint
+    from worker.training.evaluate import dataset_sequence, evaluate_baselines, evaluate_model, held_out_synthetic
+
+    p = argparse.ArgumentParser(prog="python -m bench training", description=__doc__.split("\n\n")[0])
+    p.add_argument("--checkpoints", type=Path, nargs="*", default=[])
+    p.add_argument("--untrained", action="store_true", help="also score the randomly initialised tiny model")
+    p.add_argument("--synthetic", type=int, default=10, help="held-out synthetic sequences")
+    p.add_argument("--frames", type=int, default=32, help="frames per synthetic sequence")
+    p.add_argument("--icl", nargs="*", help="ICL-format folders (default: icl_mini and the shared micro set)")
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--json", type=Path, help="write every per-sequence score here")
+    args = p.parse_args(argv)
+    torch.set_num_threads(args.threads)
+
+    started = time.perf_counter()
+    groups: dict[str, list] = {}
+    if args.synthetic:
+        groups["synthetic (held out)"] = held_out_synthetic(args.synthetic, args.frames)
+    icl = [(path, 1) for path in args.icl] if args.icl is not None else [
+        (path, stride) for path, stride in ICL_DEFAULTS if Path(path).is_dir()]
+    for path, stride in icl:
+        seq = dataset_sequence(path, stride=stride)
+        groups[f"ICL {seq.name} ({len(seq.images)} fr.)"] = [seq]
+    print(f"data ready in {time.perf_counter() - started:.0f} s: "
+          + ", ".join(f"{k}: {len(v)}" for k, v in groups.items()), flush=True)
+
+    models = [(str(path), lambda path=path: load_checkpoint(path)) for path in args.checkpoints]
+    if args.untrained:
+        models.insert(0, ("untrained", lambda: build_model("tiny").eval()))
+    scores = []
+    for seqs in groups.values():
+        for seq in seqs:
+            scores += evaluate_baselines(seq)
+    for name, load in models:
+        model = load()
+        t0 = time.perf_counter()
+        for seqs in groups.values():
+            for seq in seqs:
+                scores.append(evaluate_model(model, seq, method=name))
+        print(f"{name}: {time.perf_counter() - t0:.0f} s", flush=True)
+
+    group_of = {seq.name: group for group, seqs in groups.items() for seq in seqs}
+    table: dict[tuple[str, str], list] = defaultdict(list)
+    for s in scores:
+        table[(group_of[s.sequence], s.method)].append(s)
+    print("\n| data | method | ATE RMSE (m) | depth AbsRel | raw surfel PSNR (dB) |")
+    print("|---|---|---|---|---|")
+    for (group, method), rows in table.items():
+        ate = float(np.mean([r.ate for r in rows]))
+        rel = float(np.mean([r.abs_rel for r in rows]))
+        ps = float(np.mean([r.psnr for r in rows]))
+        print(f"| {group} | {Path(method).name if method.endswith('.safetensors') else method} | {ate:.3f} | "
+              f"{_fmt(rel, 3)} | {_fmt(ps, 2)} |")
+    print(f"\ntotal {time.perf_counter() - started:.0f} s")
+    if args.json:
+        args.json.write_text(json.dumps([asdict(s) | {"group": group_of[s.sequence]} for s in scores], indent=1))
+    return 0
