@@ -50,6 +50,8 @@ class LoopConfig(_Section):
     relocalization: Literal["hidden_state", "pnp"] = Field(
         "hidden_state", description="hidden_state = f(I_j, M_a) (paper); pnp needs depth (given or predicted)")
     top_k: int = Field(5, ge=1, description="candidates verified per keyframe")
+    max_loops_per_keyframe: int = Field(
+        1, ge=1, description="verified candidates of one keyframe that become loop edges (best first)")
     min_score: float = Field(0.03, ge=0.0, le=1.0, description="descriptor similarity needed to verify a candidate")
     exclusion_frames: int = Field(20, ge=0, description="keyframes this many frames back or closer are not candidates")
     min_inliers: int = Field(12, ge=4, description="PnP verification: inliers needed")

@@ -32,13 +32,15 @@ from worker.engine.loop_closer import DepthKeyframePoints, LoopCloser
 from worker.engine.stage_times import StageTimes
 from worker.engine.surfel_init import grid_from_depth, grid_from_prediction
 from worker.engine.trajectory import Trajectory
-from worker.geometry import Intrinsics, sim3_inverse
-from worker.loop.pose_graph import EdgeSigmas, Sim3PoseGraph
+from worker.geometry import Intrinsics, make_sim3, sim3_decompose, sim3_inverse
+from worker.loop.pose_graph import DEFAULT_SIGMAS, EdgeSigmas, Sim3PoseGraph
 from worker.serialization import pack, unpack
 
 log = logging.getLogger(__name__)
 
 SNAPSHOT_FORMAT = "flashmono.slam/1"
+# Log-scale standard deviation of pose-graph edges when poses and depth are metric: the scale is known.
+METRIC_LOG_SCALE_SIGMA = 1e-4
 
 
 def _w2c(pose_c2w: np.ndarray | torch.Tensor) -> torch.Tensor:
@@ -168,10 +170,13 @@ class SlamSystem:
                 "runtime_breakdown": self.timings.breakdown(int(frames))}
 
     # ------------------------------------------------------------------------------------------------- helpers
-    def _new_pose_graph(self) -> Sim3PoseGraph:
+    def _new_pose_graph(self, metric: bool = False) -> Sim3PoseGraph:
+        """The keyframe pose graph; `metric` (given poses and depth) leaves the scale no freedom."""
         lc = self.config.loop
+        sigmas = {kind: EdgeSigmas(s.rotation, s.translation, METRIC_LOG_SCALE_SIGMA if metric else s.log_scale)
+                  for kind, s in {**DEFAULT_SIGMAS, "loop": EdgeSigmas(0.02, 0.04, 0.02)}.items()}
         return Sim3PoseGraph(robust=None if lc.robust_kernel == "none" else lc.robust_kernel, robust_k=lc.robust_k,
-                             sigmas={"loop": EdgeSigmas(0.02, 0.04, 0.02)})
+                             sigmas=sigmas)
 
     def _check_frame(self, frame: Frame) -> None:
         size = (frame.width, frame.height)
@@ -290,6 +295,7 @@ class SlamSystem:
         surfels), the bag of hidden states and the loop closer."""
         self.mode = mode
         cfg = self.config
+        self.pose_graph = self._new_pose_graph(metric=self._metric_loops())
         needs_model = mode == "monocular" or not (with_depth and cfg.input.surfel_init == "depth")
         if needs_model:
             self._build_frontend()
@@ -409,15 +415,25 @@ class SlamSystem:
 
     # ------------------------------------------------------------------------------------------ loop closure
     def _close_loop(self, index: int, image: torch.Tensor, intrinsics: Intrinsics | None) -> list[dict[str, Any]]:
-        constraint = self.loop_closer.process_keyframe(index, image, intrinsics)
-        if constraint is None:
+        constraints = self.loop_closer.process_keyframe(index, image, intrinsics)
+        if not constraints:
             return []
-        self.pose_graph.add_edge(constraint.i, constraint.j, constraint.relative, kind="loop",
-                                 weight=self.config.loop.loop_weight)
-        event = self._apply_pgo(constraint.j, constraint.i)
-        event["source"] = constraint.source
-        event["scale"] = float(constraint.scale)
+        for constraint in constraints:
+            relative = constraint.relative
+            if self._metric_loops():  # given metric poses and depth: a loop measures no scale change
+                relative = _rigid(relative)
+            self.pose_graph.add_edge(constraint.i, constraint.j, relative, kind="loop",
+                                     weight=self.config.loop.loop_weight)
+        best = constraints[0]
+        event = self._apply_pgo(best.j, best.i)
+        event["source"] = best.source
+        event["scale"] = float(best.scale)
+        if len(constraints) > 1:
+            event["also_to_keyframes"] = [int(c.i) for c in constraints[1:]]
         return [event]
+
+    def _metric_loops(self) -> bool:
+        return self.mode == "posed" and self._with_depth
 
     def _apply_pgo(self, loop_from: int, loop_to: int) -> dict[str, Any]:
         """Optimise the pose graph, move the trajectory and the map; returns the loop event."""
@@ -504,6 +520,12 @@ class SlamSystem:
         if system.backend is not None and state["map"] is not None:
             system.backend.load_state_dict(state["map"])
         return system
+
+def _rigid(pose: np.ndarray) -> np.ndarray:
+    """The SE(3) part of a Sim(3) matrix (scale removed, translation kept)."""
+    s, R, t = sim3_decompose(torch.as_tensor(np.asarray(pose, np.float64)))
+    return make_sim3(R, t).numpy()
+
 
 def _uncrop_intrinsics(intr: Intrinsics, geometry: tuple[float, tuple[int, int, int, int]], width: int,
                        height: int) -> Intrinsics:

@@ -90,8 +90,9 @@ class LoopCloser:
         self.rejected = 0
 
     def process_keyframe(self, index: int, image: torch.Tensor, intrinsics: Intrinsics | None
-                         ) -> LoopConstraint | None:
-        """Register keyframe `index` (image [1,3,H,W] in [0,1]); a verified loop constraint (i, index) or None."""
+                         ) -> list[LoopConstraint]:
+        """Register keyframe `index` (image [1,3,H,W] in [0,1]); its verified loop constraints (i, index), best
+        candidate first, at most `max_loops_per_keyframe` of them (empty during the cooldown)."""
         with self.timings.measure("loop_detection"):
             candidates = self.detector.detect(index, image)
         descriptor = self.detector.descriptor_of(index)
@@ -99,18 +100,23 @@ class LoopCloser:
             self.pnp.add_keyframe(index, image, descriptor if isinstance(descriptor, OrbFeatures) else None)
         self.keyframes_seen += 1
         if self.keyframes_seen - self.last_loop_keyframe_count <= self.cfg.loop_cooldown_keyframes:
-            return None
+            return []
+        accepted: list[LoopConstraint] = []
         for candidate in candidates:
             try:
                 with self.timings.measure("loop_relocalization"):
                     constraint = self.relocalizer.relocalize(candidate.match, index, image, intrinsics)
             except ValueError:  # e.g. the candidate's submap is still open: no cached state yet
                 continue
-            if constraint.accepted:
-                self.last_loop_keyframe_count = self.keyframes_seen
-                return constraint
-            self.rejected += 1
-        return None
+            if not constraint.accepted:
+                self.rejected += 1
+                continue
+            accepted.append(constraint)
+            if len(accepted) >= self.cfg.max_loops_per_keyframe:
+                break
+        if accepted:
+            self.last_loop_keyframe_count = self.keyframes_seen
+        return accepted
 
     def state_dict(self) -> dict:
         return {
