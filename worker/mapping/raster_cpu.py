@@ -1,5 +1,5 @@
-"""Compiled CPU rasterizer: projection, tile binning, compositing and the backward of all three in C++ (OpenMP),
-behind torch.autograd.Functions.
+"""Compiled CPU rasterizer: projection, tile binning, compositing and the backward of all three in C++, behind
+torch.autograd.Functions; torch.get_num_threads() worker threads.
 
 `rasterize_cpu` is the fast path `rasterize(backend="cpu")` uses: one forward call chain from surfel attributes to
 the composited [colour, depth, camera normal] channels, one backward chain to the gradients of means, quats, scales,
@@ -7,7 +7,7 @@ opacities, colours and the view matrix. `composite_cpu` runs the compositing sta
 surfels (the stage `raster_reference.composite_reference` implements in torch); `visible_cpu` is the culling rule.
 
 `csrc/raster_cpu.cpp` has a plain C ABI and no torch headers, so the first use compiles it in a few seconds with
-the system C++ compiler ($CXX, default c++; -O3 -fopenmp) into $FLASHMONO_EXT_DIR (default
+the system C++ compiler ($CXX, default c++; -O3 -pthread) into $FLASHMONO_EXT_DIR (default
 ~/.cache/flashmono/torch_extensions), keyed by a hash of the source, flags and compiler; later uses load the cached
 library. Python owns every buffer and calls the kernels through ctypes (the GIL is released during a call). If the
 build fails, `available()` is False, `load_error()` says why, and `rasterize` falls back to the pure-torch reference.
@@ -30,7 +30,7 @@ import torch
 from .raster_tiles import tile_grid
 
 SOURCE = Path(__file__).parent / "csrc" / "raster_cpu.cpp"
-CXX_FLAGS = ["-O3", "-std=c++17", "-fPIC", "-shared", "-fopenmp"]
+CXX_FLAGS = ["-O3", "-std=c++17", "-fPIC", "-shared", "-pthread"]
 _PAIR_FIXED = 12  # per-pair gradient columns before the features: dA(3) dB(3) dC(3) dmeans2d(2) dopacity(1)
 
 _lock = threading.Lock()

@@ -1,5 +1,5 @@
 // Compiled CPU rasterizer for 2D Gaussian surfels (gsplat 1.5.3 rules): projection, tile binning, compositing,
-// and the backward of all three, parallel with OpenMP.
+// and the backward of all three, on worker threads (see run_workers).
 //
 // Plain C ABI (no torch headers, so it compiles in seconds); worker/mapping/raster_cpu.py owns every buffer and
 // calls these functions through ctypes. Suffix _f32 / _f64 gives the float type.
@@ -19,12 +19,12 @@
 // walks each pixel's list back to front, recovering T by division (as gsplat does), and writes per-(tile, surfel)
 // gradients that are then summed per surfel in a fixed order (deterministic for any thread count).
 
-#include <omp.h>
-
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <thread>
 #include <vector>
 
 namespace {
@@ -36,7 +36,40 @@ constexpr double kFarPlane = 1e10;
 constexpr double kRadiusSigmas = 3.33;
 constexpr int kProjectedFeatures = 7;  // colour (3), depth, camera-frame normal (3)
 
-int tiles_along(int n) { return (n + kTile - 1) / kTile; }
+int tiles_along(int n) {
+    return (n + kTile - 1) / kTile;
+}
+
+// Work sharing: consecutive index ranges of `grain` handed out once each until [0, n) is used up.
+class Ranges {
+  public:
+    Ranges(int64_t n, int64_t grain) : n_(n), grain_(std::max<int64_t>(1, grain)) {}
+    bool claim(int64_t& begin, int64_t& end) {
+        begin = next_.fetch_add(grain_, std::memory_order_relaxed);
+        if (begin >= n_) return false;
+        end = std::min(n_, begin + grain_);
+        return true;
+    }
+    int64_t chunks() const { return (n_ + grain_ - 1) / grain_; }
+
+  private:
+    std::atomic<int64_t> next_{0};
+    const int64_t n_, grain_;
+};
+
+// Runs worker(ranges) on `threads` threads (the caller and threads - 1 std::threads) over [0, n). Not OpenMP on
+// purpose: idle workers wait passively (join), where OpenMP's spinning workers, on a machine whose cores are busy
+// with other processes, take the cores from the ones still working (measured: 2 threads 3-6x slower than 1).
+template <typename Worker>
+void run_workers(int threads, int64_t n, int64_t grain, Worker worker) {
+    Ranges ranges(n, grain);
+    const int64_t extra = std::max<int64_t>(0, std::min<int64_t>(threads, ranges.chunks()) - 1);
+    std::vector<std::thread> pool;
+    pool.reserve(size_t(extra));
+    for (int64_t i = 0; i < extra; ++i) pool.emplace_back([&ranges, &worker] { worker(ranges); });
+    worker(ranges);
+    for (std::thread& t : pool) t.join();
+}
 
 // ---------------------------------------------------------------------------------------------------------------
 // Projection
@@ -66,9 +99,9 @@ struct Projection {
     double Rc[9];         // camera-frame rotation R_cw Rq
     double mc[3];         // camera-frame centre
     double su, sv;
-    double T[9];          // ray transform, rows T0, T1, T2
+    double T[9];  // ray transform, rows T0, T1, T2
     double d, cx, cy, hx2, hy2;
-    double facing;        // +1 when the normal R_c[:,2] already faces the camera, else -1
+    double facing;  // +1 when the normal R_c[:,2] already faces the camera, else -1
 };
 
 inline void rotmat_from_unit_quat(const double* q, double* R) {
@@ -167,50 +200,52 @@ void project(int64_t N, const scalar_t* means, const scalar_t* quats, const scal
              int32_t* rects) {
     const Camera cam = load_camera(viewmat, K);
     constexpr int F = kProjectedFeatures;
-#pragma omp parallel for num_threads(threads) schedule(static, 1024)
-    for (int64_t i = 0; i < N; ++i) {
-        Projection p;
-        bool visible = project_one(cam, means + 3 * i, quats + 4 * i, scales + 2 * i, p);
-        double rx = 0, ry = 0;
-        if (visible) {
-            rx = std::ceil(kRadiusSigmas * std::sqrt(std::max(p.hx2, 1e-4)));
-            ry = std::ceil(kRadiusSigmas * std::sqrt(std::max(p.hy2, 1e-4)));
-            visible = p.cx + rx > 0 && p.cx - rx < W && p.cy + ry > 0 && p.cy - ry < H;
-        }
-        if (!visible) {
-            if (rays) std::fill(rays + 9 * i, rays + 9 * i + 9, scalar_t(0));
-            std::fill(planes + 9 * i, planes + 9 * i + 9, scalar_t(0));
-            std::fill(feats + F * i, feats + F * i + F, scalar_t(0));
-            means2d[2 * i] = means2d[2 * i + 1] = depths[i] = scalar_t(0);
-            radii[2 * i] = radii[2 * i + 1] = 0;
-            std::fill(rects + 4 * i, rects + 4 * i + 4, 0);
-            continue;
-        }
-        const double* T = p.T;
-        double A[3], B[3], C[3];
-        cross3(T + 3, T + 6, A);
-        cross3(T + 6, T, B);
-        cross3(T, T + 3, C);
-        for (int j = 0; j < 3; ++j) {
-            planes[9 * i + j] = scalar_t(A[j]);
-            planes[9 * i + 3 + j] = scalar_t(B[j]);
-            planes[9 * i + 6 + j] = scalar_t(C[j]);
-        }
-        if (rays)
-            for (int j = 0; j < 9; ++j) rays[9 * i + j] = scalar_t(T[j]);
-        means2d[2 * i] = scalar_t(p.cx);
-        means2d[2 * i + 1] = scalar_t(p.cy);
-        depths[i] = scalar_t(T[8]);
-        scalar_t* f = feats + F * i;
-        for (int j = 0; j < 3; ++j) {
-            f[j] = colors[3 * i + j];
-            f[4 + j] = scalar_t(p.Rc[3 * j + 2] * p.facing);
-        }
-        f[3] = scalar_t(T[8]);
-        radii[2 * i] = int32_t(rx);
-        radii[2 * i + 1] = int32_t(ry);
-        reach_rect(T, double(means2d[2 * i]), double(means2d[2 * i + 1]), double(opac[i]), W, H, rects + 4 * i);
-    }
+    run_workers(threads, N, 1024, [&](Ranges& ranges) {
+        for (int64_t lo, hi; ranges.claim(lo, hi);)
+            for (int64_t i = lo; i < hi; ++i) {
+                Projection p;
+                bool visible = project_one(cam, means + 3 * i, quats + 4 * i, scales + 2 * i, p);
+                double rx = 0, ry = 0;
+                if (visible) {
+                    rx = std::ceil(kRadiusSigmas * std::sqrt(std::max(p.hx2, 1e-4)));
+                    ry = std::ceil(kRadiusSigmas * std::sqrt(std::max(p.hy2, 1e-4)));
+                    visible = p.cx + rx > 0 && p.cx - rx < W && p.cy + ry > 0 && p.cy - ry < H;
+                }
+                if (!visible) {
+                    if (rays) std::fill(rays + 9 * i, rays + 9 * i + 9, scalar_t(0));
+                    std::fill(planes + 9 * i, planes + 9 * i + 9, scalar_t(0));
+                    std::fill(feats + F * i, feats + F * i + F, scalar_t(0));
+                    means2d[2 * i] = means2d[2 * i + 1] = depths[i] = scalar_t(0);
+                    radii[2 * i] = radii[2 * i + 1] = 0;
+                    std::fill(rects + 4 * i, rects + 4 * i + 4, 0);
+                    continue;
+                }
+                const double* T = p.T;
+                double A[3], B[3], C[3];
+                cross3(T + 3, T + 6, A);
+                cross3(T + 6, T, B);
+                cross3(T, T + 3, C);
+                for (int j = 0; j < 3; ++j) {
+                    planes[9 * i + j] = scalar_t(A[j]);
+                    planes[9 * i + 3 + j] = scalar_t(B[j]);
+                    planes[9 * i + 6 + j] = scalar_t(C[j]);
+                }
+                if (rays)
+                    for (int j = 0; j < 9; ++j) rays[9 * i + j] = scalar_t(T[j]);
+                means2d[2 * i] = scalar_t(p.cx);
+                means2d[2 * i + 1] = scalar_t(p.cy);
+                depths[i] = scalar_t(T[8]);
+                scalar_t* f = feats + F * i;
+                for (int j = 0; j < 3; ++j) {
+                    f[j] = colors[3 * i + j];
+                    f[4 + j] = scalar_t(p.Rc[3 * j + 2] * p.facing);
+                }
+                f[3] = scalar_t(T[8]);
+                radii[2 * i] = int32_t(rx);
+                radii[2 * i + 1] = int32_t(ry);
+                reach_rect(T, double(means2d[2 * i]), double(means2d[2 * i + 1]), double(opac[i]), W, H, rects + 4 * i);
+            }
+    });
 }
 
 // Chain rule from the projected quantities' gradients (uv planes, means2d, features) to means, quats, scales, colours
@@ -226,84 +261,91 @@ void project_backward(int64_t N, const scalar_t* means, const scalar_t* quats, c
     constexpr int64_t kBlock = 1024;
     const int64_t n_blocks = (N + kBlock - 1) / kBlock;
     std::vector<double> block_dV(n_blocks * 12, 0.0);  // per block: d R_cw (9, row-major), d t (3)
-#pragma omp parallel for num_threads(threads) schedule(static)
-    for (int64_t b = 0; b < n_blocks; ++b) {
-        double* dV = &block_dV[12 * b];
-        for (int64_t i = b * kBlock; i < std::min(N, (b + 1) * kBlock); ++i) {
-            for (int j = 0; j < 3; ++j) d_colors[3 * i + j] = d_feats[F * i + j];
-            Projection p;
-            if (radii[2 * i] <= 0 || !project_one(cam, means + 3 * i, quats + 4 * i, scales + 2 * i, p)) {
-                std::fill(d_means + 3 * i, d_means + 3 * i + 3, scalar_t(0));
-                std::fill(d_quats + 4 * i, d_quats + 4 * i + 4, scalar_t(0));
-                std::fill(d_scales + 2 * i, d_scales + 2 * i + 2, scalar_t(0));
-                continue;
+    run_workers(threads, n_blocks, 4, [&](Ranges& ranges) {
+        for (int64_t lo, hi; ranges.claim(lo, hi);)
+            for (int64_t b = lo; b < hi; ++b) {
+                double* dV = &block_dV[12 * b];
+                for (int64_t i = b * kBlock; i < std::min(N, (b + 1) * kBlock); ++i) {
+                    for (int j = 0; j < 3; ++j) d_colors[3 * i + j] = d_feats[F * i + j];
+                    Projection p;
+                    if (radii[2 * i] <= 0 || !project_one(cam, means + 3 * i, quats + 4 * i, scales + 2 * i, p)) {
+                        std::fill(d_means + 3 * i, d_means + 3 * i + 3, scalar_t(0));
+                        std::fill(d_quats + 4 * i, d_quats + 4 * i + 4, scalar_t(0));
+                        std::fill(d_scales + 2 * i, d_scales + 2 * i + 2, scalar_t(0));
+                        continue;
+                    }
+                    const double* T = p.T;
+                    double gA[3], gB[3], gC[3], tmp[3];
+                    for (int j = 0; j < 3; ++j) {
+                        gA[j] = d_planes[9 * i + j];
+                        gB[j] = d_planes[9 * i + 3 + j];
+                        gC[j] = d_planes[9 * i + 6 + j];
+                    }
+                    double dT[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
+                    double* dT0 = dT;
+                    double* dT1 = dT + 3;
+                    double* dT2 = dT + 6;
+                    auto add = [](double* to, const double* v) { to[0] += v[0], to[1] += v[1], to[2] += v[2]; };
+                    // c = a x b: dc/da^T g = b x g, dc/db^T g = g x a
+                    cross3(T + 6, gA, tmp), add(dT1, tmp);  // A = T1 x T2
+                    cross3(gA, T + 3, tmp), add(dT2, tmp);
+                    cross3(T, gB, tmp), add(dT2, tmp);  // B = T2 x T0
+                    cross3(gB, T + 6, tmp), add(dT0, tmp);
+                    cross3(T + 3, gC, tmp), add(dT0, tmp);  // C = T0 x T1
+                    cross3(gC, T, tmp), add(dT1, tmp);
+                    const double gcx = d_means2d[2 * i], gcy = d_means2d[2 * i + 1];
+                    const double sgn[3] = {1.0, 1.0, -1.0};
+                    for (int j = 0; j < 3; ++j) {
+                        dT0[j] += gcx * sgn[j] * T[6 + j] / p.d;
+                        dT1[j] += gcy * sgn[j] * T[6 + j] / p.d;
+                        dT2[j] += (gcx * (T[j] - 2 * p.cx * T[6 + j]) + gcy * (T[3 + j] - 2 * p.cy * T[6 + j])) *
+                                  sgn[j] / p.d;
+                    }
+                    dT[8] += d_feats[F * i + 3];  // depth feature = T22
+                    double dWH[9];                // K^T dT
+                    for (int k = 0; k < 3; ++k)
+                        for (int c = 0; c < 3; ++c)
+                            dWH[3 * k + c] = cam.K[k] * dT[c] + cam.K[3 + k] * dT[3 + c] + cam.K[6 + k] * dT[6 + c];
+                    double dRc[9], dmc[3];
+                    double dsu = 0, dsv = 0;
+                    for (int k = 0; k < 3; ++k) {
+                        dRc[3 * k] = dWH[3 * k] * p.su;
+                        dRc[3 * k + 1] = dWH[3 * k + 1] * p.sv;
+                        dRc[3 * k + 2] = double(d_feats[F * i + 4 + k]) * p.facing;
+                        dsu += dWH[3 * k] * p.Rc[3 * k];
+                        dsv += dWH[3 * k + 1] * p.Rc[3 * k + 1];
+                        dmc[k] = dWH[3 * k + 2];
+                    }
+                    const scalar_t* mu = means + 3 * i;
+                    for (int j = 0; j < 3; ++j)
+                        d_means[3 * i + j] =
+                            scalar_t(cam.R[j] * dmc[0] + cam.R[3 + j] * dmc[1] + cam.R[6 + j] * dmc[2]);
+                    double G[9];  // d Rq = R_cw^T dRc
+                    for (int j = 0; j < 3; ++j)
+                        for (int c = 0; c < 3; ++c)
+                            G[3 * j + c] = cam.R[j] * dRc[c] + cam.R[3 + j] * dRc[3 + c] + cam.R[6 + j] * dRc[6 + c];
+                    for (int k = 0; k < 3; ++k) {
+                        for (int j = 0; j < 3; ++j)
+                            dV[3 * k + j] += dmc[k] * double(mu[j]) + dRc[3 * k] * p.Rq[3 * j] +
+                                             dRc[3 * k + 1] * p.Rq[3 * j + 1] + dRc[3 * k + 2] * p.Rq[3 * j + 2];
+                        dV[9 + k] += dmc[k];
+                    }
+                    const double w = p.q[0], x = p.q[1], y = p.q[2], z = p.q[3];
+                    double dq[4];
+                    dq[0] = 2 * (-z * G[1] + y * G[2] + z * G[3] - x * G[5] - y * G[6] + x * G[7]);
+                    dq[1] = 2 * (y * G[1] + z * G[2] + y * G[3] - 2 * x * G[4] - w * G[5] + z * G[6] + w * G[7] -
+                                 2 * x * G[8]);
+                    dq[2] = 2 * (-2 * y * G[0] + x * G[1] + w * G[2] + x * G[3] + z * G[5] - w * G[6] + z * G[7] -
+                                 2 * y * G[8]);
+                    dq[3] = 2 * (-2 * z * G[0] - w * G[1] + x * G[2] + w * G[3] - 2 * z * G[4] + y * G[5] + x * G[6] +
+                                 y * G[7]);
+                    const double radial = p.q_clamped ? 0.0 : w * dq[0] + x * dq[1] + y * dq[2] + z * dq[3];
+                    for (int j = 0; j < 4; ++j) d_quats[4 * i + j] = scalar_t((dq[j] - p.q[j] * radial) / p.q_norm);
+                    d_scales[2 * i] = scalar_t(dsu);
+                    d_scales[2 * i + 1] = scalar_t(dsv);
+                }
             }
-            const double* T = p.T;
-            double gA[3], gB[3], gC[3], tmp[3];
-            for (int j = 0; j < 3; ++j) {
-                gA[j] = d_planes[9 * i + j];
-                gB[j] = d_planes[9 * i + 3 + j];
-                gC[j] = d_planes[9 * i + 6 + j];
-            }
-            double dT[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
-            double* dT0 = dT;
-            double* dT1 = dT + 3;
-            double* dT2 = dT + 6;
-            auto add = [](double* to, const double* v) { to[0] += v[0], to[1] += v[1], to[2] += v[2]; };
-            // c = a x b: dc/da^T g = b x g, dc/db^T g = g x a
-            cross3(T + 6, gA, tmp), add(dT1, tmp);  // A = T1 x T2
-            cross3(gA, T + 3, tmp), add(dT2, tmp);
-            cross3(T, gB, tmp), add(dT2, tmp);  // B = T2 x T0
-            cross3(gB, T + 6, tmp), add(dT0, tmp);
-            cross3(T + 3, gC, tmp), add(dT0, tmp);  // C = T0 x T1
-            cross3(gC, T, tmp), add(dT1, tmp);
-            const double gcx = d_means2d[2 * i], gcy = d_means2d[2 * i + 1];
-            const double sgn[3] = {1.0, 1.0, -1.0};
-            for (int j = 0; j < 3; ++j) {
-                dT0[j] += gcx * sgn[j] * T[6 + j] / p.d;
-                dT1[j] += gcy * sgn[j] * T[6 + j] / p.d;
-                dT2[j] += (gcx * (T[j] - 2 * p.cx * T[6 + j]) + gcy * (T[3 + j] - 2 * p.cy * T[6 + j])) * sgn[j] / p.d;
-            }
-            dT[8] += d_feats[F * i + 3];  // depth feature = T22
-            double dWH[9];                // K^T dT
-            for (int k = 0; k < 3; ++k)
-                for (int c = 0; c < 3; ++c)
-                    dWH[3 * k + c] = cam.K[k] * dT[c] + cam.K[3 + k] * dT[3 + c] + cam.K[6 + k] * dT[6 + c];
-            double dRc[9], dmc[3];
-            double dsu = 0, dsv = 0;
-            for (int k = 0; k < 3; ++k) {
-                dRc[3 * k] = dWH[3 * k] * p.su;
-                dRc[3 * k + 1] = dWH[3 * k + 1] * p.sv;
-                dRc[3 * k + 2] = double(d_feats[F * i + 4 + k]) * p.facing;
-                dsu += dWH[3 * k] * p.Rc[3 * k];
-                dsv += dWH[3 * k + 1] * p.Rc[3 * k + 1];
-                dmc[k] = dWH[3 * k + 2];
-            }
-            const scalar_t* mu = means + 3 * i;
-            for (int j = 0; j < 3; ++j)
-                d_means[3 * i + j] = scalar_t(cam.R[j] * dmc[0] + cam.R[3 + j] * dmc[1] + cam.R[6 + j] * dmc[2]);
-            double G[9];  // d Rq = R_cw^T dRc
-            for (int j = 0; j < 3; ++j)
-                for (int c = 0; c < 3; ++c)
-                    G[3 * j + c] = cam.R[j] * dRc[c] + cam.R[3 + j] * dRc[3 + c] + cam.R[6 + j] * dRc[6 + c];
-            for (int k = 0; k < 3; ++k) {
-                for (int j = 0; j < 3; ++j)
-                    dV[3 * k + j] += dmc[k] * double(mu[j]) + dRc[3 * k] * p.Rq[3 * j] +
-                                     dRc[3 * k + 1] * p.Rq[3 * j + 1] + dRc[3 * k + 2] * p.Rq[3 * j + 2];
-                dV[9 + k] += dmc[k];
-            }
-            const double w = p.q[0], x = p.q[1], y = p.q[2], z = p.q[3];
-            double dq[4];
-            dq[0] = 2 * (-z * G[1] + y * G[2] + z * G[3] - x * G[5] - y * G[6] + x * G[7]);
-            dq[1] = 2 * (y * G[1] + z * G[2] + y * G[3] - 2 * x * G[4] - w * G[5] + z * G[6] + w * G[7] - 2 * x * G[8]);
-            dq[2] = 2 * (-2 * y * G[0] + x * G[1] + w * G[2] + x * G[3] + z * G[5] - w * G[6] + z * G[7] - 2 * y * G[8]);
-            dq[3] = 2 * (-2 * z * G[0] - w * G[1] + x * G[2] + w * G[3] - 2 * z * G[4] + y * G[5] + x * G[6] + y * G[7]);
-            const double radial = p.q_clamped ? 0.0 : w * dq[0] + x * dq[1] + y * dq[2] + z * dq[3];
-            for (int j = 0; j < 4; ++j) d_quats[4 * i + j] = scalar_t((dq[j] - p.q[j] * radial) / p.q_norm);
-            d_scales[2 * i] = scalar_t(dsu);
-            d_scales[2 * i + 1] = scalar_t(dsv);
-        }
-    }
+    });
     double dV[12] = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
     for (int64_t b = 0; b < n_blocks; ++b)
         for (int j = 0; j < 12; ++j) dV[j] += block_dV[12 * b + j];
@@ -381,11 +423,13 @@ void bin_fill(const scalar_t* means2d, const int32_t* radii, const scalar_t* dep
         for (int ty = r[1]; ty < r[3]; ++ty)
             for (int tx = r[0]; tx < r[2]; ++tx) keys[cursor[int64_t(ty) * tx_n + tx]++] = key;
     }
-#pragma omp parallel for num_threads(threads) schedule(dynamic, 4)
-    for (int64_t t = 0; t < n_tiles; ++t) {
-        std::sort(keys.begin() + tile_offsets[t], keys.begin() + tile_offsets[t + 1]);
-        for (int64_t k = tile_offsets[t]; k < tile_offsets[t + 1]; ++k) pair_surfel[k] = keys[k].index;
-    }
+    run_workers(threads, n_tiles, 4, [&](Ranges& ranges) {
+        for (int64_t lo, hi; ranges.claim(lo, hi);)
+            for (int64_t t = lo; t < hi; ++t) {
+                std::sort(keys.begin() + tile_offsets[t], keys.begin() + tile_offsets[t + 1]);
+                for (int64_t k = tile_offsets[t]; k < tile_offsets[t + 1]; ++k) pair_surfel[k] = keys[k].index;
+            }
+    });
 }
 
 // surfel -> its pair positions, in ascending position order.
@@ -401,12 +445,14 @@ void build_surfel_index(const int32_t* pair_surfel, int64_t P, int64_t N, int64_
 template <typename scalar_t>
 void reach_rects(const scalar_t* rays, const scalar_t* means2d, const scalar_t* opac, int64_t M, int W, int H,
                  int threads, int32_t* rects) {
-#pragma omp parallel for num_threads(threads) schedule(static)
-    for (int64_t i = 0; i < M; ++i) {
-        double T[9];
-        for (int j = 0; j < 9; ++j) T[j] = rays[9 * i + j];
-        reach_rect(T, double(means2d[2 * i]), double(means2d[2 * i + 1]), double(opac[i]), W, H, rects + 4 * i);
-    }
+    run_workers(threads, M, 1024, [&](Ranges& ranges) {
+        for (int64_t lo, hi; ranges.claim(lo, hi);)
+            for (int64_t i = lo; i < hi; ++i) {
+                double T[9];
+                for (int j = 0; j < 9; ++j) T[j] = rays[9 * i + j];
+                reach_rect(T, double(means2d[2 * i]), double(means2d[2 * i + 1]), double(opac[i]), W, H, rects + 4 * i);
+            }
+    });
 }
 
 // ---------------------------------------------------------------------------------------------------------------
@@ -465,61 +511,60 @@ void forward_impl(const Binning& b, const int32_t* rects, const scalar_t* planes
                   const scalar_t* opac, const scalar_t* feats, int F, int W, int H, int threads, scalar_t* out_feat,
                   scalar_t* out_T, int32_t* out_count) {
     const int64_t n_tiles = int64_t(b.tiles_x) * b.tiles_y;
-#pragma omp parallel num_threads(threads)
-    {
+    run_workers(threads, n_tiles, 1, [&](Ranges& ranges) {
         std::vector<scalar_t> T(kTilePixels), acc(kTilePixels * F);
         std::vector<int32_t> count(kTilePixels);
         std::vector<char> done(kTilePixels);
-#pragma omp for schedule(dynamic, 1)
-        for (int64_t t = 0; t < n_tiles; ++t) {
-            const int x0 = int(t % b.tiles_x) * kTile, y0 = int(t / b.tiles_x) * kTile;
-            const int tw = std::min(kTile, W - x0), th = std::min(kTile, H - y0);
-            std::fill(T.begin(), T.end(), scalar_t(1));
-            std::fill(acc.begin(), acc.end(), scalar_t(0));
-            std::fill(count.begin(), count.end(), 0);
-            std::fill(done.begin(), done.end(), 0);
-            int remaining = tw * th;
-            const int64_t start = b.tile_offsets[t], end = b.tile_offsets[t + 1];
-            for (int64_t k = start; k < end && remaining > 0; ++k) {
-                const int64_t g = b.pair_surfel[k];
-                const int32_t* r = rects + 4 * g;
-                const int ys = std::max(r[1], y0), ye = std::min(r[3], y0 + th);
-                const int xs = std::max(r[0], x0), xe = std::min(r[2], x0 + tw);
-                if (ys >= ye || xs >= xe) continue;
-                SurfelView<scalar_t> s;
-                s.load(planes, means2d, opac, g);
-                const scalar_t* f = feats + int64_t(F) * g;
-                Hit<scalar_t> h;
-                for (int py = ys; py < ye; ++py) {
-                    const scalar_t y = scalar_t(py) + scalar_t(0.5);
-                    for (int px = xs; px < xe; ++px) {
-                        const int l = (py - y0) * kTile + (px - x0);
-                        if (done[l]) continue;
-                        if (!evaluate(s, scalar_t(px) + scalar_t(0.5), y, h)) continue;
-                        const scalar_t next_T = T[l] * (scalar_t(1) - h.alpha);
-                        if (next_T <= scalar_t(1e-4)) {
-                            done[l] = 1;
-                            --remaining;
-                            continue;
+        for (int64_t lo, hi; ranges.claim(lo, hi);)
+            for (int64_t t = lo; t < hi; ++t) {
+                const int x0 = int(t % b.tiles_x) * kTile, y0 = int(t / b.tiles_x) * kTile;
+                const int tw = std::min(kTile, W - x0), th = std::min(kTile, H - y0);
+                std::fill(T.begin(), T.end(), scalar_t(1));
+                std::fill(acc.begin(), acc.end(), scalar_t(0));
+                std::fill(count.begin(), count.end(), 0);
+                std::fill(done.begin(), done.end(), 0);
+                int remaining = tw * th;
+                const int64_t start = b.tile_offsets[t], end = b.tile_offsets[t + 1];
+                for (int64_t k = start; k < end && remaining > 0; ++k) {
+                    const int64_t g = b.pair_surfel[k];
+                    const int32_t* r = rects + 4 * g;
+                    const int ys = std::max(r[1], y0), ye = std::min(r[3], y0 + th);
+                    const int xs = std::max(r[0], x0), xe = std::min(r[2], x0 + tw);
+                    if (ys >= ye || xs >= xe) continue;
+                    SurfelView<scalar_t> s;
+                    s.load(planes, means2d, opac, g);
+                    const scalar_t* f = feats + int64_t(F) * g;
+                    Hit<scalar_t> h;
+                    for (int py = ys; py < ye; ++py) {
+                        const scalar_t y = scalar_t(py) + scalar_t(0.5);
+                        for (int px = xs; px < xe; ++px) {
+                            const int l = (py - y0) * kTile + (px - x0);
+                            if (done[l]) continue;
+                            if (!evaluate(s, scalar_t(px) + scalar_t(0.5), y, h)) continue;
+                            const scalar_t next_T = T[l] * (scalar_t(1) - h.alpha);
+                            if (next_T <= scalar_t(1e-4)) {
+                                done[l] = 1;
+                                --remaining;
+                                continue;
+                            }
+                            const scalar_t w = h.alpha * T[l];
+                            scalar_t* a = &acc[l * F];
+                            for (int c = 0; c < F; ++c) a[c] += w * f[c];
+                            T[l] = next_T;
+                            count[l] = int32_t(k - start + 1);
                         }
-                        const scalar_t w = h.alpha * T[l];
-                        scalar_t* a = &acc[l * F];
-                        for (int c = 0; c < F; ++c) a[c] += w * f[c];
-                        T[l] = next_T;
-                        count[l] = int32_t(k - start + 1);
                     }
                 }
+                for (int ly = 0; ly < th; ++ly)
+                    for (int lx = 0; lx < tw; ++lx) {
+                        const int l = ly * kTile + lx;
+                        const int64_t pix = int64_t(y0 + ly) * W + (x0 + lx);
+                        out_T[pix] = T[l];
+                        out_count[pix] = count[l];
+                        for (int c = 0; c < F; ++c) out_feat[pix * F + c] = acc[l * F + c];
+                    }
             }
-            for (int ly = 0; ly < th; ++ly)
-                for (int lx = 0; lx < tw; ++lx) {
-                    const int l = ly * kTile + lx;
-                    const int64_t pix = int64_t(y0 + ly) * W + (x0 + lx);
-                    out_T[pix] = T[l];
-                    out_count[pix] = count[l];
-                    for (int c = 0; c < F; ++c) out_feat[pix * F + c] = acc[l * F + c];
-                }
-        }
-    }
+    });
 }
 
 // Per-pair gradient layout: dA(3) dB(3) dC(3) dmeans2d(2) dopacity(1) dfeatures(F)
@@ -532,93 +577,92 @@ void backward_impl(const Binning& b, const int32_t* rects, const scalar_t* plane
                    scalar_t* pair_grads) {
     const int64_t n_tiles = int64_t(b.tiles_x) * b.tiles_y;
     const int stride = kPairFixed + F;
-#pragma omp parallel num_threads(threads)
-    {
+    run_workers(threads, n_tiles, 1, [&](Ranges& ranges) {
         // transmittance bookkeeping in double: T is recovered by repeated division, S by a long sum
         std::vector<double> T(kTilePixels), S(kTilePixels), Tf(kTilePixels), gA(kTilePixels);
         std::vector<scalar_t> gf(kTilePixels * F);
         std::vector<int32_t> count(kTilePixels);
         std::vector<double> acc(stride);
-#pragma omp for schedule(dynamic, 1)
-        for (int64_t t = 0; t < n_tiles; ++t) {
-            const int x0 = int(t % b.tiles_x) * kTile, y0 = int(t / b.tiles_x) * kTile;
-            const int tw = std::min(kTile, W - x0), th = std::min(kTile, H - y0);
-            const int64_t start = b.tile_offsets[t], end = b.tile_offsets[t + 1];
-            std::memset(pair_grads + start * stride, 0, sizeof(scalar_t) * size_t((end - start) * stride));
-            int max_count = 0;
-            std::fill(count.begin(), count.end(), 0);
-            for (int ly = 0; ly < th; ++ly)
-                for (int lx = 0; lx < tw; ++lx) {
-                    const int l = ly * kTile + lx;
-                    const int64_t pix = int64_t(y0 + ly) * W + (x0 + lx);
-                    T[l] = Tf[l] = T_final[pix];
-                    S[l] = 0.0;
-                    gA[l] = g_alpha[pix];
-                    count[l] = counts[pix];
-                    max_count = std::max(max_count, int(counts[pix]));
-                    for (int c = 0; c < F; ++c) gf[l * F + c] = g_feat[pix * F + c];
-                }
-            for (int64_t k = start + max_count - 1; k >= start; --k) {
-                const int64_t g = b.pair_surfel[k];
-                const int32_t* r = rects + 4 * g;
-                const int ys = std::max(r[1], y0), ye = std::min(r[3], y0 + th);
-                const int xs = std::max(r[0], x0), xe = std::min(r[2], x0 + tw);
-                if (ys >= ye || xs >= xe) continue;
-                SurfelView<scalar_t> s;
-                s.load(planes, means2d, opac, g);
-                const scalar_t* f = feats + int64_t(F) * g;
-                std::fill(acc.begin(), acc.end(), 0.0);
-                bool touched = false;
-                Hit<scalar_t> h;
-                const int32_t rank = int32_t(k - start);
-                for (int py = ys; py < ye; ++py) {
-                    const scalar_t y = scalar_t(py) + scalar_t(0.5);
-                    for (int px = xs; px < xe; ++px) {
-                        const int l = (py - y0) * kTile + (px - x0);
-                        if (rank >= count[l]) continue;
-                        const scalar_t x = scalar_t(px) + scalar_t(0.5);
-                        if (!evaluate(s, x, y, h)) continue;
-                        touched = true;
-                        const double keep = 1.0 - double(h.alpha), inv_keep = 1.0 / keep;
-                        const double T_i = T[l] * inv_keep;
-                        const double w = double(h.alpha) * T_i;
-                        const scalar_t* gl = &gf[l * F];
-                        double fdot = 0;
-                        for (int c = 0; c < F; ++c) {
-                            fdot += double(gl[c]) * double(f[c]);
-                            acc[kPairFixed + c] += w * double(gl[c]);
-                        }
-                        const scalar_t d_alpha = scalar_t(T_i * fdot - (S[l] - gA[l] * Tf[l]) * inv_keep);
-                        S[l] += w * fdot;
-                        T[l] = T_i;
-                        if (s.o * h.G > scalar_t(0.999)) continue;  // clamped alpha: no gradient (as in gsplat)
-                        acc[11] += double(d_alpha * h.G);
-                        const scalar_t d_rho = scalar_t(-0.5) * h.G * s.o * d_alpha;
-                        if (h.use3d) {
-                            const scalar_t inv = h.inv_p2;
-                            const scalar_t du = scalar_t(2) * h.u * d_rho, dv = scalar_t(2) * h.v * d_rho;
-                            const scalar_t dp0 = du * inv, dp1 = dv * inv, dp2 = -(du * h.u + dv * h.v) * inv;
-                            acc[0] += double(x * dp0);
-                            acc[1] += double(x * dp1);
-                            acc[2] += double(x * dp2);
-                            acc[3] += double(y * dp0);
-                            acc[4] += double(y * dp1);
-                            acc[5] += double(y * dp2);
-                            acc[6] += double(dp0);
-                            acc[7] += double(dp1);
-                            acc[8] += double(dp2);
-                        } else {
-                            acc[9] += double(scalar_t(-4) * h.dx * d_rho);
-                            acc[10] += double(scalar_t(-4) * h.dy * d_rho);
+        for (int64_t lo, hi; ranges.claim(lo, hi);)
+            for (int64_t t = lo; t < hi; ++t) {
+                const int x0 = int(t % b.tiles_x) * kTile, y0 = int(t / b.tiles_x) * kTile;
+                const int tw = std::min(kTile, W - x0), th = std::min(kTile, H - y0);
+                const int64_t start = b.tile_offsets[t], end = b.tile_offsets[t + 1];
+                std::memset(pair_grads + start * stride, 0, sizeof(scalar_t) * size_t((end - start) * stride));
+                int max_count = 0;
+                std::fill(count.begin(), count.end(), 0);
+                for (int ly = 0; ly < th; ++ly)
+                    for (int lx = 0; lx < tw; ++lx) {
+                        const int l = ly * kTile + lx;
+                        const int64_t pix = int64_t(y0 + ly) * W + (x0 + lx);
+                        T[l] = Tf[l] = T_final[pix];
+                        S[l] = 0.0;
+                        gA[l] = g_alpha[pix];
+                        count[l] = counts[pix];
+                        max_count = std::max(max_count, int(counts[pix]));
+                        for (int c = 0; c < F; ++c) gf[l * F + c] = g_feat[pix * F + c];
+                    }
+                for (int64_t k = start + max_count - 1; k >= start; --k) {
+                    const int64_t g = b.pair_surfel[k];
+                    const int32_t* r = rects + 4 * g;
+                    const int ys = std::max(r[1], y0), ye = std::min(r[3], y0 + th);
+                    const int xs = std::max(r[0], x0), xe = std::min(r[2], x0 + tw);
+                    if (ys >= ye || xs >= xe) continue;
+                    SurfelView<scalar_t> s;
+                    s.load(planes, means2d, opac, g);
+                    const scalar_t* f = feats + int64_t(F) * g;
+                    std::fill(acc.begin(), acc.end(), 0.0);
+                    bool touched = false;
+                    Hit<scalar_t> h;
+                    const int32_t rank = int32_t(k - start);
+                    for (int py = ys; py < ye; ++py) {
+                        const scalar_t y = scalar_t(py) + scalar_t(0.5);
+                        for (int px = xs; px < xe; ++px) {
+                            const int l = (py - y0) * kTile + (px - x0);
+                            if (rank >= count[l]) continue;
+                            const scalar_t x = scalar_t(px) + scalar_t(0.5);
+                            if (!evaluate(s, x, y, h)) continue;
+                            touched = true;
+                            const double keep = 1.0 - double(h.alpha), inv_keep = 1.0 / keep;
+                            const double T_i = T[l] * inv_keep;
+                            const double w = double(h.alpha) * T_i;
+                            const scalar_t* gl = &gf[l * F];
+                            double fdot = 0;
+                            for (int c = 0; c < F; ++c) {
+                                fdot += double(gl[c]) * double(f[c]);
+                                acc[kPairFixed + c] += w * double(gl[c]);
+                            }
+                            const scalar_t d_alpha = scalar_t(T_i * fdot - (S[l] - gA[l] * Tf[l]) * inv_keep);
+                            S[l] += w * fdot;
+                            T[l] = T_i;
+                            if (s.o * h.G > scalar_t(0.999)) continue;  // clamped alpha: no gradient (as in gsplat)
+                            acc[11] += double(d_alpha * h.G);
+                            const scalar_t d_rho = scalar_t(-0.5) * h.G * s.o * d_alpha;
+                            if (h.use3d) {
+                                const scalar_t inv = h.inv_p2;
+                                const scalar_t du = scalar_t(2) * h.u * d_rho, dv = scalar_t(2) * h.v * d_rho;
+                                const scalar_t dp0 = du * inv, dp1 = dv * inv, dp2 = -(du * h.u + dv * h.v) * inv;
+                                acc[0] += double(x * dp0);
+                                acc[1] += double(x * dp1);
+                                acc[2] += double(x * dp2);
+                                acc[3] += double(y * dp0);
+                                acc[4] += double(y * dp1);
+                                acc[5] += double(y * dp2);
+                                acc[6] += double(dp0);
+                                acc[7] += double(dp1);
+                                acc[8] += double(dp2);
+                            } else {
+                                acc[9] += double(scalar_t(-4) * h.dx * d_rho);
+                                acc[10] += double(scalar_t(-4) * h.dy * d_rho);
+                            }
                         }
                     }
+                    scalar_t* out = pair_grads + k * stride;
+                    if (touched)
+                        for (int j = 0; j < stride; ++j) out[j] = scalar_t(acc[j]);
                 }
-                scalar_t* out = pair_grads + k * stride;
-                if (touched)
-                    for (int j = 0; j < stride; ++j) out[j] = scalar_t(acc[j]);
             }
-        }
-    }
+    });
 }
 
 // Sum every surfel's pair gradients (parallel over surfels, fixed order: deterministic).
@@ -626,78 +670,79 @@ template <typename scalar_t>
 void reduce_pairs(const Binning& b, const scalar_t* pair_grads, int F, int64_t M, int threads, scalar_t* d_planes,
                   scalar_t* d_means2d, scalar_t* d_opac, scalar_t* d_feats) {
     const int stride = kPairFixed + F;
-#pragma omp parallel num_threads(threads)
-    {
+    run_workers(threads, M, 1024, [&](Ranges& ranges) {
         std::vector<double> sum(stride);
-#pragma omp for schedule(static)
-        for (int64_t i = 0; i < M; ++i) {
-            std::fill(sum.begin(), sum.end(), 0.0);
-            for (int64_t j = b.surfel_offsets[i]; j < b.surfel_offsets[i + 1]; ++j) {
-                const scalar_t* row = pair_grads + b.surfel_pairs[j] * stride;
-                for (int c = 0; c < stride; ++c) sum[c] += double(row[c]);
+        for (int64_t lo, hi; ranges.claim(lo, hi);)
+            for (int64_t i = lo; i < hi; ++i) {
+                std::fill(sum.begin(), sum.end(), 0.0);
+                for (int64_t j = b.surfel_offsets[i]; j < b.surfel_offsets[i + 1]; ++j) {
+                    const scalar_t* row = pair_grads + b.surfel_pairs[j] * stride;
+                    for (int c = 0; c < stride; ++c) sum[c] += double(row[c]);
+                }
+                for (int c = 0; c < 9; ++c) d_planes[9 * i + c] = scalar_t(sum[c]);
+                d_means2d[2 * i] = scalar_t(sum[9]);
+                d_means2d[2 * i + 1] = scalar_t(sum[10]);
+                d_opac[i] = scalar_t(sum[11]);
+                for (int c = 0; c < F; ++c) d_feats[int64_t(F) * i + c] = scalar_t(sum[kPairFixed + c]);
             }
-            for (int c = 0; c < 9; ++c) d_planes[9 * i + c] = scalar_t(sum[c]);
-            d_means2d[2 * i] = scalar_t(sum[9]);
-            d_means2d[2 * i + 1] = scalar_t(sum[10]);
-            d_opac[i] = scalar_t(sum[11]);
-            for (int c = 0; c < F; ++c) d_feats[int64_t(F) * i + c] = scalar_t(sum[kPairFixed + c]);
-        }
-    }
+    });
 }
 
 }  // namespace
 
-extern "C" int raster_projected_features() { return kProjectedFeatures; }
+extern "C" int raster_projected_features() {
+    return kProjectedFeatures;
+}
 
 extern "C" void raster_build_surfel_index(const int32_t* pair_surfel, int64_t P, int64_t N, int64_t* surfel_offsets,
                                           int64_t* surfel_pairs) {
     build_surfel_index(pair_surfel, P, N, surfel_offsets, surfel_pairs);
 }
 
-#define RASTER_CPU_API(SUFFIX, T)                                                                                   \
-    extern "C" void raster_project_##SUFFIX(int64_t N, const T* means, const T* quats, const T* scales,             \
-                                            const T* opac, const T* colors, const T* viewmat, const T* K, int W,   \
-                                            int H, int threads, T* rays, T* planes, T* means2d, T* depths,         \
-                                            T* feats, int32_t* radii, int32_t* rects) {                            \
-        project(N, means, quats, scales, opac, colors, viewmat, K, W, H, threads, rays, planes, means2d, depths,   \
-                feats, radii, rects);                                                                              \
-    }                                                                                                              \
-    extern "C" void raster_project_backward_##SUFFIX(                                                              \
-        int64_t N, const T* means, const T* quats, const T* scales, const T* viewmat, const T* K,                  \
-        const int32_t* radii, const T* d_planes, const T* d_means2d, const T* d_feats, int threads, T* d_means,    \
-        T* d_quats, T* d_scales, T* d_colors, T* d_viewmat) {                                                      \
-        project_backward(N, means, quats, scales, viewmat, K, radii, d_planes, d_means2d, d_feats, threads,        \
-                         d_means, d_quats, d_scales, d_colors, d_viewmat);                                         \
-    }                                                                                                              \
-    extern "C" int64_t raster_bin_count_##SUFFIX(const T* means2d, const int32_t* radii, int64_t N, int W, int H,  \
-                                                 int64_t* tile_offsets) {                                          \
-        return bin_count(means2d, radii, N, W, H, tile_offsets);                                                   \
-    }                                                                                                              \
-    extern "C" void raster_bin_fill_##SUFFIX(const T* means2d, const int32_t* radii, const T* depths, int64_t N,   \
-                                             int W, int H, int threads, const int64_t* tile_offsets,               \
-                                             int32_t* pair_surfel) {                                               \
-        bin_fill(means2d, radii, depths, N, W, H, threads, tile_offsets, pair_surfel);                             \
-    }                                                                                                              \
-    extern "C" void raster_reach_rects_##SUFFIX(const T* rays, const T* means2d, const T* opac, int64_t M, int W,  \
-                                                int H, int threads, int32_t* rects) {                              \
-        reach_rects(rays, means2d, opac, M, W, H, threads, rects);                                                 \
-    }                                                                                                              \
-    extern "C" void raster_forward_##SUFFIX(const int64_t* tile_offsets, const int32_t* pair_surfel,               \
-                                            const int32_t* rects, const T* planes, const T* means2d, const T* opac, \
-                                            const T* feats, int F, int W, int H, int threads, T* out_feat,         \
-                                            T* out_T, int32_t* out_count) {                                        \
-        const Binning b{tiles_along(W), tiles_along(H), tile_offsets, pair_surfel, nullptr, nullptr};             \
-        forward_impl(b, rects, planes, means2d, opac, feats, F, W, H, threads, out_feat, out_T, out_count);        \
-    }                                                                                                              \
-    extern "C" void raster_backward_##SUFFIX(                                                                      \
-        const int64_t* tile_offsets, const int32_t* pair_surfel, const int64_t* surfel_offsets,                    \
-        const int64_t* surfel_pairs, const int32_t* rects, const T* planes, const T* means2d, const T* opac,       \
-        const T* feats, int64_t M, int F, int W, int H, int threads, const T* T_final, const int32_t* counts,      \
-        const T* g_feat, const T* g_alpha, T* pair_grads, T* d_planes, T* d_means2d, T* d_opac, T* d_feats) {      \
-        const Binning b{tiles_along(W), tiles_along(H), tile_offsets, pair_surfel, surfel_offsets, surfel_pairs};  \
-        backward_impl(b, rects, planes, means2d, opac, feats, F, W, H, threads, T_final, counts, g_feat, g_alpha,  \
-                      pair_grads);                                                                                 \
-        reduce_pairs(b, pair_grads, F, M, threads, d_planes, d_means2d, d_opac, d_feats);                          \
+#define RASTER_CPU_API(SUFFIX, T)                                                                                      \
+    extern "C" void raster_project_##SUFFIX(int64_t N, const T* means, const T* quats, const T* scales, const T* opac, \
+                                            const T* colors, const T* viewmat, const T* K, int W, int H, int threads,  \
+                                            T* rays, T* planes, T* means2d, T* depths, T* feats, int32_t* radii,       \
+                                            int32_t* rects) {                                                          \
+        project(N, means, quats, scales, opac, colors, viewmat, K, W, H, threads, rays, planes, means2d, depths,       \
+                feats, radii, rects);                                                                                  \
+    }                                                                                                                  \
+    extern "C" void raster_project_backward_##SUFFIX(                                                                  \
+        int64_t N, const T* means, const T* quats, const T* scales, const T* viewmat, const T* K,                      \
+        const int32_t* radii, const T* d_planes, const T* d_means2d, const T* d_feats, int threads, T* d_means,        \
+        T* d_quats, T* d_scales, T* d_colors, T* d_viewmat) {                                                          \
+        project_backward(N, means, quats, scales, viewmat, K, radii, d_planes, d_means2d, d_feats, threads, d_means,   \
+                         d_quats, d_scales, d_colors, d_viewmat);                                                      \
+    }                                                                                                                  \
+    extern "C" int64_t raster_bin_count_##SUFFIX(const T* means2d, const int32_t* radii, int64_t N, int W, int H,      \
+                                                 int64_t* tile_offsets) {                                              \
+        return bin_count(means2d, radii, N, W, H, tile_offsets);                                                       \
+    }                                                                                                                  \
+    extern "C" void raster_bin_fill_##SUFFIX(const T* means2d, const int32_t* radii, const T* depths, int64_t N,       \
+                                             int W, int H, int threads, const int64_t* tile_offsets,                   \
+                                             int32_t* pair_surfel) {                                                   \
+        bin_fill(means2d, radii, depths, N, W, H, threads, tile_offsets, pair_surfel);                                 \
+    }                                                                                                                  \
+    extern "C" void raster_reach_rects_##SUFFIX(const T* rays, const T* means2d, const T* opac, int64_t M, int W,      \
+                                                int H, int threads, int32_t* rects) {                                  \
+        reach_rects(rays, means2d, opac, M, W, H, threads, rects);                                                     \
+    }                                                                                                                  \
+    extern "C" void raster_forward_##SUFFIX(const int64_t* tile_offsets, const int32_t* pair_surfel,                   \
+                                            const int32_t* rects, const T* planes, const T* means2d, const T* opac,    \
+                                            const T* feats, int F, int W, int H, int threads, T* out_feat, T* out_T,   \
+                                            int32_t* out_count) {                                                      \
+        const Binning b{tiles_along(W), tiles_along(H), tile_offsets, pair_surfel, nullptr, nullptr};                  \
+        forward_impl(b, rects, planes, means2d, opac, feats, F, W, H, threads, out_feat, out_T, out_count);            \
+    }                                                                                                                  \
+    extern "C" void raster_backward_##SUFFIX(                                                                          \
+        const int64_t* tile_offsets, const int32_t* pair_surfel, const int64_t* surfel_offsets,                        \
+        const int64_t* surfel_pairs, const int32_t* rects, const T* planes, const T* means2d, const T* opac,           \
+        const T* feats, int64_t M, int F, int W, int H, int threads, const T* T_final, const int32_t* counts,          \
+        const T* g_feat, const T* g_alpha, T* pair_grads, T* d_planes, T* d_means2d, T* d_opac, T* d_feats) {          \
+        const Binning b{tiles_along(W), tiles_along(H), tile_offsets, pair_surfel, surfel_offsets, surfel_pairs};      \
+        backward_impl(b, rects, planes, means2d, opac, feats, F, W, H, threads, T_final, counts, g_feat, g_alpha,      \
+                      pair_grads);                                                                                     \
+        reduce_pairs(b, pair_grads, F, M, threads, d_planes, d_means2d, d_opac, d_feats);                              \
     }
 
 RASTER_CPU_API(f32, float)
