@@ -1,6 +1,9 @@
 # Flash-Mono: `make demo` runs the main job, `make test` runs the whole test suite.
 # Both create .venv and install everything on first use.
+# PIP_FLAGS: extra pip options, e.g. PIP_FLAGS="--extra-index-url https://download.pytorch.org/whl/cpu" for the CPU
+# build of torch where no local wheel provides it (PyPI's default torch wheel brings the CUDA libraries).
 PYTHON ?= python3
+PIP_FLAGS ?=
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
@@ -10,7 +13,7 @@ STAMP := $(VENV)/.installed
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
-	$(BIN)/pip install -q -e '.[dev]'
+	$(BIN)/pip install -q $(PIP_FLAGS) -e '.[dev]'
 	touch $(STAMP)
 
 install: $(STAMP)

@@ -72,3 +72,41 @@ def test_gateway_image_runs_the_serve_command_without_local_workers() -> None:
 
     args = build_parser().parse_args(cmd[1:])  # the flags exist
     assert args.command == "serve"
+
+
+def _copied_sources(name: str) -> list[str]:
+    """The repository paths a Dockerfile COPYs into the image (sources of every `COPY src... dest`)."""
+    text = (DOCKER_DIR / name).read_text()
+    return [src for line in re.findall(r"^COPY (.+)$", text, re.MULTILINE) for src in line.split()[:-1]]
+
+
+def _dockerignored(path: str) -> bool:
+    patterns = [line.strip() for line in (DOCKER_DIR.parent / ".dockerignore").read_text().splitlines()
+                if line.strip() and not line.startswith("#")]
+    return any(Path(path).match(p) or path == p or path.startswith(f"{p}/") for p in patterns)
+
+
+def test_images_copy_every_package_the_distribution_installs() -> None:
+    import tomllib
+
+    pyproject = tomllib.loads((DOCKER_DIR.parent / "pyproject.toml").read_text())
+    packages = {p.rstrip("*") for p in pyproject["tool"]["setuptools"]["packages"]["find"]["include"]}
+    for name in ("Dockerfile.gateway", "Dockerfile.worker"):
+        sources = _copied_sources(name)
+        assert packages | {"pyproject.toml", "README.md"} <= set(sources), (name, sources)
+        for source in sources:
+            assert (DOCKER_DIR.parent / source).exists(), f"{name} copies {source}, which does not exist"
+            assert not _dockerignored(source), f"{name} copies {source}, which .dockerignore leaves out"
+
+
+def test_build_context_leaves_out_the_local_environment() -> None:
+    for heavy in (".venv", ".git", "demo_out"):
+        assert _dockerignored(heavy), f"{heavy} would be sent to the Docker daemon with every build"
+
+
+def test_builds_without_isolation_install_their_build_tools_first() -> None:
+    for name in ("Dockerfile.gateway", "Dockerfile.worker"):
+        text = (DOCKER_DIR / name).read_text()
+        for match in re.finditer(r"pip install [^\n]*--no-build-isolation", text):
+            before = text[:match.start()] + match.group(0)
+            assert re.search(r"pip install [^\n]*\bsetuptools\b", before), f"{name}: no setuptools before the build"

@@ -10,6 +10,7 @@ import asyncio
 import base64
 import itertools
 import json
+import os
 import shutil
 import subprocess
 import tempfile
@@ -35,17 +36,26 @@ def find_chromium() -> str | None:
 
 
 def ensure_chromium() -> str:
-    """The chromium binary, installed with apt-get when missing. Raises RuntimeError with the reason if impossible."""
+    """The chromium binary, installed from Debian's `chromium` package when missing (apt-get, as root or through
+    passwordless sudo; the package lists are refreshed when the first attempt fails). Raises RuntimeError with the
+    reason if impossible."""
     path = find_chromium()
     if path:
         return path
     if shutil.which("apt-get") is None:
         raise RuntimeError("chromium is not installed and apt-get is unavailable")
-    result = subprocess.run(["apt-get", "install", "-y", "-q", "chromium"], capture_output=True, text=True,
-                            timeout=900)
+    prefix = [] if os.geteuid() == 0 else ["sudo", "-n"]
+    if prefix and shutil.which("sudo") is None:
+        raise RuntimeError("chromium is not installed, and installing it needs root or sudo")
+    env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
+    install = [*prefix, "apt-get", "install", "-y", "-q", "--no-install-recommends", "chromium"]
+    result = subprocess.run(install, capture_output=True, text=True, timeout=900, env=env)
+    if result.returncode != 0:  # typically a fresh image without package lists
+        subprocess.run([*prefix, "apt-get", "update", "-q"], capture_output=True, text=True, timeout=600, env=env)
+        result = subprocess.run(install, capture_output=True, text=True, timeout=900, env=env)
     path = find_chromium()
     if not path:
-        raise RuntimeError(f"apt-get install chromium failed: {result.stderr[-500:]}")
+        raise RuntimeError(f"apt-get install chromium failed: {(result.stderr or result.stdout)[-500:]}")
     return path
 
 

@@ -5,6 +5,7 @@ logs no console errors."""
 from __future__ import annotations
 
 import asyncio
+import os
 import sys
 from pathlib import Path
 
@@ -26,9 +27,12 @@ BACKGROUND = np.array([17, 14, 11])  # the canvas background #0b0e11, in BGR
 
 @pytest.fixture(scope="module")
 def chromium() -> str:
+    """Chromium, installed if needed; CI (FLASHMONO_REQUIRE_CHROMIUM=1, set by .ci/run) fails instead of skipping."""
     try:
         return ensure_chromium()
     except RuntimeError as err:
+        if os.environ.get("FLASHMONO_REQUIRE_CHROMIUM") == "1":
+            pytest.fail(f"headless Chromium is required here and unavailable: {err}")
         pytest.skip(f"headless Chromium unavailable: {err}")
 
 
