@@ -16,19 +16,35 @@ from worker.geometry import rotmat_to_quat, unproject_depth
 # A per-pixel surfel's standard deviation in pixels: ~0.7 px covers the pixel without blurring its neighbours.
 PIXEL_SIGMA = 0.5
 INITIAL_OPACITY = 0.95
+# A step between neighbouring pixels larger than this fraction of the depth is a discontinuity, not a surface.
+EDGE_DEPTH_RATIO = 0.05
 
 
-def depth_normals(points: torch.Tensor) -> torch.Tensor:
-    """Unit normals [H,W,3] of a camera-frame point grid from central differences, oriented towards the camera."""
+def depth_normals(points: torch.Tensor, edge_ratio: float = EDGE_DEPTH_RATIO) -> torch.Tensor:
+    """Unit normals [H,W,3] of a camera-frame point grid, oriented towards the camera.
+
+    Each axis uses the one-sided difference (forward or backward) whose depth step is smaller, so a normal never
+    spans a depth discontinuity; where both steps exceed `edge_ratio` of the depth (a one-pixel-wide structure)
+    the normal faces the camera."""
     p = F.pad(points.permute(2, 0, 1)[None], (1, 1, 1, 1), mode="replicate")[0].permute(1, 2, 0)
-    dx = p[1:-1, 2:] - p[1:-1, :-2]
-    dy = p[2:, 1:-1] - p[:-2, 1:-1]
+    centre = p[1:-1, 1:-1]
+    dx, edge_x = _smooth_side(p[1:-1, 2:] - centre, centre - p[1:-1, :-2], centre[..., 2], edge_ratio)
+    dy, edge_y = _smooth_side(p[2:, 1:-1] - centre, centre - p[:-2, 1:-1], centre[..., 2], edge_ratio)
     n = torch.linalg.cross(dx, dy, dim=-1)
     norm = n.norm(dim=-1, keepdim=True)
-    fallback = torch.tensor([0.0, 0.0, -1.0], dtype=points.dtype)
-    n = torch.where(norm > 1e-12, n / norm.clamp_min(1e-12), fallback)
-    facing = (n * points).sum(-1, keepdim=True) > 0
+    towards_camera = -centre / centre.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    usable = (norm > 1e-12) & ~(edge_x | edge_y)[..., None]
+    n = torch.where(usable, n / norm.clamp_min(1e-12), towards_camera)
+    facing = (n * centre).sum(-1, keepdim=True) > 0
     return torch.where(facing, -n, n)
+
+
+def _smooth_side(forward: torch.Tensor, backward: torch.Tensor, depth: torch.Tensor, edge_ratio: float
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """(the difference with the smaller depth step, whether even that step is a discontinuity)."""
+    use_forward = forward[..., 2].abs() <= backward[..., 2].abs()
+    diff = torch.where(use_forward[..., None], forward, backward)
+    return diff, diff[..., 2].abs() > edge_ratio * depth.abs().clamp_min(1e-9)
 
 
 def normals_to_quats(normals: torch.Tensor) -> torch.Tensor:
