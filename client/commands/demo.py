@@ -261,5 +261,6 @@ def print_report(metrics: dict[str, Any], out: Path, viewer_url: str) -> None:
     print(f"  PSNR            {psnr_db:.2f} dB (renders at estimated poses)" if psnr_db is not None
           else "  PSNR            n/a")
     print(f"  end-to-end      {metrics['end_to_end_fps']:.2f} frames/s")
-    print(f"  outputs         {out}/ (trajectory.tum, keyframes.tum, map.ply, renders/, metrics.json)")
+    print(f"  outputs         {out.resolve()}/ (trajectory.tum, keyframes.tum, groundtruth.tum, map.ply, renders/, "
+          "metrics.json)")
     print(f"  viewer          {viewer_url}")

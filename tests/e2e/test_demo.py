@@ -32,6 +32,7 @@ def test_demo_runs_the_whole_system_and_writes_its_outputs(tmp_path: Path) -> No
     assert math.isfinite(metrics["psnr_db"]) and metrics["psnr_db"] > 10
     assert re.search(r"ATE RMSE\s+\d+\.\d+ cm", result.stdout)
     assert re.search(r"PSNR\s+\d+\.\d+ dB", result.stdout)
+    assert re.search(rf"outputs\s+{re.escape(str(out.resolve()))}/ ", result.stdout), result.stdout
     viewer = re.search(r"viewer\s+(http://127\.0\.0\.1:\d+/viewer\?session=(\w+))", result.stdout)
     assert viewer and viewer.group(2) == metrics["session_id"]
 
