@@ -42,10 +42,13 @@ def render_with_grads(scene: Surfels, viewmat: torch.Tensor, backend: str, weigh
     """Outputs and d(weighted sum)/d(every surfel attribute and the viewmat)."""
     leaves = {k: getattr(scene, k).detach().clone().requires_grad_(True) for k in ATTRIBUTES}
     V = viewmat.detach().clone().requires_grad_(True)
+    bg = None if background is None else background.detach().clone().requires_grad_(True)
     out = rasterize(surfels_of(*(leaves[k] for k in ATTRIBUTES), dtype=scene.means.dtype), V,
-                    camera(scene.means.dtype) if K is None else K, *size, background=background, backend=backend)
+                    camera(scene.means.dtype) if K is None else K, *size, background=bg, backend=backend)
     weighted_sum(out, weights).backward()
     grads = {k: v.grad for k, v in leaves.items()} | {"viewmat": V.grad}
+    if bg is not None:
+        grads["background"] = bg.grad
     return out, grads
 
 
@@ -87,14 +90,15 @@ def test_fast_path_gradients_match_finite_differences():
     weights = random_weights(24, 20, seed=9)
     bg = torch.tensor([0.3, 0.1, 0.2], dtype=torch.float64)
 
-    def f(means, quats, scales, opacities, colors, viewmat):
+    def f(means, quats, scales, opacities, colors, viewmat, background):
         out = rasterize(surfels_of(means, quats, scales, opacities, colors), viewmat, SMALL_K, 24, 20,
-                        background=bg, backend="cpu")
+                        background=background, backend="cpu")
         return weighted_sum(out, weights)
 
     inputs = [getattr(scene, k).clone().requires_grad_(True) for k in ATTRIBUTES]
     pose = look_from(0.05).requires_grad_(True)
-    assert torch.autograd.gradcheck(f, (*inputs, pose), eps=1e-7, atol=1e-5, rtol=1e-4, fast_mode=True)
+    assert torch.autograd.gradcheck(f, (*inputs, pose, bg.requires_grad_(True)), eps=1e-7, atol=1e-5, rtol=1e-4,
+                                    fast_mode=True)
 
 
 @pytest.mark.usefixtures("single_thread")

@@ -80,6 +80,8 @@ def _declare(lib: ctypes.CDLL) -> None:
         signatures = {
             "project": [i64, p, p, p, p, p, p, p, i32, i32, i32, p, p, p, p, p, p, p],
             "project_backward": [i64, p, p, p, p, p, p, p, p, p, i32, p, p, p, p, p],
+            "finish": [i64, p, p, p, p, i32, p, p, p, p],
+            "finish_backward": [i64, p, p, p, p, p, p, p, p, i32, p, p, p, p],
             "bin_count": [p, p, i64, i32, i32, p],
             "bin_fill": [p, p, p, i64, i32, i32, i32, p, p],
             "reach_rects": [p, p, p, i64, i32, i32, i32, p],
@@ -215,56 +217,71 @@ def composite_cpu(uv_planes: torch.Tensor, ray_transforms: torch.Tensor, means2d
 
 
 class _Rasterize(torch.autograd.Function):
-    """Projection, binning and compositing in the compiled library, and the backward of all three."""
+    """Projection, binning, compositing and finishing in the compiled library, and the backward of all four."""
 
     @staticmethod
-    def forward(ctx, means, quats, scales, opacities, colors, viewmat, K, width, height):
+    def forward(ctx, means, quats, scales, opacities, colors, viewmat, background, K, width, height):
         dtype, N = means.dtype, means.shape[0]
+        threads = torch.get_num_threads()
         F = _library.raster_projected_features()
         planes = torch.empty(N, 9, dtype=dtype)
         means2d, depths = torch.empty(N, 2, dtype=dtype), torch.empty(N, dtype=dtype)
         features = torch.empty(N, F, dtype=dtype)
         radii, rects = torch.empty(N, 2, dtype=torch.int32), torch.empty(N, 4, dtype=torch.int32)
         _kernel("project", dtype)(N, _ptr(means), _ptr(quats), _ptr(scales), _ptr(opacities), _ptr(colors),
-                                  _ptr(viewmat), _ptr(K), width, height, torch.get_num_threads(), None,
-                                  _ptr(planes), _ptr(means2d), _ptr(depths), _ptr(features), _ptr(radii),
-                                  _ptr(rects))
+                                  _ptr(viewmat), _ptr(K), width, height, threads, None, _ptr(planes), _ptr(means2d),
+                                  _ptr(depths), _ptr(features), _ptr(radii), _ptr(rects))
         out_feat, binned = _bin_and_composite(planes, means2d, opacities, features, radii, depths, rects, width,
                                               height)
-        ctx.save_for_backward(means, quats, scales, opacities, viewmat, K, planes, means2d, features, radii, rects,
-                              *binned)
+        rgb, depth = torch.empty(height, width, 3, dtype=dtype), torch.empty(height, width, dtype=dtype)
+        alpha, normals = torch.empty(height, width, dtype=dtype), torch.empty(height, width, 3, dtype=dtype)
+        _kernel("finish", dtype)(width * height, _ptr(out_feat), _ptr(binned.T_final), _ptr(background),
+                                 _ptr(viewmat), threads, _ptr(rgb), _ptr(depth), _ptr(alpha), _ptr(normals))
+        ctx.save_for_backward(means, quats, scales, opacities, viewmat, background, K, planes, means2d, features,
+                              radii, rects, out_feat, *binned)
         ctx.size = (width, height)
-        ctx.mark_non_differentiable(binned.T_final)
-        return out_feat, 1.0 - binned.T_final
+        return rgb, depth, alpha, normals
 
     @staticmethod
-    def backward(ctx, g_feat, g_alpha):
-        (means, quats, scales, opacities, viewmat, K, planes, means2d, features, radii, rects,
+    def backward(ctx, g_rgb, g_depth, g_alpha, g_normals):
+        (means, quats, scales, opacities, viewmat, background, K, planes, means2d, features, radii, rects, out_feat,
          *binned) = ctx.saved_tensors
-        d_planes, d_means2d, d_opac, d_feat = _composite_backward(_Binned(*binned), planes, means2d, opacities,
-                                                                  features, rects, g_feat, g_alpha, *ctx.size)
+        binned = _Binned(*binned)
+        width, height = ctx.size
         dtype, N = means.dtype, means.shape[0]
+        threads = torch.get_num_threads()
+
+        # None (an output that took no part in the loss) is passed as a null pointer: a zero gradient
+        grads = [None if g is None else g.to(dtype).contiguous() for g in (g_rgb, g_depth, g_alpha, g_normals)]
+        g_feat, g_alpha_total = torch.empty_like(out_feat), torch.empty(height, width, dtype=dtype)
+        d_background, d_rotation = torch.empty(3, dtype=dtype), torch.empty(3, 3, dtype=dtype)
+        _kernel("finish_backward", dtype)(width * height, _ptr(out_feat), _ptr(binned.T_final), _ptr(background),
+                                          _ptr(viewmat), *(None if g is None else _ptr(g) for g in grads), threads,
+                                          _ptr(g_feat), _ptr(g_alpha_total), _ptr(d_background), _ptr(d_rotation))
+        d_planes, d_means2d, d_opac, d_feat = _composite_backward(binned, planes, means2d, opacities, features, rects,
+                                                                  g_feat, g_alpha_total, width, height)
         d_means, d_quats, d_scales = torch.empty_like(means), torch.empty_like(quats), torch.empty_like(scales)
         d_colors, d_viewmat = torch.empty(N, 3, dtype=dtype), torch.empty(4, 4, dtype=dtype)
         _kernel("project_backward", dtype)(N, _ptr(means), _ptr(quats), _ptr(scales), _ptr(viewmat), _ptr(K),
-                                           _ptr(radii), _ptr(d_planes), _ptr(d_means2d), _ptr(d_feat),
-                                           torch.get_num_threads(), _ptr(d_means), _ptr(d_quats), _ptr(d_scales),
-                                           _ptr(d_colors), _ptr(d_viewmat))
-        return d_means, d_quats, d_scales, d_opac, d_colors, d_viewmat, None, None, None
+                                           _ptr(radii), _ptr(d_planes), _ptr(d_means2d), _ptr(d_feat), threads,
+                                           _ptr(d_means), _ptr(d_quats), _ptr(d_scales), _ptr(d_colors),
+                                           _ptr(d_viewmat))
+        d_viewmat[:3, :3] += d_rotation
+        return d_means, d_quats, d_scales, d_opac, d_colors, d_viewmat, d_background, None, None, None
 
 
 def rasterize_cpu(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
-                  colors: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, width: int,
-                  height: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Project and composite surfels in one compiled pass.
+                  colors: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int,
+                  background: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Render surfels in one compiled pass: (rgb [H,W,3], depth [H,W], alpha [H,W], world normals [H,W,3]).
 
-    Returns (sum_i w_i [colour, depth, camera-frame normal] [H, W, 7], alpha [H, W]): the same values as
-    `project_surfels` followed by `composite_reference` with those features. Differentiable w.r.t. means, quats
-    (any norm), scales, opacities, colours and viewmat; K gets no gradient.
+    The same values as `project_surfels`, `composite_reference` and the finishing steps `rasterize` documents.
+    Differentiable w.r.t. means, quats (any norm), scales, opacities, colours, viewmat and the background; K gets
+    no gradient. Runs no torch operators (whose idle OpenMP workers spin and slow a busy machine down).
     """
     _require(means)
     dtype = means.dtype
-    inputs = [t.to(dtype).contiguous() for t in (means, quats, scales, opacities, colors, viewmat)]
+    inputs = [t.to(dtype).contiguous() for t in (means, quats, scales, opacities, colors, viewmat, background)]
     return _Rasterize.apply(*inputs, K.detach().to(dtype).contiguous(), int(width), int(height))
 
 

@@ -91,8 +91,13 @@ def rasterize(surfels: Surfels, viewmat: torch.Tensor, K: torch.Tensor, width: i
         from .raster_gsplat import rasterize_gsplat
 
         features, alpha = rasterize_gsplat(surfels, viewmat, K, width, height)
+    elif backend == "cpu" and _compiled_available():
+        from .raster_cpu import rasterize_cpu
+
+        return RenderResult(*rasterize_cpu(surfels.means, surfels.quats, surfels.scales, surfels.opacities,
+                                           surfels.colors, viewmat, K, width, height, bg))
     else:
-        features, alpha = _composite_cpu(surfels, viewmat, K, width, height, backend)
+        features, alpha = _composite_reference(surfels, viewmat, K, width, height)
     rgb = features[..., :3] + (1.0 - alpha)[..., None] * bg
     depth = features[..., 3] / alpha.clamp_min(1e-10)
     normals = features[..., 4:7] @ viewmat[:3, :3]  # camera -> world: R_cw^T n
@@ -118,20 +123,23 @@ def visible_mask(surfels: Surfels, viewmat: torch.Tensor, K: torch.Tensor, width
     return mask
 
 
-def _composite_cpu(surfels: Surfels, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int,
-                   backend: str) -> tuple[torch.Tensor, torch.Tensor]:
-    """(sum w [colour, depth, camera normal] [H, W, 7], alpha [H, W]) with a CPU backend."""
-    if backend == "cpu":
-        from . import raster_cpu
+def _compiled_available() -> bool:
+    """Whether the compiled CPU path loaded; logs the fallback to the reference once."""
+    from . import raster_cpu
 
-        if raster_cpu.available():
-            return raster_cpu.rasterize_cpu(surfels.means, surfels.quats, surfels.scales, surfels.opacities,
-                                            surfels.colors, viewmat, K, width, height)
-        global _warned_fallback
-        if not _warned_fallback:
-            logger.warning("compiled CPU rasterizer unavailable (%s); using the pure-torch reference",
-                           raster_cpu.load_error())
-            _warned_fallback = True
+    if raster_cpu.available():
+        return True
+    global _warned_fallback
+    if not _warned_fallback:
+        logger.warning("compiled CPU rasterizer unavailable (%s); using the pure-torch reference",
+                       raster_cpu.load_error())
+        _warned_fallback = True
+    return False
+
+
+def _composite_reference(surfels: Surfels, viewmat: torch.Tensor, K: torch.Tensor, width: int,
+                         height: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(sum w [colour, depth, camera normal] [H, W, 7], alpha [H, W]) with the pure-torch reference."""
     proj = project_surfels(surfels.means, surfels.quats, surfels.scales, viewmat, K, width, height)
     opacities = surfels.opacities[proj.ids]
     features = torch.cat([surfels.colors[proj.ids], proj.depths[:, None], proj.normals], dim=-1)

@@ -688,6 +688,82 @@ void reduce_pairs(const Binning& b, const scalar_t* pair_grads, int F, int64_t M
     });
 }
 
+// ---------------------------------------------------------------------------------------------------------------
+// Finishing (the fused path's last step, so that rendering runs no torch ops): from the composited channels
+// [colour, depth, camera normal] and T_final to rgb = colour + (1 - alpha) bg, alpha = 1 - T_final,
+// depth = sum w z / max(alpha, 1e-10), normals = R_cw^T (sum w n) (world frame), per pixel.
+
+constexpr int64_t kFinishBlock = 4096;  // pixels per work item; also the fixed blocks of the reductions
+constexpr double kAlphaFloor = 1e-10;
+
+template <typename scalar_t>
+void finish(int64_t n_pix, const scalar_t* feats, const scalar_t* T_final, const scalar_t* bg, const scalar_t* viewmat,
+            int threads, scalar_t* rgb, scalar_t* depth, scalar_t* alpha, scalar_t* normals) {
+    constexpr int F = kProjectedFeatures;
+    run_workers(threads, n_pix, kFinishBlock, [&](Ranges& ranges) {
+        for (int64_t lo, hi; ranges.claim(lo, hi);)
+            for (int64_t p = lo; p < hi; ++p) {
+                const scalar_t* f = feats + F * p;
+                const scalar_t a = scalar_t(1) - T_final[p];
+                const scalar_t keep = scalar_t(1) - a;
+                for (int c = 0; c < 3; ++c) rgb[3 * p + c] = f[c] + keep * bg[c];
+                depth[p] = f[3] / std::max(a, scalar_t(kAlphaFloor));
+                alpha[p] = a;
+                for (int j = 0; j < 3; ++j)
+                    normals[3 * p + j] = f[4] * viewmat[j] + f[5] * viewmat[4 + j] + f[6] * viewmat[8 + j];
+            }
+    });
+}
+
+// Backward of `finish`: gradients of the composited channels and of alpha, and (summed over pixels in fixed blocks)
+// of the background and R_cw. A null output gradient counts as zero.
+template <typename scalar_t>
+void finish_backward(int64_t n_pix, const scalar_t* feats, const scalar_t* T_final, const scalar_t* bg,
+                     const scalar_t* viewmat, const scalar_t* g_rgb, const scalar_t* g_depth, const scalar_t* g_alpha,
+                     const scalar_t* g_normals, int threads, scalar_t* g_feats, scalar_t* g_alpha_total,
+                     scalar_t* d_bg, scalar_t* d_R) {
+    constexpr int F = kProjectedFeatures;
+    const int64_t n_blocks = (n_pix + kFinishBlock - 1) / kFinishBlock;
+    std::vector<double> partial(size_t(n_blocks) * 12, 0.0);  // per block: d bg (3), d R_cw (9)
+    run_workers(threads, n_pix, kFinishBlock, [&](Ranges& ranges) {
+        for (int64_t lo, hi; ranges.claim(lo, hi);) {
+            double* sums = &partial[size_t(lo / kFinishBlock) * 12];
+            for (int64_t p = lo; p < hi; ++p) {
+                const scalar_t* f = feats + F * p;
+                scalar_t* gf = g_feats + F * p;
+                const scalar_t a = scalar_t(1) - T_final[p];
+                const scalar_t keep = scalar_t(1) - a;
+                scalar_t ga = g_alpha ? g_alpha[p] : scalar_t(0);
+                for (int c = 0; c < 3; ++c) {
+                    const scalar_t g = g_rgb ? g_rgb[3 * p + c] : scalar_t(0);
+                    gf[c] = g;
+                    ga -= g * bg[c];
+                    sums[c] += double(g) * double(keep);
+                }
+                const scalar_t gd = g_depth ? g_depth[p] : scalar_t(0);
+                const scalar_t denom = std::max(a, scalar_t(kAlphaFloor));
+                gf[3] = gd / denom;
+                if (a >= scalar_t(kAlphaFloor)) ga -= gd * f[3] / (denom * denom);
+                for (int i = 0; i < 3; ++i) {
+                    scalar_t g = 0;
+                    for (int j = 0; j < 3; ++j) {
+                        const scalar_t gn = g_normals ? g_normals[3 * p + j] : scalar_t(0);
+                        g += viewmat[4 * i + j] * gn;
+                        sums[3 + 3 * i + j] += double(f[4 + i]) * double(gn);
+                    }
+                    gf[4 + i] = g;
+                }
+                g_alpha_total[p] = ga;
+            }
+        }
+    });
+    double total[12] = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
+    for (int64_t b = 0; b < n_blocks; ++b)
+        for (int j = 0; j < 12; ++j) total[j] += partial[size_t(b) * 12 + j];
+    for (int c = 0; c < 3; ++c) d_bg[c] = scalar_t(total[c]);
+    for (int j = 0; j < 9; ++j) d_R[j] = scalar_t(total[3 + j]);
+}
+
 }  // namespace
 
 extern "C" int raster_projected_features() {
@@ -700,6 +776,17 @@ extern "C" void raster_build_surfel_index(const int32_t* pair_surfel, int64_t P,
 }
 
 #define RASTER_CPU_API(SUFFIX, T)                                                                                      \
+    extern "C" void raster_finish_##SUFFIX(int64_t n_pix, const T* feats, const T* T_final, const T* bg,             \
+                                           const T* viewmat, int threads, T* rgb, T* depth, T* alpha, T* normals) {  \
+        finish(n_pix, feats, T_final, bg, viewmat, threads, rgb, depth, alpha, normals);                               \
+    }                                                                                                                  \
+    extern "C" void raster_finish_backward_##SUFFIX(                                                                   \
+        int64_t n_pix, const T* feats, const T* T_final, const T* bg, const T* viewmat, const T* g_rgb,               \
+        const T* g_depth, const T* g_alpha, const T* g_normals, int threads, T* g_feats, T* g_alpha_total, T* d_bg,    \
+        T* d_R) {                                                                                                      \
+        finish_backward(n_pix, feats, T_final, bg, viewmat, g_rgb, g_depth, g_alpha, g_normals, threads, g_feats,     \
+                        g_alpha_total, d_bg, d_R);                                                                     \
+    }                                                                                                                  \
     extern "C" void raster_project_##SUFFIX(int64_t N, const T* means, const T* quats, const T* scales, const T* opac, \
                                             const T* colors, const T* viewmat, const T* K, int W, int H, int threads,  \
                                             T* rays, T* planes, T* means2d, T* depths, T* feats, int32_t* radii,       \
