@@ -180,6 +180,16 @@ def test_outputs_and_gradients_do_not_depend_on_the_thread_count():
     finally:
         torch.set_num_threads(before)
     (out1, grads1), (out2, grads2) = runs
+    with raster_cpu.using_threads(3):  # the kernels' own thread count, whatever torch uses
+        assert raster_cpu.worker_threads() == 3
+        runs.append(render_with_grads(scene, look_from(0.05, dtype=torch.float32), "cpu", weights,
+                                      K=camera(torch.float32)))
+    assert raster_cpu.worker_threads() == torch.get_num_threads()
+    with pytest.raises(ValueError, match="thread count"), raster_cpu.using_threads(0):
+        pass
+    out3, grads3 = runs[2]
+    assert all(torch.equal(a, b) for a, b in zip(out1, out3))
+    assert all(torch.equal(g, grads3[name]) for name, g in grads1.items())
     assert out1.alpha.max() > 0.99
     for a, b in zip(out1, out2):
         assert torch.equal(a, b)

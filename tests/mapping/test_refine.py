@@ -45,6 +45,17 @@ def test_refinement_raises_psnr_of_a_perturbed_map():
     assert len(refined) == len(noisy)
 
 
+def test_refinement_leaves_the_torch_thread_count_as_it_was():
+    _, noisy = perturbed_map(torch.Generator().manual_seed(4))
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        refine_surfels(noisy, torch.ones(len(noisy), dtype=torch.bool), make_views([camera_pose()]), iterations=2)
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+
+
 def test_only_the_window_is_optimised():
     gen = torch.Generator().manual_seed(1)
     _, noisy = perturbed_map(gen)

@@ -1,5 +1,5 @@
 """Compiled CPU rasterizer: projection, tile binning, compositing and the backward of all three in C++, behind
-torch.autograd.Functions; torch.get_num_threads() worker threads.
+torch.autograd.Functions; `worker_threads()` threads (torch.get_num_threads() unless `using_threads` says otherwise).
 
 `rasterize_cpu` is the fast path `rasterize(backend="cpu")` uses: one forward call chain from surfel attributes to
 the composited [colour, depth, camera normal] channels, one backward chain to the gradients of means, quats, scales,
@@ -16,6 +16,7 @@ float32 and float64; results and gradients are bitwise independent of the thread
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import hashlib
 import os
@@ -34,6 +35,7 @@ CXX_FLAGS = ["-O3", "-std=c++17", "-fPIC", "-shared", "-pthread"]
 _PAIR_FIXED = 12  # per-pair gradient columns before the features: dA(3) dB(3) dC(3) dmeans2d(2) dopacity(1)
 
 _lock = threading.Lock()
+_threads = threading.local()  # per calling thread: the kernels' thread count while `using_threads` is active
 _library: ctypes.CDLL | None = None
 _error: str | None = None
 _tried = False
@@ -108,6 +110,24 @@ def _load() -> ctypes.CDLL | None:
         return _library
 
 
+def worker_threads() -> int:
+    """Threads the kernels use: torch.get_num_threads(), or the count set by `using_threads` in this thread."""
+    return getattr(_threads, "count", None) or torch.get_num_threads()
+
+
+@contextlib.contextmanager
+def using_threads(count: int):
+    """Run the kernels on `count` threads inside the block (this calling thread only), whatever torch uses."""
+    if count < 1:
+        raise ValueError(f"thread count must be >= 1, got {count}")
+    previous = getattr(_threads, "count", None)
+    _threads.count = int(count)
+    try:
+        yield
+    finally:
+        _threads.count = previous
+
+
 def available() -> bool:
     """True when the kernels compiled (or were cached) and loaded."""
     return _load() is not None
@@ -141,7 +161,7 @@ class _Binned(NamedTuple):
 def _bin_and_composite(planes, means2d, opacities, features, radii, depths, rects, width, height):
     """Tile binning and the forward compositing: (sum w f [H, W, F], binning state)."""
     dtype, N, F = planes.dtype, planes.shape[0], features.shape[1]
-    threads = torch.get_num_threads()
+    threads = worker_threads()
     tiles_x, tiles_y = tile_grid(width, height)
     tile_offsets = torch.empty(tiles_x * tiles_y + 1, dtype=torch.int64)
     n_pairs = _kernel("bin_count", dtype)(_ptr(means2d), _ptr(radii), N, width, height, _ptr(tile_offsets))
@@ -172,7 +192,7 @@ def _composite_backward(binned: _Binned, planes, means2d, opacities, features, r
     _kernel("backward", dtype)(
         _ptr(binned.tile_offsets), _ptr(binned.pair_surfel), _ptr(surfel_offsets), _ptr(surfel_pairs), _ptr(rects),
         _ptr(planes), _ptr(means2d), _ptr(opacities), _ptr(features), N, F, width, height,
-        torch.get_num_threads(), _ptr(binned.T_final), _ptr(binned.counts), _ptr(g_feat.to(dtype).contiguous()),
+        worker_threads(), _ptr(binned.T_final), _ptr(binned.counts), _ptr(g_feat.to(dtype).contiguous()),
         _ptr(g_alpha.to(dtype).contiguous()), _ptr(pair_grads), _ptr(d_planes), _ptr(d_means2d), _ptr(d_opac),
         _ptr(d_feat))
     return d_planes, d_means2d, d_opac, d_feat
@@ -185,7 +205,7 @@ class _Composite(torch.autograd.Function):
     def forward(ctx, planes, means2d, opacities, features, rays, radii, depths, width, height):
         rects = torch.empty(planes.shape[0], 4, dtype=torch.int32)
         _kernel("reach_rects", planes.dtype)(_ptr(rays), _ptr(means2d), _ptr(opacities), planes.shape[0], width,
-                                             height, torch.get_num_threads(), _ptr(rects))
+                                             height, worker_threads(), _ptr(rects))
         out_feat, binned = _bin_and_composite(planes, means2d, opacities, features, radii, depths, rects, width,
                                               height)
         ctx.save_for_backward(planes, means2d, opacities, features, rects, *binned)
@@ -222,7 +242,7 @@ class _Rasterize(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, colors, viewmat, background, K, width, height):
         dtype, N = means.dtype, means.shape[0]
-        threads = torch.get_num_threads()
+        threads = worker_threads()
         F = _library.raster_projected_features()
         planes = torch.empty(N, 9, dtype=dtype)
         means2d, depths = torch.empty(N, 2, dtype=dtype), torch.empty(N, dtype=dtype)
@@ -249,7 +269,7 @@ class _Rasterize(torch.autograd.Function):
         binned = _Binned(*binned)
         width, height = ctx.size
         dtype, N = means.dtype, means.shape[0]
-        threads = torch.get_num_threads()
+        threads = worker_threads()
 
         # None (an output that took no part in the loss) is passed as a null pointer: a zero gradient
         grads = [None if g is None else g.to(dtype).contiguous() for g in (g_rgb, g_depth, g_alpha, g_normals)]
@@ -295,7 +315,7 @@ def visible_cpu(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, 
     means2d, depths = torch.empty(N, 2, dtype=dtype), torch.empty(N, dtype=dtype)
     features = torch.empty(N, _library.raster_projected_features(), dtype=dtype)
     radii, rects = torch.empty(N, 2, dtype=torch.int32), torch.empty(N, 4, dtype=torch.int32)
-    _kernel("project", dtype)(N, *(_ptr(t) for t in inputs), int(width), int(height), torch.get_num_threads(), None,
+    _kernel("project", dtype)(N, *(_ptr(t) for t in inputs), int(width), int(height), worker_threads(), None,
                               _ptr(planes), _ptr(means2d), _ptr(depths), _ptr(features), _ptr(radii), _ptr(rects))
     return radii[:, 0] > 0
 
