@@ -50,3 +50,10 @@ def test_unknown_preset_and_missing_checkpoint() -> None:
     cfg = SlamConfig.preset("test", frontend={"checkpoint": "/nonexistent/weights.safetensors"})
     with pytest.raises(ValueError, match="does not exist"):
         cfg.checkpoint_path()
+
+
+def test_paper_preset_keeps_the_paper_mapping_and_rgbd_preset_is_its_own() -> None:
+    paper, rgbd = SlamConfig.preset("paper"), SlamConfig.preset("rgbd")
+    assert paper.mapping.prune and paper.mapping.voxel_block == 2 and paper.mapping.tau_accum == 0.7
+    assert paper.mapping.refine_iterations == 20 and paper.mapping.refine_keyframes == 5
+    assert not rgbd.mapping.prune and rgbd.mapping.voxel_block == 1 and rgbd.input.surfel_init == "depth"

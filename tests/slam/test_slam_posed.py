@@ -108,3 +108,15 @@ def test_render_view_checks_its_arguments(frames, mapped) -> None:
         system.render_view(np.eye(3), K, *SIZE)
     with pytest.raises(ValueError, match="render size"):
         system.render_view(frames[0].pose, K, 0, 10)
+
+
+def test_pruning_can_be_switched_off(frames) -> None:
+    def surfels_per_keyframe(prune: bool) -> list[int]:
+        system = SlamSystem(rgbd_config(mapping={"prune": prune, "refine_iterations": 0}))
+        counts = [system.num_gaussians for f in frames if system.push(f).is_keyframe]
+        system.finish()
+        return counts
+
+    kept, pruned = surfels_per_keyframe(False), surfels_per_keyframe(True)
+    assert kept == sorted(kept) and kept[-1] > kept[0]  # nothing is ever removed
+    assert kept[-1] > pruned[-1]  # where pruning removes some

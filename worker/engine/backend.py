@@ -9,6 +9,7 @@ from other threads see a map between two refinement steps, never in the middle o
 from __future__ import annotations
 
 import logging
+import math
 import queue
 import threading
 import time
@@ -55,7 +56,8 @@ def build_gaussian_map(cfg: MappingConfig, device: str):
     return GaussianMap(MapConfig(
         window=cfg.refine_keyframes,
         iterations=cfg.refine_iterations,
-        thresholds=FusionThresholds(rgb_error=cfg.prune_rgb_error, depth_error=cfg.prune_depth_error,
+        thresholds=FusionThresholds(rgb_error=cfg.prune_rgb_error if cfg.prune else math.inf,
+                                    depth_error=cfg.prune_depth_error if cfg.prune else math.inf,
                                     tau_accum=cfg.tau_accum),
         refine=RefineSettings(lambda_ssim=cfg.ssim_weight, lambda_depth=cfg.depth_weight),
         device=device,
