@@ -220,11 +220,12 @@ class SlamSystem:
             self._accumulate_path(pose, tracked.pose_world.numpy())
         if is_kf:
             self._add_keyframe(frame.index, pose, submap_id=0)
+            if self.backend is not None:  # the keyframe enters the map before a loop closure can move it
+                self._pending_jobs.append(self._posed_keyframe_job(frame, prep, tracked))
+                self._flush_posed_jobs()
             if self.loop_closer is not None:
                 events += self._posed_loop(frame)
         world = self._traj.add_frame(frame.index, frame.timestamp, self._last_keyframe, pose, is_kf, 0)
-        if is_kf and self.backend is not None:
-            self._pending_jobs.append(self._posed_keyframe_job(frame, prep, tracked))
         if self.backend is not None:
             self._flush_posed_jobs()
         return FrameResult(frame.index, frame.timestamp, world, is_kf, 0, self.revision, events)
@@ -443,7 +444,11 @@ class SlamSystem:
         revision = self._traj.update_keyframes(result.poses)
         if self.backend is not None:
             changed = {k: p for k, p in result.poses.items() if not np.allclose(p, old[k], atol=1e-9)}
-            self.backend.submit(PoseUpdateJob(changed))
+            for job, _ in self._pending_jobs:  # not in the map yet (waiting for their scale): they move here
+                if job.kf_id in changed:
+                    job.pose = changed.pop(job.kf_id)
+            if changed:
+                self.backend.submit(PoseUpdateJob(changed))
         self.counters["loops"] += 1
         return {"type": "loop_closed", "revision": revision, "from_keyframe": int(loop_from),
                 "to_keyframe": int(loop_to), "pgo_error_before": result.initial_error,
