@@ -256,7 +256,7 @@ class RenderingScores:
     psnr: float
     ssim: float
     lpips: float | None
-    depth_l1: float | None
+    depth_l1: float | None  # None when no frame had rendered and ground-truth depth in common
     num_frames: int
     lpips_note: str = ""
 
@@ -287,7 +287,10 @@ def evaluate_renders(
         if lpips_metric.available:
             lpipss.append(lpips_metric(rgb, frame.image))
         if depth is not None and frame.depth is not None:
-            depths.append(depth_l1(depth, frame.depth, depth_scaling).value)
+            try:
+                depths.append(depth_l1(depth, frame.depth, depth_scaling).value)
+            except ValueError:  # the map draws nothing with depth here: no depth error to score
+                pass
         count += 1
     if count == 0:
         raise ValueError("no frames to evaluate")
