@@ -145,5 +145,6 @@ def evaluate_model(model, seq: EvalSequence, method: str = "model", submap_lengt
         poses.append(tracked.pose_world.numpy())
         rels.append(depth_abs_rel(tracked.surfels.points[..., 2].float().numpy(), seq.depths[i]))
         psnrs.append(raw_surfel_psnr(tracked.surfels, image, seq.K))
-    return SequenceScores(seq.name, method, trajectory_ate(np.stack(poses), seq.c2w), float(np.nanmean(rels)),
-                          float(np.mean(psnrs)))
+    finite = [r for r in rels if math.isfinite(r)]
+    return SequenceScores(seq.name, method, trajectory_ate(np.stack(poses), seq.c2w),
+                          float(np.mean(finite)) if finite else math.nan, float(np.mean(psnrs)))
