@@ -11,6 +11,7 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import numpy as np
 import torch
 from safetensors.torch import load_file, save_file
 
@@ -258,12 +259,20 @@ def write_loss_curves(history: list[StepLosses], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     steps = [h.step for h in history]
+    window = max(1, min(25, len(history) // 10))
+    changes = [b.step for a, b in zip(history, history[1:]) if a.stage != b.stage]
     fig, axes = plt.subplots(1, 4, figsize=(16, 3.5))
     for ax, key in zip(axes, ("total", "pose", "geo", "render")):
-        ax.plot(steps, [getattr(h, key) for h in history], lw=0.8)
+        values = np.array([getattr(h, key) for h in history])
+        ax.plot(steps, values, lw=0.5, alpha=0.4)
+        if window > 1:
+            smooth = np.convolve(values, np.ones(window) / window, mode="valid")
+            ax.plot(steps[window - 1:], smooth, lw=1.5, label=f"mean of {window}")
+        for step in changes:
+            ax.axvline(step, color="grey", ls="--", lw=0.8)
         ax.set_title(key)
-        ax.set_xlabel("step")
-        ax.set_yscale("log")
+        ax.set_xlabel("step (dashed: stage change)" if changes else "step")
+        ax.set_yscale("symlog" if values.min() <= 0 else "log")
         ax.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
