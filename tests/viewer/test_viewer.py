@@ -27,7 +27,7 @@ BACKGROUND = np.array([17, 14, 11])  # the canvas background #0b0e11, in BGR
 
 @pytest.fixture(scope="module")
 def chromium() -> str:
-    """Chromium, installed if needed; CI (FLASHMONO_REQUIRE_CHROMIUM=1, set by .ci/run) fails instead of skipping."""
+    """Chromium, installed if needed; FLASHMONO_REQUIRE_CHROMIUM=1 turns a missing browser into a failure."""
     try:
         return ensure_chromium()
     except RuntimeError as err:
