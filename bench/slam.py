@@ -3,7 +3,7 @@ posed RGB-D (ground-truth depth and poses, preset `rgbd`), posed RGB-D with inje
 (worker.engine.drift: per-frame rotation/translation bias and noise, compounded), and monocular with the default
 model. Prints ATE, PSNR/SSIM, depth L1, Gaussians and end-to-end FPS (paper appendix E: frames / total runtime).
 
-`python -m bench slam [--frames N] [--size WxH] [--modes rgbd,drift,mono] [--stride S] [--drift-seed K]`
+`python -m bench slam [--frames N] [--size WxH] [--modes rgbd,drift,driftmap,mono] [--stride S] [--drift-seed K]`
 """
 
 from __future__ import annotations
@@ -50,6 +50,9 @@ def main(argv: list[str]) -> int:
         "drift": dict(config=SlamConfig.preset(args.preset or "rgbd", loop=LOOPS, mapping={"enabled": False},
                                                input={"pose_mode": "prior"}),
                       use_gt_depth=True, use_gt_poses=True, drift=PoseDrift(**DRIFT, seed=args.drift_seed)),
+        # the same with the map built alongside (loop corrections move its surfels): end-to-end FPS of the mode
+        "driftmap": dict(config=SlamConfig.preset(args.preset or "rgbd", loop=LOOPS, input={"pose_mode": "prior"}),
+                         use_gt_depth=True, use_gt_poses=True, drift=PoseDrift(**DRIFT, seed=args.drift_seed)),
         "mono": dict(config=SlamConfig.preset(args.preset or "fast"), use_gt_depth=False, use_gt_poses=False),
     }
     print(f"source {source} stride {stride} at {width}x{height}")
