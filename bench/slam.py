@@ -41,6 +41,7 @@ def main(argv: list[str]) -> int:
                         "modes, fast for monocular)")
     parser.add_argument("--stride", type=int, default=1, help="stride on the full 211-frame set")
     parser.add_argument("--drift-seed", type=int, default=0)
+    parser.add_argument("--checkpoint", default=None, help="monocular: model weights (default: the shipped ones)")
     args = parser.parse_args(argv)
     width, height = (int(v) for v in args.size.split("x"))
     source, stride = _source(args.stride)
@@ -53,7 +54,8 @@ def main(argv: list[str]) -> int:
         # the same with the map built alongside (loop corrections move its surfels): end-to-end FPS of the mode
         "driftmap": dict(config=SlamConfig.preset(args.preset or "rgbd", loop=LOOPS, input={"pose_mode": "prior"}),
                          use_gt_depth=True, use_gt_poses=True, drift=PoseDrift(**DRIFT, seed=args.drift_seed)),
-        "mono": dict(config=SlamConfig.preset(args.preset or "fast"), use_gt_depth=False, use_gt_poses=False),
+        "mono": dict(config=SlamConfig.preset(args.preset or "fast", frontend={"checkpoint": args.checkpoint}),
+                     use_gt_depth=False, use_gt_poses=False),
     }
     print(f"source {source} stride {stride} at {width}x{height}")
     print("| mode | frames | keyframes | loops | ATE (cm) | ATE drift only (cm) | PSNR | SSIM | depth L1 (cm) "

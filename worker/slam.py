@@ -353,15 +353,15 @@ class SlamSystem:
         events: list[dict[str, Any]] = []
         if tracked.is_keyframe:
             self._add_keyframe(frame.index, tracked.pose_world.numpy(), submap_id=tracked.submap_id)
+            if self.backend is not None:  # the keyframe enters the map before a loop closure can move it
+                grid, depth = self._prediction_grid(frame, prep, tracked.surfels)
+                image = prep.tensor[0].permute(1, 2, 0).contiguous()
+                self.backend.submit(KeyframeJob(frame.index, self._traj.keyframe_poses[frame.index],
+                                                self.model_intrinsics.matrix(), image, grid, depth))
             if self.loop_closer is not None:
                 events += self._close_loop(frame.index, prep.tensor, self.model_intrinsics)
         world = self._traj.add_frame(frame.index, frame.timestamp, tracked.keyframe_id, tracked.pose_world.numpy(),
                                      tracked.is_keyframe, tracked.submap_id)
-        if tracked.is_keyframe and self.backend is not None:
-            grid, depth = self._prediction_grid(frame, prep, tracked.surfels)
-            image = prep.tensor[0].permute(1, 2, 0).contiguous()
-            self.backend.submit(KeyframeJob(frame.index, self._traj.keyframe_poses[frame.index],
-                                            self.model_intrinsics.matrix(), image, grid, depth))
         return FrameResult(frame.index, frame.timestamp, world, tracked.is_keyframe, tracked.submap_id,
                            self.revision, events)
 
