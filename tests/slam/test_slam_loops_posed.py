@@ -61,3 +61,17 @@ def test_loop_edges_undo_part_of_the_drift_and_keep_the_scale(frames) -> None:
 def test_one_edge_per_closure_when_asked(frames) -> None:
     system = run(frames, top_k=8, max_loops_per_keyframe=1)
     assert len(system.pose_graph.edges_of_kind("loop")) == system.counters["loops"] >= 1
+
+
+def test_loop_closures_move_the_map_with_the_keyframes(frames) -> None:
+    config = SlamConfig.preset("rgbd", threaded=False, frontend={"keyframe_every": 2},
+                               mapping={"refine_iterations": 0},
+                               loop={"exclusion_frames": 20, "loop_cooldown_keyframes": 0, "top_k": 8,
+                                     "max_loops_per_keyframe": 4})
+    system = SlamSystem(config)
+    closed_at = [f.index for f in frames if system.push(f).events]
+    system.finish()
+    assert closed_at and system.stats()["runtime_breakdown"]["map_loop_correction"]["events"] == len(closed_at)
+    gmap = system.backend.map
+    for kf_id, _, pose in system.trajectory("keyframes"):  # the map's keyframes sit where the trajectory says
+        np.testing.assert_allclose(gmap.keyframe_pose(kf_id).numpy(), pose, atol=1e-9)
