@@ -61,6 +61,10 @@ class LoopConfig(_Section):
     robust_k: float = Field(1.0, gt=0, description="robust kernel threshold on the whitened loop residual")
     pgo_iterations: int = Field(50, ge=1, le=10000)
     loop_cooldown_keyframes: int = Field(2, ge=0, description="keyframes between two accepted loop closures")
+    depth_alignment: bool = Field(
+        True, description="posed RGB-D: refine each loop edge by ICP on the two keyframes' depth")
+    alignment_min_inliers: float = Field(0.3, ge=0, le=1, description="ICP: fraction of points with a close match")
+    alignment_max_rms: float = Field(0.01, gt=0, description="ICP: largest RMS point-to-plane residual (metres)")
 
 
 class MappingConfig(_Section):

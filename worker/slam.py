@@ -419,12 +419,19 @@ class SlamSystem:
         constraints = self.loop_closer.process_keyframe(index, image, intrinsics)
         if not constraints:
             return []
+        kept = []
         for constraint in constraints:
             relative = constraint.relative
             if self._metric_loops():  # given metric poses and depth: a loop measures no scale change
-                relative = _rigid(relative)
+                relative = self._align_depth(constraint.i, constraint.j, _rigid(relative), intrinsics)
+                if relative is None:
+                    continue
             self.pose_graph.add_edge(constraint.i, constraint.j, relative, kind="loop",
                                      weight=self.config.loop.loop_weight)
+            kept.append(constraint)
+        if not kept:
+            return []
+        constraints = kept
         best = constraints[0]
         event = self._apply_pgo(best.j, best.i)
         event["source"] = best.source
@@ -432,6 +439,24 @@ class SlamSystem:
         if len(constraints) > 1:
             event["also_to_keyframes"] = [int(c.i) for c in constraints[1:]]
         return [event]
+
+    def _align_depth(self, i: int, j: int, relative: np.ndarray, intrinsics: Intrinsics | None) -> np.ndarray | None:
+        """A posed RGB-D loop edge refined by ICP on the two keyframes' depth (half resolution), or None when the
+        depth maps do not fit together (too few close points or a large residual)."""
+        lc = self.config.loop
+        if not lc.depth_alignment or intrinsics is None:
+            return relative
+        from worker.engine.rgbd_align import refine_relative_pose
+
+        points_i, _ = self.depth_points.keyframe_points(i)
+        points_j, _ = self.depth_points.keyframe_points(j)
+        half = intrinsics.scaled(intrinsics.width // 2, intrinsics.height // 2).matrix()
+        with self.timings.measure("loop_relocalization"):
+            fit = refine_relative_pose(points_i[::2, ::2], points_j[::2, ::2], half, torch.from_numpy(relative))
+        if fit.inlier_fraction < lc.alignment_min_inliers or fit.rms > lc.alignment_max_rms:
+            self.loop_closer.rejected += 1
+            return None
+        return fit.relative.numpy()
 
     def _metric_loops(self) -> bool:
         return self.mode == "posed" and self._with_depth
