@@ -15,7 +15,7 @@ def add_run_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help="output folder")
     parser.add_argument("--use-gt-depth", action="store_true", help="RGB-D mode: use the dataset's depth")
     parser.add_argument("--use-gt-poses", action="store_true", help="posed mode: use the dataset's poses")
-    parser.add_argument("--preset", default="default", help="SlamConfig preset: paper, default, fast, test")
+    parser.add_argument("--preset", default="default", help="SlamConfig preset: paper, default, fast, rgbd, test")
     parser.add_argument("--max-frames", type=int, default=None, help="stop after N frames")
     parser.add_argument("--stride", type=int, default=1, help="keep every S-th frame")
     parser.add_argument("--resize", type=parse_size, default=None, help="resize frames to WxH, e.g. 320x240")
