@@ -44,12 +44,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                    description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--source", default=None, help="sequence to stream (default: the bundled ICL subset)")
     parser.add_argument("--out", default="demo_out", help="output folder (default %(default)s)")
-    # "posed" (an ARKit/ARCore phone with LiDAR) is the default while no trained frontend weights ship: with a
-    # randomly initialised model the monocular and rgbd modes track nothing meaningful.
+    # "posed" (an ARKit/ARCore phone with LiDAR) is the default: the shipped `tiny` weights were trained for 800 CPU
+    # steps on synthetic rooms only (bench/RESULTS.md, Training) and do not yet track real images usefully.
     parser.add_argument("--mode", choices=sorted(MODES), default="posed",
                         help="what the 'phone' sends: mono (images), rgbd (+ depth, as LiDAR phones), posed "
                              "(+ depth and device poses); default %(default)s")
-    parser.add_argument("--preset", default="fast", help="SLAM preset (default %(default)s, CPU-friendly)")
+    parser.add_argument("--preset", default="rgbd",
+                        help="SLAM preset (default %(default)s: posed RGB-D mapping tuned for a CPU; 'fast' is "
+                             "quicker with a coarser map)")
     parser.add_argument("--max-frames", type=int, default=None, help="stream at most this many frames")
     parser.add_argument("--renders", type=int, default=6, help="how many views to render for PSNR (default 6)")
     parser.add_argument("--server", default=None, help="use this running server instead of starting one")
