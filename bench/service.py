@@ -166,9 +166,8 @@ def main(argv: list[str]) -> int:
            "FLASHMONO_SNAPSHOT_EVERY": "5"}
     gateway_env = {"FLASHMONO_MAX_QUEUE": "1000", "FLASHMONO_API_KEYS": ""}
     rows = []
-    with LocalStack(workers=args.workers, worker_env=env, gateway_env=gateway_env) as stack:
-        for worker in stack.workers:
-            os.setpriority(os.PRIO_PROCESS, worker.pid, args.worker_nice)
+    with LocalStack(workers=args.workers, worker_env=env, gateway_env=gateway_env,
+                    worker_nice=args.worker_nice) as stack:
         frames = int(args.seconds * 30)
         for sessions in (1, 8, 32):
             rows.append(run_case(stack, sessions, frames, 30.0, jpeg))

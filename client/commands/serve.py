@@ -18,6 +18,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="use this Redis (default: $REDIS_URL, else an embedded one)")
     parser.add_argument("--engine", choices=("slam", "passthrough"), default=None,
                         help="worker engine (default slam; passthrough only measures the service itself)")
+    parser.add_argument("--worker-nice", type=int, default=10,
+                        help="CPU priority of the workers started here, below the gateway's (0-19, default "
+                             "%(default)s): acks stay fast while a worker computes")
     parser.add_argument("--log-level", default="info")
     parser.set_defaults(func=run)
 
@@ -30,8 +33,8 @@ def run(args: argparse.Namespace) -> int:
     from service.launcher import start_worker_process
     from service.redis_embedded import EmbeddedRedis
 
-    if args.workers < 0 or not (0 < args.port < 65536):
-        print("error: --workers must be >= 0 and --port in 1..65535")
+    if args.workers < 0 or not (0 < args.port < 65536) or not 0 <= args.worker_nice <= 19:
+        print("error: --workers must be >= 0, --port in 1..65535 and --worker-nice in 0..19")
         return 2
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     embedded = None
@@ -42,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
         logging.getLogger("flashmono.serve").info("embedded redis-server at %s", redis_url)
     os.environ["REDIS_URL"] = redis_url
     worker_env = {"FLASHMONO_ENGINE": args.engine} if args.engine else {}
-    workers = [start_worker_process(redis_url, worker_env) for _ in range(args.workers)]
+    workers = [start_worker_process(redis_url, worker_env, nice=args.worker_nice) for _ in range(args.workers)]
     try:
         max_frame = int(os.environ.get("FLASHMONO_MAX_FRAME_BYTES", 8 * 1024 * 1024))
         uvicorn.run("service.app:app", host=args.host, port=args.port, log_level=args.log_level,
