@@ -3,6 +3,7 @@ worker processes, each a real process on loopback. Used as a context manager; ev
 
 from __future__ import annotations
 
+import json
 import os
 import socket
 import subprocess
@@ -20,6 +21,20 @@ def free_port() -> int:
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
         return sock.getsockname()[1]
+
+
+def receive_until(ws, predicate, timeout_s: float = 60.0) -> list[dict]:
+    """A sync WebSocket's JSON messages until one satisfies `predicate` (included); TimeoutError otherwise."""
+    messages: list[dict] = []
+    deadline = time.monotonic() + timeout_s
+    while True:
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            raise TimeoutError(f"no matching message; got {[m.get('type') for m in messages][-10:]}")
+        message = json.loads(ws.recv(timeout=remaining))
+        messages.append(message)
+        if predicate(message):
+            return messages
 
 
 class LiveStack:

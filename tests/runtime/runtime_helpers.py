@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import json
 import time
 
 import cv2
 import msgpack
 import numpy as np
+from live_stack import receive_until  # noqa: F401  (re-exported for this area's tests)
 
 WORKER_ENV = {"FLASHMONO_ENGINE": "passthrough", "FLASHMONO_LEASE_TTL_MS": "4000", "FLASHMONO_SNAPSHOT_EVERY": "2",
               "FLASHMONO_LOG_LEVEL": "INFO"}
@@ -20,19 +20,6 @@ def synthetic_frame(seq: int, width: int = 64, height: int = 48) -> bytes:
     pose[0, 3] = float(seq)
     return msgpack.packb({"type": "frame", "seq": seq, "timestamp": seq / 30.0,
                           "image": cv2.imencode(".jpg", image)[1].tobytes(), "pose": pose.reshape(-1).tolist()})
-
-
-def receive_until(ws, predicate, timeout_s: float = 60.0) -> list[dict]:
-    messages: list[dict] = []
-    deadline = time.monotonic() + timeout_s
-    while True:
-        remaining = deadline - time.monotonic()
-        if remaining <= 0:
-            raise TimeoutError(f"no matching message; last: {messages[-5:]}")
-        message = json.loads(ws.recv(timeout=remaining))
-        messages.append(message)
-        if predicate(message):
-            return messages
 
 
 def wait_for(condition, timeout_s: float = 60.0, interval_s: float = 0.05):

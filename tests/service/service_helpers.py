@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import json
-import time
 from pathlib import Path
 
 import cv2
 import msgpack
 import numpy as np
 import torch
+from live_stack import receive_until  # noqa: F401  (re-exported for this area's tests)
 
 from worker.geometry import quat_to_rotmat
 
@@ -48,20 +47,6 @@ def frame_message(seq: int, frame: dict, with_pose: bool = False, with_depth: bo
     if with_depth:
         message["depth"] = frame["depth"]
     return msgpack.packb(message, use_bin_type=True)
-
-
-def receive_until(ws, predicate, timeout_s: float = 30.0) -> list[dict]:
-    """Server messages until one satisfies `predicate` (included); TimeoutError otherwise."""
-    messages: list[dict] = []
-    deadline = time.monotonic() + timeout_s
-    while True:
-        remaining = deadline - time.monotonic()
-        if remaining <= 0:
-            raise TimeoutError(f"no matching message; got {[m.get('type') for m in messages][-10:]}")
-        message = json.loads(ws.recv(timeout=remaining))
-        messages.append(message)
-        if predicate(message):
-            return messages
 
 
 def of_type(messages: list[dict], kind: str) -> list[dict]:
