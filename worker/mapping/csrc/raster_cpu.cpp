@@ -484,6 +484,18 @@ struct Hit {
     bool use3d;
 };
 
+// The pixels [xs, xe) x [ys, ye) of a surfel's reach rectangle (x0, y0, x1, y1) inside one tile.
+struct PixelSpan {
+    int xs, xe, ys, ye;
+    bool clip(const int32_t* rect, int x0, int y0, int tw, int th) {
+        ys = std::max(rect[1], y0);
+        ye = std::min(rect[3], y0 + th);
+        xs = std::max(rect[0], x0);
+        xe = std::min(rect[2], x0 + tw);
+        return ys < ye && xs < xe;
+    }
+};
+
 template <typename scalar_t>
 inline bool evaluate(const SurfelView<scalar_t>& s, scalar_t x, scalar_t y, Hit<scalar_t>& h) {
     h.dx = x - s.cx;
@@ -527,10 +539,9 @@ void forward_impl(const Binning& b, const int32_t* rects, const scalar_t* planes
                 const int64_t start = b.tile_offsets[t], end = b.tile_offsets[t + 1];
                 for (int64_t k = start; k < end && remaining > 0; ++k) {
                     const int64_t g = b.pair_surfel[k];
-                    const int32_t* r = rects + 4 * g;
-                    const int ys = std::max(r[1], y0), ye = std::min(r[3], y0 + th);
-                    const int xs = std::max(r[0], x0), xe = std::min(r[2], x0 + tw);
-                    if (ys >= ye || xs >= xe) continue;
+                    PixelSpan span;
+                    if (!span.clip(rects + 4 * g, x0, y0, tw, th)) continue;
+                    const int ys = span.ys, ye = span.ye, xs = span.xs, xe = span.xe;
                     SurfelView<scalar_t> s;
                     s.load(planes, means2d, opac, g);
                     const scalar_t* f = feats + int64_t(F) * g;
@@ -604,10 +615,9 @@ void backward_impl(const Binning& b, const int32_t* rects, const scalar_t* plane
                     }
                 for (int64_t k = start + max_count - 1; k >= start; --k) {
                     const int64_t g = b.pair_surfel[k];
-                    const int32_t* r = rects + 4 * g;
-                    const int ys = std::max(r[1], y0), ye = std::min(r[3], y0 + th);
-                    const int xs = std::max(r[0], x0), xe = std::min(r[2], x0 + tw);
-                    if (ys >= ye || xs >= xe) continue;
+                    PixelSpan span;
+                    if (!span.clip(rects + 4 * g, x0, y0, tw, th)) continue;
+                    const int ys = span.ys, ye = span.ye, xs = span.xs, xe = span.xe;
                     SurfelView<scalar_t> s;
                     s.load(planes, means2d, opac, g);
                     const scalar_t* f = feats + int64_t(F) * g;
