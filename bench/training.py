@@ -7,9 +7,11 @@ Data: held-out synthetic scenes (seeds 10000.., never used for training; the fir
 loop at 224x160) and ICL living room (every 2nd frame of tests/data/icl_mini, and every 6th of
 /work/shared/data/icl_livingroom1_micro when present: both ~36 frames), fitted to 224x160. Methods: identity
 poses, constant velocity from the first two ground-truth poses, and each checkpoint run through the SubmapTracker
-(submaps of 8, no backend). Metrics: ATE RMSE after Sim(3) alignment (metres), depth AbsRel with a per-frame median
-scale, and PSNR of each frame's raw per-pixel surfels rendered from its own camera (no refinement). Prints a
-markdown table of means per dataset.
+(submaps of 8, no backend). Metrics: ATE RMSE after Sim(3) alignment (metres) with poses from the pose head and
+from the point-map fit (TrackerConfig.pose_source), depth AbsRel with a per-frame median scale, and the PSNR of
+each frame's raw per-pixel surfels (no refinement) rendered from its own camera ("own view") and from the next
+frame's ground-truth camera against the next image ("next view", surfels scaled to metres by the median depth
+ratio). Prints a markdown table of means per dataset.
 """
 
 from __future__ import annotations
@@ -84,14 +86,14 @@ def main(argv: list[str] | None = None) -> int:
     table: dict[tuple[str, str], list] = defaultdict(list)
     for s in scores:
         table[(group_of[s.sequence], s.method)].append(s)
-    print("\n| data | method | ATE RMSE (m) | depth AbsRel | raw surfel PSNR (dB) |")
-    print("|---|---|---|---|---|")
+    print("\n| data | method | ATE RMSE (m), pose head | ATE RMSE (m), point-map pose | depth AbsRel | "
+          "raw PSNR own view (dB) | raw PSNR next view (dB) |")
+    print("|---|---|---|---|---|---|---|")
     for (group, method), rows in table.items():
-        ate = float(np.mean([r.ate for r in rows]))
-        rel = float(np.mean([r.abs_rel for r in rows]))
-        ps = float(np.mean([r.psnr for r in rows]))
+        ate, ate_pm, rel, ps, ps_next = (float(np.mean([getattr(r, k) for r in rows]))
+                                         for k in ("ate", "ate_pointmap", "abs_rel", "psnr", "psnr_next"))
         print(f"| {group} | {Path(method).name if method.endswith('.safetensors') else method} | {ate:.3f} | "
-              f"{_fmt(rel, 3)} | {_fmt(ps, 2)} |")
+              f"{_fmt(ate_pm, 3)} | {_fmt(rel, 3)} | {_fmt(ps, 2)} | {_fmt(ps_next, 2)} |")
     print(f"\ntotal {time.perf_counter() - started:.0f} s")
     if args.json:
         args.json.write_text(json.dumps([asdict(s) | {"group": group_of[s.sequence]} for s in scores], indent=1))

@@ -21,8 +21,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, required=True, help="checkpoint directory")
     p.add_argument("--model", default="tiny", help="model config name (tiny, small, base, paper)")
     p.add_argument("--init", type=Path, help="initial weights (.safetensors, e.g. converted CUT3R)")
-    p.add_argument("--curriculum", choices=("scratch", "paper"), default="scratch",
-                   help="'paper': appendix D.3 for CUT3R-initialised models; 'scratch': full-model stage first")
+    p.add_argument("--curriculum", choices=("scratch", "paper", "continue"), default="scratch",
+                   help="'paper': appendix D.3 for CUT3R-initialised models; 'scratch': full-model stage first; "
+                        "'continue': every parameter on 4-frame clips, then long clips (for --init from a "
+                        "model trained from scratch; the first --stage-fractions share is the 4-frame stage)")
     p.add_argument("--steps", type=int, default=2000, help="total steps of the curriculum")
     p.add_argument("--lr", type=float, default=1e-3, help="base learning rate of the 'scratch' curriculum")
     p.add_argument("--width", type=int, default=224)
@@ -39,6 +41,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--cosine", action="store_true", help="cosine-decay each stage's rate to 10%%")
     p.add_argument("--render-downscale", type=int, default=2, help="rendering losses at 1/N of the model resolution")
     p.add_argument("--render-stride", type=int, default=2, help="render every N-th pixel's surfel")
+    p.add_argument("--pose-weight", type=float, default=1.0, help="weight of the pose loss (eq. 8's lambda_pose)")
     p.add_argument("--resume", action="store_true", help="continue from the checkpoint in --out")
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: all cores)")
     p.set_defaults(func=run)
@@ -63,7 +66,8 @@ def run(args: argparse.Namespace) -> int:
             synthetic_sequences=args.synthetic_sequences, frames=args.frames,
             checkpoint_every=args.checkpoint_every, cache=args.cache, max_frames=args.max_frames,
             fractions=tuple(args.stage_fractions),
-            config=TrainConfig(keep_every=args.keep_every, lr_warmup=args.lr_warmup, lr_cosine=args.cosine,
+            config=TrainConfig(pose_weight=args.pose_weight, keep_every=args.keep_every, lr_warmup=args.lr_warmup,
+                               lr_cosine=args.cosine,
                                render_downscale=args.render_downscale, render_stride=args.render_stride),
         )
     except (ValueError, FileNotFoundError) as err:

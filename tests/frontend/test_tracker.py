@@ -127,3 +127,58 @@ def test_uncalibrated_frames_get_intrinsics_estimated_from_the_point_map(icl_fra
         assert t.intrinsics.fx == pytest.approx(truth.fx, rel=0.01)
     given = tracker.track(5, icl_frames[5].image, truth)
     assert given.intrinsics == truth
+
+
+class _NoisyPoseHead:
+    """The oracle with its pose output (only) perturbed: the point maps still encode the true poses."""
+
+    def __init__(self, oracle: OracleModel, noise: float) -> None:
+        self.oracle = oracle
+        self.noise = noise
+        self.generator = torch.Generator().manual_seed(3)
+
+    def init_state(self, batch: int = 1):
+        return self.oracle.init_state(batch)
+
+    def step(self, image, state, update: bool = True):
+        from dataclasses import replace
+
+        from worker.geometry import se3_exp
+
+        out = self.oracle.step(image, state, update)
+        twist = (torch.randn(6, generator=self.generator) * self.noise).double()
+        return replace(out, pose_c2w=(out.pose_c2w[0].double() @ se3_exp(twist)).float()[None])
+
+
+def test_pointmap_pose_recovers_a_rigid_motion_and_down_weights_outliers():
+    from worker.frontend.tracker import pointmap_pose
+    from worker.geometry import se3_exp
+
+    g = torch.Generator().manual_seed(0)
+    cam = torch.rand(24, 32, 3, generator=g) * torch.tensor([2.0, 2.0, 3.0]) + torch.tensor([-1.0, -1.0, 1.0])
+    c2w = se3_exp(torch.tensor([0.3, -0.1, 0.2, 0.05, 0.2, -0.1], dtype=torch.float64))
+    world = (cam.double() @ c2w[:3, :3].T + c2w[:3, 3]).float()
+    weights = torch.ones(24, 32)
+    assert torch.allclose(pointmap_pose(cam, world, weights), c2w, atol=1e-5)
+    world[:4] += 5.0  # four rows of wild points, nearly zero weight
+    weights[:4] = 1e-6
+    assert torch.allclose(pointmap_pose(cam, world, weights), c2w, atol=1e-4)
+    assert not torch.allclose(pointmap_pose(cam, world, torch.ones(24, 32)), c2w, atol=1e-2)
+    with pytest.raises(ValueError, match="at least 3 valid"):
+        pointmap_pose(cam, world, torch.zeros(24, 32))
+
+
+def test_pointmap_pose_source_ignores_a_wrong_pose_head(icl_frames):
+    with pytest.raises(ValueError, match="pose_source"):
+        TrackerConfig(pose_source="imu")
+    gt = np.stack([f.pose.numpy() for f in icl_frames])
+    ate = {}
+    for source in ("head", "pointmap"):
+        model = _NoisyPoseHead(OracleModel(icl_frames), noise=0.05)
+        tracker = SubmapTracker(model, TrackerConfig(submap_length=6, pose_source=source))
+        tracked = _run(tracker, icl_frames, range(len(icl_frames)))
+        ate[source] = ate_rmse(np.stack([t.pose_world.numpy() for t in tracked]), gt)
+    assert ate["pointmap"] < 1e-3 < 0.01 < ate["head"]
+    restored = SubmapTracker(OracleModel(icl_frames))
+    restored.load_bytes(tracker.to_bytes())
+    assert restored.config.pose_source == "pointmap"

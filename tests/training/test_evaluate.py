@@ -17,6 +17,7 @@ from worker.training.evaluate import (
     evaluate_model,
     held_out_synthetic,
     identity_poses,
+    next_view_psnr,
     trajectory_ate,
 )
 
@@ -65,3 +66,31 @@ def test_held_out_synthetic_and_model_evaluation():
     scores = evaluate_model(build_model(MICRO), seq, submap_length=3)
     assert scores.method == "model" and math.isfinite(scores.ate) and scores.ate >= 0
     assert math.isfinite(scores.psnr) and 0 < scores.psnr < 60
+    assert math.isfinite(scores.psnr_next) and 0 < scores.psnr_next < 60
+    assert math.isfinite(scores.ate_pointmap) and scores.ate_pointmap >= 0
+
+
+def test_next_view_psnr_rewards_surfels_that_reproject_correctly():
+    from worker.frontend.tracker import CameraSurfels
+    from worker.geometry import Intrinsics, unproject_depth
+
+    seq = held_out_synthetic(1, frames=2, width=64, height=48)[0]
+    H, W = seq.images.shape[1:3]
+    K = torch.as_tensor(seq.K, dtype=torch.float32)
+    points = unproject_depth(torch.as_tensor(seq.depths[0]), K)
+    footprint = points[..., 2:3] / Intrinsics.from_matrix(K, W, H).fx
+
+    def surfels(scale: float) -> CameraSurfels:
+        quats = torch.zeros(H, W, 4)
+        quats[..., 0] = 1.0
+        return CameraSurfels(points * scale, torch.ones(H, W), torch.full((H, W), 0.95), quats,
+                             footprint.expand(H, W, 2) * scale, torch.as_tensor(seq.images[0]).float() / 255)
+
+    to_next = np.linalg.inv(seq.c2w[1]) @ seq.c2w[0]
+    exact = next_view_psnr(surfels(1.0), seq.depths[0], to_next, seq.images[1], seq.K)
+    assert exact > 18
+    assert next_view_psnr(surfels(0.3), seq.depths[0], to_next, seq.images[1], seq.K) == pytest.approx(exact, abs=0.05)
+    wrong = to_next.copy()
+    wrong[:3, 3] += np.array([0.3, 0.0, 0.0])
+    assert next_view_psnr(surfels(1.0), seq.depths[0], wrong, seq.images[1], seq.K) < exact - 2
+    assert math.isnan(next_view_psnr(surfels(1.0), np.zeros((H, W)), to_next, seq.images[1], seq.K))

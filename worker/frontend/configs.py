@@ -50,6 +50,9 @@ class FrontendConfig:
     dpt_last_dim: int = 128
     gs_adapter_hidden: int = 1536
     image_long_side: int = 512
+    # Gaussian colour = sigmoid(logit(input pixel colour) + raw) instead of sigmoid(raw): each per-pixel surfel starts
+    # from its own pixel's colour and the head learns a residual. Off for `paper` (CUT3R's RGB head loads exactly).
+    color_skip: bool = False
 
     def __post_init__(self) -> None:
         if self.enc_dim % self.enc_heads or self.dec_dim % self.dec_heads or self.dec_dim % self.state_dec_heads:
@@ -103,14 +106,14 @@ CONFIGS: dict[str, FrontendConfig] = {
         name="small", enc_dim=384, enc_depth=8, enc_heads=6, dec_dim=256, dec_depth=6, dec_heads=8,
         state_dec_heads=8, state_size=256, memory_size=64, memory_heads=8, ray_enc_depth=1,
         dpt_layer_dims=(48, 96, 192, 256), dpt_feature_dim=64, dpt_last_dim=32, gs_adapter_hidden=512,
-        image_long_side=384,
+        image_long_side=384, color_skip=True,
     ),
     # Trainable on 2 CPU cores; 224-wide frames (224x160: about 1.7 GFLOP per step).
     "tiny": FrontendConfig(
         name="tiny", enc_dim=192, enc_depth=4, enc_heads=3, dec_dim=128, dec_depth=4, dec_heads=4,
         state_dec_heads=4, state_size=64, memory_size=16, memory_heads=4, ray_enc_depth=1,
         dpt_layer_dims=(16, 32, 64, 128), dpt_feature_dim=16, dpt_last_dim=8, gs_adapter_hidden=256,
-        image_long_side=224,
+        image_long_side=224, color_skip=True,
     ),
 }
 

@@ -143,14 +143,24 @@ class HeadOutputs:
     colors: torch.Tensor
 
 
-def gaussian_attributes(raw: torch.Tensor, points_cam: torch.Tensor) -> tuple[torch.Tensor, ...]:
+# Pixel colours are clamped away from 0 and 1 before the logit so a saturated pixel stays reachable by the residual.
+_COLOR_LOGIT_EPS = 1e-3
+
+
+def gaussian_attributes(raw: torch.Tensor, points_cam: torch.Tensor, image: torch.Tensor | None = None
+                        ) -> tuple[torch.Tensor, ...]:
     """(colors [0,1], opacity (0,1), quats wxyz unit with w >= 0, scales > 0) from the GS DPT's channels-last output.
 
-    Rotation is biased towards identity (a surfel facing the camera); scales are relative to the pixel footprint
-    |mu| / f0 with CUT3R's base focal f0 = max(H, W) / (2 tan 30 deg).
+    With `image` ([B,H,W,3] in [0,1], the input frame at the head's resolution) the colour is a residual on the
+    pixel's own colour, sigmoid(logit(pixel) + raw); without it, sigmoid(raw). Rotation is biased towards identity
+    (a surfel facing the camera); scales are relative to the pixel footprint |mu| / f0 with CUT3R's base focal
+    f0 = max(H, W) / (2 tan 30 deg).
     """
     H, W = raw.shape[1:3]
-    colors = torch.sigmoid(raw[..., 0:3])
+    color_raw = raw[..., 0:3]
+    if image is not None:
+        color_raw = color_raw + torch.logit(image.to(raw.dtype), eps=_COLOR_LOGIT_EPS)
+    colors = torch.sigmoid(color_raw)
     opacity = torch.sigmoid(raw[..., 3])
     identity = torch.zeros(4, dtype=raw.dtype, device=raw.device)
     identity[0] = 1.0  # a fill kernel, not a host-to-device copy: keeps the step CUDA-graph capturable
@@ -167,6 +177,7 @@ class DownstreamHead(nn.Module):
     def __init__(self, config: FrontendConfig) -> None:
         super().__init__()
         c = config
+        self.color_skip = c.color_skip
         token_dims = (c.enc_dim, c.dec_dim)
         dpt = dict(layer_dims=c.dpt_layer_dims, feature_dim=c.dpt_feature_dim, last_dim=c.dpt_last_dim)
         self.pose_head = PoseHead(c.dec_dim)
@@ -181,8 +192,13 @@ class DownstreamHead(nn.Module):
         nn.init.zeros_(self.gs_adapter.fc2.bias)
 
     def forward(self, features: list[torch.Tensor], pose_token: torch.Tensor, patch_pos: torch.Tensor,
-                grid: tuple[int, int]) -> HeadOutputs:
-        """features: [encoder tokens, decoder layer a, decoder layer b, final tokens] without the pose token."""
+                grid: tuple[int, int], image: torch.Tensor | None = None) -> HeadOutputs:
+        """features: [encoder tokens, decoder layer a, decoder layer b, final tokens] without the pose token.
+
+        image: the input frame [B,3,H,W] in [0,1] at the heads' output resolution; required with `color_skip`.
+        """
+        if self.color_skip and image is None:
+            raise ValueError("this model's colour head (color_skip) needs the input image")
         device_type = pose_token.device.type
         with torch.autocast(device_type=device_type, enabled=False):
             features = [f.float() for f in features]
@@ -201,5 +217,6 @@ class DownstreamHead(nn.Module):
 
             gs_tokens = tokens + self.gs_adapter(tokens)
             gs_out = self.dpt_gs(features[:3] + [gs_tokens], grid).permute(0, 2, 3, 1).contiguous()
-            colors, opacity, quats, scales = gaussian_attributes(gs_out, points_cam)
+            pixels = image.float().permute(0, 2, 3, 1) if self.color_skip else None
+            colors, opacity, quats, scales = gaussian_attributes(gs_out, points_cam, pixels)
         return HeadOutputs(pose, points_cam, conf, points_world, conf_world, opacity, quats, scales, colors)

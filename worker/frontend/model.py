@@ -156,7 +156,7 @@ class FeedForwardModel(nn.Module):
                 new_memory = self.pose_retriever.write(memory, pooled, pose_out)
         a, b, _ = c.dpt_hooks
         features = [tokens, layers[a - 1][:, 1:], layers[b - 1][:, 1:], final[:, 1:]]
-        heads = self.downstream_head(features, pose_out[:, 0], pos, (H // p, W // p))
+        heads = self.downstream_head(features, pose_out[:, 0], pos, (H // p, W // p), image)
         if update:
             dtype = state.state_tokens.dtype
             next_state = HiddenState(new_state.to(dtype), new_memory.to(dtype), state.frames_seen + 1)

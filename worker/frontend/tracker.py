@@ -29,7 +29,7 @@ from typing import Protocol
 import numpy as np
 import torch
 
-from worker.geometry import Intrinsics, relative_transform, so3_log
+from worker.geometry import Intrinsics, relative_transform, so3_log, umeyama
 from worker.loop.pose_graph import PoseGraphEdge
 from worker.serialization import pack, unpack
 
@@ -44,18 +44,26 @@ class RecurrentModel(Protocol):
     def step(self, image: torch.Tensor, state: HiddenState, update: bool = True) -> StepOutput: ...
 
 
+POSE_SOURCES = ("head", "pointmap")
+
+
 @dataclass(frozen=True)
 class TrackerConfig:
-    """Submap length (frames, overlap included) and keyframe thresholds (see the module docstring)."""
+    """Submap length (frames, overlap included), keyframe thresholds (see the module docstring) and where a frame's
+    pose in its submap comes from: the model's pose head, or the rigid fit of its camera-frame point map onto its
+    world-frame (submap-frame) point map (`pointmap_pose`)."""
 
     submap_length: int = 8
     keyframe_translation: float = 0.10
     keyframe_rotation_deg: float = 10.0
     min_scale_points: int = 32
+    pose_source: str = "head"
 
     def __post_init__(self) -> None:
         if self.submap_length < 2:
             raise ValueError(f"submap_length must be at least 2 (one frame overlaps), got {self.submap_length}")
+        if self.pose_source not in POSE_SOURCES:
+            raise ValueError(f"pose_source must be one of {POSE_SOURCES}, got {self.pose_source!r}")
 
 
 @dataclass
@@ -151,6 +159,28 @@ def relative_scale(target: torch.Tensor, source: torch.Tensor, weights: torch.Te
     return s
 
 
+def pointmap_pose(points_cam: torch.Tensor, points_world: torch.Tensor, weights: torch.Tensor,
+                  max_points: int = 4096) -> torch.Tensor:
+    """Camera-to-world SE(3) [4,4] float64 that maps a frame's camera-frame points onto its world-frame points.
+
+    The two point maps show the same pixels, so the rigid transform between them is the camera pose the world map
+    encodes: a weighted Umeyama fit without scale (weights e.g. sqrt(conf * conf_world)) on a regular subsample
+    of at most `max_points` pixels. Raises ValueError with fewer than 3 valid pixels.
+    """
+    a = points_cam.reshape(-1, 3)
+    step = max(1, a.shape[0] // max_points)
+    a = a[::step].double()
+    b = points_world.reshape(-1, 3)[::step].double()
+    w = weights.reshape(-1)[::step].double()
+    valid = torch.isfinite(a).all(-1) & torch.isfinite(b).all(-1) & torch.isfinite(w) & (w > 0)
+    if int(valid.sum()) < 3:
+        raise ValueError(f"point-map pose needs at least 3 valid pixels, got {int(valid.sum())}")
+    _, R, t = umeyama(a[valid], b[valid], with_scale=False, weights=w[valid])
+    pose = torch.eye(4, dtype=torch.float64)
+    pose[:3, :3], pose[:3, 3] = R, t
+    return pose
+
+
 def _scale_matrix(s: float) -> torch.Tensor:
     return torch.diag(torch.tensor([s, s, s, 1.0], dtype=torch.float64))
 
@@ -199,7 +229,7 @@ class SubmapTracker:
         out = self.model.step(image, self.state, update=True)
         self.state = out.state
         self.frames_in_submap += 1
-        pose_submap = out.pose_c2w[0].double()
+        pose_submap = self._submap_pose(out)
         if self.frames_in_submap == self.config.submap_length:
             return self._start_submap(index, image, intrinsics, previous=(out, pose_submap))
         return self._emit(index, out, pose_submap, intrinsics, force_keyframe=False)
@@ -240,7 +270,7 @@ class SubmapTracker:
         self.frames_in_submap = 1
         self.submap_frames, self.submap_keyframes = [], []
         self.estimated_intrinsics = self._estimate_intrinsics(out)
-        pose_submap = out.pose_c2w[0].double()
+        pose_submap = self._submap_pose(out)
         if previous is not None:
             prev_out, prev_pose = previous
             try:
@@ -257,6 +287,15 @@ class SubmapTracker:
             self.submap_links.append((self.submap_id - 1, self.submap_id, link))
             self.submap_to_world = new_to_world
         return self._emit(index, out, pose_submap, intrinsics, force_keyframe=True)
+
+    def _submap_pose(self, out: StepOutput) -> torch.Tensor:
+        """The frame's SE(3) pose in its submap, from the configured source (pose head if the fit fails)."""
+        if self.config.pose_source == "pointmap":
+            try:
+                return pointmap_pose(out.points_cam[0], out.points_world[0], (out.conf[0] * out.conf_world[0]).sqrt())
+            except ValueError as err:
+                logger.warning("point-map pose failed (%s); using the pose head", err)
+        return out.pose_c2w[0].double()
 
     @staticmethod
     def _estimate_intrinsics(out: StepOutput) -> Intrinsics | None:
@@ -309,7 +348,8 @@ class SubmapTracker:
             "config": {"submap_length": self.config.submap_length,
                        "keyframe_translation": self.config.keyframe_translation,
                        "keyframe_rotation_deg": self.config.keyframe_rotation_deg,
-                       "min_scale_points": self.config.min_scale_points},
+                       "min_scale_points": self.config.min_scale_points,
+                       "pose_source": self.config.pose_source},
             "submap_id": self.submap_id,
             "state": None if self.state is None else self.state.to_bytes(torch.float32),
             "frames_in_submap": self.frames_in_submap,

@@ -78,6 +78,21 @@ class Curriculum:
                   ("gs_head", "decoder", "pose_head", "means_head")),
         ))
 
+    @classmethod
+    def continued(cls, steps: int = 2000, lr: float = 3e-4, max_frames: int = 8,
+                  clip_fraction: float = 0.6) -> Curriculum:
+        """To continue a model trained from scratch: every parameter on 4-frame clips with the full rendering
+        weight (the first `clip_fraction` of `steps`), then clips of 4 to `max_frames` frames with truncated
+        backpropagation at half the rate. Unlike D.3's stages the encoder stays trainable: without CUT3R weights
+        it is as undertrained as the rest."""
+        if not 0 <= clip_fraction <= 1:
+            raise ValueError(f"clip_fraction must be in [0, 1], got {clip_fraction}")
+        n = int(steps * clip_fraction)
+        return cls((
+            Stage("clips4", n, lr, 4, 4, ("all",)),
+            Stage("long", steps - n, lr * 0.5, 4, max(4, max_frames), ("all",)),
+        ))
+
     def scaled(self, step_factor: float) -> Curriculum:
         """The same curriculum with every stage's step count multiplied by `step_factor`."""
         return Curriculum(tuple(replace(s, steps=max(1, round(s.steps * step_factor))) for s in self.stages))

@@ -1,9 +1,13 @@
 """Evaluate a frontend model against trajectory baselines: ATE, depth AbsRel and raw per-frame surfel PSNR.
 
 The model runs through the SubmapTracker exactly as the SLAM engine feeds it (submaps of 8 frames with one frame of
-overlap, hidden state re-initialised per submap), with no backend: no pose graph, no refinement. Baselines use
-ground truth only to start: identity poses (the camera never moves) and constant velocity (the motion between the
-first two ground-truth poses, repeated).
+overlap, hidden state re-initialised per submap), with no backend: no pose graph, no refinement. ATE is scored for
+both of the tracker's pose sources (the pose head, and the rigid fit between each frame's two point maps) from one
+pass of the model. Two appearance figures: each frame's raw surfels rendered from its own camera (own view), and
+frame t's raw surfels rendered at frame t+1's ground-truth relative pose against frame t+1's image (next view; the
+surfels are brought to metric scale by the per-frame median depth ratio first). Baselines use ground truth only to
+start: identity poses (the camera never moves) and constant velocity (the motion between the first two
+ground-truth poses, repeated).
 """
 
 from __future__ import annotations
@@ -98,18 +102,46 @@ def depth_abs_rel(pred_depth: np.ndarray, gt_depth: np.ndarray) -> float:
     return float(np.mean(np.abs(s * p - g) / g))
 
 
+def _surfel_cloud(surfels, scale: float = 1.0):
+    """Tracker CameraSurfels [H,W,...] as a flat Surfels cloud in the camera frame, means and sizes times `scale`."""
+    from worker.mapping import Surfels
+
+    n = surfels.points.shape[0] * surfels.points.shape[1]
+    return Surfels(means=surfels.points.reshape(n, 3).float() * scale, quats=surfels.quats.reshape(n, 4).float(),
+                   scales=surfels.scales.reshape(n, 2).float() * scale, opacities=surfels.opacity.reshape(n).float(),
+                   colors=surfels.colors.reshape(n, 3).float(), keyframe_ids=torch.zeros(n, dtype=torch.int64))
+
+
 def raw_surfel_psnr(surfels, image: np.ndarray, K: np.ndarray) -> float:
     """PSNR of one frame's own per-pixel surfels (tracker CameraSurfels, no refinement) rendered from its camera."""
-    from worker.mapping import Surfels, rasterize
+    from worker.mapping import rasterize
 
     H, W = image.shape[:2]
-    n = H * W
-    cloud = Surfels(means=surfels.points.reshape(n, 3).float(), quats=surfels.quats.reshape(n, 4).float(),
-                    scales=surfels.scales.reshape(n, 2).float(), opacities=surfels.opacity.reshape(n).float(),
-                    colors=surfels.colors.reshape(n, 3).float(), keyframe_ids=torch.zeros(n, dtype=torch.int64))
     with torch.no_grad():
-        rendered = rasterize(cloud, torch.eye(4), torch.as_tensor(K, dtype=torch.float32), W, H)
+        rendered = rasterize(_surfel_cloud(surfels), torch.eye(4), torch.as_tensor(K, dtype=torch.float32), W, H)
     return psnr(rendered.rgb.clamp(0, 1).numpy(), image)
+
+
+def next_view_psnr(surfels, gt_depth: np.ndarray, cam_to_next: np.ndarray, next_image: np.ndarray,
+                   K: np.ndarray) -> float:
+    """PSNR of one frame's raw surfels rendered at the next frame's camera against the next frame's image.
+
+    The surfels (model units) are scaled to metres by median(gt depth) / median(predicted depth) over this frame's
+    valid pixels, then seen through `cam_to_next` (ground-truth [4,4] mapping this camera's frame to the next's).
+    Pixels the frame does not cover render as background and count. NaN when no pixel has both depths.
+    """
+    from worker.mapping import rasterize
+
+    pred = surfels.points[..., 2].float().numpy()
+    valid = np.isfinite(pred) & (pred > 0) & (gt_depth > 0)
+    if not valid.any():
+        return math.nan
+    scale = float(np.median(gt_depth[valid]) / np.median(pred[valid]))
+    H, W = next_image.shape[:2]
+    with torch.no_grad():
+        rendered = rasterize(_surfel_cloud(surfels, scale), torch.as_tensor(cam_to_next, dtype=torch.float32),
+                             torch.as_tensor(K, dtype=torch.float32), W, H)
+    return psnr(rendered.rgb.clamp(0, 1).numpy(), next_image)
 
 
 @dataclass
@@ -118,9 +150,11 @@ class SequenceScores:
 
     sequence: str
     method: str
-    ate: float
+    ate: float  # poses from the pose head (the only poses of a baseline)
     abs_rel: float = math.nan
-    psnr: float = math.nan
+    psnr: float = math.nan  # own view
+    psnr_next: float = math.nan  # next view
+    ate_pointmap: float = math.nan  # poses from the point-map fit
 
 
 def evaluate_baselines(seq: EvalSequence) -> list[SequenceScores]:
@@ -129,22 +163,60 @@ def evaluate_baselines(seq: EvalSequence) -> list[SequenceScores]:
             SequenceScores(seq.name, "const-velocity", trajectory_ate(constant_velocity_poses(seq.c2w), seq.c2w))]
 
 
+class _ReplayedModel:
+    """Hands a second tracker the outputs the first tracker's identical calls produced (one model pass for both).
+
+    Both trackers cut submaps at the same frames, so they call `init_state` and `step` in the same order with the
+    same inputs; only what they do with the outputs (the pose source) differs.
+    """
+
+    def __init__(self, model) -> None:
+        self.model = model
+        self.recorded: list = []
+        self.replaying = False
+
+    def init_state(self, batch: int = 1):
+        return self.model.init_state(batch)
+
+    def step(self, image: torch.Tensor, state, update: bool = True):
+        if self.replaying:
+            return self.recorded.pop(0)
+        out = self.model.step(image, state, update)
+        self.recorded.append(out)
+        return out
+
+
 def evaluate_model(model, seq: EvalSequence, method: str = "model", submap_length: int = 8) -> SequenceScores:
-    """Track the sequence with the model (submaps, no backend) and score poses, depth and raw surfels."""
+    """Track the sequence with the model (submaps, no backend) and score poses (both pose sources), depth and raw
+    surfels (own view and next view)."""
     from worker.frontend.tracker import SubmapTracker, TrackerConfig
     from worker.geometry import Intrinsics
 
     model.eval()
-    tracker = SubmapTracker(model, TrackerConfig(submap_length=submap_length))
+    shared = _ReplayedModel(model)
+    trackers = {source: SubmapTracker(shared, TrackerConfig(submap_length=submap_length, pose_source=source))
+                for source in ("head", "pointmap")}
     H, W = seq.images.shape[1:3]
     intr = Intrinsics.from_matrix(torch.as_tensor(seq.K), W, H)
-    poses, rels, psnrs = [], [], []
+    poses: dict[str, list] = {source: [] for source in trackers}
+    rels, psnrs, psnrs_next = [], [], []
     for i, image in enumerate(seq.images):
         chw = torch.from_numpy(image).permute(2, 0, 1)[None].float() / 255.0
-        tracked = tracker.track(i, chw, intr)
-        poses.append(tracked.pose_world.numpy())
+        for n, (source, tracker) in enumerate(trackers.items()):
+            shared.replaying = n > 0
+            tracked = tracker.track(i, chw, intr)
+            poses[source].append(tracked.pose_world.numpy())
+        if shared.recorded:
+            raise RuntimeError("the trackers' model calls diverged")
         rels.append(depth_abs_rel(tracked.surfels.points[..., 2].float().numpy(), seq.depths[i]))
         psnrs.append(raw_surfel_psnr(tracked.surfels, image, seq.K))
-    finite = [r for r in rels if math.isfinite(r)]
-    return SequenceScores(seq.name, method, trajectory_ate(np.stack(poses), seq.c2w),
-                          float(np.mean(finite)) if finite else math.nan, float(np.mean(psnrs)))
+        if i + 1 < len(seq.images):
+            cam_to_next = np.linalg.inv(seq.c2w[i + 1]) @ seq.c2w[i]
+            psnrs_next.append(next_view_psnr(tracked.surfels, seq.depths[i], cam_to_next, seq.images[i + 1], seq.K))
+
+    def mean(values: list[float]) -> float:
+        finite = [v for v in values if math.isfinite(v)]
+        return float(np.mean(finite)) if finite else math.nan
+
+    return SequenceScores(seq.name, method, trajectory_ate(np.stack(poses["head"]), seq.c2w), mean(rels),
+                          mean(psnrs), mean(psnrs_next), trajectory_ate(np.stack(poses["pointmap"]), seq.c2w))

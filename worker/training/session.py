@@ -58,8 +58,14 @@ def build_trainer(model_name: str, data: list[str], out_dir: Path, init: Path | 
     for source in sources:
         bank.add(open_source(source, use_gt_depth=True))
         log.info("loaded %s", source)
-    plan = Curriculum.paper().scaled(steps / Curriculum.paper().total_steps) if curriculum == "paper" \
-        else Curriculum.from_scratch(steps=steps, lr=lr, max_frames=max_frames, fractions=fractions)
+    if curriculum == "paper":
+        plan = Curriculum.paper().scaled(steps / Curriculum.paper().total_steps)
+    elif curriculum == "continue":
+        plan = Curriculum.continued(steps=steps, lr=lr, max_frames=max_frames, clip_fraction=fractions[0])
+    elif curriculum == "scratch":
+        plan = Curriculum.from_scratch(steps=steps, lr=lr, max_frames=max_frames, fractions=fractions)
+    else:
+        raise ValueError(f"unknown curriculum {curriculum!r}; known: scratch, paper, continue")
     log.info("perceptual term: LPIPS backbone weights are not available here, 1 - SSIM substitutes for it")
     config = replace(config or TrainConfig(), checkpoint_every=checkpoint_every)
     return Trainer(model, bank, plan, out_dir, config)
