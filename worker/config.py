@@ -83,7 +83,12 @@ class MappingConfig(_Section):
     refine_iterations: int = Field(20, ge=0, le=10000, description="iterations after each keyframe")
     ssim_weight: float = Field(0.2, ge=0, le=1)
     depth_weight: float = Field(0.1, ge=0)
-    final_refine_iterations: int = Field(0, ge=0, description="extra refinement over all keyframes at finish()")
+    archived_images: int = Field(
+        0, ge=0, description="keyframe images kept beyond the window (uint8) for the final refinement; when more "
+        "keyframes have left the window, every second one is thinned out (0 = keep only the window's)")
+    final_refine_passes: int = Field(
+        0, ge=0, le=1000, description="refinement at finish(): passes over every keyframe whose image is held "
+        "(window + archive), one iteration per keyframe per pass, in a seeded random order")
 
 
 class InputConfig(_Section):

@@ -122,8 +122,8 @@ class SlamSystem:
         if self.backend is not None:
             self._flush_posed_jobs(force=True)
             self.backend.wait_idle()
-            if self.config.mapping.final_refine_iterations:
-                self.backend.refine_all(self.config.mapping.final_refine_iterations)
+            if self.config.mapping.final_refine_passes:
+                self.backend.refine_all(self.config.mapping.final_refine_passes)
             self.backend.close()
         if self._started is not None:
             self.counters["wall_seconds"] = self._wall_offset + time.perf_counter() - self._started

@@ -113,3 +113,45 @@ def test_numpy_inputs_and_intrinsics_object_are_accepted():
     b = gmap.render(pose, intrinsics(), WIDTH, HEIGHT)
     assert torch.equal(a.rgb, b.rgb)
     assert psnr(a.rgb, v["image"]) > 20
+
+
+def test_archive_keeps_old_keyframe_images_compact_and_thinned():
+    gmap = GaussianMap(MapConfig(window=1, archived_images=2))
+    for k in range(5):
+        add(gmap, k, camera_pose(0.1 * k, 0.0, 0.0))
+    held = {k: gmap._keyframes[k] for k in gmap.keyframe_ids if gmap._keyframes[k].image is not None}
+    # the window's keyframe stays float; 4 left the window, thinned 4 -> 2 (every second, oldest first)
+    assert sorted(held) == [1, 3, 4] and gmap.held_images == 3
+    assert held[4].image.dtype == torch.float32 and held[1].image.dtype == torch.uint8
+    assert held[1].depth.dtype == torch.float16
+    restored = GaussianMap.from_state_dict(unpack(pack(gmap.state_dict())))
+    assert restored.held_images == 3 and restored._keyframes[3].image.dtype == torch.uint8
+    without_archive = GaussianMap(MapConfig(window=1))
+    for k in range(3):
+        add(without_archive, k, camera_pose(0.1 * k, 0.0, 0.0))
+    assert without_archive.held_images == 1
+
+
+def test_global_refinement_fixes_views_the_window_has_left():
+    poses = [camera_pose(0.0, 0.0, 0.0), camera_pose(0.9, 0.0, 0.0), camera_pose(1.8, 0.0, 0.0)]
+
+    def damaged_map(archived: int) -> GaussianMap:
+        gmap = GaussianMap(MapConfig(window=1, archived_images=archived))
+        for k, pose in enumerate(poses):
+            add(gmap, k, pose)
+        gen = torch.Generator().manual_seed(1)
+        noise = 0.3 * torch.randn(gmap.surfels.colors.shape, generator=gen)
+        gmap.surfels.colors.copy_((gmap.surfels.colors + noise).clamp(0, 1))
+        return gmap
+
+    def first_view_psnr(gmap: GaussianMap) -> float:
+        return psnr(gmap.render(poses[0], intrinsics(), WIDTH, HEIGHT).rgb, view(poses[0])["image"])
+
+    gmap = damaged_map(archived=8)
+    before = first_view_psnr(gmap)
+    report = gmap.refine_global(12, seed=3)
+    assert len(report.losses) == 12 and set(report.views) == {0, 1, 2}
+    refined = first_view_psnr(gmap)
+    window_only = damaged_map(archived=0)
+    window_only.refine_global(12)  # only the newest keyframe's image is held: it fixes only what it overlaps
+    assert refined > max(before, first_view_psnr(window_only)) + 1.0, (before, refined, first_view_psnr(window_only))

@@ -60,6 +60,7 @@ def build_gaussian_map(cfg: MappingConfig, device: str):
                                     depth_error=cfg.prune_depth_error if cfg.prune else math.inf,
                                     tau_accum=cfg.tau_accum),
         refine=RefineSettings(lambda_ssim=cfg.ssim_weight, lambda_depth=cfg.depth_weight),
+        archived_images=cfg.archived_images,
         device=device,
     ))
 
@@ -153,10 +154,11 @@ class MapBackend:
                 self.map.refine(self.cfg.refine_iterations)
         self.keyframes_mapped += 1
 
-    def refine_all(self, iterations: int) -> None:
-        """Extra refinement at the end of a run (over the map's refinement window)."""
-        with self.lock:
-            self.map.refine(iterations)
+    def refine_all(self, passes: int) -> None:
+        """The end-of-run refinement: every surfel against every keyframe image the map still holds, `passes`
+        times over those keyframes."""
+        with self.lock, self.timings.measure("map_final_refine"):
+            self.map.refine_global(passes * self.map.held_images)
 
     # -- reads -----------------------------------------------------------------------------------------------------
     def render(self, pose_c2w: np.ndarray, K: torch.Tensor, width: int, height: int) -> Any:

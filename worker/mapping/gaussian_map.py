@@ -31,6 +31,9 @@ class MapConfig:
     thresholds: FusionThresholds = field(default_factory=FusionThresholds)
     refine: RefineSettings = field(default_factory=RefineSettings)
     min_opacity: float = 0.005  # surfels fading below this after refinement are removed
+    # Keyframes outside the window whose image and depth stay (as uint8 / float16) for `refine_global`; when more
+    # have left the window, every second one (oldest first) is thinned out. 0 = keep only the window's.
+    archived_images: int = 0
     device: str = "cpu"
 
     def to_dict(self) -> dict:
@@ -59,8 +62,27 @@ class _Keyframe:
     K: torch.Tensor  # [3,3] float32
     width: int
     height: int
-    image: torch.Tensor | None  # [H,W,3] float32 in [0,1]; dropped once out of the refinement window
-    depth: torch.Tensor | None  # [H,W] float32, camera-frame z (0 = unknown)
+    image: torch.Tensor | None  # [H,W,3] float32 in [0,1]; uint8 once archived; None once dropped
+    depth: torch.Tensor | None  # [H,W] float32 camera-frame z (0 = unknown); float16 once archived
+
+    def refine_view(self) -> RefineView:
+        """This keyframe as a refinement target (its image must still be held)."""
+        assert self.image is not None
+        viewmat, scale = rigid_viewmat(self.pose)
+        image = self.image.float() / 255.0 if self.image.dtype == torch.uint8 else self.image
+        depth = None if self.depth is None else self.depth.float()
+        return RefineView(viewmat.to(self.K.device, torch.float32), self.K, image, depth, scale)
+
+    def archive(self) -> None:
+        """Compact storage once out of the refinement window: uint8 image, float16 depth."""
+        if self.image is not None:
+            self.image = _image_u8(self.image)
+        if self.depth is not None:
+            self.depth = self.depth.to(torch.float16)
+
+
+def _image_u8(image: torch.Tensor) -> torch.Tensor:
+    return image if image.dtype == torch.uint8 else (image.clamp(0, 1) * 255).round().to(torch.uint8)
 
 
 def rigid_viewmat(pose_c2w: torch.Tensor) -> tuple[torch.Tensor, float]:
@@ -157,7 +179,7 @@ class GaussianMap:
         new = new.transform(pose.to(self.device, torch.float32))
         self._surfels = Surfels.concat([self._surfels, new])
         self._keyframes[kf_id] = kf
-        self._drop_old_images()
+        self._archive_old_images()
         return FusionStats(pruned=pruned, added=len(new), skipped=len(surfels_cam) - len(new))
 
     def refine(self, iterations: int | None = None) -> RefineReport:
@@ -166,13 +188,28 @@ class GaussianMap:
         window = self.keyframe_ids[-self.config.window:]
         if not window or len(self._surfels) == 0:
             return RefineReport()
-        views = []
-        for kf_id in window:
-            kf = self._keyframes[kf_id]
-            viewmat, scale = rigid_viewmat(kf.pose)
-            views.append(RefineView(viewmat.to(self.device, torch.float32), kf.K, kf.image, kf.depth, scale))
+        views = [self._keyframes[kf_id].refine_view() for kf_id in window]
         trainable = torch.isin(self._surfels.keyframe_ids, torch.tensor(window, device=self.device))
-        scene_scale = self._scene_scale(window)
+        return self._refine(trainable, views, iterations, self._scene_scale(window))
+
+    def refine_global(self, iterations: int, seed: int = 0) -> RefineReport:
+        """Refine every surfel against every keyframe whose image is still held (the window and the archive),
+        the views in a seeded random order: the end-of-run pass that reconciles views the window has left."""
+        held = [kf_id for kf_id in self.keyframe_ids if self._keyframes[kf_id].image is not None]
+        if not held or len(self._surfels) == 0 or iterations <= 0:
+            return RefineReport()
+        order = torch.randperm(len(held), generator=torch.Generator().manual_seed(seed)).tolist()
+        views = [self._keyframes[held[i]].refine_view() for i in order]
+        trainable = torch.ones(len(self._surfels), dtype=torch.bool, device=self.device)
+        return self._refine(trainable, views, int(iterations), self._scene_scale(held))
+
+    @property
+    def held_images(self) -> int:
+        """Keyframes whose image is held for refinement (window + archive)."""
+        return sum(kf.image is not None for kf in self._keyframes.values())
+
+    def _refine(self, trainable: torch.Tensor, views: list[RefineView], iterations: int, scene_scale: float
+                ) -> RefineReport:
         with torch.enable_grad():
             refined, report = refine_surfels(self._surfels, trainable, views, iterations, self.config.refine,
                                              scene_scale)
@@ -208,7 +245,7 @@ class GaussianMap:
             keyframes.append({
                 "id": kf_id, "pose": kf.pose.numpy(), "K": kf.K.cpu().numpy(), "width": kf.width,
                 "height": kf.height,
-                "image": None if kf.image is None else (kf.image.clamp(0, 1) * 255).round().byte().cpu().numpy(),
+                "image": None if kf.image is None else _image_u8(kf.image).cpu().numpy(),
                 "depth": None if kf.depth is None else kf.depth.cpu().numpy(),
             })
         return {
@@ -238,6 +275,7 @@ class GaussianMap:
             raise ValueError(f"malformed GaussianMap state: {err}") from err
         self._surfels = surfels.to(dtype=torch.float32)
         self._keyframes = keyframes
+        self._archive_old_images()
 
     @classmethod
     def from_state_dict(cls, state: dict) -> GaussianMap:
@@ -262,10 +300,16 @@ class GaussianMap:
             depth = torch.nan_to_num(depth, nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0).to(self.device)
         return _Keyframe(pose, K.to(self.device), W, H, image.to(self.device), depth)
 
-    def _drop_old_images(self) -> None:
-        for kf_id in self.keyframe_ids[: -self.config.window]:
-            self._keyframes[kf_id].image = None
-            self._keyframes[kf_id].depth = None
+    def _archive_old_images(self) -> None:
+        """Keyframes that left the window: archive their images, thinning to at most `archived_images`."""
+        archived = [k for k in self.keyframe_ids[: -self.config.window] if self._keyframes[k].image is not None]
+        for kf_id in archived:
+            self._keyframes[kf_id].archive()
+        while len(archived) > self.config.archived_images:
+            for kf_id in archived[0::2]:
+                self._keyframes[kf_id].image = None
+                self._keyframes[kf_id].depth = None
+            archived = archived[1::2]
 
     def _scene_scale(self, window: list[int]) -> float:
         """Median keyframe depth in world units (sets the position learning rate)."""
