@@ -57,11 +57,12 @@ def test_surgery_starts_every_surfel_at_its_pixel_colour_and_changes_nothing_els
         assert torch.equal(getattr(a, name), getattr(b, name)), name
 
 
-def test_colour_skip_model_needs_the_image_and_trains_the_residual():
+def test_colour_skip_model_starts_at_the_pixels_needs_the_image_and_trains_the_residual():
     torch.manual_seed(0)
     model = build_model(replace(TEST_CONFIG, color_skip=True)).train()
     image = _image()
     out = model.step(image, model.init_state())
+    assert torch.allclose(out.colors[0], image[0].permute(1, 2, 0), atol=1.1e-3)  # a fresh model: residual 0
     out.colors.mean().backward()
     assert model.downstream_head.dpt_gs.head[-1].weight.grad[:3].abs().sum() > 0
     features = [torch.zeros(1, 12, 64)] + [torch.zeros(1, 12, 64)] * 3

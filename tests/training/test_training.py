@@ -67,6 +67,19 @@ def test_curriculum_stages_and_freezing():
         Stage("bad", 1, 1e-3, 1, 2, ("nonsense",))
 
 
+def test_continued_curriculum_trains_everything_then_long_clips():
+    plan = Curriculum.continued(steps=100, lr=3e-4, max_frames=8, clip_fraction=0.6)
+    assert [(s.name, s.steps, s.lr, s.min_frames, s.max_frames) for s in plan.stages] == [
+        ("clips4", 60, 3e-4, 4, 4), ("long", 40, 1.5e-4, 4, 8)]
+    assert all(s.trainable == ("all",) and s.render_weight == 1.0 for s in plan.stages)
+    assert plan.stage_at(59)[1].name == "clips4" and plan.stage_at(60)[1].name == "long"
+    model = build_model(MICRO)
+    set_trainable(model, plan.stages[1])
+    assert all(p.requires_grad for p in model.parameters())
+    with pytest.raises(ValueError, match="clip_fraction"):
+        Curriculum.continued(clip_fraction=1.5)
+
+
 def synthetic_frames(n: int, width: int = 80, height: int = 60) -> list[Frame]:
     """A camera sliding past a slanted textured plane (exact depth), enough for a real optimisation signal."""
     intr = Intrinsics(70.0, 70.0, width / 2, height / 2, width, height)

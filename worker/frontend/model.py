@@ -70,6 +70,10 @@ class FeedForwardModel(nn.Module):
                     nn.init.zeros_(m.bias)
         # Zero-initialised adapter output: the GS head starts from the shared tokens.
         nn.init.zeros_(self.downstream_head.gs_adapter.fc2.weight)
+        if self.config.color_skip:  # colour residual 0: every surfel starts at its own pixel's colour
+            colour_out = self.downstream_head.dpt_gs.head[-1]
+            nn.init.zeros_(colour_out.weight[:3])
+            nn.init.zeros_(colour_out.bias[:3])
 
     # ------------------------------------------------------------------ precision
     def set_precision(self, precision: str) -> FeedForwardModel:
