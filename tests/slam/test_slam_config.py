@@ -56,4 +56,6 @@ def test_paper_preset_keeps_the_paper_mapping_and_rgbd_preset_is_its_own() -> No
     paper, rgbd = SlamConfig.preset("paper"), SlamConfig.preset("rgbd")
     assert paper.mapping.prune and paper.mapping.voxel_block == 2 and paper.mapping.tau_accum == 0.7
     assert paper.mapping.refine_iterations == 20 and paper.mapping.refine_keyframes == 5
-    assert not rgbd.mapping.prune and rgbd.mapping.voxel_block == 1 and rgbd.input.surfel_init == "depth"
+    assert not rgbd.mapping.prune and rgbd.mapping.tau_accum == 0.95 and rgbd.input.surfel_init == "depth"
+    assert paper.mapping.final_refine_passes == 0 and paper.mapping.archived_images == 0  # the paper has none
+    assert rgbd.mapping.final_refine_passes > 0 and rgbd.mapping.archived_images > 0
