@@ -15,7 +15,9 @@ def add_run_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help="output folder")
     parser.add_argument("--use-gt-depth", action="store_true", help="RGB-D mode: use the dataset's depth")
     parser.add_argument("--use-gt-poses", action="store_true", help="posed mode: use the dataset's poses")
-    parser.add_argument("--preset", default="default", help="SlamConfig preset: paper, default, fast, rgbd, test")
+    parser.add_argument("--preset", default=None,
+                        help="SlamConfig preset: paper, default, fast, rgbd, test (default: rgbd with both "
+                        "--use-gt-depth and --use-gt-poses, else default)")
     parser.add_argument("--max-frames", type=int, default=None, help="stop after N frames")
     parser.add_argument("--stride", type=int, default=1, help="keep every S-th frame")
     parser.add_argument("--resize", type=parse_size, default=None, help="resize frames to WxH, e.g. 320x240")
@@ -38,7 +40,14 @@ def load_config(args: argparse.Namespace):
             raise ValueError(f"cannot read config overrides {args.config}: {err}") from err
         if not isinstance(overrides, dict):
             raise ValueError("--config must hold a JSON object")
-    return SlamConfig.preset(args.preset, **overrides)
+    return SlamConfig.preset(default_preset(args), **overrides)
+
+
+def default_preset(args: argparse.Namespace) -> str:
+    """--preset, else `rgbd` for posed RGB-D input (the CPU setting measured on ICL), else `default`."""
+    if args.preset:
+        return args.preset
+    return "rgbd" if args.use_gt_depth and args.use_gt_poses else "default"
 
 
 def run_one(args: argparse.Namespace, source: str, out_dir: str) -> dict:

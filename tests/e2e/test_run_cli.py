@@ -52,3 +52,17 @@ def test_run_reports_bad_sources_clearly(tmp_path: Path) -> None:
     assert proc.returncode == 2 and "error:" in proc.stderr
     proc = flashmono("run", str(tmp_path), "--out", str(tmp_path / "o"), "--preset", "turbo", "--no-progress")
     assert proc.returncode == 2 and "unknown preset" in proc.stderr
+
+
+def test_posed_rgbd_runs_default_to_the_rgbd_preset() -> None:
+    import argparse
+
+    from client.commands.run import add_run_options, default_preset
+
+    parser = argparse.ArgumentParser()
+    parser.add_argument("source")
+    add_run_options(parser)
+    choose = lambda *argv: default_preset(parser.parse_args(["seq", "--out", "o", *argv]))  # noqa: E731
+    assert choose("--use-gt-depth", "--use-gt-poses") == "rgbd"
+    assert choose("--use-gt-depth") == choose() == "default"
+    assert choose("--use-gt-depth", "--use-gt-poses", "--preset", "paper") == "paper"
