@@ -39,6 +39,12 @@ class FrontendConfig(_Section):
     keyframe_translation: float = Field(0.2, gt=0, description="posed mode: or when it moved this far (pose units)")
     keyframe_rotation_deg: float = Field(15.0, gt=0, description="or turned this much")
     min_confidence: float = Field(1.5, ge=1.0, description="per-pixel confidence below which surfels are dropped")
+    min_kept_fraction: float = Field(
+        0.0, ge=0.0, le=1.0, description="monocular: when fewer pixels pass min_confidence, keep this fraction "
+        "(the most confident) so a model with poorly calibrated confidence still maps")
+    ray_aligned_surfels: bool = Field(
+        True, description="monocular: each surfel on its pixel's ray (given or estimated intrinsics) at the "
+        "predicted depth; False = the predicted 3D point as is (the paper)")
     seed: int = Field(0, description="seed of the randomly initialised model when no checkpoint exists")
 
 
@@ -160,13 +166,14 @@ def _deep_merge(base: dict[str, Any], overrides: dict[str, Any]) -> dict[str, An
 
 PRESETS: dict[str, dict[str, Any]] = {
     # The paper: 512-wide images, paper-size model, K=5 keyframes x 20 iterations.
-    "paper": {"frontend": {"model": "paper", "long_side": 512}, "device": "cuda"},
-    # Paper settings with the shipped default model on whatever device is there.
-    "default": {},
+    "paper": {"frontend": {"model": "paper", "long_side": 512, "ray_aligned_surfels": False}, "device": "cuda"},
+    # Paper settings with the shipped default model on whatever device is there; that model's confidence is not
+    # calibrated yet (most pixels stay near 1), so the most confident 30 % of each keyframe is mapped regardless.
+    "default": {"frontend": {"min_kept_fraction": 0.3}},
     # CPU-friendly: smaller images and fewer refinement iterations.
     # With RGB-D input its surfels come from the depth and image alone: no 2DGS-head pass, and maps that do not
     # depend on the frontend's weights (the default until trained weights ship).
-    "fast": {"frontend": {"long_side": 224, "keyframe_every": 6},
+    "fast": {"frontend": {"long_side": 224, "keyframe_every": 6, "min_kept_fraction": 0.3},
              "mapping": {"refine_keyframes": 3, "refine_iterations": 8},
              "input": {"surfel_init": "depth"}},
     # Posed RGB-D on a CPU (measured on ICL, bench/slam.py): surfels from the depth, 2x2 merged, no pruning (it

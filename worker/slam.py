@@ -408,10 +408,11 @@ class SlamSystem:
             if bool(valid.any()):
                 depth = depth * float((surfels.points[..., 2][valid].float() / depth[valid]).median())
         K = self.model_intrinsics.matrix()
+        fc = self.config.frontend
         grid = grid_from_prediction(surfels.points.float(), surfels.conf.float(), surfels.quats.float(),
                                     surfels.scales.float(), surfels.opacity.float(), surfels.colors.float(),
-                                    self.config.frontend.min_confidence, depth=depth, K=K if depth is not None
-                                    else None)
+                                    fc.min_confidence, depth=depth, K=K, min_kept_fraction=fc.min_kept_fraction,
+                                    ray_aligned=fc.ray_aligned_surfels)
         return grid, depth
 
     # ------------------------------------------------------------------------------------------ loop closure

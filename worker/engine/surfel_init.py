@@ -91,11 +91,17 @@ def fill_invalid_depth(depth: torch.Tensor) -> torch.Tensor:
 
 def grid_from_prediction(points: torch.Tensor, conf: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
                          opacities: torch.Tensor, colors: torch.Tensor, min_confidence: float,
-                         depth: torch.Tensor | None = None, K: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
-    """Surfels from one frame's model prediction (all [H,W,...] at model resolution). With a metric `depth` (same
-    resolution) and K, the means come from the depth and the predicted scales are rescaled by depth / predicted z
-    so the surfels keep their pixel footprint; confidence then does not gate pixels that have depth."""
-    valid = conf >= min_confidence
+                         depth: torch.Tensor | None = None, K: torch.Tensor | None = None,
+                         min_kept_fraction: float = 0.0, ray_aligned: bool = False) -> dict[str, torch.Tensor]:
+    """Surfels from one frame's model prediction (all [H,W,...] at model resolution).
+
+    With a metric `depth` (same resolution) and K, the means come from the depth and the predicted scales are
+    rescaled by depth / predicted z so the surfels keep their pixel footprint; confidence then does not gate pixels
+    that have depth. Without depth, `ray_aligned` (needs K) puts each surfel on its own pixel's ray at the predicted
+    z, as calibrated MASt3R-SLAM does: the model's point directions are the least reliable part of a pointmap.
+    Pixels below `min_confidence` are dropped, unless that would keep fewer than `min_kept_fraction` of them: then
+    the most confident fraction is kept (a poorly calibrated confidence still maps)."""
+    valid = confidence_mask(conf, min_confidence, min_kept_fraction)
     if depth is not None:
         if K is None:
             raise ValueError("K is needed to unproject depth")
@@ -104,5 +110,20 @@ def grid_from_prediction(points: torch.Tensor, conf: torch.Tensor, quats: torch.
         scales = scales * ratio[..., None]
         points = metric
         valid = depth > 0
+    elif ray_aligned:
+        if K is None:
+            raise ValueError("K is needed for ray-aligned surfels")
+        z = points[..., 2]
+        points = unproject_depth(z.clamp_min(0).to(torch.float32), K.to(torch.float32))
+        valid = valid & (z > 0)
     return {"means": points, "quats": quats, "scales": scales, "opacities": opacities, "colors": colors,
             "valid": valid & torch.isfinite(points).all(-1)}
+
+
+def confidence_mask(conf: torch.Tensor, min_confidence: float, min_kept_fraction: float = 0.0) -> torch.Tensor:
+    """[H,W] bool: conf >= min_confidence, widened to the top `min_kept_fraction` of pixels by confidence."""
+    valid = conf >= min_confidence
+    if min_kept_fraction > 0 and float(valid.float().mean()) < min_kept_fraction:
+        floor = torch.quantile(conf.reshape(-1).float(), 1.0 - min_kept_fraction)
+        valid = valid | (conf >= floor)
+    return valid
