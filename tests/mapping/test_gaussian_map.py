@@ -155,3 +155,24 @@ def test_global_refinement_fixes_views_the_window_has_left():
     window_only = damaged_map(archived=0)
     window_only.refine_global(12)  # only the newest keyframe's image is held: it fixes only what it overlaps
     assert refined > max(before, first_view_psnr(window_only)) + 1.0, (before, refined, first_view_psnr(window_only))
+
+
+def test_refine_can_also_train_random_archived_keyframes():
+    poses = [camera_pose(0.0, 0.0, 0.0), camera_pose(0.9, 0.0, 0.0), camera_pose(1.8, 0.0, 0.0)]
+
+    def first_view_psnr_after_refine(archived_views: int) -> tuple[float, float, int]:
+        gmap = GaussianMap(MapConfig(window=1, archived_images=8, archived_views_per_refine=archived_views))
+        for k, pose in enumerate(poses):
+            add(gmap, k, pose)
+        gen = torch.Generator().manual_seed(1)
+        noise = 0.3 * torch.randn(gmap.surfels.colors.shape, generator=gen)
+        gmap.surfels.colors.copy_((gmap.surfels.colors + noise).clamp(0, 1))
+        before = psnr(gmap.render(poses[0], intrinsics(), WIDTH, HEIGHT).rgb, view(poses[0])["image"])
+        report = gmap.refine(12)
+        after = psnr(gmap.render(poses[0], intrinsics(), WIDTH, HEIGHT).rgb, view(poses[0])["image"])
+        return before, after, len(set(report.views))
+
+    before, window_only, views = first_view_psnr_after_refine(0)
+    assert views == 1 and window_only < before + 0.5
+    _, with_archived, views = first_view_psnr_after_refine(2)
+    assert views == 3 and with_archived > window_only + 1.0, (before, window_only, with_archived)

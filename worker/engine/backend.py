@@ -61,6 +61,7 @@ def build_gaussian_map(cfg: MappingConfig, device: str):
                                     tau_accum=cfg.tau_accum),
         refine=RefineSettings(lambda_ssim=cfg.ssim_weight, lambda_depth=cfg.depth_weight),
         archived_images=cfg.archived_images,
+        archived_views_per_refine=cfg.archived_views_per_refine,
         device=device,
     ))
 

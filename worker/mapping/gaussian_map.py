@@ -34,6 +34,9 @@ class MapConfig:
     # Keyframes outside the window whose image and depth stay (as uint8 / float16) for `refine_global`; when more
     # have left the window, every second one (oldest first) is thinned out. 0 = keep only the window's.
     archived_images: int = 0
+    # Each refinement also trains against this many archived keyframes drawn at random (seeded), with their
+    # surfels: the online map keeps the views the window has left (MonoGS-style random past keyframes).
+    archived_views_per_refine: int = 0
     device: str = "cpu"
 
     def to_dict(self) -> dict:
@@ -188,9 +191,18 @@ class GaussianMap:
         window = self.keyframe_ids[-self.config.window:]
         if not window or len(self._surfels) == 0:
             return RefineReport()
+        window = self._random_archived(self.config.archived_views_per_refine, exclude=window) + window
         views = [self._keyframes[kf_id].refine_view() for kf_id in window]
         trainable = torch.isin(self._surfels.keyframe_ids, torch.tensor(window, device=self.device))
         return self._refine(trainable, views, iterations, self._scene_scale(window))
+
+    def _random_archived(self, count: int, exclude: list[int]) -> list[int]:
+        """Up to `count` held keyframes outside `exclude`, drawn with a seed fixed by the map's keyframe count."""
+        pool = [k for k in self.keyframe_ids if k not in exclude and self._keyframes[k].image is not None]
+        if count <= 0 or not pool:
+            return []
+        generator = torch.Generator().manual_seed(len(self._keyframes))
+        return [pool[i] for i in torch.randperm(len(pool), generator=generator)[:count].sort().values.tolist()]
 
     def refine_global(self, iterations: int, seed: int = 0, restart_every: int | None = None) -> RefineReport:
         """Refine every surfel against every keyframe whose image is still held (the window and the archive):
