@@ -34,7 +34,9 @@ WEBSOCKET_DOC = {
             },
             "finish": {"encoding": "text JSON",
                        "schema": {"type": "object", "properties": {"type": {"const": "finish"}}},
-                       "description": "no more frames: the worker finishes the map; the server sends finished, then "
+                       "description": "no more frames: the worker finishes the map (with the preset's final "
+                                      "refinement over every keyframe, if it has one: tens of seconds for `rgbd`; "
+                                      "render requests are answered after it); the server sends finished, then "
                                       "closes (code 1000)"},
             "ping": {"encoding": "text JSON", "schema": {"type": "object", "properties": {"type": {"const": "ping"}}},
                      "description": "answered by {type: pong}"},
