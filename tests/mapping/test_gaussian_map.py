@@ -119,13 +119,22 @@ def test_archive_keeps_old_keyframe_images_compact_and_thinned():
     gmap = GaussianMap(MapConfig(window=1, archived_images=2))
     for k in range(5):
         add(gmap, k, camera_pose(0.1 * k, 0.0, 0.0))
-    held = {k: gmap._keyframes[k] for k in gmap.keyframe_ids if gmap._keyframes[k].image is not None}
-    # the window's keyframe stays float; 4 left the window, thinned 4 -> 2 (every second, oldest first)
+    held = {k: gmap._keyframes[k] for k in gmap.keyframe_ids if gmap._keyframes[k].held}
+    # the window's keyframe stays raw; 4 left the window, thinned 4 -> 2 (every second, oldest first)
     assert sorted(held) == [1, 3, 4] and gmap.held_images == 3
-    assert held[4].image.dtype == torch.float32 and held[1].image.dtype == torch.uint8
-    assert held[1].depth.dtype == torch.float16
+    assert held[4].image.dtype == torch.float32 and held[4].archived is None
+    assert held[1].image is None and held[1].archived is not None
+    raw_bytes = held[4].image.numel() * 4 + held[4].depth.numel() * 4
+    archived_bytes = len(held[1].archived.jpeg) + held[1].archived.depth.nbytes
+    assert archived_bytes < raw_bytes / 4
+    # what refinement sees of an archived keyframe is close to what it saw raw
+    image, depth = held[1].archived.unpack()
+    original = view(camera_pose(0.1, 0.0, 0.0))
+    assert psnr(image, original["image"]) > 35
+    assert image.shape == original["image"].shape and depth.shape == original["depth"].shape
+    assert float((depth - original["depth"]).abs().max()) < 0.05
     restored = GaussianMap.from_state_dict(unpack(pack(gmap.state_dict())))
-    assert restored.held_images == 3 and restored._keyframes[3].image.dtype == torch.uint8
+    assert restored.held_images == 3 and restored._keyframes[3].archived.jpeg == held[3].archived.jpeg
     without_archive = GaussianMap(MapConfig(window=1))
     for k in range(3):
         add(without_archive, k, camera_pose(0.1 * k, 0.0, 0.0))

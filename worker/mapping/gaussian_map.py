@@ -15,6 +15,7 @@ import torch
 from worker.geometry import make_sim3, sim3_decompose, sim3_inverse
 
 from .fusion import FusionThresholds, attribute_errors, densify_mask, prune_mask
+from .keyframe_archive import ArchivedKeyframe
 from .loop_correction import correct_map
 from .ply import surfels_to_ply_bytes
 from .rasterize import RenderResult, rasterize
@@ -31,7 +32,7 @@ class MapConfig:
     thresholds: FusionThresholds = field(default_factory=FusionThresholds)
     refine: RefineSettings = field(default_factory=RefineSettings)
     min_opacity: float = 0.005  # surfels fading below this after refinement are removed
-    # Keyframes outside the window whose image and depth stay (as uint8 / float16) for `refine_global`; when more
+    # Keyframes outside the window whose image and depth stay (compact: keyframe_archive) for refinement; when more
     # have left the window, every second one (oldest first) is thinned out. 0 = keep only the window's.
     archived_images: int = 0
     # Each refinement also trains against this many archived keyframes drawn at random (seeded), with their
@@ -65,27 +66,33 @@ class _Keyframe:
     K: torch.Tensor  # [3,3] float32
     width: int
     height: int
-    image: torch.Tensor | None  # [H,W,3] float32 in [0,1]; uint8 once archived; None once dropped
-    depth: torch.Tensor | None  # [H,W] float32 camera-frame z (0 = unknown); float16 once archived
+    image: torch.Tensor | None  # [H,W,3] float32 in [0,1] while in the window; None once archived or dropped
+    depth: torch.Tensor | None  # [H,W] float32 camera-frame z (0 = unknown)
+    archived: ArchivedKeyframe | None = None  # image and depth, compact, once out of the window
+
+    @property
+    def held(self) -> bool:
+        """Whether this keyframe can still be a refinement target."""
+        return self.image is not None or self.archived is not None
 
     def refine_view(self) -> RefineView:
-        """This keyframe as a refinement target (its image must still be held)."""
-        assert self.image is not None
+        """This keyframe as a refinement target (it must be held)."""
+        if self.archived is not None:
+            image, depth = self.archived.unpack(self.K.device)
+        else:
+            assert self.image is not None
+            image, depth = self.image, self.depth
         viewmat, scale = rigid_viewmat(self.pose)
-        image = self.image.float() / 255.0 if self.image.dtype == torch.uint8 else self.image
-        depth = None if self.depth is None else self.depth.float()
         return RefineView(viewmat.to(self.K.device, torch.float32), self.K, image, depth, scale)
 
     def archive(self) -> None:
-        """Compact storage once out of the refinement window: uint8 image, float16 depth."""
+        """Compact storage once out of the refinement window (see worker.mapping.keyframe_archive)."""
         if self.image is not None:
-            self.image = _image_u8(self.image)
-        if self.depth is not None:
-            self.depth = self.depth.to(torch.float16)
+            self.archived = ArchivedKeyframe.pack(self.image, self.depth)
+        self.image = self.depth = None
 
-
-def _image_u8(image: torch.Tensor) -> torch.Tensor:
-    return image if image.dtype == torch.uint8 else (image.clamp(0, 1) * 255).round().to(torch.uint8)
+    def drop(self) -> None:
+        self.image = self.depth = self.archived = None
 
 
 def rigid_viewmat(pose_c2w: torch.Tensor) -> tuple[torch.Tensor, float]:
@@ -198,7 +205,7 @@ class GaussianMap:
 
     def _random_archived(self, count: int, exclude: list[int]) -> list[int]:
         """Up to `count` held keyframes outside `exclude`, drawn with a seed fixed by the map's keyframe count."""
-        pool = [k for k in self.keyframe_ids if k not in exclude and self._keyframes[k].image is not None]
+        pool = [k for k in self.keyframe_ids if k not in exclude and self._keyframes[k].held]
         if count <= 0 or not pool:
             return []
         generator = torch.Generator().manual_seed(len(self._keyframes))
@@ -211,7 +218,7 @@ class GaussianMap:
         The iterations run in chunks of `restart_every` (default: two passes over the held keyframes), each with
         a fresh optimiser and a new seeded random order of the views. Measured on ICL (36 keyframes, 8 passes):
         a restart every 2 passes 28.9 dB, every 4 passes 28.7, every pass 28.1; one 300-iteration run 28.3."""
-        held = [kf_id for kf_id in self.keyframe_ids if self._keyframes[kf_id].image is not None]
+        held = [kf_id for kf_id in self.keyframe_ids if self._keyframes[kf_id].held]
         if not held or len(self._surfels) == 0 or iterations <= 0:
             return RefineReport()
         chunk = max(1, restart_every or 2 * len(held))
@@ -229,7 +236,7 @@ class GaussianMap:
     @property
     def held_images(self) -> int:
         """Keyframes whose image is held for refinement (window + archive)."""
-        return sum(kf.image is not None for kf in self._keyframes.values())
+        return sum(kf.held for kf in self._keyframes.values())
 
     def _refine(self, trainable: torch.Tensor, views: list[RefineView], iterations: int, scene_scale: float
                 ) -> RefineReport:
@@ -268,8 +275,9 @@ class GaussianMap:
             keyframes.append({
                 "id": kf_id, "pose": kf.pose.numpy(), "K": kf.K.cpu().numpy(), "width": kf.width,
                 "height": kf.height,
-                "image": None if kf.image is None else _image_u8(kf.image).cpu().numpy(),
+                "image": None if kf.image is None else (kf.image.clamp(0, 1) * 255).round().byte().cpu().numpy(),
                 "depth": None if kf.depth is None else kf.depth.cpu().numpy(),
+                "archived": None if kf.archived is None else kf.archived.to_dict(),
             })
         return {
             "version": 1,
@@ -292,8 +300,10 @@ class GaussianMap:
                     torch.from_numpy(np.array(entry["image"])).to(self.device, torch.float32) / 255.0)
                 depth = None if entry["depth"] is None else torch.from_numpy(np.array(entry["depth"])).to(
                     self.device, torch.float32)
-                keyframes[int(entry["id"])] = _Keyframe(pose, K, int(entry["width"]), int(entry["height"]),
-                                                        image, depth)
+                archived = entry.get("archived")
+                keyframes[int(entry["id"])] = _Keyframe(
+                    pose, K, int(entry["width"]), int(entry["height"]), image, depth,
+                    None if archived is None else ArchivedKeyframe.from_dict(archived))
         except (KeyError, TypeError) as err:
             raise ValueError(f"malformed GaussianMap state: {err}") from err
         self._surfels = surfels.to(dtype=torch.float32)
@@ -325,14 +335,13 @@ class GaussianMap:
 
     def _archive_old_images(self) -> None:
         """Keyframes that left the window: archive their images, thinning to at most `archived_images`."""
-        archived = [k for k in self.keyframe_ids[: -self.config.window] if self._keyframes[k].image is not None]
-        for kf_id in archived:
-            self._keyframes[kf_id].archive()
+        archived = [k for k in self.keyframe_ids[: -self.config.window] if self._keyframes[k].held]
         while len(archived) > self.config.archived_images:
             for kf_id in archived[0::2]:
-                self._keyframes[kf_id].image = None
-                self._keyframes[kf_id].depth = None
+                self._keyframes[kf_id].drop()
             archived = archived[1::2]
+        for kf_id in archived:
+            self._keyframes[kf_id].archive()
 
     def _scene_scale(self, window: list[int]) -> float:
         """Median keyframe depth in world units (sets the position learning rate)."""
