@@ -49,6 +49,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--untrained", action="store_true", help="also score the randomly initialised tiny model")
     p.add_argument("--synthetic", type=int, default=10, help="held-out synthetic sequences")
     p.add_argument("--frames", type=int, default=24, help="frames per synthetic sequence")
+    p.add_argument("--first-seed", type=int, default=10_000,
+                   help="first held-out seed (10000-10009: the test scenes; e.g. 10020 for validation scenes)")
     p.add_argument("--icl", nargs="*", help="ICL-format folders (default: icl_mini and the shared micro set)")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--json", type=Path, help="write every per-sequence score here")
@@ -58,7 +60,7 @@ def main(argv: list[str] | None = None) -> int:
     started = time.perf_counter()
     groups: dict[str, list] = {}
     if args.synthetic:
-        groups["synthetic (held out)"] = held_out_synthetic(args.synthetic, args.frames)
+        groups["synthetic (held out)"] = held_out_synthetic(args.synthetic, args.frames, first_seed=args.first_seed)
     icl = [(path, 1) for path in args.icl] if args.icl is not None else [
         (path, stride) for path, stride in ICL_DEFAULTS if Path(path).is_dir()]
     for path, stride in icl:

@@ -35,6 +35,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--keep-every", type=int, default=0, help="also keep model_step<N>.safetensors every N steps")
     p.add_argument("--cache", type=Path, nargs="+", help="pre-rendered windows (python -m worker.training.cache)")
     p.add_argument("--max-frames", type=int, default=8, help="longest clip of the last ('long') stage")
+    p.add_argument("--tbptt-chunk", type=int, default=4,
+                   help="frames per truncated-backpropagation chunk in the long-clip stage")
     p.add_argument("--stage-fractions", type=float, nargs=3, default=(0.5, 0.2, 0.2),
                    metavar=("BACKBONE", "WARMUP", "ADAPT"), help="'scratch': shares of the steps (rest: long clips)")
     p.add_argument("--lr-warmup", type=int, default=0, help="linear warm-up steps at the start of each stage")
@@ -65,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
             steps=args.steps, lr=args.lr, width=args.width, height=args.height,
             synthetic_sequences=args.synthetic_sequences, frames=args.frames,
             checkpoint_every=args.checkpoint_every, cache=args.cache, max_frames=args.max_frames,
-            fractions=tuple(args.stage_fractions),
+            fractions=tuple(args.stage_fractions), tbptt_chunk=args.tbptt_chunk,
             config=TrainConfig(pose_weight=args.pose_weight, keep_every=args.keep_every, lr_warmup=args.lr_warmup,
                                lr_cosine=args.cosine,
                                render_downscale=args.render_downscale, render_stride=args.render_stride),

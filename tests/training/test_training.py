@@ -80,6 +80,27 @@ def test_continued_curriculum_trains_everything_then_long_clips():
         Curriculum.continued(clip_fraction=1.5)
 
 
+def test_long_chunk_sets_the_last_stage_only_and_changes_the_gradient_not_the_loss():
+    plan = Curriculum.continued(steps=100, max_frames=8, clip_fraction=0.6).with_long_chunk(8)
+    assert [s.tbptt_chunk for s in plan.stages] == [4, 8]
+    with pytest.raises(ValueError, match="tbptt_chunk"):
+        plan.with_long_chunk(0)
+    bank = SequenceBank(64, 48, seed=3)
+    bank.add(synthetic_frames(6))
+    clip = bank.sample(4, max_gap=1)
+    grads, totals = [], []
+    for chunk in (1, 4):
+        torch.manual_seed(0)
+        model = build_model(MICRO)
+        stage = Stage("long", 1, 1e-4, 4, 4, ("all",), tbptt_chunk=chunk, render_weight=0.0)
+        totals.append(clip_losses(model, clip, stage, TrainConfig())["total"])
+        grads.append(torch.cat([(p.grad if p.grad is not None else torch.zeros_like(p)).reshape(-1)
+                                for p in model.parameters()]))
+    # the forward pass is the same; only the truncation of the backward pass differs
+    assert totals[0] == pytest.approx(totals[1], rel=1e-5)
+    assert not torch.allclose(grads[0], grads[1], rtol=1e-3, atol=1e-7)
+
+
 def synthetic_frames(n: int, width: int = 80, height: int = 60) -> list[Frame]:
     """A camera sliding past a slanted textured plane (exact depth), enough for a real optimisation signal."""
     intr = Intrinsics(70.0, 70.0, width / 2, height / 2, width, height)

@@ -97,6 +97,13 @@ class Curriculum:
         """The same curriculum with every stage's step count multiplied by `step_factor`."""
         return Curriculum(tuple(replace(s, steps=max(1, round(s.steps * step_factor))) for s in self.stages))
 
+    def with_long_chunk(self, tbptt_chunk: int) -> Curriculum:
+        """The same curriculum with the last stage's truncated-backpropagation chunk set to `tbptt_chunk` frames."""
+        if tbptt_chunk < 1:
+            raise ValueError(f"tbptt_chunk must be at least 1, got {tbptt_chunk}")
+        *head, last = self.stages
+        return Curriculum((*head, replace(last, tbptt_chunk=tbptt_chunk)))
+
     @property
     def total_steps(self) -> int:
         return sum(s.steps for s in self.stages)

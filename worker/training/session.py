@@ -26,12 +26,13 @@ def training_sources(data: list[str], synthetic_sequences: int, frames: int, wid
 def build_trainer(model_name: str, data: list[str], out_dir: Path, init: Path | None, curriculum: str,
                   steps: int, lr: float, width: int, height: int, synthetic_sequences: int, frames: int,
                   checkpoint_every: int, cache: list[Path] | None = None, max_frames: int = 8,
-                  fractions: tuple[float, float, float] = (0.5, 0.2, 0.2), config: TrainConfig | None = None
-                  ) -> Trainer:
+                  fractions: tuple[float, float, float] = (0.5, 0.2, 0.2), config: TrainConfig | None = None,
+                  tbptt_chunk: int = 4) -> Trainer:
     """Model, data and curriculum ready to train.
 
     `cache`: pre-rendered window files (worker.training.cache); when given, they are the training set together
-    with any `data` sources (no synthetic scenes are rendered on the fly).
+    with any `data` sources (no synthetic scenes are rendered on the fly). `tbptt_chunk`: frames per truncated-
+    backpropagation chunk of the long-clip stage.
     """
     from dataclasses import replace
 
@@ -66,6 +67,7 @@ def build_trainer(model_name: str, data: list[str], out_dir: Path, init: Path | 
         plan = Curriculum.from_scratch(steps=steps, lr=lr, max_frames=max_frames, fractions=fractions)
     else:
         raise ValueError(f"unknown curriculum {curriculum!r}; known: scratch, paper, continue")
+    plan = plan.with_long_chunk(tbptt_chunk)
     log.info("perceptual term: LPIPS backbone weights are not available here, 1 - SSIM substitutes for it")
     config = replace(config or TrainConfig(), checkpoint_every=checkpoint_every)
     return Trainer(model, bank, plan, out_dir, config)
