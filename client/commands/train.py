@@ -43,6 +43,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--cosine", action="store_true", help="cosine-decay each stage's rate to 10%%")
     p.add_argument("--render-downscale", type=int, default=2, help="rendering losses at 1/N of the model resolution")
     p.add_argument("--render-stride", type=int, default=2, help="render every N-th pixel's surfel")
+    p.add_argument("--max-gap", type=int, default=2,
+                   help="clips take every k-th frame, k drawn from 1..N (1: the sequences' own frame rate)")
     p.add_argument("--pose-weight", type=float, default=1.0, help="weight of the pose loss (eq. 8's lambda_pose)")
     p.add_argument("--resume", action="store_true", help="continue from the checkpoint in --out")
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: all cores)")
@@ -69,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
             checkpoint_every=args.checkpoint_every, cache=args.cache, max_frames=args.max_frames,
             fractions=tuple(args.stage_fractions), tbptt_chunk=args.tbptt_chunk,
             config=TrainConfig(pose_weight=args.pose_weight, keep_every=args.keep_every, lr_warmup=args.lr_warmup,
-                               lr_cosine=args.cosine,
+                               lr_cosine=args.cosine, max_gap=args.max_gap,
                                render_downscale=args.render_downscale, render_stride=args.render_stride),
         )
     except (ValueError, FileNotFoundError) as err:

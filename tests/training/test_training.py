@@ -135,6 +135,17 @@ def test_sequence_bank_clips_are_relative_to_their_first_frame():
     assert pts[..., 2].min() > 1.0
 
 
+def test_sequence_bank_max_gap_sets_the_frame_stride():
+    bank = SequenceBank(64, 48, seed=1)
+    bank.add(synthetic_frames(10))  # the camera moves 0.05 m along x per frame
+    steps = {round(float(bank.sample(3, max_gap=1).c2w[1, 0, 0, 3]), 3) for _ in range(20)}
+    assert steps == {0.05}
+    steps = {round(float(bank.sample(3, max_gap=3).c2w[1, 0, 0, 3]), 3) for _ in range(40)}
+    assert steps == {0.05, 0.1, 0.15}
+    with pytest.raises(ValueError, match="max_gap"):
+        bank.sample(3, max_gap=0)
+
+
 def test_training_reduces_the_loss_and_resumes(tmp_path):
     torch.manual_seed(0)
     bank = SequenceBank(64, 48)

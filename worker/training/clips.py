@@ -86,6 +86,8 @@ class SequenceBank:
         """A random clip of `length` frames (consecutive frames at a random stride of 1..max_gap)."""
         if not self.sequences:
             raise ValueError("the sequence bank is empty")
+        if max_gap < 1:
+            raise ValueError(f"max_gap must be at least 1, got {max_gap}")
         images, depths, poses, K = self.sequences[self.rng.integers(len(self.sequences))]
         n = images.shape[0]
         gap = int(self.rng.integers(1, max_gap + 1))

@@ -35,6 +35,7 @@ class TrainConfig:
     render: RenderLossWeights = field(default_factory=RenderLossWeights)
     render_stride: int = 2  # every n-th pixel's surfel is rendered (scales multiplied by n)
     render_downscale: int = 2  # rendering losses at 1/n of the model resolution
+    max_gap: int = 2  # clips take every k-th frame of a sequence, k drawn from 1..max_gap (faster apparent motion)
     grad_clip: float = 1.0
     weight_decay: float = 0.05
     checkpoint_every: int = 200
@@ -151,7 +152,7 @@ class Trainer:
                 self._enter_stage(index, stage)
             started = time.perf_counter()
             length = int(self.bank.rng.integers(stage.min_frames, stage.max_frames + 1))
-            clip = self.bank.sample(length)
+            clip = self.bank.sample(length, max_gap=self.config.max_gap)
             self._set_learning_rate(stage)
             self.optimizer.zero_grad(set_to_none=True)
             terms = clip_losses(self.model, clip, stage, self.config, self.perceptual)
