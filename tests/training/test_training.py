@@ -144,6 +144,8 @@ def test_sequence_bank_max_gap_sets_the_frame_stride():
     assert steps == {0.05, 0.1, 0.15}
     with pytest.raises(ValueError, match="max_gap"):
         bank.sample(3, max_gap=0)
+    with pytest.raises(ValueError, match="max_gap"):
+        TrainConfig(max_gap=0)
 
 
 def test_training_reduces_the_loss_and_resumes(tmp_path):

@@ -45,6 +45,10 @@ class TrainConfig:
     log_every: int = 10
     seed: int = 0
 
+    def __post_init__(self) -> None:
+        if self.max_gap < 1:
+            raise ValueError(f"max_gap must be at least 1, got {self.max_gap}")
+
 
 @dataclass
 class StepLosses:
