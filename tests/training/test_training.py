@@ -85,6 +85,8 @@ def test_long_chunk_sets_the_last_stage_only_and_changes_the_gradient_not_the_lo
     assert [s.tbptt_chunk for s in plan.stages] == [4, 8]
     with pytest.raises(ValueError, match="tbptt_chunk"):
         plan.with_long_chunk(0)
+    with pytest.raises(ValueError, match="tbptt_chunk"):
+        Stage("long", 1, 1e-4, 4, 8, ("all",), tbptt_chunk=0)
     bank = SequenceBank(64, 48, seed=3)
     bank.add(synthetic_frames(6))
     clip = bank.sample(4, max_gap=1)

@@ -39,6 +39,8 @@ class Stage:
         if self.steps < 0 or self.lr <= 0 or not 1 <= self.min_frames <= self.max_frames:
             raise ValueError(f"invalid stage {self.name}: steps={self.steps} lr={self.lr} "
                              f"frames={self.min_frames}..{self.max_frames}")
+        if self.tbptt_chunk < 1:
+            raise ValueError(f"invalid stage {self.name}: tbptt_chunk must be at least 1, got {self.tbptt_chunk}")
         unknown = [g for g in self.trainable if g != "all" and g not in PARAMETER_GROUPS]
         if unknown:
             raise ValueError(f"unknown parameter groups {unknown}; known: {sorted(PARAMETER_GROUPS)} or 'all'")
@@ -99,8 +101,6 @@ class Curriculum:
 
     def with_long_chunk(self, tbptt_chunk: int) -> Curriculum:
         """The same curriculum with the last stage's truncated-backpropagation chunk set to `tbptt_chunk` frames."""
-        if tbptt_chunk < 1:
-            raise ValueError(f"tbptt_chunk must be at least 1, got {tbptt_chunk}")
         *head, last = self.stages
         return Curriculum((*head, replace(last, tbptt_chunk=tbptt_chunk)))
 
