@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from service.image_header import PNG_SIGNATURE, image_size
+from service.pose_check import pose_problem
 from worker.serialization import unpack
 
 MAX_IMAGE_SIDE = 8192
@@ -69,9 +70,11 @@ def check_frame_message(data: bytes, max_bytes: int, session_intrinsics: dict[st
             raise FrameRejected("bad_depth", f"depth is {dw}x{dh} but the image is {width}x{height}", seq)
     pose = message.get("pose")
     if pose is not None:
-        if (not isinstance(pose, list) or len(pose) != 16
-                or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in pose)):
+        if not isinstance(pose, list):
             raise FrameRejected("bad_pose", "pose must be 16 finite floats (camera-to-world, row-major)", seq)
+        problem = pose_problem(pose)
+        if problem:
+            raise FrameRejected("bad_pose", problem, seq)
     return CheckedFrame(seq=seq, width=width, height=height)
 
 

@@ -2,16 +2,15 @@
 
 from __future__ import annotations
 
-import math
 import time
 from typing import Annotated, Literal
 
-import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 from fastapi.responses import PlainTextResponse
 
 from service.auth import Principal, caller
 from service.deps import registry, session_for
+from service.pose_check import pose_problem
 from service.registry import Registry, RequestTimeout
 from service.schemas import ErrorBody, Trajectory
 from worker.runtime import keys
@@ -121,11 +120,9 @@ def render_params(record: dict[str, str], pose: str, width: int | None, height: 
         values = [float(v) for v in pose.split(",")]
     except ValueError as err:
         raise HTTPException(400, "pose must be 16 comma-separated floats") from err
-    if len(values) != 16 or not all(math.isfinite(v) for v in values):
-        raise HTTPException(400, f"pose must be 16 finite comma-separated floats, got {len(values)} values")
-    m = np.asarray(values).reshape(4, 4)
-    if not np.allclose(m[3], [0, 0, 0, 1]) or abs(np.linalg.det(m[:3, :3])) < 1e-12:
-        raise HTTPException(400, "pose must be a camera-to-world [sR|t; 0 0 0 1] matrix")
+    problem = pose_problem(values)
+    if problem:
+        raise HTTPException(400, f"pose must be a camera-to-world [sR|t; 0 0 0 1] matrix: {problem}")
     import json
 
     session_k = json.loads(record.get("intrinsics") or "null")
