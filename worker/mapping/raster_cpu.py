@@ -18,58 +18,23 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
-import hashlib
-import os
-import subprocess
-import tempfile
 import threading
 from pathlib import Path
 from typing import NamedTuple
 
 import torch
 
+from worker.native import DEFAULT_FLAGS, NativeLibrary, extension_dir
+
 from .raster_tiles import tile_grid
 
 SOURCE = Path(__file__).parent / "csrc" / "raster_cpu.cpp"
-CXX_FLAGS = ["-O3", "-std=c++17", "-fPIC", "-shared", "-pthread"]
+CXX_FLAGS = list(DEFAULT_FLAGS)
 _PAIR_FIXED = 12  # per-pair gradient columns before the features: dA(3) dB(3) dC(3) dmeans2d(2) dopacity(1)
 
-_lock = threading.Lock()
 _threads = threading.local()  # per calling thread: the kernels' thread count while `using_threads` is active
-_library: ctypes.CDLL | None = None
-_error: str | None = None
-_tried = False
-
-
-def extension_dir() -> Path:
-    """Where the compiled library is cached."""
-    return Path(os.environ.get("FLASHMONO_EXT_DIR", Path.home() / ".cache" / "flashmono" / "torch_extensions"))
-
-
-def _compiler() -> list[str]:
-    return os.environ.get("CXX", "c++").split()
-
-
-def _build() -> Path:
-    """Compile the kernels unless a library for this exact source, flags and compiler is cached; its path."""
-    compiler = _compiler()
-    version = subprocess.run([*compiler, "--version"], capture_output=True, text=True, check=True).stdout
-    key = hashlib.sha256(SOURCE.read_bytes() + " ".join(CXX_FLAGS).encode() + version.encode()).hexdigest()[:16]
-    target = extension_dir() / f"flashmono_raster_cpu_{key}.so"
-    if target.exists():
-        return target
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=".so", dir=target.parent)
-    os.close(fd)
-    try:
-        result = subprocess.run([*compiler, *CXX_FLAGS, str(SOURCE), "-o", tmp], capture_output=True, text=True)
-        if result.returncode != 0:
-            raise RuntimeError(f"compiling {SOURCE.name} failed:\n{result.stderr[-4000:]}")
-        os.replace(tmp, target)  # atomic: concurrent builders never see a half-written library
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return target
+__all__ = ["available", "composite_cpu", "extension_dir", "load_error", "rasterize_cpu", "using_threads",
+           "visible_cpu", "worker_threads"]
 
 
 def _declare(lib: ctypes.CDLL) -> None:
@@ -96,18 +61,11 @@ def _declare(lib: ctypes.CDLL) -> None:
             fn.restype = i64 if name == "bin_count" else None
 
 
+_native = NativeLibrary("raster_cpu", SOURCE, _declare, CXX_FLAGS)
+
+
 def _load() -> ctypes.CDLL | None:
-    global _library, _error, _tried
-    with _lock:
-        if not _tried:
-            _tried = True
-            try:
-                library = ctypes.CDLL(str(_build()))
-                _declare(library)
-                _library = library
-            except Exception as exc:  # no compiler, build error, unloadable library...
-                _error = f"{type(exc).__name__}: {exc}"
-        return _library
+    return _native.load()
 
 
 def worker_threads() -> int:
@@ -135,14 +93,14 @@ def available() -> bool:
 
 def load_error() -> str | None:
     """Why the kernels are unavailable (None when they loaded or were not tried yet)."""
-    return _error
+    return _native.error
 
 
 def _kernel(name: str, dtype: torch.dtype):
     suffix = {torch.float32: "f32", torch.float64: "f64"}.get(dtype)
     if suffix is None:
         raise ValueError(f"the compiled CPU rasterizer supports float32 and float64, not {dtype}")
-    return getattr(_library, f"raster_{name}_{suffix}")
+    return getattr(_native.library, f"raster_{name}_{suffix}")
 
 
 def _ptr(t: torch.Tensor) -> int:
@@ -184,7 +142,7 @@ def _composite_backward(binned: _Binned, planes, means2d, opacities, features, r
     n_pairs = binned.pair_surfel.shape[0]
     surfel_offsets = torch.empty(N + 1, dtype=torch.int64)
     surfel_pairs = torch.empty(n_pairs, dtype=torch.int64)
-    _library.raster_build_surfel_index(_ptr(binned.pair_surfel), n_pairs, N, _ptr(surfel_offsets),
+    _native.library.raster_build_surfel_index(_ptr(binned.pair_surfel), n_pairs, N, _ptr(surfel_offsets),
                                        _ptr(surfel_pairs))
     pair_grads = torch.empty(n_pairs, _PAIR_FIXED + F, dtype=dtype)
     d_planes, d_means2d = torch.empty_like(planes), torch.empty_like(means2d)
@@ -243,7 +201,7 @@ class _Rasterize(torch.autograd.Function):
     def forward(ctx, means, quats, scales, opacities, colors, viewmat, background, K, width, height):
         dtype, N = means.dtype, means.shape[0]
         threads = worker_threads()
-        F = _library.raster_projected_features()
+        F = _native.library.raster_projected_features()
         planes = torch.empty(N, 9, dtype=dtype)
         means2d, depths = torch.empty(N, 2, dtype=dtype), torch.empty(N, dtype=dtype)
         features = torch.empty(N, F, dtype=dtype)
@@ -313,7 +271,7 @@ def visible_cpu(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, 
     inputs = [t.detach().to(dtype).contiguous() for t in (means, quats, scales, opacities, colors, viewmat, K)]
     planes = torch.empty(N, 9, dtype=dtype)
     means2d, depths = torch.empty(N, 2, dtype=dtype), torch.empty(N, dtype=dtype)
-    features = torch.empty(N, _library.raster_projected_features(), dtype=dtype)
+    features = torch.empty(N, _native.library.raster_projected_features(), dtype=dtype)
     radii, rects = torch.empty(N, 2, dtype=torch.int32), torch.empty(N, 4, dtype=torch.int32)
     _kernel("project", dtype)(N, *(_ptr(t) for t in inputs), int(width), int(height), worker_threads(), None,
                               _ptr(planes), _ptr(means2d), _ptr(depths), _ptr(features), _ptr(radii), _ptr(rects))
@@ -322,6 +280,6 @@ def visible_cpu(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, 
 
 def _require(t: torch.Tensor) -> None:
     if not available():
-        raise RuntimeError(f"compiled CPU rasterizer unavailable: {_error}")
+        raise RuntimeError(f"compiled CPU rasterizer unavailable: {_native.error}")
     if t.device.type != "cpu":
         raise ValueError(f"the compiled CPU rasterizer needs CPU tensors, got {t.device}")
