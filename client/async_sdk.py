@@ -104,7 +104,7 @@ class AsyncFrameStream:
         self.summary = StreamSummary(session_id=session_id)
         self._ws: Any = None
         self._reader: asyncio.Task | None = None
-        self._outbox: deque[Frame] = deque()
+        self._outbox: deque[tuple[int | None, Frame]] = deque()  # (seq to re-send under, or None; frame)
         self._next_seq = 0
         self._changed = asyncio.Event()
         self._finished = asyncio.Event()
@@ -158,7 +158,7 @@ class AsyncFrameStream:
         """Queue `frame` and send everything the flow control allows; returns once `frame` is on the wire."""
         if self._ws is None:
             raise StreamError("the stream is not connected", code="not_connected")
-        self._outbox.append(frame)
+        self._outbox.append((None, frame))
         await self._pump(lambda: not self._outbox)
 
     async def finish(self, timeout_s: float | None = None) -> StreamSummary:
@@ -189,7 +189,7 @@ class AsyncFrameStream:
                 await asyncio.sleep(delay)
                 continue
             if self._outbox and self.flow.can_send():
-                await self._send_now(self._outbox.popleft())
+                await self._send_now(*self._outbox.popleft())
                 continue
             self._changed.clear()
             try:
@@ -198,16 +198,19 @@ class AsyncFrameStream:
                 raise StreamError(f"no answer from the server for {self.idle_timeout_s:.0f} s "
                                   f"({self.flow.unsettled} frames unsettled)", code="timeout") from err
 
-    async def _send_now(self, frame: Frame) -> None:
-        seq = self._next_seq
-        self._next_seq += 1
+    async def _send_now(self, seq: int | None, frame: Frame) -> None:
+        """Send `frame` under `seq` (a re-send keeps its seq: the server asks for it by number) or the next one."""
+        first_send = seq is None
+        if seq is None:
+            seq = self._next_seq
+            self._next_seq += 1
         payload = await asyncio.to_thread(encode_frame_message, frame, seq, self.wire)
         self.flow.on_sent(seq, frame)
         try:
             await self._ws.send(payload)
         except Exception as err:  # websockets raises ConnectionClosed subclasses
             raise self._failure or StreamError(f"the stream closed while sending: {err}", code="closed") from err
-        self.summary.frames_sent += 1
+        self.summary.frames_sent += first_send  # distinct frames; re-sends are counted in backpressure_retries
 
     def _raise_if_failed(self) -> None:
         if self._failure is not None:

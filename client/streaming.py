@@ -171,8 +171,10 @@ class FlowControl:
     A frame is *in flight* from sending until its ack (or error). A frame is *pending* at the server from its
     ack until its result (pose or error). The client sends only while in_flight < window and
     in_flight + pending < max_pending. A ``backpressure`` refusal stops new frames until every in-flight frame has
-    an answer; refused frames older than an accepted one are dropped (re-sending them would reorder the stream),
-    the others are re-sent in order after an exponential back-off.
+    an answer; then the refused frames are re-sent in order after an exponential back-off. The server refuses every
+    frame after a refused one until that one is re-sent (``resend_from``), so nothing is lost; a refused frame
+    older than an accepted one (a server without that rule) is dropped, since re-sending it would reorder the stream.
+    `max_retries` bounds the re-send rounds in a row without any frame accepted.
     """
 
     def __init__(self, window: int = 4, max_pending: int = 8, max_retries: int = 20,
@@ -192,7 +194,7 @@ class FlowControl:
         self.refused: set[int] = set()  # refused for backpressure, waiting for recovery
         self.accepted: set[int] = set()  # every seq the server queued
         self.server_queue_depth = 0
-        self.consecutive_refusals = 0
+        self.refusal_rounds = 0  # re-send rounds since the last accepted frame
         self.retries = 0
         self.dropped: list[Any] = []
         self._result_before_ack: set[int] = set()
@@ -209,7 +211,7 @@ class FlowControl:
             return
         self.in_flight.discard(seq)
         self.accepted.add(seq)
-        self.consecutive_refusals = 0
+        self.refusal_rounds = 0
         if seq in self._result_before_ack:
             self._settle(seq)
         else:
@@ -229,7 +231,6 @@ class FlowControl:
         self.pending.discard(seq)  # the ack came first: the refusal wins
         self.accepted.discard(seq)
         self.refused.add(seq)
-        self.consecutive_refusals += 1
 
     def on_rejected(self, seq: int) -> None:
         """A non-retryable error for this frame (corrupt image...): settled, never re-sent."""
@@ -251,25 +252,30 @@ class FlowControl:
         """True when frames were refused and every in-flight frame has its answer."""
         return bool(self.refused) and not self.in_flight
 
-    def take_resends(self) -> tuple[list[Any], float]:
-        """(items to re-send in order, seconds to wait first); drops refused frames overtaken by accepted ones.
+    def take_resends(self) -> tuple[list[tuple[int, Any]], float]:
+        """((seq, item) pairs to re-send in order under the same seq, seconds to wait first); drops refused frames
+        overtaken by accepted ones.
 
-        Raises BackpressureError when the server refused more than max_retries frames in a row.
+        Raises BackpressureError after more than max_retries rounds in a row without an accepted frame.
         """
-        if self.consecutive_refusals > self.max_retries:
+        self.refusal_rounds += 1
+        if self.refusal_rounds > self.max_retries:
             from client.errors import BackpressureError
 
             raise BackpressureError(
-                f"the server refused {self.consecutive_refusals} frames in a row (queue full); giving up",
+                f"the server refused frames {self.refusal_rounds} times in a row (queue full); giving up",
                 code="backpressure")
         newest_accepted = max(self.accepted, default=-1)
-        resend: list[Any] = []
+        resend: list[tuple[int, Any]] = []
         for seq in sorted(self.refused):
             item = self.items.pop(seq)
-            (self.dropped if seq < newest_accepted else resend).append(item)
+            if seq < newest_accepted:
+                self.dropped.append(item)
+            else:
+                resend.append((seq, item))
         self.refused.clear()
         self.retries += len(resend)
-        delay = min(self.max_backoff_s, self.backoff_s * (2 ** max(0, self.consecutive_refusals - 1)))
+        delay = min(self.max_backoff_s, self.backoff_s * (2 ** (self.refusal_rounds - 1)))
         return resend, delay
 
     @property

@@ -18,26 +18,35 @@ import redis.asyncio as aioredis
 from worker.runtime import keys
 
 # Atomically: check the session accepts frames, seq increases, the queue has room; enqueue; count.
-# Returns {code, value}: 0 accepted (value = queue depth), -1 no session, -2 not accepting (status),
-# -3 seq not increasing (value = last seq), -4 queue full (value = queue depth).
+# Returns {code, value, resend_from}: 0 accepted (value = queue depth), -1 no session, -2 not accepting (status),
+# -3 seq not increasing (value = last seq), -4 backpressure (value = queue depth).
+# Backpressure keeps the order: once frame N is refused for a full queue, every frame with a higher seq is refused
+# too ("resend_from" = N) until a frame with seq <= N is accepted, so a pipelining sender can always re-send N.
 _INGEST = """
 local h = KEYS[1]
-local fields = redis.call('HMGET', h, 'status', 'last_seq', 'frames_received', 'frames_processed', 'frames_rejected')
-if not fields[1] then return {-1, 0} end
-if fields[1] ~= 'created' and fields[1] ~= 'streaming' then return {-2, 0} end
+local fields = redis.call('HMGET', h, 'status', 'last_seq', 'frames_received', 'frames_processed',
+                          'frames_rejected', 'resend_from')
+if not fields[1] then return {-1, 0, -1} end
+if fields[1] ~= 'created' and fields[1] ~= 'streaming' then return {-2, 0, -1} end
 local seq = tonumber(ARGV[1])
 local last = tonumber(fields[2] or '-1')
-if seq <= last then return {-3, last} end
+if seq <= last then return {-3, last, -1} end
 local depth = tonumber(fields[3] or '0') - tonumber(fields[4] or '0') - tonumber(fields[5] or '0')
-if depth >= tonumber(ARGV[2]) then return {-4, depth} end
+local hold = tonumber(fields[6] or '-1')
+if hold >= 0 and seq > hold then return {-4, depth, hold} end
+if depth >= tonumber(ARGV[2]) then
+  redis.call('HSET', h, 'resend_from', ARGV[1])
+  return {-4, depth, seq}
+end
 redis.call('XADD', KEYS[2], '*', 'kind', 'frame', 'seq', ARGV[1], 'msg', ARGV[4])
 if fields[1] == 'created' then
   redis.call('HSET', h, 'last_seq', ARGV[1], 'status', 'streaming', 'updated_at', ARGV[3])
 else
   redis.call('HSET', h, 'last_seq', ARGV[1], 'updated_at', ARGV[3])
 end
+if hold >= 0 then redis.call('HDEL', h, 'resend_from') end
 redis.call('HINCRBY', h, 'frames_received', 1)
-return {0, depth + 1}
+return {0, depth + 1, -1}
 """
 _FINISH = """
 local status = redis.call('HGET', KEYS[1], 'status')
@@ -60,6 +69,7 @@ def now_iso() -> str:
 class IngestResult:
     code: int
     value: int
+    resend_from: int = -1  # with QUEUE_FULL: the seq the sender must re-send next
 
 
 class RequestTimeout(Exception):
@@ -136,9 +146,9 @@ class Registry:
 
     # --- streaming ----------------------------------------------------------------------------------------------
     async def ingest_frame(self, session_id: str, seq: int, message: bytes, max_queue: int) -> IngestResult:
-        code, value = await self._ingest(keys=[keys.session(session_id), keys.inbox(session_id)],
-                                         args=[seq, max_queue, now_iso(), message])
-        return IngestResult(int(code), int(value))
+        code, value, resend_from = await self._ingest(keys=[keys.session(session_id), keys.inbox(session_id)],
+                                                      args=[seq, max_queue, now_iso(), message])
+        return IngestResult(int(code), int(value), int(resend_from))
 
     async def request_finish(self, session_id: str) -> int:
         """1 finishing now, 0 already finishing/finished, -1 no such session."""

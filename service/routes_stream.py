@@ -55,6 +55,13 @@ async def stream_frames(websocket: WebSocket, session_id: str) -> None:
     await stream.run()
 
 
+def _backpressure_message(seq: int, depth: int, resend_from: int) -> str:
+    if seq == resend_from:
+        return f"session queue is full ({depth} frames); frame {seq} was not queued: resend it later"
+    return (f"frame {seq} was not queued: frame {resend_from} was refused for backpressure and must be re-sent "
+            f"first (the queue holds {depth} frames); resend from seq {resend_from}")
+
+
 class _Stream:
     """One open stream of one session."""
 
@@ -112,8 +119,8 @@ class _Stream:
         result = await self.reg.ingest_frame(self.session_id, frame.seq, data, self.settings.max_queue)
         if result.code == QUEUE_FULL:
             self.metrics.frames_refused.labels("backpressure").inc()
-            await self.error("backpressure", f"session queue is full ({result.value} frames); frame {frame.seq} "
-                             "was not queued: resend it later", frame.seq, queue_depth=result.value)
+            await self.error("backpressure", _backpressure_message(frame.seq, result.value, result.resend_from),
+                             frame.seq, queue_depth=result.value, resend_from=result.resend_from)
         elif result.code == SEQ_NOT_INCREASING:
             self.metrics.frames_refused.labels("bad_seq").inc()
             await self.error("bad_seq", f"seq {frame.seq} is not greater than the last accepted seq {result.value} "

@@ -50,8 +50,8 @@ def test_refused_frames_are_resent_in_order_after_in_flight_frames_settle() -> N
     flow.on_refused(3)
     assert flow.recovery_ready()
     resend, delay = flow.take_resends()
-    assert resend == ["f1", "f2", "f3"]
-    assert delay == pytest.approx(0.04)  # 3 refusals in a row: 0.01 * 2**2
+    assert resend == [(1, "f1"), (2, "f2"), (3, "f3")]  # re-sent under their own seqs
+    assert delay == pytest.approx(0.01)  # the first round: no doubling yet
     assert flow.dropped == [] and flow.retries == 3
     assert flow.can_send()
 
@@ -64,7 +64,7 @@ def test_refused_frame_overtaken_by_an_accepted_one_is_dropped_not_reordered() -
     flow.on_ack(1, 7)  # a slot freed: frame 1 got in after 0 was refused
     flow.on_refused(2)
     resend, _ = flow.take_resends()
-    assert resend == ["f2"]
+    assert resend == [(2, "f2")]
     assert flow.dropped == ["f0"]
 
 
@@ -74,19 +74,34 @@ def test_ack_followed_by_refusal_counts_as_refused() -> None:
     flow.on_ack(0, 8)
     flow.on_refused(0)
     assert flow.recovery_ready()
-    assert flow.take_resends()[0] == ["f0"]
+    assert flow.take_resends()[0] == [(0, "f0")]
     assert flow.unsettled == 0
 
 
-def test_giving_up_after_too_many_consecutive_refusals() -> None:
-    flow = FlowControl(window=1, max_pending=1, max_retries=2)
-    for seq in range(3):
-        flow.on_sent(seq, "f")
-        flow.on_refused(seq)
-        if seq < 2:
-            flow.take_resends()
-    with pytest.raises(BackpressureError, match="refused 3 frames in a row"):
+def test_giving_up_after_too_many_rounds_without_progress() -> None:
+    flow = FlowControl(window=4, max_pending=8, max_retries=2, backoff_s=0.01)
+    delays = []
+    for _ in range(2):  # a whole window refused per round counts as one round
+        for seq in range(4):
+            flow.on_sent(seq, f"f{seq}")
+            flow.on_refused(seq)
+        delays.append(flow.take_resends()[1])
+    assert delays == pytest.approx([0.01, 0.02])
+    flow.on_sent(0, "f0")
+    flow.on_refused(0)
+    with pytest.raises(BackpressureError, match="3 times in a row"):
         flow.take_resends()
+
+
+def test_an_accepted_frame_resets_the_rounds() -> None:
+    flow = FlowControl(window=2, max_pending=8, max_retries=1)
+    for _ in range(3):
+        flow.on_sent(0, "f0")
+        flow.on_refused(0)
+        flow.take_resends()
+        flow.on_sent(0, "f0")
+        flow.on_ack(0, 1)
+    assert flow.refusal_rounds == 0
 
 
 def test_rejected_frames_are_settled_without_retry() -> None:
