@@ -6,13 +6,13 @@ The key layout is `worker.runtime.keys` (shared with the workers). All calls are
 from __future__ import annotations
 
 import json
+import time
 import uuid
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Any
 
 import msgpack
-import redis
 import redis.asyncio as aioredis
 
 from worker.runtime import keys
@@ -57,6 +57,7 @@ redis.call('XADD', KEYS[2], '*', 'kind', 'finish')
 return 1
 """
 
+_BLPOP_SLICE_S = 2.0
 INGEST_ACCEPTED, NO_SESSION, NOT_ACCEPTING, SEQ_NOT_INCREASING, QUEUE_FULL = 0, -1, -2, -3, -4
 _INT_FIELDS = ("frames_received", "frames_processed", "frames_rejected", "keyframes", "revision")
 
@@ -177,13 +178,14 @@ class Registry:
         fields = {"id": request_id, "kind": kind, "params": json.dumps(params), "session_id": session_id}
         stream = keys.session_requests(session_id) if live else keys.REQUESTS
         await self.client.xadd(stream, fields, maxlen=1000, approximate=True)
-        try:
-            reply = await self.client.blpop([keys.reply(request_id)], timeout=timeout_s)
-        except redis.TimeoutError as err:
-            raise RequestTimeout(f"no worker answered within {timeout_s:.0f} s") from err
-        if reply is None:
-            raise RequestTimeout(f"no worker answered within {timeout_s:.0f} s")
-        return msgpack.unpackb(reply[1], raw=False)
+        # BLPOP in slices shorter than the client's socket timeout (5 s by default in redis-py), which would
+        # otherwise end a longer wait early, whatever `timeout_s` says
+        deadline = time.monotonic() + timeout_s
+        while (remaining := deadline - time.monotonic()) > 0:
+            reply = await self.client.blpop([keys.reply(request_id)], timeout=min(remaining, _BLPOP_SLICE_S))
+            if reply is not None:
+                return msgpack.unpackb(reply[1], raw=False)
+        raise RequestTimeout(f"no worker answered within {timeout_s:g} s")
 
     # --- fleet --------------------------------------------------------------------------------------------------
     async def live_workers(self) -> list[str]:

@@ -16,6 +16,7 @@ from fastapi import APIRouter, HTTPException, WebSocket, WebSocketDisconnect
 from service.auth import request_key
 from service.deps import session_for
 from service.frame_validation import FrameRejected, check_frame_message
+from service.hardening import origin_allowed
 from service.registry import (
     NO_SESSION,
     NOT_ACCEPTING,
@@ -24,6 +25,7 @@ from service.registry import (
     Registry,
 )
 from worker.runtime import keys
+from worker.runtime.outage import REDIS_DOWN, Backoff, OutageLog
 
 log = logging.getLogger(__name__)
 router = APIRouter()
@@ -35,10 +37,25 @@ _AUTH_CODES = {401: "unauthorized", 403: "forbidden", 404: "not_found"}
 async def stream_frames(websocket: WebSocket, session_id: str) -> None:
     app = websocket.app
     reg: Registry = app.state.registry
+    origin = websocket.headers.get("origin")
+    if not origin_allowed(origin, websocket.headers.get("host"), app.state.settings.allowed_origins):
+        await websocket.accept()
+        await websocket.send_text(json.dumps({"type": "error", "code": "forbidden_origin",
+                                              "message": f"Origin {origin} may not open streams here (set "
+                                                         "FLASHMONO_ALLOWED_ORIGINS to allow it)"}))
+        await websocket.close(code=4403, reason="origin not allowed")
+        return
     try:
         principal = app.state.auth.principal(request_key(websocket, allow_query=True))
         app.state.auth.require(principal, "stream")
         record = await session_for(reg, principal, session_id, write=True)
+    except REDIS_DOWN as err:
+        await websocket.accept()
+        await websocket.send_text(json.dumps({"type": "error", "code": "unavailable",
+                                              "message": f"the session store (Redis) is unreachable: {err}; "
+                                                         "reconnect shortly"}))
+        await websocket.close(code=1013, reason="session store unreachable; try again later")
+        return
     except HTTPException as err:
         await websocket.accept()
         await websocket.send_text(json.dumps({"type": "error", "code": _AUTH_CODES.get(err.status_code, "error"),
@@ -74,6 +91,7 @@ class _Stream:
         self.metrics = websocket.app.state.metrics
         self._send_lock = asyncio.Lock()
         self._closed = asyncio.Event()
+        self._unavailable_from: int | None = None  # first seq refused while Redis was unreachable
 
     async def send(self, text: str) -> None:
         async with self._send_lock:
@@ -87,7 +105,13 @@ class _Stream:
 
     async def run(self) -> None:
         self.metrics.streams_open.inc()
-        start_id = await self.reg.last_outbox_id(self.session_id)
+        try:
+            start_id = await self.reg.last_outbox_id(self.session_id)
+        except REDIS_DOWN as err:
+            self.metrics.streams_open.dec()
+            await self.error("unavailable", f"the session store (Redis) is unreachable: {err}; reconnect shortly")
+            await self._close(1013)
+            return
         forwarder = asyncio.create_task(self._forward_results(start_id))
         try:
             while not self._closed.is_set():
@@ -116,7 +140,9 @@ class _Stream:
             self.metrics.frames_refused.labels(err.code).inc()
             await self.error(err.code, str(err), err.seq)
             return
-        result = await self.reg.ingest_frame(self.session_id, frame.seq, data, self.settings.max_queue)
+        result = await self._ingest(frame.seq, data)
+        if result is None:
+            return
         if result.code == QUEUE_FULL:
             self.metrics.frames_refused.labels("backpressure").inc()
             await self.error("backpressure", _backpressure_message(frame.seq, result.value, result.resend_from),
@@ -136,6 +162,27 @@ class _Stream:
             self.metrics.queue_depth.observe(result.value)
             self.metrics.ack_latency.observe(time.perf_counter() - t0)
 
+    async def _ingest(self, seq: int, data: bytes):
+        """The registry's answer for this frame, or None after refusing it with `unavailable` (Redis down).
+
+        Like backpressure, the refusal keeps the order: once a frame is refused, later ones are refused too until
+        it comes again, so the client re-sends from it and nothing is queued out of order."""
+        hold = self._unavailable_from
+        if hold is not None and seq > hold:
+            await self.error("unavailable", f"frame {seq} was not queued: frame {hold} was refused while the "
+                             f"session store was unreachable; resend from seq {hold}", seq, resend_from=hold)
+            return None
+        try:
+            result = await self.reg.ingest_frame(self.session_id, seq, data, self.settings.max_queue)
+        except REDIS_DOWN as err:
+            self._unavailable_from = seq
+            self.metrics.frames_refused.labels("unavailable").inc()
+            await self.error("unavailable", f"the session store (Redis) is unreachable ({err}); frame {seq} was "
+                             "not queued: resend it later", seq, resend_from=seq)
+            return None
+        self._unavailable_from = None
+        return result
+
     async def _on_control(self, text: str) -> None:
         try:
             message = json.loads(text)
@@ -146,7 +193,13 @@ class _Stream:
         if kind == "ping":
             await self.send(json.dumps({"type": "pong"}))
         elif kind == "finish":
-            if await self.reg.request_finish(self.session_id) == -1:
+            try:
+                outcome = await self.reg.request_finish(self.session_id)
+            except REDIS_DOWN as err:
+                await self.error("unavailable", f"the session store (Redis) is unreachable ({err}); the finish "
+                                 "request was not recorded: send it again later")
+                return
+            if outcome == -1:
                 await self.error("not_found", "the session was deleted")
                 await self._close(4404)
         else:
@@ -156,15 +209,22 @@ class _Stream:
         """Relay the outbox (pose, loop_closed, error, finished) to the client; close after "finished"."""
         client = self.reg.client
         outbox = keys.outbox(self.session_id)
+        backoff = Backoff()
+        outage = OutageLog(log, f"stream of session {self.session_id}")
         while True:
-            reply = await client.xread({outbox: last_id}, count=256, block=1000)
-            if not reply:
-                if not await client.exists(keys.session(self.session_id)):
+            try:  # the outbox is durable: after an outage, forwarding goes on from the last id sent
+                reply = await client.xread({outbox: last_id}, count=256, block=1000)
+                if not reply and not await client.exists(keys.session(self.session_id)):
                     await self.error("not_found", "the session was deleted")
                     await self._close(4404)
                     return
+                outage.recovered()
+                backoff.reset()
+            except REDIS_DOWN as err:
+                outage.failed(err)
+                await asyncio.sleep(backoff.next_delay())
                 continue
-            for _stream, entries in reply:
+            for _stream, entries in reply or []:
                 for entry_id, fields in entries:
                     last_id = entry_id.decode()
                     text = fields[b"msg"].decode()  # each seq appears once: the worker's store is idempotent

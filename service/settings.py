@@ -14,7 +14,9 @@ SCOPES = ("stream", "read", "admin")
 class Settings:
     """REDIS_URL; FLASHMONO_API_KEYS ("key1=stream,read;key2=admin") or FLASHMONO_API_KEYS_FILE (JSON
     {key: [scopes]}); FLASHMONO_MAX_QUEUE (frames queued per session, 64); FLASHMONO_MAX_FRAME_BYTES (8 MiB);
-    FLASHMONO_REQUEST_TIMEOUT_S (render/export reply timeout, 60); FLASHMONO_MAX_RENDER_PIXELS (4096*4096)."""
+    FLASHMONO_REQUEST_TIMEOUT_S (render/export reply timeout, 60); FLASHMONO_MAX_RENDER_PIXELS (4096*4096);
+    FLASHMONO_MAX_BODY_BYTES (HTTP request bodies, 1 MiB); FLASHMONO_ALLOWED_ORIGINS (comma-separated origins a
+    browser may open the WebSocket from besides the gateway's own, "*" for any)."""
 
     redis_url: str = "redis://127.0.0.1:6379/0"
     api_keys: dict[str, frozenset[str]] = field(default_factory=dict)
@@ -22,6 +24,8 @@ class Settings:
     max_frame_bytes: int = 8 * 1024 * 1024
     request_timeout_s: float = 60.0
     max_render_pixels: int = 4096 * 4096
+    max_body_bytes: int = 1024 * 1024
+    allowed_origins: frozenset[str] = frozenset()
 
     @property
     def auth_enabled(self) -> bool:
@@ -40,9 +44,15 @@ class Settings:
             max_frame_bytes=int(env.get("FLASHMONO_MAX_FRAME_BYTES", cls.max_frame_bytes)),
             request_timeout_s=float(env.get("FLASHMONO_REQUEST_TIMEOUT_S", cls.request_timeout_s)),
             max_render_pixels=int(env.get("FLASHMONO_MAX_RENDER_PIXELS", cls.max_render_pixels)),
+            max_body_bytes=int(env.get("FLASHMONO_MAX_BODY_BYTES", cls.max_body_bytes)),
+            allowed_origins=frozenset(o.strip().rstrip("/") for o in env.get("FLASHMONO_ALLOWED_ORIGINS", "").split(",")
+                                      if o.strip()),
         )
-        if settings.max_queue < 1 or settings.max_frame_bytes < 1024:
-            raise ValueError("FLASHMONO_MAX_QUEUE must be >= 1 and FLASHMONO_MAX_FRAME_BYTES >= 1024")
+        if settings.max_queue < 1 or settings.max_frame_bytes < 1024 or settings.max_body_bytes < 1024:
+            raise ValueError("FLASHMONO_MAX_QUEUE must be >= 1, FLASHMONO_MAX_FRAME_BYTES and FLASHMONO_MAX_BODY_BYTES "
+                             ">= 1024")
+        if settings.request_timeout_s <= 0:
+            raise ValueError("FLASHMONO_REQUEST_TIMEOUT_S must be positive")
         return settings
 
 

@@ -86,7 +86,7 @@ class EmbeddedStack:
         # A process group of its own, so that the workers `serve` starts can be ended with it (see __exit__).
         self.process = subprocess.Popen(
             [sys.executable, "-m", "client.cli", "serve", "--host", "127.0.0.1", "--port", str(self.port),
-             "--workers", "1"], stdout=self.log, stderr=subprocess.STDOUT, env=env, cwd=REPO_ROOT,
+             "--workers", "1", "--ephemeral"], stdout=self.log, stderr=subprocess.STDOUT, env=env, cwd=REPO_ROOT,
             start_new_session=True)
         return self
 

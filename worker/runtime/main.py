@@ -16,6 +16,8 @@ import sys
 import uuid
 
 import redis
+from redis.backoff import NoBackoff
+from redis.retry import Retry
 
 from worker.runtime.consumer import Worker
 from worker.runtime.engine import ENGINE_KINDS
@@ -52,7 +54,9 @@ def main(argv: list[str] | None = None) -> int:
     worker_id = args.worker_id or f"{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:6]}"
     config = RuntimeConfig(engine_kind=args.engine, lease_ttl_ms=args.lease_ttl_ms,
                            snapshot_every_keyframes=args.snapshot_every, max_sessions=args.max_sessions)
-    client = redis.Redis.from_url(args.redis_url, health_check_interval=30)
+    # No silent retries inside redis-py: a lost connection surfaces to the worker's loops, which wait the outage
+    # out and resume each session from its snapshot (a retried XREADGROUP could lose the entries of its reply).
+    client = redis.Redis.from_url(args.redis_url, health_check_interval=30, retry=Retry(NoBackoff(), 0))
     worker = Worker(client, worker_id, config)
     signal.signal(signal.SIGTERM, lambda *_: worker.shutdown())
     signal.signal(signal.SIGINT, lambda *_: worker.shutdown())

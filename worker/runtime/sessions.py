@@ -25,6 +25,7 @@ from worker.runtime import keys
 from worker.runtime.engine import SessionEngine, close_engine, create_engine, restore_engine
 from worker.runtime.frames import FrameError, decode_frame
 from worker.runtime.leases import Leases
+from worker.runtime.outage import REDIS_DOWN
 from worker.runtime.requests import handle_request
 from worker.runtime.stats import StageStats
 from worker.serialization import pack, unpack
@@ -126,6 +127,7 @@ class SessionRunner(threading.Thread):
         self.stats = stats
         self.engine: SessionEngine | None = None
         self.terminal = False  # finished, failed or deleted: the job is done
+        self.interrupted = False  # Redis became unreachable: the worker takes the session again when it is back
         self._stop_event = threading.Event()
         self._lease_lost = threading.Event()
         self._done_seqs: set[int] = set()
@@ -159,13 +161,20 @@ class SessionRunner(threading.Thread):
             self.client.delete(*keys.all_session_keys(self.session_id))
         except LeaseLost:
             log.warning("session %s: lease lost, stopping", self.session_id)
+        except REDIS_DOWN as err:
+            # not the session's fault: it resumes from its snapshot (the inbox replays the rest) once Redis is back
+            log.warning("session %s: Redis unreachable (%s); pausing it", self.session_id, err)
+            self.interrupted = True
         except Exception as err:
             log.exception("session %s failed", self.session_id)
             self._fail(err)
         finally:
             close_engine(self.engine)
-            if not self._lease_lost.is_set():
-                self.leases.release(self.session_id)
+            if not self._lease_lost.is_set() and not self.interrupted:
+                try:
+                    self.leases.release(self.session_id)
+                except REDIS_DOWN:
+                    pass  # the lease expires on its own
 
     def _load_session(self) -> None:
         raw = self.client.hgetall(keys.session(self.session_id))

@@ -1,5 +1,7 @@
 // The Flash-Mono web viewer: session list, live trajectory (top-down and 3D), loop closures, a rendered view from
-// a camera the user moves, and the map download. Query parameters: ?session=ID&api_key=KEY.
+// a camera the user moves, and the map download. Query parameters: ?session=ID; the API key may come as #api_key=KEY
+// (or ?api_key=KEY): it is moved to sessionStorage and removed from the address bar at once, so it stays out of the
+// history, bookmarks and Referer headers, and is forgotten when the tab closes.
 
 import { Api } from "./api.js";
 import { OrbitView, VirtualCamera, drawTopDown, position } from "./scene.js";
@@ -9,9 +11,19 @@ const POLL_SESSIONS_MS = 4000;
 const RENDER_MAX_WIDTH = 320;
 
 const $ = (id) => document.getElementById(id);
+const KEY_STORE = "flashmono.apiKey";
 const params = new URLSearchParams(window.location.search);
+const hashParams = new URLSearchParams(window.location.hash.slice(1));
+const urlKey = hashParams.get("api_key") || params.get("api_key");
+if (urlKey) {
+  sessionStorage.setItem(KEY_STORE, urlKey);
+  params.delete("api_key");
+  const query = params.toString();
+  history.replaceState(null, "", window.location.pathname + (query ? `?${query}` : ""));
+}
+localStorage.removeItem(KEY_STORE); // older viewers kept the key there for good
 const state = {
-  api: new Api(params.get("api_key") || localStorage.getItem("flashmono.apiKey") || ""),
+  api: new Api(urlKey || sessionStorage.getItem(KEY_STORE) || ""),
   sessionId: params.get("session"),
   session: null,
   poses: [],
@@ -225,7 +237,7 @@ function init() {
   keyInput.value = state.api.apiKey;
   keyInput.addEventListener("change", () => {
     state.api.apiKey = keyInput.value.trim();
-    localStorage.setItem("flashmono.apiKey", state.api.apiKey);
+    sessionStorage.setItem(KEY_STORE, state.api.apiKey);
     refreshSessions();
   });
   $("refresh-sessions").addEventListener("click", refreshSessions);

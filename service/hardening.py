@@ -1,0 +1,147 @@
+"""What every response of the gateway gets, whatever the route: JSON errors (never a plain-text 500), a body size
+limit, security headers (strict ones on the viewer), an Origin allow-list for WebSockets, and access logs with
+API keys redacted.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+from urllib.parse import urlsplit
+
+from fastapi import FastAPI, Request
+from fastapi.responses import JSONResponse
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from worker.runtime.outage import REDIS_DOWN
+
+log = logging.getLogger(__name__)
+
+VIEWER_CSP = ("default-src 'self'; script-src 'self'; style-src 'self'; img-src 'self' blob: data:; "
+              "connect-src 'self'; object-src 'none'; base-uri 'none'; form-action 'none'; frame-ancestors 'none'")
+_COMMON_HEADERS = [(b"x-content-type-options", b"nosniff")]
+_VIEWER_HEADERS = [(b"content-security-policy", VIEWER_CSP.encode()), (b"x-frame-options", b"DENY"),
+                   (b"referrer-policy", b"no-referrer"), (b"cache-control", b"no-store")]
+_SECRET_QUERY = re.compile(r"(?i)((?:api_key|apikey|token|access_token)=)[^&\s\"']+")
+
+
+def install(app: FastAPI, max_body_bytes: int) -> None:
+    """JSON error handlers and the header/body-limit middleware; the access-log redaction (idempotent)."""
+    app.add_exception_handler(REDIS_DOWN[0], _storage_unavailable)
+    app.add_exception_handler(REDIS_DOWN[1], _storage_unavailable)
+    app.add_exception_handler(Exception, _internal_error)
+    app.add_middleware(BodyLimitMiddleware, max_body_bytes=max_body_bytes)
+    app.add_middleware(SecurityHeadersMiddleware)
+    redact_access_logs()
+
+
+async def _storage_unavailable(request: Request, exc: Exception) -> JSONResponse:
+    return JSONResponse({"detail": f"the session store (Redis) is unreachable: {exc}; retry shortly"},
+                        status_code=503, headers={"retry-after": "2"})
+
+
+async def _internal_error(request: Request, exc: Exception) -> JSONResponse:
+    log.exception("unhandled error on %s %s", request.method, request.url.path, exc_info=exc)
+    return JSONResponse({"detail": f"internal server error ({type(exc).__name__}); it has been logged"},
+                        status_code=500)
+
+
+class BodyLimitMiddleware:
+    """413 with a JSON body for any HTTP request body over `max_body_bytes` (declared or streamed)."""
+
+    def __init__(self, app: ASGIApp, max_body_bytes: int) -> None:
+        self.app = app
+        self.max_body_bytes = max_body_bytes
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        declared = dict(scope["headers"]).get(b"content-length")
+        if declared is not None and declared.isdigit() and int(declared) > self.max_body_bytes:
+            await self._refuse(send)
+            return
+        seen = 0
+        started = False
+
+        async def limited_receive() -> Message:
+            nonlocal seen
+            message = await receive()
+            if message["type"] == "http.request":
+                seen += len(message.get("body", b""))
+                if seen > self.max_body_bytes:
+                    raise _BodyTooLarge
+            return message
+
+        async def tracking_send(message: Message) -> None:
+            nonlocal started
+            started = started or message["type"] == "http.response.start"
+            await send(message)
+
+        try:
+            await self.app(scope, limited_receive, tracking_send)
+        except _BodyTooLarge:
+            if not started:
+                await self._refuse(send)
+
+    async def _refuse(self, send: Send) -> None:
+        body = json.dumps({"detail": f"request body exceeds the limit of {self.max_body_bytes} bytes"}).encode()
+        await send({"type": "http.response.start", "status": 413,
+                    "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]})
+        await send({"type": "http.response.body", "body": body})
+
+
+class _BodyTooLarge(Exception):
+    pass
+
+
+class SecurityHeadersMiddleware:
+    """nosniff on every response; CSP, no framing, no referrer and no caching on the viewer's pages."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        extra = _COMMON_HEADERS + (_VIEWER_HEADERS if scope["path"].startswith("/viewer") else [])
+
+        async def with_headers(message: Message) -> None:
+            if message["type"] == "http.response.start":
+                present = {name.lower() for name, _ in message.get("headers", [])}
+                message = {**message, "headers": [*message.get("headers", []),
+                                                  *[(k, v) for k, v in extra if k not in present]]}
+            await send(message)
+
+        await self.app(scope, receive, with_headers)
+
+
+def origin_allowed(origin: str | None, host: str | None, allowed: frozenset[str]) -> bool:
+    """A WebSocket's Origin is fine when absent (not a browser), listed (or "*" listed), or the gateway's own."""
+    if origin is None or "*" in allowed or origin.rstrip("/") in allowed:
+        return True
+    return host is not None and urlsplit(origin).netloc.lower() == host.lower()
+
+
+def redact(text: str) -> str:
+    """`text` with the values of api_key=/token= query parameters replaced."""
+    return _SECRET_QUERY.sub(r"\1<redacted>", text)
+
+
+class _RedactSecrets(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        if isinstance(record.args, tuple):
+            record.args = tuple(redact(a) if isinstance(a, str) else a for a in record.args)
+        if isinstance(record.msg, str):
+            record.msg = redact(record.msg)
+        return True
+
+
+def redact_access_logs() -> None:
+    """API keys in a WebSocket's ?api_key= never reach uvicorn's logs (access and error loggers)."""
+    for name in ("uvicorn.access", "uvicorn.error", "uvicorn"):
+        logger = logging.getLogger(name)
+        if not any(isinstance(f, _RedactSecrets) for f in logger.filters):
+            logger.addFilter(_RedactSecrets())
