@@ -1,10 +1,10 @@
 """SlamConfig: every knob of the SLAM engine, typed and validated, with the paper's defaults and named presets.
 
-Sections follow the system's parts: `frontend` (model, image size, submaps, keyframes), `loop` (detection,
-relocalization, pose graph), `mapping` (voxelization, fusion, refinement) and `input` (how given depth and poses
-are used). `SlamConfig.preset(name)` gives "paper" (the paper's settings), "default" (paper settings with the
-default model), "fast" (CPU-friendly), "rgbd" (posed RGB-D input on a CPU) and "test" (tiny and quick, for unit
-tests).
+Sections follow the system's parts: `frontend` (pose source, model, image size, submaps, keyframes), `tracking`
+(the geometric pose sources), `loop` (detection, relocalization, pose graph), `mapping` (voxelization, fusion,
+refinement) and `input` (how given depth and poses are used). `SlamConfig.preset(name)` gives "paper" (the
+paper's settings), "default" (paper settings with the default model), "fast" (CPU-friendly), "rgbd" (RGB-D input on
+a CPU) and "test" (tiny and quick, for unit tests).
 """
 
 from __future__ import annotations
@@ -14,6 +14,9 @@ from pathlib import Path
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from worker.tracking.rgbd_config import RgbdOdometryConfig
+from worker.tracking.vo_config import VisualOdometryConfig
 
 log = logging.getLogger(__name__)
 
@@ -25,7 +28,12 @@ class _Section(BaseModel):
 
 
 class FrontendConfig(_Section):
-    """The feed-forward model and submap tracking (paper 4.1, ablation 5.5)."""
+    """The pose source, the feed-forward model and submap tracking (paper 4.1, ablation 5.5)."""
+
+    tracking: Literal["auto", "device", "rgbd_odometry", "visual_odometry", "model"] = Field(
+        "auto", description="pose source: auto = the frames' poses when they carry them, else RGB-D odometry with "
+        "depth, else visual odometry (the learned model instead of the odometries when a model other than the "
+        "shipped synthetic one is configured)")
 
     model: str = Field("tiny", description="model config name for worker.frontend.build_model")
     checkpoint: str | None = Field(None, description="safetensors checkpoint; None = the shipped default if present")
@@ -111,6 +119,13 @@ class InputConfig(_Section):
     depth_scale_to_pose: bool = Field(True, description="monocular with poses: scale model depth to the poses")
 
 
+class TrackingConfig(_Section):
+    """Settings of the geometric pose sources."""
+
+    rgbd: RgbdOdometryConfig = Field(default_factory=RgbdOdometryConfig)
+    visual: VisualOdometryConfig = Field(default_factory=VisualOdometryConfig)
+
+
 class SlamConfig(_Section):
     """The whole engine's configuration. `SlamConfig.preset(name, **overrides)` builds a named one."""
 
@@ -119,6 +134,7 @@ class SlamConfig(_Section):
     loop: LoopConfig = Field(default_factory=LoopConfig)
     mapping: MappingConfig = Field(default_factory=MappingConfig)
     input: InputConfig = Field(default_factory=InputConfig)
+    tracking: TrackingConfig = Field(default_factory=TrackingConfig)
     threaded: bool = Field(True, description="frontend and backend in two threads; False = deterministic, inline")
     queue_size: int = Field(8, ge=1, le=1024, description="bound of the frontend->backend keyframe queue")
     device: str = Field("cpu", pattern=r"^(cpu|cuda(:\d+)?)$")

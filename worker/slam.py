@@ -4,12 +4,16 @@ Two threads as in the paper (appendix E): the caller's thread is the frontend (m
 loop detection, relocalization, PGO) and a backend thread maps keyframes (voxelize, prune, fuse, refine, loop
 correction); a bounded queue joins them. `SlamConfig.threaded=False` runs the backend inline: deterministic.
 
-Input modes, picked from the first frame:
-- monocular: the feed-forward model tracks submaps (worker.frontend.tracker) and predicts the surfels;
-- posed (frames carry `pose` and `input.pose_mode != "ignore"`): the given poses are the odometry, used as priors
-  in the pose graph ("prior", loop closures can still correct them) or kept as they are ("fixed");
-- RGB-D (frames carry `depth`, `input.use_depth`): surfel means from the unprojected depth, the other attributes
-  from the model or, with `input.surfel_init="depth"`, initialised from the image and depth alone.
+One frame path: pose source -> keyframe selection -> map job -> loop closure. The pose source (worker.tracking) is
+chosen once per session from `frontend.tracking` and the first frame (see `choose_tracking`):
+- device (frames carry `pose` and `input.pose_mode != "ignore"`, mode "posed"): the given poses are the odometry,
+  used as priors in the pose graph ("prior", loop closures can still correct them) or kept as they are ("fixed");
+- rgbd_odometry (depth, no poses): dense photometric + geometric alignment to a reference keyframe;
+- visual_odometry (RGB only): features, PnP against a local map, windowed bundle adjustment;
+- model (mode "monocular"): the feed-forward model tracks submaps (worker.frontend.tracker), the paper's path.
+Surfels come from what the frames carry, whichever source ran: the frame's depth (`input.use_depth`; means from the
+unprojected depth, other attributes from the model or, with `input.surfel_init="depth"`, from image and depth
+alone), else the model's prediction. Keyframes follow the source's hint, else the motion-based selector.
 
 `snapshot()` writes everything needed to continue (config, model id, tracker, bag of hidden states, pose graph,
 trajectory, map, counters) as msgpack; `SlamSystem.restore(data)` continues from it in any process.
@@ -35,12 +39,18 @@ from worker.engine.trajectory import Trajectory
 from worker.geometry import Intrinsics, make_sim3, sim3_decompose, sim3_inverse
 from worker.loop.pose_graph import DEFAULT_SIGMAS, EdgeSigmas, Sim3PoseGraph
 from worker.serialization import pack, unpack
+from worker.tracking.base import TrackingResult
+from worker.tracking.sources import DevicePoses, ModelTracking, choose_tracking
 
 log = logging.getLogger(__name__)
 
 SNAPSHOT_FORMAT = "flashmono.slam/1"
 # Log-scale standard deviation of pose-graph edges when poses and depth are metric: the scale is known.
 METRIC_LOG_SCALE_SIGMA = 1e-4
+# The engine's mode (metrics, stats) for each pose source.
+MODE_OF_TRACKING = {"device": "posed", "model": "monocular", "rgbd_odometry": "rgbd_odometry",
+                    "visual_odometry": "visual_odometry"}
+TRACKING_OF_MODE = {mode: tracking for tracking, mode in MODE_OF_TRACKING.items()}
 
 
 def _w2c(pose_c2w: np.ndarray | torch.Tensor) -> torch.Tensor:
@@ -56,7 +66,10 @@ class SlamSystem:
             raise ValueError(f"config must be a SlamConfig, got {type(self.config).__name__}")
         torch.set_num_threads(self.config.num_threads)
         self.intrinsics = intrinsics
-        self.mode: str | None = None  # "posed" or "monocular", set by the first frame
+        self.mode: str | None = None  # MODE_OF_TRACKING[self.tracking], set by the first frame
+        self.tracking: str | None = None  # the pose source's name
+        self.pose_source = None
+        self._model: ModelTracking | None = None  # the learned model, as pose source or surfel predictor
         self._traj = Trajectory()
         self.pose_graph = self._new_pose_graph()
         self.selector = MotionKeyframeSelector(self.config.frontend.keyframe_every,
@@ -78,7 +91,6 @@ class SlamSystem:
         self.bag = None
         self.loop_closer: LoopCloser | None = None
         self.depth_points: DepthKeyframePoints | None = None
-        self.model_intrinsics: Intrinsics | None = None  # the camera at model resolution (given or estimated)
         self._started: float | None = None
         self._pending_jobs: list[tuple[KeyframeJob, bool]] = []
         self._with_depth = False
@@ -90,6 +102,11 @@ class SlamSystem:
     def revision(self) -> int:
         """The trajectory revision: grows each time a loop closure rewrites past poses."""
         return self._traj.revision
+
+    @property
+    def model_intrinsics(self) -> Intrinsics | None:
+        """The camera at model resolution (given or estimated), when the model runs."""
+        return None if self._model is None else self._model.model_intrinsics
 
     @property
     def num_gaussians(self) -> int:
@@ -106,10 +123,7 @@ class SlamSystem:
         start = time.perf_counter()
         self._started = self._started or start
         self._check_frame(frame)
-        if self.mode == "posed":
-            result = self._push_posed(frame)
-        else:
-            result = self._push_monocular(frame)
+        result = self._push_frame(frame)
         self.counters["frames"] += 1
         self.counters["frontend_seconds"] += time.perf_counter() - start
         self.counters["wall_seconds"] = self._wall_offset + time.perf_counter() - self._started
@@ -181,15 +195,25 @@ class SlamSystem:
     def _check_frame(self, frame: Frame) -> None:
         size = (frame.width, frame.height)
         if self._frame_size is None:
-            self._frame_size = size
             posed = frame.pose is not None and self.config.input.pose_mode != "ignore"
-            self._with_depth = self._uses_depth(frame)
-            self._setup("posed" if posed else "monocular", with_depth=self._with_depth)
+            with_depth = self._uses_depth(frame)
+            tracking = choose_tracking(self.config.frontend.tracking, frame, posed, with_depth,
+                                       self._custom_model())
+            self._frame_size = size
+            self._with_depth = with_depth
+            self._setup(tracking, with_depth=with_depth)
         elif size != self._frame_size:
             raise ValueError(f"frame {frame.index} is {size[0]}x{size[1]}, the session's frames are "
                              f"{self._frame_size[0]}x{self._frame_size[1]}")
-        if self.mode == "posed" and frame.pose is None:
+        if self.tracking == "device" and frame.pose is None:
             raise ValueError(f"frame {frame.index} has no pose, but this session runs in posed mode")
+        if self.tracking == "rgbd_odometry" and frame.depth is None:
+            raise ValueError(f"frame {frame.index} has no depth, but this session tracks by RGB-D odometry")
+
+    def _custom_model(self) -> bool:
+        """Whether the configured model is the user's (weights other than the shipped synthetic ones)."""
+        fc = self.config.frontend
+        return bool(fc.checkpoint) or fc.model != "tiny"
 
     def frame_intrinsics(self, frame: Frame) -> Intrinsics | None:
         """The frame's camera: its own intrinsics, else the session's (rescaled to the frame size)."""
@@ -204,31 +228,51 @@ class SlamSystem:
     def _uses_depth(self, frame: Frame) -> bool:
         return frame.depth is not None and self.config.input.use_depth
 
-    # --------------------------------------------------------------------------------------------- posed mode
-    def _push_posed(self, frame: Frame) -> FrameResult:
-        pose = np.asarray(frame.pose, np.float64)
-        events: list[dict[str, Any]] = []
-        is_kf = self.selector.is_keyframe(pose)
-        tracked = prep = None
-        if self.tracker is not None:  # the model predicts the surfels
-            prep = self._prepare(frame)
+    # ---------------------------------------------------------------------------------------------- frame path
+    def _push_frame(self, frame: Frame) -> FrameResult:
+        """Pose source -> keyframe selection -> map job -> loop closure, the same for every source."""
+        intrinsics = self.frame_intrinsics(frame)
+        stage = "frontend_inference" if self.tracking == "model" else "frontend_tracking"
+        with self.timings.measure(stage):
+            tracking = self.pose_source.track(frame, intrinsics)
+        pose = _checked_pose(frame, tracking)
+        events: list[dict[str, Any]] = list(tracking.events)
+        prediction = tracking.prediction
+        if prediction is None and self._model is not None:  # the model predicts the surfels beside the source
             with self.timings.measure("frontend_inference"):
-                tracked = self.tracker.track(frame.index, prep.tensor, prep.intrinsics or self.model_intrinsics)
-            self.bag.add_finished(self.tracker.pop_finished_submaps())
-            if self.model_intrinsics is None:
-                self.model_intrinsics = prep.intrinsics or self._estimate_intrinsics(tracked.surfels, prep)
-            self._accumulate_path(pose, tracked.pose_world.numpy())
+                prediction = self._model.predict(frame, intrinsics)
+            self._accumulate_path(pose, prediction[1].pose_world.numpy())
+        is_kf = self._is_keyframe(tracking, pose)
         if is_kf:
-            self._add_keyframe(frame.index, pose, submap_id=0)
+            self._add_keyframe(frame.index, pose, submap_id=tracking.submap_id)
+            self.pose_source.keyframe_added(frame, pose)
             if self.backend is not None:  # the keyframe enters the map before a loop closure can move it
-                self._pending_jobs.append(self._posed_keyframe_job(frame, prep, tracked))
+                self._pending_jobs.append(self._keyframe_job(frame, prediction))
                 self._flush_posed_jobs()
             if self.loop_closer is not None:
-                events += self._posed_loop(frame)
-        world = self._traj.add_frame(frame.index, frame.timestamp, self._last_keyframe, pose, is_kf, 0)
+                events += self._keyframe_loop(frame, prediction)
+        world = self._traj.add_frame(frame.index, frame.timestamp, self._last_keyframe, pose, is_kf,
+                                     tracking.submap_id)
         if self.backend is not None:
             self._flush_posed_jobs()
-        return FrameResult(frame.index, frame.timestamp, world, is_kf, 0, self.revision, events)
+        return FrameResult(frame.index, frame.timestamp, world, is_kf, tracking.submap_id, self.revision, events)
+
+    def _is_keyframe(self, tracking: TrackingResult, pose: np.ndarray) -> bool:
+        """The first frame always; then the source's hint when it gives one (False while lost), else the motion
+        selector."""
+        if self._last_keyframe is None:
+            self.selector.is_keyframe(pose)
+            return True
+        if tracking.keyframe_hint is False:
+            return False
+        return self.selector.is_keyframe(pose, force=bool(tracking.keyframe_hint))
+
+    def _keyframe_loop(self, frame: Frame, prediction) -> list[dict[str, Any]]:
+        """Loop closure for a new keyframe: against keyframe depth (ORB + PnP + ICP) or the model's hidden states."""
+        if self.depth_points is not None:
+            return self._posed_loop(frame)
+        prep = prediction[0]
+        return self._close_loop(frame.index, prep.tensor, self.model_intrinsics)
 
     def _add_keyframe(self, kf_id: int, tracked_pose: np.ndarray, submap_id: int) -> np.ndarray:
         """Insert a keyframe in the trajectory and the pose graph (odometry edge from the previous keyframe)."""
@@ -274,10 +318,11 @@ class SlamSystem:
             self._pending_jobs.pop(0)
             self.backend.submit(job)
 
-    def _posed_keyframe_job(self, frame: Frame, prep, tracked) -> tuple[KeyframeJob, bool]:
-        """(the keyframe's map job, whether its surfels are still in model units)."""
+    def _keyframe_job(self, frame: Frame, prediction) -> tuple[KeyframeJob, bool]:
+        """(the keyframe's map job, whether its surfels are still in model units): surfels from the frame's depth,
+        else from the model's prediction."""
         world_pose = self._traj.keyframe_poses[frame.index]
-        if self._uses_depth(frame) and self.config.input.surfel_init == "depth":
+        if self._uses_depth(frame) and self.config.input.surfel_init == "depth" and self._metric_poses():
             intr = self.frame_intrinsics(frame)
             if intr is None:
                 raise ValueError("posed RGB-D mode needs intrinsics: give them with the frames or to SlamSystem()")
@@ -285,27 +330,32 @@ class SlamSystem:
             depth = torch.from_numpy(np.asarray(frame.depth, np.float32))
             return KeyframeJob(frame.index, world_pose, intr.matrix(), image, grid_from_depth(image, depth,
                                                                                            intr.matrix()), depth), False
+        prep, tracked = prediction
         grid, depth = self._prediction_grid(frame, prep, tracked.surfels)
         image = prep.tensor[0].permute(1, 2, 0).contiguous()
         job = KeyframeJob(frame.index, world_pose, self.model_intrinsics.matrix(), image, grid, depth)
-        return job, depth is None
+        # The model's own poses are in its units; next to another source its surfels wait for the path ratio.
+        return job, depth is None and self.tracking != "model"
 
     # ------------------------------------------------------------------------------------------------- set-up
-    def _setup(self, mode: str, with_depth: bool) -> None:
-        """Build what the mode needs: the model and tracker (monocular, or posed without depth-initialised
-        surfels), the bag of hidden states and the loop closer."""
-        self.mode = mode
+    def _setup(self, tracking: str, with_depth: bool) -> None:
+        """Build what the pose source needs: the source itself, the model and tracker (model tracking, or surfels
+        without depth-initialised ones), the bag of hidden states and the loop closer."""
+        self.tracking = tracking
+        self.mode = MODE_OF_TRACKING[tracking]
         cfg = self.config
         self.pose_graph = self._new_pose_graph(metric=self._metric_loops())
-        needs_model = mode == "monocular" or not (with_depth and cfg.input.surfel_init == "depth")
+        needs_model = tracking == "model" or not (with_depth and cfg.input.surfel_init == "depth")
         if needs_model:
             self._build_frontend()
-        loops = cfg.loop.enabled and not (mode == "posed" and cfg.input.pose_mode == "fixed")
+        self.pose_source = self._build_pose_source(tracking)
+        log.info("session tracking: %s (mode %s, depth %s)", tracking, self.mode, with_depth)
+        loops = cfg.loop.enabled and not (tracking == "device" and cfg.input.pose_mode == "fixed")
         if not loops:
             return
-        if mode == "posed":
+        if tracking != "model":
             if not with_depth:
-                log.warning("posed mode without depth: loop closure is off (no metric points to relocalize with)")
+                log.warning("%s without depth: loop closure is off (no metric points to relocalize with)", tracking)
                 return
             self.depth_points = DepthKeyframePoints()
             self.loop_closer = LoopCloser(cfg.loop, model=self.model, depth_points=self.depth_points,
@@ -336,35 +386,22 @@ class SlamSystem:
             submap_length=fc.submap_size, keyframe_translation=fc.keyframe_depth_ratio,
             keyframe_rotation_deg=fc.keyframe_rotation_deg))
         self.bag = HiddenStateBag()
+        self._model = ModelTracking(self.tracker, self.bag, fc.long_side, self._estimate_intrinsics)
 
-    # ----------------------------------------------------------------------------------------- monocular mode
-    def _prepare(self, frame: Frame):
-        from worker.frontend.preprocess import prepare_image
+    def _build_pose_source(self, tracking: str):
+        if tracking == "device":
+            return DevicePoses()
+        if tracking == "model":
+            return self._model
+        if tracking == "rgbd_odometry":
+            from worker.tracking.rgbd_odometry import RgbdOdometry
 
-        return prepare_image(frame.image, self.frame_intrinsics(frame), long_side=self.config.frontend.long_side)
+            return RgbdOdometry(self.config.tracking.rgbd)
+        from worker.tracking.visual_odometry import VisualOdometry
 
-    def _push_monocular(self, frame: Frame) -> FrameResult:
-        prep = self._prepare(frame)
-        with self.timings.measure("frontend_inference"):
-            tracked = self.tracker.track(frame.index, prep.tensor, prep.intrinsics or self.model_intrinsics)
-        self.bag.add_finished(self.tracker.pop_finished_submaps())
-        if self.model_intrinsics is None:
-            self.model_intrinsics = prep.intrinsics or self._estimate_intrinsics(tracked.surfels, prep)
-        events: list[dict[str, Any]] = []
-        if tracked.is_keyframe:
-            self._add_keyframe(frame.index, tracked.pose_world.numpy(), submap_id=tracked.submap_id)
-            if self.backend is not None:  # the keyframe enters the map before a loop closure can move it
-                grid, depth = self._prediction_grid(frame, prep, tracked.surfels)
-                image = prep.tensor[0].permute(1, 2, 0).contiguous()
-                self.backend.submit(KeyframeJob(frame.index, self._traj.keyframe_poses[frame.index],
-                                                self.model_intrinsics.matrix(), image, grid, depth))
-            if self.loop_closer is not None:
-                events += self._close_loop(frame.index, prep.tensor, self.model_intrinsics)
-        world = self._traj.add_frame(frame.index, frame.timestamp, tracked.keyframe_id, tracked.pose_world.numpy(),
-                                     tracked.is_keyframe, tracked.submap_id)
-        return FrameResult(frame.index, frame.timestamp, world, tracked.is_keyframe, tracked.submap_id,
-                           self.revision, events)
+        return VisualOdometry(self.config.tracking.visual)
 
+    # ------------------------------------------------------------------------------------------- the model
     def _estimate_intrinsics(self, surfels, prep) -> Intrinsics:
         from worker.frontend.focal import estimate_focal, intrinsics_from_focal
 
@@ -403,7 +440,7 @@ class SlamSystem:
         """A keyframe's surfel grid from the model; with depth, means from the depth brought to the tracker's
         units (the median ratio of predicted to measured depth), so the map stays consistent with the poses."""
         depth = self._model_depth(frame, prep)
-        if depth is not None and self.mode == "monocular":
+        if depth is not None and self.tracking in ("model", "visual_odometry"):  # pose units are not metric
             valid = (depth > 0) & (surfels.points[..., 2] > 0)
             if bool(valid.any()):
                 depth = depth * float((surfels.points[..., 2][valid].float() / depth[valid]).median())
@@ -459,8 +496,12 @@ class SlamSystem:
             return None
         return fit.relative.numpy()
 
+    def _metric_poses(self) -> bool:
+        """Whether poses are in the depth's units (given poses, or tracked on the depth itself)."""
+        return self.tracking in ("device", "rgbd_odometry")
+
     def _metric_loops(self) -> bool:
-        return self.mode == "posed" and self._with_depth
+        return self._metric_poses() and self._with_depth
 
     def _apply_pgo(self, loop_from: int, loop_to: int) -> dict[str, Any]:
         """Optimise the pose graph, move the trajectory and the map; returns the loop event."""
@@ -493,6 +534,8 @@ class SlamSystem:
             "intrinsics": None if self.intrinsics is None else self.intrinsics.to_dict(),
             "model_intrinsics": None if self.model_intrinsics is None else self.model_intrinsics.to_dict(),
             "mode": self.mode,
+            "tracking": self.tracking,
+            "pose_source": None if self.pose_source is None else self.pose_source.state_dict(),
             "with_depth": self._with_depth,
             "frame_size": None if self._frame_size is None else list(self._frame_size),
             "last_keyframe": self._last_keyframe,
@@ -523,12 +566,14 @@ class SlamSystem:
         system = cls(config, intrinsics)
         if state["mode"] is not None:
             system._with_depth = bool(state["with_depth"])
-            system._setup(state["mode"], with_depth=system._with_depth)
+            system._setup(state.get("tracking") or TRACKING_OF_MODE[state["mode"]], with_depth=system._with_depth)
+            if state.get("pose_source"):
+                system.pose_source.load_state_dict(state["pose_source"])
         if system.model_id != state["model_id"]:
             raise ValueError(f"the snapshot was made with model {state['model_id']!r}, this machine has "
                              f"{system.model_id!r}")
-        if state["model_intrinsics"] is not None:
-            system.model_intrinsics = Intrinsics.from_dict(state["model_intrinsics"])
+        if state["model_intrinsics"] is not None and system._model is not None:
+            system._model.model_intrinsics = Intrinsics.from_dict(state["model_intrinsics"])
         system._frame_size = None if state["frame_size"] is None else tuple(state["frame_size"])
         system._last_keyframe = state["last_keyframe"]
         system._submap_of = {int(k): int(v) for k, v in state["submap_of"]}
@@ -551,6 +596,14 @@ class SlamSystem:
         if system.backend is not None and state["map"] is not None:
             system.backend.load_state_dict(state["map"])
         return system
+
+def _checked_pose(frame: Frame, tracking: TrackingResult) -> np.ndarray:
+    """The source's pose as float64 4x4; a non-finite one is a bug in the source, never passed on."""
+    pose = np.asarray(tracking.pose, np.float64)
+    if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
+        raise RuntimeError(f"frame {frame.index}: the pose source returned a non-finite pose")
+    return pose
+
 
 def _rigid(pose: np.ndarray) -> np.ndarray:
     """The SE(3) part of a Sim(3) matrix (scale removed, translation kept)."""

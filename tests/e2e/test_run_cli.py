@@ -54,7 +54,7 @@ def test_run_reports_bad_sources_clearly(tmp_path: Path) -> None:
     assert proc.returncode == 2 and "unknown preset" in proc.stderr
 
 
-def test_posed_rgbd_runs_default_to_the_rgbd_preset() -> None:
+def test_rgbd_runs_default_to_the_rgbd_preset() -> None:
     import argparse
 
     from client.commands.run import add_run_options, default_preset
@@ -64,5 +64,6 @@ def test_posed_rgbd_runs_default_to_the_rgbd_preset() -> None:
     add_run_options(parser)
     choose = lambda *argv: default_preset(parser.parse_args(["seq", "--out", "o", *argv]))  # noqa: E731
     assert choose("--use-gt-depth", "--use-gt-poses") == "rgbd"
-    assert choose("--use-gt-depth") == choose() == "default"
+    assert choose("--use-gt-depth") == "rgbd"  # RGB-D odometry maps like the posed RGB-D mode
+    assert choose() == choose("--use-gt-poses") == "default"
     assert choose("--use-gt-depth", "--use-gt-poses", "--preset", "paper") == "paper"

@@ -36,7 +36,8 @@ print(json.dumps({"poses": [p.tolist() for _, _, p in system.trajectory("all")],
 
 
 def config() -> SlamConfig:
-    return SlamConfig.preset("test", frontend={"submap_size": 3}, mapping={"refine_iterations": 1})
+    return SlamConfig.preset("test", frontend={"submap_size": 3, "tracking": "model"},
+                             mapping={"refine_iterations": 1})
 
 
 def test_restored_run_continues_identically(data_dir: Path, tmp_path: Path) -> None:

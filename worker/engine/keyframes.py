@@ -21,10 +21,10 @@ class MotionKeyframeSelector:
         self.last_pose: np.ndarray | None = None
         self.frames_since = 0
 
-    def is_keyframe(self, pose: np.ndarray) -> bool:
-        """Whether `pose` (c2w 4x4) is a keyframe; updates the selector's state."""
+    def is_keyframe(self, pose: np.ndarray, force: bool = False) -> bool:
+        """Whether `pose` (c2w 4x4) is a keyframe (always when `force`); updates the selector's state."""
         self.frames_since += 1
-        if self.last_pose is None or self.frames_since >= self.every or self._moved(pose):
+        if force or self.last_pose is None or self.frames_since >= self.every or self._moved(pose):
             self.last_pose = np.asarray(pose, np.float64).copy()
             self.frames_since = 0
             return True

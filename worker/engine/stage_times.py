@@ -13,10 +13,12 @@ from contextlib import contextmanager
 
 # stage -> (thread, description, per frame or per event)
 STAGES: dict[str, tuple[str, str, str]] = {
+    "frontend_tracking": ("frontend", "geometric tracking (odometry)", "frame"),
     "frontend_inference": ("frontend", "feed-forward inference (tracking)", "frame"),
     "loop_detection": ("frontend", "loop closure detection", "frame"),
     "loop_relocalization": ("frontend", "loop frame relocalization", "event"),
     "pgo": ("frontend", "PGO (Sim(3) optimization)", "event"),
+    "map_depth": ("backend", "multi-view depth of keyframes", "event"),
     "map_merge": ("backend", "merge & voxelization (fusion, pruning)", "frame"),
     "map_refine": ("backend", "refine", "frame"),
     "map_loop_correction": ("backend", "GS loop correction", "event"),

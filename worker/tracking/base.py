@@ -1,0 +1,56 @@
+"""What every pose source returns, and the protocol it implements.
+
+A pose source turns a frame into a camera-to-world pose: the device's own poses, dense RGB-D odometry, monocular
+visual odometry or the learned submap tracker. `SlamSystem` picks one per session (`frontend.tracking`) and the rest
+of the pipeline (keyframes, loop closure, pose graph, map) sees only a `TrackingResult`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from worker.data.frame import Frame
+from worker.geometry import Intrinsics
+
+
+@dataclass
+class TrackingResult:
+    """One frame's tracking outcome.
+
+    pose: camera-to-world 4x4 Sim(3) in the source's world frame, always finite (while lost: the last good pose
+    moved by the motion model, never a jump). keyframe_hint: the source asks for a keyframe here (None: let the
+    motion-based selector decide; False: the source vetoes one, e.g. while lost). depth: per-pixel z-depth
+    [H, W] float32 at the frame's resolution in the pose's units (0 = unknown), when the source has it.
+    tracked: False while tracking is lost. events: dicts such as {"type": "tracking_lost", "reason": ...}.
+    submap_id: the model's submap (0 for other sources). prediction: the learned model's per-pixel output for this
+    frame (its preprocessed image and surfels) when the model ran.
+    """
+
+    pose: np.ndarray
+    tracked: bool = True
+    keyframe_hint: bool | None = None
+    depth: np.ndarray | None = None
+    events: list[dict[str, Any]] = field(default_factory=list)
+    submap_id: int = 0
+    prediction: Any = None
+
+
+class PoseSource(Protocol):
+    """A tracking strategy: frames in order -> `TrackingResult`s; its state can be snapshot and restored."""
+
+    name: str
+
+    def track(self, frame: Frame, intrinsics: Intrinsics | None) -> TrackingResult:
+        """Track the next frame (its index grows)."""
+
+    def keyframe_added(self, frame: Frame, pose: np.ndarray) -> None:
+        """The engine made `frame` a keyframe at `pose` (the source may use it as its new reference)."""
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything to continue, as msgpack-able values (numpy arrays allowed)."""
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Continue from `state_dict()`."""

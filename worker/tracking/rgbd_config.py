@@ -1,0 +1,29 @@
+"""Settings of dense RGB-D odometry (`worker.tracking.rgbd_odometry.RgbdOdometry`). Thresholds are relative to
+depth or image intensity, never in metres."""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class RgbdOdometryConfig(BaseModel):
+    """Dense RGB-D odometry settings."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+    pyramid_levels: int = Field(3, ge=1, le=5, description="image pyramid levels (each half the previous size)")
+    iterations: list[int] = Field([6, 8, 10], description="Gauss-Newton iterations per level, fine to coarse")
+    max_points: int = Field(4000, ge=200, description="reference pixels per residual term and level")
+    photometric_weight: float = Field(1.0, ge=0, description="weight of the photometric term (geometric: 1)")
+    new_reference_overlap: float = Field(
+        0.75, gt=0, le=1, description="a new reference keyframe once less than this fraction of it is still seen")
+    new_reference_translation: float = Field(
+        0.12, gt=0, description="... or once the camera moved this fraction of the reference's median depth")
+    new_reference_rotation_deg: float = Field(10.0, gt=0, description="... or turned this much")
+    min_overlap: float = Field(0.3, gt=0, le=1, description="tracking is lost below this overlap")
+    max_photometric_residual: float = Field(
+        0.12, gt=0, description="tracking is lost when the robust intensity residual (0..1 scale) exceeds this")
+    max_jump: float = Field(
+        0.5, gt=0, description="tracking is lost when the pose leaves the motion model's guess by more than this "
+        "fraction of the median depth")
+    reference_ring: int = Field(6, ge=1, le=64, description="past reference keyframes kept for relocalization")

@@ -1,0 +1,173 @@
+"""RGB-D odometry as a pose source: each frame densely aligned to a reference keyframe (worker.tracking.
+dense_alignment), seeded by constant velocity; the reference moves on when the view has changed enough.
+
+Tracking is declared lost when an alignment is ill-posed (too little depth or texture), overlaps the reference too
+little, or leaves large residuals; the pose then stays at the last good one (never a jump) and every following frame
+is tried against the reference keyframes kept in a small ring, from the last good pose, until one fits again
+(`relocalized`).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import deque
+from typing import Any
+
+import cv2
+import numpy as np
+
+from worker.data.frame import Frame
+from worker.geometry import Intrinsics
+from worker.tracking.base import TrackingResult
+from worker.tracking.dense_alignment import AlignmentSettings, PyramidLevel, align, build_pyramid
+from worker.tracking.motion import motion_model_pose, relative_motion
+from worker.tracking.rgbd_config import RgbdOdometryConfig
+
+log = logging.getLogger(__name__)
+
+
+def grey_of(image: np.ndarray) -> np.ndarray:
+    """float32 intensity in [0, 1] from uint8 RGB."""
+    return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY).astype(np.float32) / 255.0
+
+
+class _Reference:
+    """A reference keyframe: its pose and the RGB-D data alignment needs (rebuilt into a pyramid on demand)."""
+
+    def __init__(self, index: int, pose: np.ndarray, grey: np.ndarray, depth: np.ndarray) -> None:
+        self.index, self.pose, self.grey, self.depth = index, pose, grey, depth
+        valid = depth[depth > 0]
+        self.median_depth = float(np.median(valid)) if valid.size else 1.0
+        self._pyramid: list[PyramidLevel] | None = None
+
+    def pyramid(self, K: np.ndarray, levels: int) -> list[PyramidLevel]:
+        if self._pyramid is None:
+            self._pyramid = build_pyramid(self.grey, self.depth, K, levels)
+        return self._pyramid
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"index": self.index, "pose": self.pose, "grey": (self.grey * 255).round().astype(np.uint8),
+                "depth": self.depth.astype(np.float16)}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> _Reference:
+        return cls(int(d["index"]), np.asarray(d["pose"], np.float64),
+                   np.asarray(d["grey"], np.uint8).astype(np.float32) / 255.0, np.asarray(d["depth"], np.float32))
+
+
+class RgbdOdometry:
+    """Pose source for frames with depth and no poses (see the module docstring)."""
+
+    name = "rgbd_odometry"
+
+    def __init__(self, config: RgbdOdometryConfig | None = None) -> None:
+        self.config = config or RgbdOdometryConfig()
+        c = self.config
+        self.settings = AlignmentSettings(iterations=tuple(reversed(c.iterations)), max_points=c.max_points,
+                                          photometric_weight=c.photometric_weight)
+        self.references: deque[_Reference] = deque(maxlen=c.reference_ring)
+        self.last_pose: np.ndarray | None = None
+        self.previous_pose: np.ndarray | None = None
+        self.lost = False
+        self.last_overlap = 1.0
+
+    @property
+    def reference(self) -> _Reference | None:
+        return self.references[-1] if self.references else None
+
+    def track(self, frame: Frame, intrinsics: Intrinsics | None) -> TrackingResult:
+        if frame.depth is None:
+            raise ValueError(f"frame {frame.index} has no depth: RGB-D odometry needs depth on every frame")
+        if intrinsics is None:
+            raise ValueError("RGB-D odometry needs intrinsics: give them with the frames or the session")
+        K = intrinsics.matrix().numpy().astype(np.float64)
+        grey = grey_of(frame.image)
+        depth = np.nan_to_num(np.asarray(frame.depth, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+        depth[depth < 0] = 0.0
+        if self.reference is None:
+            return self._first(frame, grey, depth)
+        current = build_pyramid(grey, depth, K, self.config.pyramid_levels)
+        if self.lost:
+            return self._relocalize(frame, grey, depth, current, K)
+        guess = motion_model_pose(self.previous_pose, self.last_pose)
+        pose, reason = self._align_to(self.reference, current, guess, K)
+        if pose is None:
+            self.lost = True
+            log.warning("frame %d: RGB-D tracking lost (%s)", frame.index, reason)
+            return TrackingResult(self.last_pose.copy(), tracked=False, keyframe_hint=False,
+                                  events=[{"type": "tracking_lost", "reason": reason}])
+        self._advance(pose)
+        self._maybe_new_reference(frame, grey, depth, pose)
+        return TrackingResult(pose, depth=depth)
+
+    def keyframe_added(self, frame: Frame, pose: np.ndarray) -> None:
+        """Engine keyframes are independent of the odometry's references."""
+
+    # ------------------------------------------------------------------------------------------------ internals
+    def _first(self, frame: Frame, grey: np.ndarray, depth: np.ndarray) -> TrackingResult:
+        pose = np.eye(4)
+        if not np.any(depth > 0):
+            # Nothing to anchor the map to yet: wait at the origin for a frame with depth.
+            return TrackingResult(pose, tracked=False, keyframe_hint=False,
+                                  events=[{"type": "tracking_lost", "reason": "no depth in the first frame"}])
+        self.references.append(_Reference(frame.index, pose, grey, depth))
+        self._advance(pose)
+        return TrackingResult(pose, depth=depth)
+
+    def _align_to(self, ref: _Reference, current: list[PyramidLevel], guess: np.ndarray, K: np.ndarray
+                  ) -> tuple[np.ndarray | None, str]:
+        """The current pose aligned to `ref` from `guess` (c2w), or (None, why not)."""
+        c = self.config
+        T_init = np.linalg.inv(guess) @ ref.pose  # T_cur_ref
+        result = align(ref.pyramid(K, c.pyramid_levels), current, T_init, self.settings)
+        self.last_overlap = result.overlap
+        if not result.ok:
+            return None, "too little depth or texture to align"
+        if result.overlap < c.min_overlap:
+            return None, f"the view overlaps the reference keyframe by {result.overlap:.0%} only"
+        if result.photometric_rms > c.max_photometric_residual:
+            return None, f"large photometric residual ({result.photometric_rms:.3f})"
+        pose = ref.pose @ np.linalg.inv(result.T)
+        jump = float(np.linalg.norm(pose[:3, 3] - guess[:3, 3]))
+        if jump > c.max_jump * ref.median_depth:
+            return None, f"the alignment jumped {jump:.2f} from the motion model"
+        return pose, ""
+
+    def _relocalize(self, frame: Frame, grey: np.ndarray, depth: np.ndarray, current: list[PyramidLevel],
+                    K: np.ndarray) -> TrackingResult:
+        for ref in reversed(self.references):
+            pose, _ = self._align_to(ref, current, self.last_pose, K)
+            if pose is not None and self.last_overlap >= self.config.new_reference_overlap * 0.8:
+                self.lost = False
+                self.previous_pose = None  # no velocity across the gap
+                self.last_pose = pose
+                log.info("frame %d: RGB-D tracking relocalized against keyframe %d", frame.index, ref.index)
+                self._maybe_new_reference(frame, grey, depth, pose)
+                return TrackingResult(pose, depth=depth,
+                                      events=[{"type": "relocalized", "keyframe": int(ref.index)}])
+        return TrackingResult(self.last_pose.copy(), tracked=False, keyframe_hint=False)
+
+    def _advance(self, pose: np.ndarray) -> None:
+        self.previous_pose, self.last_pose = self.last_pose, pose
+
+    def _maybe_new_reference(self, frame: Frame, grey: np.ndarray, depth: np.ndarray, pose: np.ndarray) -> None:
+        c = self.config
+        ref = self.reference
+        translation, rotation_deg = relative_motion(ref.pose, pose)
+        if (self.last_overlap < c.new_reference_overlap or translation > c.new_reference_translation *
+                ref.median_depth or rotation_deg > c.new_reference_rotation_deg):
+            if np.count_nonzero(depth) > 0.2 * depth.size:
+                self.references.append(_Reference(frame.index, pose, grey, depth))
+
+    # ------------------------------------------------------------------------------------------ snapshot/restore
+    def state_dict(self) -> dict[str, Any]:
+        return {"references": [r.to_dict() for r in self.references], "last_pose": self.last_pose,
+                "previous_pose": self.previous_pose, "lost": self.lost}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.references = deque((_Reference.from_dict(r) for r in state["references"]),
+                                maxlen=self.config.reference_ring)
+        self.last_pose = None if state["last_pose"] is None else np.asarray(state["last_pose"], np.float64)
+        self.previous_pose = None if state["previous_pose"] is None else np.asarray(state["previous_pose"],
+                                                                                    np.float64)
+        self.lost = bool(state["lost"])

@@ -1,0 +1,60 @@
+"""Settings of monocular visual odometry (`worker.tracking.visual_odometry.VisualOdometry`).
+
+Thresholds in pixels are for the finest pyramid level and grow with each keypoint's octave. Nothing here is tuned
+to one sequence: the defaults are the usual values of feature-based monocular SLAM for images of 320 to 640 pixels.
+"""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class VisualOdometryConfig(BaseModel):
+    """Features, initialisation, tracking, keyframes, bundle adjustment and relocalisation of monocular VO."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    # features
+    n_features: int = Field(1000, ge=50, description="ORB keypoints per frame (spread over a grid)")
+    n_levels: int = Field(6, ge=1, le=12, description="pyramid levels")
+    scale_factor: float = Field(1.2, gt=1.0, le=2.0, description="pyramid scale step")
+    fast_threshold: int = Field(12, ge=1, description="FAST corner threshold")
+    grid_cell: int = Field(32, ge=8, description="side of the grid cells that spread keypoints, pixels")
+    min_features: int = Field(60, ge=10, description="fewer keypoints than this: the frame is unusable")
+
+    # two-view initialisation
+    init_min_matches: int = Field(80, ge=20, description="ratio-test matches needed to try initialising")
+    init_min_points: int = Field(60, ge=20, description="triangulated points needed to accept an initialisation")
+    init_min_parallax_deg: float = Field(1.0, gt=0.0, description="median triangulation angle needed, degrees")
+    init_max_frames: int = Field(30, ge=2, description="frames kept while waiting; older references are replaced")
+    match_ratio: float = Field(0.8, gt=0.0, lt=1.0, description="Lowe ratio for descriptor matching")
+    max_hamming: int = Field(64, ge=1, le=256, description="largest descriptor distance of an accepted match")
+
+    # tracking
+    search_radius: float = Field(12.0, gt=0.0, description="guided matching radius around a projection, pixels")
+    wide_search_radius: float = Field(36.0, gt=0.0, description="radius of the retry when tracking is weak")
+    min_tracked: int = Field(25, ge=6, description="pose inliers below this: tracking is lost")
+    chi2_px: float = Field(5.991, gt=0.0, description="squared reprojection error (in sigmas) of an inlier")
+
+    # keyframes and the local map
+    keyframe_tracked_ratio: float = Field(0.7, gt=0.0, lt=1.0,
+                                          description="new keyframe when tracked points fall below this share "
+                                                      "of the last keyframe's")
+    keyframe_max_gap: int = Field(20, ge=1, description="frames between keyframes at the most (while moving)")
+    keyframe_min_gap: int = Field(2, ge=1, description="frames between keyframes at the least")
+    keyframe_baseline: float = Field(0.1, gt=0.0, description="new keyframe when the baseline to the last one "
+                                                               "exceeds this share of the median depth")
+    triangulation_neighbours: int = Field(3, ge=1, description="keyframes a new keyframe triangulates with")
+    min_parallax_deg: float = Field(0.8, gt=0.0, description="smallest triangulation angle of a new point")
+    window: int = Field(7, ge=2, description="keyframes in the local map and the bundle adjustment")
+    ba_iterations: int = Field(10, ge=1, description="Levenberg-Marquardt iterations of the windowed adjustment")
+    huber_sigmas: float = Field(2.45, gt=0.0, description="Huber kernel width, in pixel sigmas")
+
+    # relocalisation
+    reloc_keyframes: int = Field(60, ge=1, description="keyframes remembered for place recognition")
+    reloc_candidates: int = Field(5, ge=1, description="places verified geometrically per lost frame")
+    reloc_min_inliers: int = Field(30, ge=10, description="PnP inliers needed to relocalise")
+
+    # unknown intrinsics
+    focal_guess: float = Field(0.9, gt=0.1, lt=5.0, description="focal guess as a share of max(W, H)")
+    self_calibrate: bool = Field(True, description="estimate the focal length from the first frames' geometry")
