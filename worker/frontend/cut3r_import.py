@@ -1,8 +1,9 @@
 """Import a CUT3R checkpoint (`torch.save({"model": state_dict, "args": ...})`, zip format) without running pickle code.
 
 `read_cut3r_state_dict` parses the archive's data.pkl with a restricted unpickler: only the few globals such a file
-holds are resolved (tensor rebuild functions, storage types, OrderedDict, argparse.Namespace); OmegaConf objects
-(CUT3R's `args`) become inert placeholders; anything else is refused with an error naming the global.
+holds are resolved (tensor rebuild functions, storage types, OrderedDict, defaultdict, argparse.Namespace, plain
+builtin types, also under their Python 2 names such as `__builtin__.long`, which protocol-2 pickles carry); OmegaConf
+objects (CUT3R's `args`) become inert placeholders; anything else is refused with an error naming the global.
 `map_cut3r_state_dict` renames CUT3R keys to ours (identical except the RGB DPT, which becomes the 2DGS DPT).
 """
 
@@ -34,6 +35,9 @@ _STORAGE_DTYPES = {
     "UntypedStorage": torch.uint8,
 }
 _SAFE_BUILTINS = {"dict", "list", "tuple", "set", "frozenset", "int", "float", "str", "bytes", "bool", "complex"}
+# Python 2 names of safe builtins, as protocol-2 pickles (torch.save's default) write them: module __builtin__.
+_PY2_BUILTIN_NAMES = {"long": "int", "unicode": "str"}
+_SAFE_COLLECTIONS = {"OrderedDict": collections.OrderedDict, "defaultdict": collections.defaultdict}
 _INERT_MODULE_PREFIXES = ("omegaconf", "typing")
 
 
@@ -76,10 +80,12 @@ class RestrictedUnpickler(pickle.Unpickler):
             return _rebuild_parameter
         if module == "torch" and name in _STORAGE_DTYPES:
             return _StorageType(_STORAGE_DTYPES[name])
-        if module == "collections" and name == "OrderedDict":
-            return collections.OrderedDict
+        if module == "collections" and name in _SAFE_COLLECTIONS:
+            return _SAFE_COLLECTIONS[name]
         if module == "argparse" and name == "Namespace":
             return argparse.Namespace
+        if module == "__builtin__":
+            module, name = "builtins", _PY2_BUILTIN_NAMES.get(name, name)
         if module == "builtins" and name in _SAFE_BUILTINS:
             return getattr(builtins, name)
         if module.split(".")[0] in _INERT_MODULE_PREFIXES:
