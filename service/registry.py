@@ -19,18 +19,20 @@ from worker.runtime import keys
 
 # Atomically: check the session accepts frames, seq increases, the queue has room; enqueue; count.
 # Returns {code, value, resend_from}: 0 accepted (value = queue depth), -1 no session, -2 not accepting (status),
-# -3 seq not increasing (value = last seq), -4 backpressure (value = queue depth).
+# -3 seq not increasing (value = last seq), -4 backpressure (value = queue depth), -5 frame size differs from the
+# session's (the first accepted frame's; 4th item "WxH"): the engine takes one frame size per session.
 # Backpressure keeps the order: once frame N is refused for a full queue, every frame with a higher seq is refused
 # too ("resend_from" = N) until a frame with seq <= N is accepted, so a pipelining sender can always re-send N.
 _INGEST = """
 local h = KEYS[1]
 local fields = redis.call('HMGET', h, 'status', 'last_seq', 'frames_received', 'frames_processed',
-                          'frames_rejected', 'resend_from')
+                          'frames_rejected', 'resend_from', 'frame_size')
 if not fields[1] then return {-1, 0, -1} end
 if fields[1] ~= 'created' and fields[1] ~= 'streaming' then return {-2, 0, -1} end
 local seq = tonumber(ARGV[1])
 local last = tonumber(fields[2] or '-1')
 if seq <= last then return {-3, last, -1} end
+if fields[7] and ARGV[5] ~= '' and fields[7] ~= ARGV[5] then return {-5, 0, -1, fields[7]} end
 local depth = tonumber(fields[3] or '0') - tonumber(fields[4] or '0') - tonumber(fields[5] or '0')
 local hold = tonumber(fields[6] or '-1')
 if hold >= 0 and seq > hold then return {-4, depth, hold} end
@@ -45,6 +47,7 @@ else
   redis.call('HSET', h, 'last_seq', ARGV[1], 'updated_at', ARGV[3])
 end
 if hold >= 0 then redis.call('HDEL', h, 'resend_from') end
+if not fields[7] and ARGV[5] ~= '' then redis.call('HSET', h, 'frame_size', ARGV[5]) end
 redis.call('HINCRBY', h, 'frames_received', 1)
 return {0, depth + 1, -1}
 """
@@ -58,7 +61,7 @@ return 1
 """
 
 _BLPOP_SLICE_S = 2.0
-INGEST_ACCEPTED, NO_SESSION, NOT_ACCEPTING, SEQ_NOT_INCREASING, QUEUE_FULL = 0, -1, -2, -3, -4
+INGEST_ACCEPTED, NO_SESSION, NOT_ACCEPTING, SEQ_NOT_INCREASING, QUEUE_FULL, SIZE_MISMATCH = 0, -1, -2, -3, -4, -5
 _INT_FIELDS = ("frames_received", "frames_processed", "frames_rejected", "keyframes", "revision")
 
 
@@ -71,6 +74,7 @@ class IngestResult:
     code: int
     value: int
     resend_from: int = -1  # with QUEUE_FULL: the seq the sender must re-send next
+    frame_size: str = ""  # with SIZE_MISMATCH: the session's frame size, "WxH"
 
 
 class RequestTimeout(Exception):
@@ -146,10 +150,13 @@ class Registry:
         await pipe.execute()
 
     # --- streaming ----------------------------------------------------------------------------------------------
-    async def ingest_frame(self, session_id: str, seq: int, message: bytes, max_queue: int) -> IngestResult:
-        code, value, resend_from = await self._ingest(keys=[keys.session(session_id), keys.inbox(session_id)],
-                                                      args=[seq, max_queue, now_iso(), message])
-        return IngestResult(int(code), int(value), int(resend_from))
+    async def ingest_frame(self, session_id: str, seq: int, message: bytes, max_queue: int,
+                           frame_size: str = "") -> IngestResult:
+        """Queue one frame (see _INGEST); `frame_size` "WxH" must match the session's first frame."""
+        code, value, resend_from, *size = await self._ingest(
+            keys=[keys.session(session_id), keys.inbox(session_id)],
+            args=[seq, max_queue, now_iso(), message, frame_size])
+        return IngestResult(int(code), int(value), int(resend_from), size[0].decode() if size else "")
 
     async def request_finish(self, session_id: str) -> int:
         """1 finishing now, 0 already finishing/finished, -1 no such session."""

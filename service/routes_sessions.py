@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
+from fastapi import APIRouter, Depends, Query, Request, Response
+from fastapi.exceptions import RequestValidationError
 
 from service.auth import Principal, caller
 from service.deps import registry, session_for
@@ -24,8 +25,9 @@ async def create_session(body: SessionCreate, request: Request, principal: Princ
         check = request.app.state.validate_preset
         try:
             check(body.preset)
-        except (ValueError, KeyError) as err:
-            raise HTTPException(422, f"unknown preset {body.preset!r}: {err}") from err
+        except (ValueError, KeyError) as err:  # the same 422 body as every other invalid field
+            raise RequestValidationError([{"type": "value_error", "loc": ("body", "preset"), "input": body.preset,
+                                           "msg": f"unknown preset {body.preset!r}: {err}"}]) from err
     session = await reg.create_session(body.model_dump(mode="json"), owner=principal.key_id)
     request.app.state.metrics.sessions_created.inc()
     return session

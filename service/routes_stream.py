@@ -22,6 +22,7 @@ from service.registry import (
     NOT_ACCEPTING,
     QUEUE_FULL,
     SEQ_NOT_INCREASING,
+    SIZE_MISMATCH,
     Registry,
 )
 from worker.runtime import keys
@@ -70,6 +71,10 @@ async def stream_frames(websocket: WebSocket, session_id: str) -> None:
         return
     stream = _Stream(websocket, reg, session_id, json.loads(record.get("intrinsics") or "null"))
     await stream.run()
+
+
+def _int_or_none(value) -> int | None:
+    return value if isinstance(value, int) and not isinstance(value, bool) else None
 
 
 def _backpressure_message(seq: int, depth: int, resend_from: int) -> str:
@@ -140,7 +145,7 @@ class _Stream:
             self.metrics.frames_refused.labels(err.code).inc()
             await self.error(err.code, str(err), err.seq)
             return
-        result = await self._ingest(frame.seq, data)
+        result = await self._ingest(frame.seq, data, f"{frame.width}x{frame.height}")
         if result is None:
             return
         if result.code == QUEUE_FULL:
@@ -151,6 +156,10 @@ class _Stream:
             self.metrics.frames_refused.labels("bad_seq").inc()
             await self.error("bad_seq", f"seq {frame.seq} is not greater than the last accepted seq {result.value} "
                              "(duplicate or out of order); frame not queued", frame.seq)
+        elif result.code == SIZE_MISMATCH:
+            self.metrics.frames_refused.labels("bad_size").inc()
+            await self.error("bad_size", f"image is {frame.width}x{frame.height} but this session's frames are "
+                             f"{result.frame_size} (its first frame's size); frame not queued", frame.seq)
         elif result.code == NOT_ACCEPTING:
             await self.error("not_accepting", "the session is finishing or finished; frame not queued", frame.seq)
         elif result.code == NO_SESSION:
@@ -162,7 +171,7 @@ class _Stream:
             self.metrics.queue_depth.observe(result.value)
             self.metrics.ack_latency.observe(time.perf_counter() - t0)
 
-    async def _ingest(self, seq: int, data: bytes):
+    async def _ingest(self, seq: int, data: bytes, frame_size: str):
         """The registry's answer for this frame, or None after refusing it with `unavailable` (Redis down).
 
         Like backpressure, the refusal keeps the order: once a frame is refused, later ones are refused too until
@@ -173,7 +182,7 @@ class _Stream:
                              f"session store was unreachable; resend from seq {hold}", seq, resend_from=hold)
             return None
         try:
-            result = await self.reg.ingest_frame(self.session_id, seq, data, self.settings.max_queue)
+            result = await self.reg.ingest_frame(self.session_id, seq, data, self.settings.max_queue, frame_size)
         except REDIS_DOWN as err:
             self._unavailable_from = seq
             self.metrics.frames_refused.labels("unavailable").inc()
@@ -187,10 +196,14 @@ class _Stream:
         try:
             message = json.loads(text)
         except ValueError:
-            await self.error("bad_message", "text messages must be JSON objects like {\"type\": \"finish\"}")
+            await self.error("bad_message", "text messages must be JSON objects like {\"type\": \"finish\"}; "
+                             "frames go in binary messages (msgpack maps)")
             return
         kind = message.get("type") if isinstance(message, dict) else None
-        if kind == "ping":
+        if kind == "frame":
+            await self.error("bad_message", "frames must be binary WebSocket messages holding a msgpack map "
+                             "(image as raw bytes), not text JSON; frame not queued", _int_or_none(message.get("seq")))
+        elif kind == "ping":
             await self.send(json.dumps({"type": "pong"}))
         elif kind == "finish":
             try:
