@@ -44,11 +44,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                    description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--source", default=None, help="sequence to stream (default: the bundled ICL subset)")
     parser.add_argument("--out", default="demo_out", help="output folder (default %(default)s)")
-    # "posed" (an ARKit/ARCore phone with LiDAR) is the default: the shipped `tiny` weights were trained for 800 CPU
-    # steps on synthetic rooms only (bench/RESULTS.md, Training) and do not yet track real images usefully.
-    parser.add_argument("--mode", choices=sorted(MODES), default="posed",
-                        help="what the 'phone' sends: mono (images), rgbd (+ depth, as LiDAR phones), posed "
-                             "(+ depth and device poses); default %(default)s")
+    # By default a phone with device poses and LiDAR ("posed"), then the same frames without the poses ("rgbd":
+    # tracked by RGB-D odometry), so both input modes are measured on real images in one run.
+    parser.add_argument("--mode", choices=sorted(MODES), nargs="+", default=["posed", "rgbd"],
+                        help="what the 'phone' sends, one run each: mono (images), rgbd (+ depth, as LiDAR phones "
+                             "that send no poses), posed (+ depth and device poses); default: posed rgbd. The "
+                             "first mode's outputs go in --out, the others' in --out/<mode>/")
     parser.add_argument("--preset", default="rgbd",
                         help="SLAM preset (default %(default)s: posed RGB-D mapping tuned for a CPU; 'fast' is "
                              "quicker with a coarser map)")
@@ -129,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     source = args.source or (str(BUNDLED_SEQUENCE) if BUNDLED_SEQUENCE.is_dir() else SYNTHETIC_FALLBACK)
     if args.server:
-        return run_demo(args.server, args.api_key, source, args, out)
+        return run_modes(args.server, args.api_key, source, args, out)
     print("starting the embedded stack (gateway + worker + Redis)...", file=sys.stderr)
     with EmbeddedStack(args.port, out / "serve.log") as stack:
         from client.sdk import FlashMonoClient
@@ -140,7 +141,7 @@ def run(args: argparse.Namespace) -> int:
             except RuntimeError as err:
                 print(f"error: {err}", file=sys.stderr)
                 return 1
-        status = run_demo(stack.url, None, source, args, out)
+        status = run_modes(stack.url, None, source, args, out)
         if status == 0 and args.keep_serving:
             print("serving; press Ctrl-C to stop", file=sys.stderr)
             try:
@@ -151,7 +152,28 @@ def run(args: argparse.Namespace) -> int:
         return status
 
 
-def run_demo(server: str, api_key: str | None, source: str, args: argparse.Namespace, out: Path) -> int:
+def run_modes(server: str, api_key: str | None, source: str, args: argparse.Namespace, out: Path) -> int:
+    """One streamed session per --mode (the first one's outputs in `out`, the others' in out/<mode>/), then the
+    figures of all of them side by side."""
+    modes = list(dict.fromkeys(args.mode))
+    status, results = 0, []
+    for k, mode in enumerate(modes):
+        mode_out = out if k == 0 else out / mode
+        mode_out.mkdir(parents=True, exist_ok=True)
+        code, metrics = run_demo(server, api_key, source, mode, args, mode_out)
+        status |= code
+        if metrics is None:
+            break
+        results.append(metrics)
+        print_report(metrics, mode_out, f"{server.rstrip('/')}/viewer?session={metrics['session_id']}")
+    if len(results) > 1:
+        print_comparison(results)
+    return status
+
+
+def run_demo(server: str, api_key: str | None, source: str, mode: str, args: argparse.Namespace, out: Path
+             ) -> tuple[int, dict[str, Any] | None]:
+    """Stream `source` in `mode` to a new session and evaluate it: (exit status, metrics or None)."""
     from tqdm import tqdm
 
     from client.errors import FlashMonoError
@@ -159,19 +181,19 @@ def run_demo(server: str, api_key: str | None, source: str, args: argparse.Names
     from client.sdk import FlashMonoClient
     from client.streaming import WireOptions, open_frames
 
-    send_depth, send_pose = MODES[args.mode]
+    send_depth, send_pose = MODES[mode]
     frames = list(open_frames(source, max_frames=args.max_frames, use_gt_poses=send_pose))
     if not frames:
         print(f"error: {source} has no frames", file=sys.stderr)
-        return 1
+        return 1, None
     intrinsics = frames[0].intrinsics
     started = time.monotonic()
     try:
         with FlashMonoClient(server, api_key=api_key) as client:
             session = client.create_session(intrinsics=intrinsics, preset=args.preset, name="demo",
                                             device_id="flashmono-demo",
-                                            metadata={"source": Path(source).name, "mode": args.mode})
-            print(f"session {session.id}: streaming {len(frames)} frames ({args.mode}) from {source}",
+                                            metadata={"source": Path(source).name, "mode": mode})
+            print(f"session {session.id}: streaming {len(frames)} frames ({mode}) from {source}",
                   file=sys.stderr)
             with tqdm(total=len(frames), unit="frame", desc="tracked", file=sys.stderr) as bar:
                 summary = client.stream(
@@ -192,16 +214,15 @@ def run_demo(server: str, api_key: str | None, source: str, args: argparse.Names
                 print(f"warning: map export failed: {err}", file=sys.stderr)
     except FlashMonoError as err:
         print(f"error: {err}", file=sys.stderr)
-        return 1
+        return 1, None
     metrics.update({
-        "session_id": session.id, "source": source, "mode": args.mode, "preset": args.preset,
+        "session_id": session.id, "source": source, "mode": mode, "preset": args.preset,
         "frames": len(frames), "poses": len(trajectory.poses), "keyframes": len(keyframe_seqs),
         "loop_closures": len(summary.loop_closures), "backpressure_retries": summary.backpressure_retries,
         "frame_errors": len(summary.errors), "end_to_end_fps": len(frames) / elapsed, "map_bytes": len(map_bytes),
     })
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
-    print_report(metrics, out, f"{server.rstrip('/')}/viewer?session={session.id}")
-    return 1 if "render_error" in metrics or "map_error" in metrics else 0
+    return (1 if "render_error" in metrics or "map_error" in metrics else 0), metrics
 
 
 def evaluate(client: Any, session_id: str, trajectory: Any, keyframe_seqs: set[int], frames: list,
@@ -266,3 +287,15 @@ def print_report(metrics: dict[str, Any], out: Path, viewer_url: str) -> None:
     print(f"  outputs         {out.resolve()}/ (trajectory.tum, keyframes.tum, groundtruth.tum, map.ply, renders/, "
           "metrics.json)")
     print(f"  viewer          {viewer_url}")
+
+
+def print_comparison(results: list[dict[str, Any]]) -> None:
+    """The modes' figures side by side."""
+    print()
+    print("  mode     sends                             ATE (cm)   PSNR (dB)   frames/s")
+    for m in results:
+        depth, pose = MODES[m["mode"]]
+        sends = "images" + (" + depth" if depth else "") + (" + device poses" if pose else "")
+        ate = "n/a" if m.get("ate_rmse_m") is None else f"{m['ate_rmse_m'] * 100:.2f}"
+        psnr_db = "n/a" if m.get("psnr_db") is None else f"{m['psnr_db']:.2f}"
+        print(f"  {m['mode']:<8} {sends:<33} {ate:>8}   {psnr_db:>9}   {m['end_to_end_fps']:>8.2f}")

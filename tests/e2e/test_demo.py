@@ -1,7 +1,7 @@
 """`flashmono demo` end to end, as `make demo` runs it: embedded stack (serve), the bundled sequence streamed over
 the WebSocket, ATE and PSNR printed, trajectory/map/renders written, viewer URL printed. The whole bundled sequence
 with the defaults, exactly what the README's `make demo` runs: it revisits the room, so the loop-closure path
-(pose graph + map correction) runs too."""
+(pose graph + map correction) runs too; then the same frames without device poses (RGB-D odometry)."""
 
 from __future__ import annotations
 
@@ -50,3 +50,11 @@ def test_demo_runs_the_whole_system_and_writes_its_outputs(tmp_path: Path) -> No
     assert len(renders) == 6  # the default --renders
     side_by_side = cv2.imread(str(renders[0]))
     assert side_by_side.shape == (240, 640, 3)  # rendered | captured, at the sequence's 320x240
+
+    # The same frames without device poses (RGB-D odometry), reported beside the posed run.
+    rgbd = json.loads((out / "rgbd" / "metrics.json").read_text())
+    assert rgbd["mode"] == "rgbd" and rgbd["poses"] == frames and rgbd["frame_errors"] == 0
+    assert rgbd["session_id"] != metrics["session_id"]
+    assert 0 <= rgbd["ate_rmse_m"] < 0.05, "RGB-D odometry on real frames should be centimetre-accurate"
+    assert rgbd["psnr_db"] > 20
+    assert re.search(r"^\s+rgbd\s+images \+ depth\s+\d+\.\d+\s+\d+\.\d+", result.stdout, re.M), result.stdout
