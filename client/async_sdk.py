@@ -342,8 +342,14 @@ class AsyncFlashMonoClient:
         return await self._call(rest.ready())
 
     async def create_session(self, *, intrinsics: Any = None, preset: str | None = None, name: str | None = None,
-                             device_id: str | None = None, metadata: dict[str, Any] | None = None) -> Session:
-        return await self._call(rest.create_session(intrinsics, preset, name, device_id, metadata))
+                             device_id: str | None = None, metadata: dict[str, Any] | None = None,
+                             pose_mode: str | None = None) -> Session:
+        """A new session (see FlashMonoClient.create_session)."""
+        return await self._call(rest.create_session(intrinsics, preset, name, device_id, metadata, pose_mode))
+
+    async def presets(self) -> dict[str, Any]:
+        """GET /v1/presets: {presets: [{name, purpose, input}], input_modes}."""
+        return await self._call(rest.presets())
 
     async def list_sessions(self, *, status: str | None = None, device_id: str | None = None,
                             name: str | None = None, limit: int | None = None,

@@ -49,6 +49,8 @@ class Session:
     metadata: dict[str, Any] = field(default_factory=dict)
     error: str | None = None
     raw: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
+    pose_mode: str | None = None
+    estimated_intrinsics: dict[str, Any] | None = None  # the camera the engine uses: given, or estimated
 
     @classmethod
     def from_json(cls, data: dict[str, Any]) -> Session:
@@ -72,6 +74,8 @@ class Session:
             metadata=dict(data.get("metadata") or {}),
             error=data.get("error"),
             raw=dict(data),
+            pose_mode=data.get("pose_mode"),
+            estimated_intrinsics=data.get("estimated_intrinsics"),
         )
 
 
@@ -102,6 +106,7 @@ class Trajectory:
     revision: int
     which: str
     poses: list[TrajectoryPose]
+    intrinsics: dict[str, Any] | None = None  # the camera of these poses: given, or estimated by the engine
 
     @classmethod
     def from_json(cls, data: dict[str, Any]) -> Trajectory:
@@ -111,7 +116,7 @@ class Trajectory:
             for i, p in enumerate(data.get("poses", []))
         ]
         return cls(session_id=str(data.get("session_id", "")), revision=int(data.get("revision") or 0),
-                   which=str(data.get("which", "all")), poses=poses)
+                   which=str(data.get("which", "all")), poses=poses, intrinsics=data.get("intrinsics"))
 
     def __len__(self) -> int:
         return len(self.poses)

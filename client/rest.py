@@ -77,9 +77,10 @@ def intrinsics_payload(intrinsics: Any) -> dict[str, float] | None:
 
 
 def create_session(intrinsics: Any = None, preset: str | None = None, name: str | None = None,
-                   device_id: str | None = None, metadata: dict[str, Any] | None = None) -> Call:
+                   device_id: str | None = None, metadata: dict[str, Any] | None = None,
+                   pose_mode: str | None = None) -> Call:
     body = _drop_none({"intrinsics": intrinsics_payload(intrinsics), "preset": preset, "name": name,
-                       "device_id": device_id, "metadata": metadata})
+                       "device_id": device_id, "metadata": metadata, "pose_mode": pose_mode})
     return Call("POST", f"{API_PREFIX}/sessions", lambda r: Session.from_json(r.json()), json=body)
 
 
@@ -110,6 +111,10 @@ def _check_which(which: str) -> str:
 def trajectory(session_id: str, which: str = "all") -> Call:
     return Call("GET", _session_path(session_id, "/trajectory"), lambda r: Trajectory.from_json(r.json()),
                 params={"format": "json", "which": _check_which(which)})
+
+
+def presets() -> Call:
+    return Call("GET", f"{API_PREFIX}/presets", lambda r: r.json())
 
 
 def trajectory_tum(session_id: str, which: str = "all") -> Call:

@@ -95,9 +95,16 @@ class FlashMonoClient:
         return self._call(rest.ready())
 
     def create_session(self, *, intrinsics: Any = None, preset: str | None = None, name: str | None = None,
-                       device_id: str | None = None, metadata: dict[str, Any] | None = None) -> Session:
-        """A new session; intrinsics as {fx, fy, cx, cy, width, height}, an Intrinsics or [fx, fy, cx, cy]."""
-        return self._call(rest.create_session(intrinsics, preset, name, device_id, metadata))
+                       device_id: str | None = None, metadata: dict[str, Any] | None = None,
+                       pose_mode: str | None = None) -> Session:
+        """A new session; intrinsics as {fx, fy, cx, cy, width, height}, an Intrinsics or [fx, fy, cx, cy].
+        pose_mode: "fixed" keeps the device poses frames carry exactly as sent ("prior", the default, refines them;
+        "ignore" tracks without them)."""
+        return self._call(rest.create_session(intrinsics, preset, name, device_id, metadata, pose_mode))
+
+    def presets(self) -> dict[str, Any]:
+        """GET /v1/presets: {presets: [{name, purpose, input}], input_modes}."""
+        return self._call(rest.presets())
 
     def list_sessions(self, *, status: str | None = None, device_id: str | None = None, name: str | None = None,
                       limit: int | None = None, cursor: str | None = None) -> SessionPage:

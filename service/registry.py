@@ -97,7 +97,8 @@ class Registry:
             "id": session_id, "name": body.get("name") or "", "device_id": body.get("device_id") or "",
             "status": "created", "created_at": created, "updated_at": created, "frames_received": 0,
             "frames_processed": 0, "frames_rejected": 0, "keyframes": 0, "revision": 0, "worker": "",
-            "preset": body.get("preset") or "", "intrinsics": json.dumps(body.get("intrinsics")),
+            "preset": body.get("preset") or "", "pose_mode": body.get("pose_mode") or "",
+            "intrinsics": json.dumps(body.get("intrinsics")),
             "metadata": json.dumps(body.get("metadata") or {}), "owner": owner, "last_seq": -1,
         }
         member = f"{datetime.now(UTC).timestamp() * 1e6:020.0f}:{session_id}"
@@ -224,7 +225,8 @@ def parse_session(record: dict[str, Any]) -> dict[str, Any]:
         "id": record["id"], "name": record.get("name") or None, "device_id": record.get("device_id") or None,
         "status": record["status"], "created_at": record["created_at"], "updated_at": record["updated_at"],
         "worker": record.get("worker") or None, "preset": record.get("preset") or None,
-        "intrinsics": json.loads(record.get("intrinsics") or "null"),
+        "pose_mode": record.get("pose_mode") or None, "intrinsics": json.loads(record.get("intrinsics") or "null"),
+        "estimated_intrinsics": json.loads(record.get("estimated_intrinsics") or record.get("intrinsics") or "null"),
         "metadata": json.loads(record.get("metadata") or "{}"), "error": record.get("error") or None,
     }
     for name in _INT_FIELDS:

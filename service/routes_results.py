@@ -11,7 +11,7 @@ from fastapi.responses import PlainTextResponse
 from service.auth import Principal, caller
 from service.deps import registry, session_for
 from service.pose_check import pose_problem
-from service.registry import Registry, RequestTimeout
+from service.registry import Registry, RequestTimeout, parse_session
 from service.schemas import ErrorBody, Trajectory
 from worker.runtime import keys
 
@@ -35,7 +35,8 @@ async def get_trajectory(
     poses = await reg.trajectory(session_id, which)
     if format == "tum":
         return PlainTextResponse(tum_text(poses), media_type="text/plain")
-    return {"session_id": session_id, "revision": int(record.get("revision") or 0), "which": which, "poses": poses}
+    return {"session_id": session_id, "revision": int(record.get("revision") or 0), "which": which, "poses": poses,
+            "intrinsics": parse_session(record)["estimated_intrinsics"]}
 
 
 def tum_text(poses: list[dict]) -> str:

@@ -7,7 +7,13 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from service.presets import PresetName, preset_field_description
+
 SessionStatus = Literal["created", "streaming", "finishing", "finished", "failed"]
+PoseMode = Literal["prior", "fixed", "ignore"]
+POSE_MODE_DOC = ("what the engine does with the device poses frames carry: `prior` (default) refines them (loop "
+                 "closures may move them), `fixed` keeps them exactly as sent (accurate ARKit/ARCore poses: no loop "
+                 "correction), `ignore` tracks from the images (and depth) alone")
 
 
 class IntrinsicsIn(BaseModel):
@@ -34,7 +40,8 @@ class IntrinsicsIn(BaseModel):
 class SessionCreate(BaseModel):
     model_config = ConfigDict(extra="forbid")
     intrinsics: IntrinsicsIn | None = None
-    preset: str | None = Field(default=None, max_length=64, pattern=r"^[A-Za-z0-9_\-]+$")
+    preset: PresetName | None = Field(default=None, description=preset_field_description())
+    pose_mode: PoseMode | None = Field(default=None, description=POSE_MODE_DOC)
     name: str | None = Field(default=None, max_length=200)
     device_id: str | None = Field(default=None, max_length=200)
     metadata: dict[str, Any] = Field(default_factory=dict)
@@ -54,7 +61,12 @@ class Session(BaseModel):
     revision: int = Field(description="trajectory revision; grows when a loop closure rewrites past poses")
     worker: str | None = Field(None, description="id of the worker that owns (or last owned) the session")
     preset: str | None = None
+    pose_mode: PoseMode | None = Field(None, description="as created (null: the engine's default, prior)")
     intrinsics: IntrinsicsIn | None = None
+    estimated_intrinsics: IntrinsicsIn | None = Field(
+        None, description="the camera the engine uses at the frames' resolution: the given intrinsics, or the ones it "
+        "estimated (monocular input without intrinsics); null until it knows them. Render with these to match the "
+        "user's camera")
     metadata: dict[str, Any] = Field(default_factory=dict)
     error: str | None = Field(None, description="why the session failed")
 
@@ -75,6 +87,9 @@ class Trajectory(BaseModel):
     revision: int
     which: Literal["all", "keyframes"]
     poses: list[TrajectoryPose]
+    intrinsics: IntrinsicsIn | None = Field(
+        None, description="the camera of these poses at the frames' resolution: given, or estimated by the engine "
+        "(the session's estimated_intrinsics); null while unknown")
 
 
 class ErrorBody(BaseModel):
@@ -89,3 +104,14 @@ class Readiness(BaseModel):
     status: Literal["ready", "not_ready"]
     redis: bool
     workers: int
+
+
+class PresetInfo(BaseModel):
+    name: PresetName
+    purpose: str
+    input: str = Field(description="the input it suits")
+
+
+class PresetList(BaseModel):
+    presets: list[PresetInfo]
+    input_modes: str = Field(description="how the input mode follows from the fields a frame carries")

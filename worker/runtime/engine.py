@@ -41,12 +41,14 @@ class SessionEngine(Protocol):
     def snapshot(self) -> bytes: ...
 
 
-def create_engine(kind: str, preset: str | None, intrinsics: Intrinsics | None) -> SessionEngine:
-    """A fresh engine of `kind` for a new session."""
+def create_engine(kind: str, preset: str | None, intrinsics: Intrinsics | None,
+                  pose_mode: str | None = None) -> SessionEngine:
+    """A fresh engine of `kind` for a new session; `pose_mode` (prior/fixed/ignore) overrides the preset's."""
     if kind == "slam":
         from worker.slam import SlamConfig, SlamSystem
 
-        return SlamSystem(SlamConfig.preset(preset) if preset else None, intrinsics=intrinsics)
+        overrides = {"input": {"pose_mode": pose_mode}} if pose_mode else {}
+        return SlamSystem(SlamConfig.preset(preset or "default", **overrides), intrinsics=intrinsics)
     if kind == "passthrough":
         return PassthroughEngine(intrinsics=intrinsics, delay_s=_passthrough_delay_s())
     raise ValueError(f"unknown engine kind {kind!r}; expected one of {ENGINE_KINDS}")
@@ -70,6 +72,14 @@ def restore_engine(kind: str, blob: bytes) -> SessionEngine:
     raise ValueError(f"unknown engine kind {kind!r}; expected one of {ENGINE_KINDS}")
 
 
+def engine_intrinsics(engine: SessionEngine) -> dict[str, float | int] | None:
+    """The camera the engine uses at the frames' resolution (its `estimated_intrinsics()`: given or estimated),
+    as {fx, fy, cx, cy, width, height}; None while unknown or when the engine cannot tell."""
+    estimate = getattr(engine, "estimated_intrinsics", None)
+    camera = estimate() if estimate is not None else None
+    return camera.to_dict() if camera is not None else None
+
+
 def close_engine(engine: SessionEngine | None) -> None:
     """Stop an engine's background threads, if it has any (SlamSystem.close)."""
     close = getattr(engine, "close", None)
@@ -88,6 +98,7 @@ class PassthroughEngine:
         self.revision = 0
         self._poses: list[tuple[int, float, np.ndarray, bool]] = []
         self._colors: list[np.ndarray] = []
+        self._first_camera: Intrinsics | None = None
         self.finished = False
 
     def push(self, frame: Frame) -> FrameResult:
@@ -96,6 +107,7 @@ class PassthroughEngine:
         if self.delay_s:
             time.sleep(self.delay_s)
         pose = np.eye(4) if frame.pose is None else np.asarray(frame.pose, dtype=np.float64)
+        self._first_camera = self._first_camera or frame.intrinsics
         is_keyframe = len(self._poses) % self.KEYFRAME_EVERY == 0
         self._poses.append((frame.index, frame.timestamp, pose, is_keyframe))
         if is_keyframe:
@@ -105,6 +117,10 @@ class PassthroughEngine:
 
     def finish(self) -> None:
         self.finished = True
+
+    def estimated_intrinsics(self) -> Intrinsics | None:
+        """The given camera, else the first frame's own (no estimation here)."""
+        return self.intrinsics or self._first_camera
 
     def trajectory(self, which: str = "all") -> list[tuple[int, float, np.ndarray]]:
         if which not in ("all", "keyframes"):

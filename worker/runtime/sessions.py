@@ -22,7 +22,7 @@ import redis
 
 from worker.geometry import Intrinsics
 from worker.runtime import keys
-from worker.runtime.engine import SessionEngine, close_engine, create_engine, restore_engine
+from worker.runtime.engine import SessionEngine, close_engine, create_engine, engine_intrinsics, restore_engine
 from worker.runtime.frames import FrameError, decode_frame
 from worker.runtime.leases import Leases
 from worker.runtime.outage import REDIS_DOWN
@@ -199,7 +199,8 @@ class SessionRunner(threading.Thread):
         else:
             intrinsics = self._session_intrinsics()
             self.engine = create_engine(self.config.engine_kind, self._session.get("preset") or None,
-                                        Intrinsics.from_dict(intrinsics) if intrinsics else None)
+                                        Intrinsics.from_dict(intrinsics) if intrinsics else None,
+                                        pose_mode=self._session.get("pose_mode") or None)
         self._done_seqs = {int(s) for s in self.client.hkeys(keys.poses(self.session_id))}
         self._rejected = {int(s) for s in self.client.hkeys(keys.rejected(self.session_id))}
         self._done_seqs |= self._rejected
@@ -312,10 +313,21 @@ class SessionRunner(threading.Thread):
         self.stats.add("dispatch_cpu", (c1 - c0) + (c3 - c2))
         if result.revision != self._revision or any(e.get("type") == "loop_closed" for e in result.events):
             self._publish_revision(result.revision, result.events)
+        if not self._session.get("estimated_intrinsics"):
+            self._publish_estimated_intrinsics()
         if result.is_keyframe:
             self._keyframes_since_snapshot += 1
             if self._keyframes_since_snapshot >= self.config.snapshot_every_keyframes:
                 self._write_snapshot(seq, entry_id)
+
+    def _publish_estimated_intrinsics(self) -> None:
+        """Once the engine knows the camera (given, or estimated from monocular frames), put it in the session
+        record so clients can render views that match their camera."""
+        camera = engine_intrinsics(self.engine)
+        if camera is not None:
+            text = json.dumps(camera)
+            self.client.hset(keys.session(self.session_id), "estimated_intrinsics", text)
+            self._session["estimated_intrinsics"] = text
 
     def _reject(self, entry_id: bytes, seq: int, code: str, message: str) -> None:
         out = json.dumps({"type": "error", "code": code, "message": message, "seq": seq}).encode()

@@ -1,0 +1,43 @@
+"""What each engine preset is for and which input suits it, for clients: GET /v1/presets and the session schema.
+
+The presets themselves live in `worker.config.PRESETS`; tests keep the two lists equal.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+PresetName = Literal["paper", "default", "fast", "rgbd", "test"]
+
+# name -> (what it is for, which input it suits)
+PRESET_INFO: dict[str, tuple[str, str]] = {
+    "paper": ("the paper's settings: paper-size model, 512-pixel images, on a CUDA GPU; needs weights converted "
+              "from CUT3R (`flashmono convert-cut3r`)", "RGB only (monocular), any input on a GPU"),
+    "default": ("the paper's settings with the shipped small model, on whatever device is there",
+                "RGB only (monocular) or any richer input"),
+    "fast": ("CPU-friendly: 224-pixel images, fewer refinement iterations; with depth, surfels come from the depth",
+             "RGB-D frames (phones with LiDAR), with or without device poses"),
+    "rgbd": ("best maps on a CPU: surfels from the depth, a final refinement over every keyframe at finish (tens of "
+             "seconds; 28.9 dB PSNR on ICL)", "posed RGB-D frames (depth + device pose: ARKit/ARCore with LiDAR)"),
+    "test": ("unit tests only: tiny images, few iterations, single-threaded", "anything (not for real use)"),
+}
+
+INPUT_MODES = (
+    "The input mode follows from the fields the session's first frame carries and holds for the whole session: "
+    "`pose` -> posed (device poses are the odometry; refined as priors, or kept as sent with pose_mode fixed); "
+    "`depth` without `pose` -> RGB-D (dense RGB-D odometry); neither -> monocular (the camera is tracked from the "
+    "images; the scale is arbitrary and the focal length is estimated unless intrinsics are given). Later frames "
+    "must carry the same fields and have the same size."
+)
+
+
+def preset_list() -> list[dict[str, str]]:
+    """[{name, purpose, input}] for GET /v1/presets."""
+    return [{"name": name, "purpose": purpose, "input": suits} for name, (purpose, suits) in PRESET_INFO.items()]
+
+
+def preset_field_description() -> str:
+    """The `preset` field's description in the session schema: one line per preset."""
+    lines = [f"- `{name}`: {purpose}. Suits: {suits}." for name, (purpose, suits) in PRESET_INFO.items()]
+    return ("Engine preset (GET /v1/presets lists them); omitted: `default`.\n"
+            + "\n".join(lines) + "\n" + INPUT_MODES)
