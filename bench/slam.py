@@ -1,9 +1,11 @@
 """End-to-end SLAM runs on ICL (the full 211-frame set when present, else tests/data/icl_mini) for each mode:
 posed RGB-D (ground-truth depth and poses, preset `rgbd`), posed RGB-D with injected odometry drift + loop closure
-(worker.engine.drift: per-frame rotation/translation bias and noise, compounded), and monocular with the default
-model. Prints ATE, PSNR/SSIM, depth L1, Gaussians and end-to-end FPS (paper appendix E: frames / total runtime).
+(worker.engine.drift: per-frame rotation/translation bias and noise, compounded), monocular with the default
+model (`mono`), RGB-D without poses (`rgbd_odometry`), images only by visual odometry (`visual_odometry`) and
+images with poses but no depth (`posed_rgb`). Prints ATE, PSNR/SSIM, depth L1, Gaussians and end-to-end FPS
+(paper appendix E: frames / total runtime).
 
-`python -m bench slam [--frames N] [--size WxH] [--modes rgbd,drift,driftmap,mono] [--stride S] [--drift-seed K]`
+`python -m bench slam [--frames N] [--size WxH] [--modes rgbd,drift,...] [--stride S] [--drift-seed K]`
 """
 
 from __future__ import annotations
@@ -54,8 +56,18 @@ def main(argv: list[str]) -> int:
         # the same with the map built alongside (loop corrections move its surfels): end-to-end FPS of the mode
         "driftmap": dict(config=SlamConfig.preset(args.preset or "rgbd", loop=LOOPS, input={"pose_mode": "prior"}),
                          use_gt_depth=True, use_gt_poses=True, drift=PoseDrift(**DRIFT, seed=args.drift_seed)),
-        "mono": dict(config=SlamConfig.preset(args.preset or "fast", frontend={"checkpoint": args.checkpoint}),
+        "mono": dict(config=SlamConfig.preset(args.preset or "fast", frontend={"checkpoint": args.checkpoint,
+                                                                              "tracking": "model"}),
                      use_gt_depth=False, use_gt_poses=False),
+        # depth without poses: RGB-D odometry + loop closure, mapped like the posed mode
+        "rgbd_odometry": dict(config=SlamConfig.preset(args.preset or "rgbd"), use_gt_depth=True,
+                              use_gt_poses=False),
+        # images only: monocular visual odometry
+        "visual_odometry": dict(config=SlamConfig.preset(args.preset or "rgbd"), use_gt_depth=False,
+                                use_gt_poses=False),
+        # images and poses, no depth
+        "posed_rgb": dict(config=SlamConfig.preset(args.preset or "rgbd", input={"pose_mode": "fixed"}),
+                          use_gt_depth=False, use_gt_poses=True),
     }
     print(f"source {source} stride {stride} at {width}x{height}")
     print("| mode | frames | keyframes | loops | ATE (cm) | ATE drift only (cm) | PSNR | SSIM | depth L1 (cm) "

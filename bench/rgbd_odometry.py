@@ -1,0 +1,103 @@
+"""RGB-D odometry alone, ours against Open3D's (`open3d.pipelines.odometry`, hybrid photometric + geometric term,
+frame to frame) on the same frames: ATE RMSE (SE(3)-aligned, no loop closure) and milliseconds per frame.
+
+`python -m bench rgbd_odometry [--frames N] [--size WxH] [--threads T]` on ICL living room (the full 211 frames when
+/work/shared has them, else tests/data/icl_mini). Open3D is a bench extra (`pip install open3d`; on Debian it needs
+libusb-1.0-0); without it the peer row says so.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+import numpy as np
+
+from bench.slam import _source
+
+
+def _frames(size: tuple[int, int], max_frames: int | None):
+    from worker.data import open_source
+
+    source, stride = _source(1)
+    src = open_source(str(source), stride=stride, max_frames=max_frames, resize=size, use_gt_depth=True,
+                      use_gt_poses=False)
+    return list(src), src.intrinsics
+
+
+def run_ours(frames, intrinsics) -> tuple[np.ndarray, float, int]:
+    """(poses, seconds per frame, frames lost)."""
+    from worker.tracking.rgbd_odometry import RgbdOdometry
+
+    odometry = RgbdOdometry()
+    poses, lost = [], 0
+    start = time.perf_counter()
+    for frame in frames:
+        result = odometry.track(frame, intrinsics)
+        poses.append(result.pose)
+        lost += not result.tracked
+    return np.stack(poses), (time.perf_counter() - start) / len(frames), lost
+
+
+def run_open3d(frames, intrinsics) -> tuple[np.ndarray, float, int]:
+    """Open3D's frame-to-frame RGB-D odometry chained, seeded by the previous motion like ours."""
+    import open3d as o3d
+
+    camera = o3d.camera.PinholeCameraIntrinsic(intrinsics.width, intrinsics.height, intrinsics.fx, intrinsics.fy,
+                                               intrinsics.cx - 0.5, intrinsics.cy - 0.5)
+    option = o3d.pipelines.odometry.OdometryOption()
+    jacobian = o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm()
+
+    def rgbd(frame):
+        colour = o3d.geometry.Image(np.ascontiguousarray(frame.image))
+        depth = o3d.geometry.Image(np.ascontiguousarray(frame.depth.astype(np.float32)))
+        return o3d.geometry.RGBDImage.create_from_color_and_depth(colour, depth, depth_scale=1.0,
+                                                                  depth_trunc=20.0, convert_rgb_to_intensity=True)
+
+    poses = [np.eye(4)]
+    velocity = np.eye(4)
+    lost = 0
+    start = time.perf_counter()
+    previous = rgbd(frames[0])
+    for frame in frames[1:]:
+        current = rgbd(frame)
+        ok, T_prev_cur, _ = o3d.pipelines.odometry.compute_rgbd_odometry(
+            current, previous, camera, velocity, jacobian, option)  # maps current-frame points into previous
+        if not ok:
+            lost += 1
+            T_prev_cur = velocity
+        poses.append(poses[-1] @ T_prev_cur)
+        velocity = T_prev_cur
+        previous = current
+    return np.stack(poses), (time.perf_counter() - start) / len(frames), lost
+
+
+def main(argv: list[str]) -> int:
+    import torch
+
+    from worker.eval import absolute_trajectory_error
+
+    parser = argparse.ArgumentParser(prog="python -m bench rgbd_odometry")
+    parser.add_argument("--frames", type=int, default=None)
+    parser.add_argument("--size", default="320x240")
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
+    size = tuple(int(v) for v in args.size.split("x"))
+    frames, intrinsics = _frames(size, args.frames)
+    gt = np.stack([f.gt_pose for f in frames])
+    print(f"{len(frames)} frames at {size[0]}x{size[1]}, load {os.getloadavg()[0]:.2f}")
+    print("| method | ATE RMSE (cm, SE(3)) | ms / frame | frames / s | frames lost |")
+    print("|---|---:|---:|---:|---:|")
+    for name, runner in (("Flash-Mono RGB-D odometry", run_ours), ("Open3D RGB-D odometry (hybrid)", run_open3d)):
+        try:
+            poses, seconds, lost = runner(frames, intrinsics)
+        except ImportError as err:
+            print(f"| {name} | not installed ({err}) | | | |")
+            continue
+        ate = absolute_trajectory_error(poses, gt, "se3").rmse
+        print(f"| {name} | {100 * ate:.2f} | {1000 * seconds:.1f} | {1 / seconds:.1f} | {lost} |", flush=True)
+    print(f"load after: {os.getloadavg()[0]:.2f}")
+    return 0
