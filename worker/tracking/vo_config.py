@@ -18,14 +18,15 @@ class VisualOdometryConfig(BaseModel):
     n_features: int = Field(1000, ge=50, description="ORB keypoints per frame (spread over a grid)")
     n_levels: int = Field(6, ge=1, le=12, description="pyramid levels")
     scale_factor: float = Field(1.2, gt=1.0, le=2.0, description="pyramid scale step")
-    fast_threshold: int = Field(12, ge=1, description="FAST corner threshold")
+    fast_threshold: int = Field(7, ge=1, description="FAST corner threshold")
+    clahe_clip: float = Field(3.0, ge=0.0, description="contrast equalisation (CLAHE) clip limit; 0: off")
     grid_cell: int = Field(32, ge=8, description="side of the grid cells that spread keypoints, pixels")
     min_features: int = Field(60, ge=10, description="fewer keypoints than this: the frame is unusable")
 
     # two-view initialisation
     init_min_matches: int = Field(80, ge=20, description="ratio-test matches needed to try initialising")
     init_min_points: int = Field(60, ge=20, description="triangulated points needed to accept an initialisation")
-    init_min_parallax_deg: float = Field(1.0, gt=0.0, description="median triangulation angle needed, degrees")
+    init_min_parallax_deg: float = Field(2.0, gt=0.0, description="median triangulation angle needed, degrees")
     init_max_frames: int = Field(30, ge=2, description="frames kept while waiting; older references are replaced")
     match_ratio: float = Field(0.8, gt=0.0, lt=1.0, description="Lowe ratio for descriptor matching")
     max_hamming: int = Field(64, ge=1, le=256, description="largest descriptor distance of an accepted match")

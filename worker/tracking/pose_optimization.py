@@ -1,0 +1,81 @@
+"""Motion-only pose refinement: robust (Huber) Gauss-Newton of one camera against fixed 3D points, with rounds
+that set outliers aside (their chi2 is re-judged after each round, so a point wrongly dropped can come back).
+
+The camera is parameterised world-to-camera, X_c = R X + t, and updated on the left: T <- exp(xi) T with
+xi = (v, w), so dX_c/dxi = [I | -[X_c]_x].
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from .projection import invert_pose
+
+
+def _skew_rows(p: np.ndarray) -> np.ndarray:
+    """-[p]_x for each row p [N, 3] -> [N, 3, 3]."""
+    z = np.zeros(len(p))
+    x, y, w = p[:, 0], p[:, 1], p[:, 2]
+    return -np.stack([np.stack([z, -w, y], 1), np.stack([w, z, -x], 1), np.stack([-y, x, z], 1)], 1)
+
+
+def _residuals(R: np.ndarray, t: np.ndarray, points: np.ndarray, uv: np.ndarray, K: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+    pc = points @ R.T + t
+    z = np.maximum(pc[:, 2], 1e-9)
+    proj = np.stack([K[0, 0] * pc[:, 0] / z + K[0, 2], K[1, 1] * pc[:, 1] / z + K[1, 2]], axis=1)
+    return proj - uv, pc
+
+
+def _jacobians(pc: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """d(pixel)/d(xi) [N, 2, 6]."""
+    fx, fy = K[0, 0], K[1, 1]
+    x, y, z = pc[:, 0], pc[:, 1], np.maximum(pc[:, 2], 1e-9)
+    zero = np.zeros(len(pc))
+    J_proj = np.stack([np.stack([fx / z, zero, -fx * x / z ** 2], 1),
+                       np.stack([zero, fy / z, -fy * y / z ** 2], 1)], 1)
+    J_point = np.concatenate([np.broadcast_to(np.eye(3), (len(pc), 3, 3)), _skew_rows(pc)], axis=2)
+    return J_proj @ J_point
+
+
+def _gauss_newton(R, t, points, uv, info, K, huber, iterations):
+    for _ in range(iterations):
+        r, pc = _residuals(R, t, points, uv, K)
+        e = np.sqrt((r ** 2).sum(1) * info)
+        w = info * np.where(e <= huber, 1.0, huber / np.maximum(e, 1e-12)) * (pc[:, 2] > 1e-6)
+        J = _jacobians(pc, K)
+        H = np.einsum("nik,n,nil->kl", J, w, J)
+        g = np.einsum("nik,n,ni->k", J, w, r)
+        try:
+            xi = -np.linalg.solve(H + 1e-9 * np.eye(6), g)
+        except np.linalg.LinAlgError:
+            break
+        if not np.all(np.isfinite(xi)):
+            break
+        dR = cv2.Rodrigues(xi[3:])[0]
+        R, t = dR @ R, dR @ t + xi[:3]
+        if np.linalg.norm(xi) < 1e-8:
+            break
+    return R, t
+
+
+def optimize_pose(pose_c2w: np.ndarray, points: np.ndarray, uv: np.ndarray, sigma: np.ndarray, K: np.ndarray,
+                  chi2: float = 5.991, rounds: int = 4, iterations: int = 10) -> tuple[np.ndarray, np.ndarray]:
+    """Refined camera-to-world pose and the inlier mask [N] of 2D-3D matches (points [N, 3], pixels uv [N, 2],
+    pixel noise sigma [N]). The Huber width is sqrt(chi2) sigmas; a match is an inlier when its squared error in
+    sigmas is below chi2 and its point lies in front of the camera."""
+    w2c = invert_pose(pose_c2w)
+    R, t = w2c[:3, :3].copy(), w2c[:3, 3].copy()
+    info = 1.0 / sigma.astype(np.float64) ** 2
+    inlier = np.ones(len(points), bool)
+    huber = float(np.sqrt(chi2))
+    for _ in range(rounds):
+        if inlier.sum() < 3:
+            break
+        R, t = _gauss_newton(R, t, points[inlier], uv[inlier], info[inlier], K, huber, iterations)
+        r, pc = _residuals(R, t, points, uv, K)
+        inlier = ((r ** 2).sum(1) * info < chi2) & (pc[:, 2] > 0)
+    out = np.eye(4)
+    out[:3, :3], out[:3, 3] = R, t
+    return invert_pose(out), inlier

@@ -1,0 +1,48 @@
+"""Pinhole projection of world points into a camera posed camera-to-world (numpy, float64)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from worker.geometry import Intrinsics
+
+
+def camera_matrix(intrinsics: Intrinsics) -> np.ndarray:
+    """K [3, 3] float64."""
+    return np.array([[intrinsics.fx, 0.0, intrinsics.cx], [0.0, intrinsics.fy, intrinsics.cy], [0.0, 0.0, 1.0]])
+
+
+def invert_pose(pose: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid 4x4 transform."""
+    out = np.eye(4)
+    R = pose[:3, :3]
+    out[:3, :3] = R.T
+    out[:3, 3] = -R.T @ pose[:3, 3]
+    return out
+
+
+def to_camera(points: np.ndarray, pose_c2w: np.ndarray) -> np.ndarray:
+    """World points [N, 3] in the frame of a camera at `pose_c2w`."""
+    R, t = pose_c2w[:3, :3], pose_c2w[:3, 3]
+    return (points - t) @ R
+
+
+def project(points: np.ndarray, pose_c2w: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels [N, 2] and z-depths [N] of world points [N, 3] (pixels are meaningless where z <= 0)."""
+    pc = to_camera(points, pose_c2w)
+    z = pc[:, 2]
+    zs = np.where(np.abs(z) > 1e-12, z, 1e-12)
+    uv = np.stack([K[0, 0] * pc[:, 0] / zs + K[0, 2], K[1, 1] * pc[:, 1] / zs + K[1, 2]], axis=1)
+    return uv, z
+
+
+def in_image(uv: np.ndarray, z: np.ndarray, width: int, height: int, margin: float = 0.0) -> np.ndarray:
+    """Mask of projections in front of the camera and inside the image (less `margin` pixels)."""
+    return ((z > 1e-6) & (uv[:, 0] >= margin) & (uv[:, 0] < width - margin) & (uv[:, 1] >= margin)
+            & (uv[:, 1] < height - margin))
+
+
+def bearings(uv: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Unit viewing rays [N, 3] in the camera frame through pixels uv [N, 2]."""
+    rays = np.stack([(uv[:, 0] - K[0, 2]) / K[0, 0], (uv[:, 1] - K[1, 2]) / K[1, 1], np.ones(len(uv))], axis=1)
+    return rays / np.linalg.norm(rays, axis=1, keepdims=True)
