@@ -91,7 +91,8 @@ class SessionPage:
 class TrajectoryPose:
     seq: int
     timestamp: float
-    pose: np.ndarray  # 4x4 c2w
+    pose: np.ndarray  # 4x4 c2w similarity [sR|t]
+    scale: float = 1.0  # s: pose[:3, :3] / scale is the rotation
 
     @property
     def position(self) -> np.ndarray:
@@ -112,7 +113,7 @@ class Trajectory:
     def from_json(cls, data: dict[str, Any]) -> Trajectory:
         poses = [
             TrajectoryPose(seq=int(p.get("seq", i)), timestamp=float(p.get("timestamp", 0.0)),
-                           pose=pose_from_list(p["pose"]))
+                           pose=pose_from_list(p["pose"]), scale=float(p.get("scale", 1.0)))
             for i, p in enumerate(data.get("poses", []))
         ]
         return cls(session_id=str(data.get("session_id", "")), revision=int(data.get("revision") or 0),
@@ -132,9 +133,10 @@ class PoseEvent:
 
     seq: int
     timestamp: float
-    pose: np.ndarray
+    pose: np.ndarray  # 4x4 c2w similarity [sR|t]
     is_keyframe: bool
     revision: int
+    scale: float = 1.0  # s: pose[:3, :3] / scale is the rotation
 
 
 @dataclass(frozen=True)
@@ -154,7 +156,7 @@ def event_from_message(message: dict[str, Any]) -> StreamEvent | None:
     if kind == "pose":
         return PoseEvent(seq=int(message["seq"]), timestamp=float(message.get("timestamp", 0.0)),
                          pose=pose_from_list(message["pose"]), is_keyframe=bool(message.get("is_keyframe", False)),
-                         revision=int(message.get("revision") or 0))
+                         revision=int(message.get("revision") or 0), scale=float(message.get("scale", 1.0)))
     if kind == "loop_closed":
         return LoopClosedEvent(revision=int(message.get("revision") or 0), data=dict(message))
     return None

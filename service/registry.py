@@ -16,6 +16,7 @@ import msgpack
 import redis.asyncio as aioredis
 
 from worker.runtime import keys
+from worker.runtime.similarity import similarity_scale
 
 # Atomically: check the session accepts frames, seq increases, the queue has room; enqueue; count.
 # Returns {code, value, resend_from}: 0 accepted (value = queue depth), -1 no session, -2 not accepting (status),
@@ -175,7 +176,8 @@ class Registry:
             record = msgpack.unpackb(blob, raw=False)
             if which == "keyframes" and not record.get("kf"):
                 continue
-            poses.append({"seq": int(seq), "timestamp": float(record["t"]), "pose": record["p"]})
+            poses.append({"seq": int(seq), "timestamp": float(record["t"]), "pose": record["p"],
+                          "scale": similarity_scale(record["p"])})
         poses.sort(key=lambda p: p["seq"])
         return poses
 

@@ -79,7 +79,9 @@ class SessionList(BaseModel):
 class TrajectoryPose(BaseModel):
     seq: int
     timestamp: float
-    pose: list[float] = Field(description="camera-to-world 4x4, 16 floats row-major")
+    pose: list[float] = Field(description="camera-to-world similarity [sR|t; 0 0 0 1], 16 floats row-major: divide "
+                              "the 3x3 block by `scale` for the rotation (before converting it to a quaternion)")
+    scale: float = Field(1.0, description="s of the similarity: cbrt(|det(3x3 block)|); 1 with metric input")
 
 
 class Trajectory(BaseModel):

@@ -1,43 +1,117 @@
-"""The WebSocket protocol, as the `x-websocket` extension of openapi.yaml (OpenAPI cannot describe WebSockets)."""
+"""The WebSocket protocol, as the `x-websocket` extension of openapi.yaml (OpenAPI cannot describe WebSockets).
+
+A client written from this text alone must be able to stream without probing the server: every message, error
+code, close code, the flow-control rules and the session's lifetime are stated here.
+"""
 
 from __future__ import annotations
 
 _POSE = {"type": "array", "items": {"type": "number"}, "minItems": 16, "maxItems": 16,
-         "description": "camera-to-world 4x4, row-major"}
+         "description": "camera-to-world similarity [sR | t; 0 0 0 1], 16 floats row-major (OpenCV camera: x right, "
+                        "y down, z forward). The 3x3 block is s times a rotation: divide it by `scale` before "
+                        "converting it to a quaternion. s = 1 with metric input (depth or device poses)"}
+_SCALE = {"type": "number", "description": "s of the similarity: cbrt(|det(3x3 block)|)"}
+
+FRAME_ERROR_CODES = {
+    "backpressure": "the session's queue is full (or an earlier frame was refused for it): not queued; re-send "
+                    "from `resend_from`",
+    "unavailable": "the session store (Redis) is unreachable: not queued; re-send from `resend_from` (with a seq) "
+                   "or reconnect (without)",
+    "bad_seq": "seq not greater than the last accepted one (duplicate or out of order): not queued; the message "
+               "names the last accepted seq",
+    "bad_size": "the image's size differs from the session's first frame's: not queued (one size per session)",
+    "bad_message": "not a msgpack map with type frame, a text frame, a bad seq/timestamp, or an unknown control "
+                   "message",
+    "bad_image": "image missing, not JPEG/PNG, too large a side, or corrupt (the last found by the worker after the "
+                 "ack)",
+    "bad_depth": "depth is not a 16-bit PNG of the image's size",
+    "bad_pose": "pose is not 16 finite floats of a rigid or similarity transform",
+    "bad_intrinsics": "intrinsics malformed, or the session's are for another aspect ratio",
+    "too_large": "the message exceeds FLASHMONO_MAX_FRAME_BYTES",
+    "bad_frame": "the worker could not use an acked frame (the engine refused it)",
+    "not_accepting": "the session is finishing or finished: not queued",
+    "not_found": "the session was deleted (then close 4404)",
+    "unauthorized": "missing or unknown API key (then close 4401)",
+    "forbidden": "the key lacks the stream scope or did not create the session (then close 4403)",
+    "forbidden_origin": "a browser Origin not in FLASHMONO_ALLOWED_ORIGINS (then close 4403)",
+    "engine_failed": "the session failed in the worker (status failed)",
+}
+
+CLOSE_CODES = {
+    "1000": "after `finished`: every frame was processed",
+    "1009": "a message larger than the server's WebSocket limit (about 2 x FLASHMONO_MAX_FRAME_BYTES); no error "
+            "frame (the WebSocket layer closes)",
+    "1013": "the session store (Redis) is unreachable at connect time: reconnect shortly",
+    "4401": "unauthorized: missing or unknown key (header, or ?api_key=)",
+    "4403": "forbidden: the key lacks the stream scope, did not create the session, or the Origin is not allowed",
+    "4404": "the session does not exist or was deleted",
+    "4409": "the session takes no frames (finishing, finished or failed)",
+}
 
 WEBSOCKET_DOC = {
     "/v1/sessions/{session_id}/stream": {
         "summary": "Stream camera frames; receive acks, live poses and loop-closure events",
         "auth": "X-API-Key or Authorization: Bearer header, or ?api_key= query parameter; needs the stream scope "
-                "and the key that created the session (or admin). Failures: an error message with code "
-                "unauthorized/forbidden/not_found, then close code 4401/4403/4404.",
+                "and the key that created the session (or admin). A server started without keys "
+                "(FLASHMONO_API_KEYS unset) is open to anyone and logs a warning saying so at start-up.",
+        "closing": "Every close other than 1000 and 1009 comes right after an `error` message with a `code` and a "
+                   "`message` saying why. Close codes: see close_codes.",
+        "close_codes": CLOSE_CODES,
+        "flow_control": (
+            "Each binary frame gets exactly one immediate answer, in the order frames arrived: `ack` (queued "
+            "durably) or `error` with its seq (not queued, or unusable). Each acked frame later gets exactly one "
+            "result with its seq: `pose` (processed) or `error` (the worker could not use it). A windowed sender "
+            "therefore counts frames at the server as acks minus results, and frames on the wire as sent minus "
+            "immediate answers; neither count can stall. Backpressure keeps the order: once frame N is refused "
+            "with `backpressure`, every later seq is refused the same way with `resend_from: N`, even after the "
+            "queue drains, until a frame with seq <= N is accepted; so rewind to N, wait a little (back off "
+            "exponentially while refusals go on) and re-send from there, ignoring the refusals of frames sent "
+            "before the rewind. A live camera that prefers fresh images may send its newest image under seq N."),
+        "sequence_numbers": "seq must increase strictly within a session; gaps are allowed (a skipped seq is never "
+                            "waited for). A seq at or below the last accepted one is refused with bad_seq.",
+        "session_lifetime": (
+            "Closing the socket without `finish` leaves the session live (status streaming) with its queue and "
+            "results; nothing times it out. Reconnect to the same URL and go on with seqs above the last acked one "
+            "(a bad_seq error names it); results already sent are not repeated, GET the trajectory for them. "
+            "`finish` (from any connection) ends it; DELETE /v1/sessions/{id} discards it."),
         "client_messages": {
             "frame": {
-                "encoding": "binary msgpack map",
+                "encoding": "binary WebSocket message holding a msgpack map (text JSON frames are refused with "
+                            "bad_message)",
                 "schema": {
                     "type": "object", "required": ["type", "seq", "timestamp", "image"],
                     "properties": {
                         "type": {"const": "frame"},
                         "seq": {"type": "integer", "minimum": 0,
-                                "description": "strictly increasing; duplicates and out-of-order frames are refused"},
+                                "description": "strictly increasing, gaps allowed; see sequence_numbers"},
                         "timestamp": {"type": "number", "description": "seconds"},
-                        "image": {"type": "string", "format": "binary", "description": "JPEG or PNG (RGB)"},
+                        "image": {"type": "string", "format": "binary",
+                                  "description": "JPEG or PNG (RGB) as raw bytes; every frame of a session the "
+                                                 "same size"},
                         "intrinsics": {"description": "overrides the session's intrinsics for this frame",
                                        "oneOf": [{"type": "object", "required": ["fx", "fy", "cx", "cy"]},
                                                  {"type": "array", "items": {"type": "number"}, "minItems": 4,
                                                   "maxItems": 4}]},
                         "depth": {"type": "string", "format": "binary",
-                                  "description": "16-bit single-channel PNG in millimetres, same size as the image"},
-                        "pose": {**_POSE, "description": "device pose prior, camera-to-world 4x4 row-major"},
+                                  "description": "16-bit single-channel PNG in millimetres, same size as the image "
+                                                 "(0 = no depth)"},
+                        "pose": {**_POSE, "description": "device pose, camera-to-world 4x4 row-major (rigid, metres); "
+                                                         "the session's pose_mode says how it is used"},
                     },
                 },
+                "input_mode": "the fields of the first frame choose the input mode for the session (see the "
+                              "`preset` field of POST /v1/sessions and GET /v1/presets)",
             },
             "finish": {"encoding": "text JSON",
                        "schema": {"type": "object", "properties": {"type": {"const": "finish"}}},
-                       "description": "no more frames: the worker finishes the map (with the preset's final "
-                                      "refinement over every keyframe, if it has one: tens of seconds for `rgbd`; "
-                                      "render requests are answered after it); the server sends finished, then "
-                                      "closes (code 1000)"},
+                       "description": "no more frames: the worker processes what is queued, then finishes the map "
+                                      "with the preset's final refinement, if it has one, and sends finished and "
+                                      "closes (code 1000); render requests are answered after it. `rgbd` refines 8 "
+                                      "passes over every held keyframe (at most 66: the window and 64 archived), "
+                                      "about 0.1 s per keyframe and pass at 320x240 on 2 CPU cores: 30 s for the "
+                                      "211-frame ICL sequence (36 keyframes), up to about a minute for long "
+                                      "sessions (bench/RESULTS.md). No progress messages come meanwhile; the "
+                                      "session's status stays `finishing` until then"},
             "ping": {"encoding": "text JSON", "schema": {"type": "object", "properties": {"type": {"const": "ping"}}},
                      "description": "answered by {type: pong}"},
         },
@@ -49,20 +123,22 @@ WEBSOCKET_DOC = {
                 "description": "the frame is queued (durably, in Redis)"},
             "pose": {"type": "object", "properties": {
                 "type": {"const": "pose"}, "seq": {"type": "integer"}, "timestamp": {"type": "number"},
-                "pose": _POSE, "is_keyframe": {"type": "boolean"}, "revision": {"type": "integer"}},
-                "description": "the tracked pose of a frame; sent once per seq"},
+                "pose": _POSE, "scale": _SCALE, "is_keyframe": {"type": "boolean"}, "revision": {"type": "integer"}},
+                "description": "the tracked pose of a frame: its result, sent once per seq"},
             "loop_closed": {"type": "object", "properties": {
                 "type": {"const": "loop_closed"}, "revision": {"type": "integer"}},
                 "additionalProperties": True,
                 "description": "a loop closure rewrote past poses: GET the trajectory for revision `revision`"},
-            "error": {"type": "object", "properties": {
-                "type": {"const": "error"}, "seq": {"type": "integer"}, "message": {"type": "string"},
-                "code": {"enum": ["backpressure", "bad_seq", "bad_message", "bad_image", "bad_depth", "bad_pose",
-                                  "bad_intrinsics", "bad_frame", "too_large", "not_accepting", "not_found",
-                                  "unauthorized", "forbidden", "engine_failed"]},
-                "queue_depth": {"type": "integer", "description": "with backpressure"}},
-                "description": "a refused frame (never silently dropped: backpressure means resend later) or a "
-                               "session-level problem; the stream stays open except for not_found/auth errors"},
+            "error": {"type": "object", "required": ["type", "code", "message"], "properties": {
+                "type": {"const": "error"}, "seq": {"type": "integer", "description": "the frame it is about"},
+                "message": {"type": "string"},
+                "code": {"enum": list(FRAME_ERROR_CODES), "description": "; ".join(
+                    f"{code}: {meaning}" for code, meaning in FRAME_ERROR_CODES.items())},
+                "queue_depth": {"type": "integer", "description": "with backpressure"},
+                "resend_from": {"type": "integer", "description": "with backpressure/unavailable: the seq to "
+                                                                  "re-send next"}},
+                "description": "a refused or unusable frame (never silently dropped) or a session-level problem; "
+                               "the stream stays open except where close_codes says otherwise"},
             "finished": {"type": "object", "properties": {
                 "type": {"const": "finished"}, "frames": {"type": "integer", "description": "frames processed"}}},
             "pong": {"type": "object", "properties": {"type": {"const": "pong"}}},

@@ -27,6 +27,7 @@ from worker.runtime.frames import FrameError, decode_frame
 from worker.runtime.leases import Leases
 from worker.runtime.outage import REDIS_DOWN
 from worker.runtime.requests import handle_request
+from worker.runtime.similarity import similarity_scale
 from worker.runtime.stats import StageStats
 from worker.serialization import pack, unpack
 
@@ -109,7 +110,8 @@ def ensure_group(client: redis.Redis, stream: str) -> None:
 def pose_message(seq: int, timestamp: float, pose: np.ndarray, is_keyframe: bool, revision: int) -> bytes:
     return json.dumps({"type": "pose", "seq": seq, "timestamp": timestamp,
                        "pose": np.asarray(pose, dtype=np.float64).reshape(-1).tolist(),
-                       "is_keyframe": bool(is_keyframe), "revision": int(revision)}).encode()
+                       "scale": similarity_scale(pose), "is_keyframe": bool(is_keyframe),
+                       "revision": int(revision)}).encode()
 
 
 class SessionRunner(threading.Thread):
