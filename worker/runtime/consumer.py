@@ -15,6 +15,7 @@ import redis
 from worker.runtime import keys
 from worker.runtime.engine import SessionEngine, close_engine, restore_engine
 from worker.runtime.leases import Leases
+from worker.runtime.memory import over_budget
 from worker.runtime.outage import REDIS_DOWN, Backoff, OutageLog, wait_for_redis
 from worker.runtime.requests import handle_request
 from worker.runtime.sessions import RuntimeConfig, SessionRunner, ensure_group
@@ -99,7 +100,7 @@ class Worker:
             self._next_claim = time.monotonic() + self.config.lease_ttl_ms / 2000
         for session_id, job_id in list(self._waiting.items()):
             self._take(session_id, job_id)
-        if len(self.runners) >= self.config.max_sessions:
+        if len(self.runners) >= self.config.max_sessions or over_budget(self.config.memory_budget_mb):
             time.sleep(0.05)
             return
         reply = self.client.xreadgroup(keys.GROUP, self.worker_id, {keys.JOBS: ">"}, count=1,
@@ -139,7 +140,8 @@ class Worker:
             self.client.xack(keys.JOBS, keys.GROUP, job_id)
             self._waiting.pop(session_id, None)
             return
-        if len(self.runners) >= self.config.max_sessions or not self.leases.acquire(session_id):
+        if (len(self.runners) >= self.config.max_sessions or over_budget(self.config.memory_budget_mb)
+                or not self.leases.acquire(session_id)):
             self._waiting[session_id] = job_id  # retried until the old owner's lease expires
             return
         self._waiting.pop(session_id, None)

@@ -1,4 +1,9 @@
-"""Turn a wire frame message (the msgpack the phone sent) into an engine `Frame`, with clear errors."""
+"""Turn a wire frame message (the msgpack the phone sent) into an engine `Frame`, with clear errors.
+
+Frames larger than the session's working resolution are brought down to it while decoding (a JPEG is decoded at
+1/2, 1/4 or 1/8 scale by libjpeg itself), so a 8192x8192 frame never costs the worker per-pixel memory at its full
+size; the intrinsics are scaled with the image.
+"""
 
 from __future__ import annotations
 
@@ -7,8 +12,13 @@ from typing import Any
 import cv2
 import numpy as np
 
+from service.image_header import image_size
 from worker.data.frame import Frame
 from worker.geometry import Intrinsics
+
+DEFAULT_MAX_SIDE = 640  # the longest side a frame is worked on at (FLASHMONO_MAX_FRAME_SIDE)
+_REDUCED_COLOR = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4,
+                  8: cv2.IMREAD_REDUCED_COLOR_8}
 
 
 class FrameError(ValueError):
@@ -19,18 +29,43 @@ class FrameError(ValueError):
         self.code = code
 
 
-def decode_frame(message: dict[str, Any], session_intrinsics: dict[str, Any] | None) -> Frame:
-    """The Frame for a validated wire message {seq, timestamp, image, intrinsics?, depth?, pose?}."""
-    image = _decode_image(message["image"])
-    height, width = image.shape[:2]
-    intrinsics = frame_intrinsics(message.get("intrinsics"), session_intrinsics, width, height)
+def working_size(width: int, height: int, session_intrinsics: dict[str, Any] | None,
+                 max_side: int = DEFAULT_MAX_SIDE) -> tuple[int, int]:
+    """(width, height) a frame is worked on at: its own size, brought down (aspect kept) to the session's
+    declared resolution and to `max_side`, whichever is smaller; never up."""
+    longest = max(width, height)
+    target = max_side
+    if session_intrinsics:
+        target = min(target, max(int(session_intrinsics["width"]), int(session_intrinsics["height"])))
+    if longest <= target:
+        return width, height
+    scale = target / longest
+    return max(1, round(width * scale)), max(1, round(height * scale))
+
+
+def decode_frame(message: dict[str, Any], session_intrinsics: dict[str, Any] | None,
+                 max_side: int = DEFAULT_MAX_SIDE) -> Frame:
+    """The Frame for a validated wire message {seq, timestamp, image, intrinsics?, depth?, pose?}, at the
+    session's working resolution (see `working_size`)."""
+    try:
+        _, sent_w, sent_h = image_size(message["image"])
+    except ValueError as err:
+        raise FrameError("bad_image", f"image is not a valid JPEG/PNG: {err}") from err
+    width, height = working_size(sent_w, sent_h, session_intrinsics, max_side)
+    image = _decode_image(message["image"], width, height)
+    intrinsics = frame_intrinsics(message.get("intrinsics"), session_intrinsics, sent_w, sent_h)
+    if intrinsics is not None and (width, height) != (sent_w, sent_h):
+        intrinsics = intrinsics.scaled(width, height)
     depth = None
     if message.get("depth") is not None:
         raw = cv2.imdecode(np.frombuffer(message["depth"], dtype=np.uint8), cv2.IMREAD_UNCHANGED)
         if raw is None or raw.dtype != np.uint16 or raw.ndim != 2:
             raise FrameError("bad_depth", "depth must be a single-channel 16-bit PNG in millimetres")
-        if raw.shape != (height, width):
-            raise FrameError("bad_depth", f"depth is {raw.shape[1]}x{raw.shape[0]} but the image is {width}x{height}")
+        if raw.shape != (sent_h, sent_w):
+            raise FrameError("bad_depth", f"depth is {raw.shape[1]}x{raw.shape[0]} but the image is "
+                                          f"{sent_w}x{sent_h}")
+        if raw.shape != (height, width):  # nearest: averaging would mix valid depths with holes (0)
+            raw = cv2.resize(raw, (width, height), interpolation=cv2.INTER_NEAREST)
         depth = raw.astype(np.float32) / 1000.0
     pose = None
     if message.get("pose") is not None:
@@ -54,13 +89,17 @@ def frame_intrinsics(value: Any, session_intrinsics: dict[str, Any] | None, widt
     return None
 
 
-def _decode_image(data: bytes) -> np.ndarray:
-    buf = np.frombuffer(data, dtype=np.uint8)
-    bgr = cv2.imdecode(buf, cv2.IMREAD_COLOR)
+def _decode_image(data: bytes, width: int, height: int) -> np.ndarray:
+    """RGB uint8 at width x height: decoded at the largest 1/2^k reduction still at least that big, then resized."""
+    _, sent_w, sent_h = image_size(data)
+    factor = max(f for f in _REDUCED_COLOR if -(-sent_w // f) >= width and -(-sent_h // f) >= height)
+    bgr = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), _REDUCED_COLOR[factor])
     if bgr is None:
         raise FrameError("bad_image", "image could not be decoded (corrupt or unsupported JPEG/PNG)")
     if not _complete_encoding(data):
         raise FrameError("bad_image", "image data is truncated")
+    if bgr.shape[:2] != (height, width):
+        bgr = cv2.resize(bgr, (width, height), interpolation=cv2.INTER_AREA)
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
 

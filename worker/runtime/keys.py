@@ -8,6 +8,7 @@ Per session `{id}`:
   fm:s:{id}:rejected     hash   seq -> error code of frames the worker refused (idempotent by seq)
   fm:s:{id}:snap         hash   {data, seq, stream_id, keyframes}: the last engine snapshot
   fm:s:{id}:req          stream render/export requests for the live owner
+  fm:s:{id}:inflight     string "<seq>:<attempts>" of the frame being processed (poison-frame quarantine)
   fm:lease:{id}          string worker id owning the session (expires unless renewed)
 Global:
   fm:sessions            zset   members "<created_us>:<id>" (score 0, lexicographic order) for listing
@@ -59,6 +60,10 @@ def session_requests(session_id: str) -> str:
     return f"fm:s:{session_id}:req"
 
 
+def inflight(session_id: str) -> str:
+    return f"fm:s:{session_id}:inflight"
+
+
 def lease(session_id: str) -> str:
     return f"fm:lease:{session_id}"
 
@@ -78,4 +83,4 @@ def reply(request_id: str) -> str:
 def all_session_keys(session_id: str) -> list[str]:
     """Every key that belongs to one session (deleted together)."""
     return [session(session_id), inbox(session_id), outbox(session_id), poses(session_id), rejected(session_id),
-            snapshot(session_id), session_requests(session_id), lease(session_id)]
+            snapshot(session_id), session_requests(session_id), lease(session_id), inflight(session_id)]

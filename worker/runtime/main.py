@@ -2,7 +2,8 @@
 
 Environment (flags override): REDIS_URL (required here), FLASHMONO_WORKER_ID, FLASHMONO_ENGINE (slam|passthrough),
 FLASHMONO_LEASE_TTL_MS (10000), FLASHMONO_SNAPSHOT_EVERY (keyframes between snapshots, 5),
-FLASHMONO_MAX_SESSIONS (sessions per worker, 16), FLASHMONO_TORCH_THREADS (torch intra-op threads).
+FLASHMONO_MAX_SESSIONS (sessions per worker, 16), FLASHMONO_TORCH_THREADS (torch intra-op threads),
+FLASHMONO_MAX_FRAME_SIDE (640), FLASHMONO_MAX_FRAME_ATTEMPTS (2), FLASHMONO_MEMORY_BUDGET_MB (0: none).
 """
 
 from __future__ import annotations
@@ -33,6 +34,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--lease-ttl-ms", type=int, default=int(env("FLASHMONO_LEASE_TTL_MS", "10000")))
     parser.add_argument("--snapshot-every", type=int, default=int(env("FLASHMONO_SNAPSHOT_EVERY", "5")))
     parser.add_argument("--max-sessions", type=int, default=int(env("FLASHMONO_MAX_SESSIONS", "16")))
+    parser.add_argument("--max-frame-side", type=int, default=int(env("FLASHMONO_MAX_FRAME_SIDE", "640")),
+                        help="frames are downscaled to this longest side (and to the session's resolution) on decode")
+    parser.add_argument("--max-frame-attempts", type=int, default=int(env("FLASHMONO_MAX_FRAME_ATTEMPTS", "2")),
+                        help="workers that may die processing one frame before it is quarantined (session failed)")
+    parser.add_argument("--memory-budget-mb", type=int, default=int(env("FLASHMONO_MEMORY_BUDGET_MB", "0")),
+                        help="take no new session while this process's resident memory is above it (0: no limit)")
     parser.add_argument("--torch-threads", type=int, default=int(env("FLASHMONO_TORCH_THREADS", "0")))
     parser.add_argument("--log-level", default=env("FLASHMONO_LOG_LEVEL", "INFO"))
     return parser
@@ -44,8 +51,10 @@ def main(argv: list[str] | None = None) -> int:
     if not args.redis_url:
         print("error: REDIS_URL (or --redis-url) is required for a worker", file=sys.stderr)
         return 2
-    if args.snapshot_every < 1 or args.max_sessions < 1:
-        print("error: --snapshot-every and --max-sessions must be >= 1", file=sys.stderr)
+    if min(args.snapshot_every, args.max_sessions, args.max_frame_attempts) < 1 or args.max_frame_side < 32 \
+            or args.memory_budget_mb < 0:
+        print("error: --snapshot-every, --max-sessions and --max-frame-attempts must be >= 1, --max-frame-side "
+              ">= 32 and --memory-budget-mb >= 0", file=sys.stderr)
         return 2
     if args.torch_threads > 0:
         import torch
@@ -53,7 +62,9 @@ def main(argv: list[str] | None = None) -> int:
         torch.set_num_threads(args.torch_threads)
     worker_id = args.worker_id or f"{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:6]}"
     config = RuntimeConfig(engine_kind=args.engine, lease_ttl_ms=args.lease_ttl_ms,
-                           snapshot_every_keyframes=args.snapshot_every, max_sessions=args.max_sessions)
+                           snapshot_every_keyframes=args.snapshot_every, max_sessions=args.max_sessions,
+                           max_frame_side=args.max_frame_side, max_frame_attempts=args.max_frame_attempts,
+                           memory_budget_mb=args.memory_budget_mb)
     # No silent retries inside redis-py: a lost connection surfaces to the worker's loops, which wait the outage
     # out and resume each session from its snapshot (a retried XREADGROUP could lose the entries of its reply).
     client = redis.Redis.from_url(args.redis_url, health_check_interval=30, retry=Retry(NoBackoff(), 0))

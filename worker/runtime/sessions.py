@@ -23,9 +23,10 @@ import redis
 from worker.geometry import Intrinsics
 from worker.runtime import keys
 from worker.runtime.engine import SessionEngine, close_engine, create_engine, engine_intrinsics, restore_engine
-from worker.runtime.frames import FrameError, decode_frame
+from worker.runtime.frames import DEFAULT_MAX_SIDE, FrameError, decode_frame
 from worker.runtime.leases import Leases
 from worker.runtime.outage import REDIS_DOWN
+from worker.runtime.quarantine import FrameAttempts
 from worker.runtime.requests import handle_request
 from worker.runtime.similarity import similarity_scale
 from worker.runtime.stats import StageStats
@@ -78,6 +79,9 @@ class RuntimeConfig:
     max_sessions: int = 16
     block_ms: int = 500
     outbox_maxlen: int = 5000
+    max_frame_side: int = DEFAULT_MAX_SIDE  # frames are worked on at most this long a side
+    max_frame_attempts: int = 2  # workers that may die on one frame before it is quarantined
+    memory_budget_mb: int = 0  # no new session while the worker's resident memory is above it (0: no limit)
 
 
 class SessionGone(Exception):
@@ -142,6 +146,7 @@ class SessionRunner(threading.Thread):
         self._store_result = client.register_script(_STORE_RESULT)
         self._store_rejection = client.register_script(_STORE_REJECTION)
         self._store_snapshot = client.register_script(_STORE_SNAPSHOT)
+        self._attempts = FrameAttempts(client, session_id, config.max_frame_attempts)
 
     # --- control from the worker --------------------------------------------------------------------------------
     def stop(self) -> None:
@@ -274,15 +279,17 @@ class SessionRunner(threading.Thread):
         """Feed an already-counted frame to a restored engine so its state catches up (no results emitted)."""
         if int(fields[b"seq"]) not in self._rejected:
             try:
-                self.engine.push(decode_frame(unpack(fields[b"msg"]), self._session_intrinsics()))
+                self.engine.push(decode_frame(unpack(fields[b"msg"]), self._session_intrinsics(),
+                                              self.config.max_frame_side))
             except (FrameError, ValueError) as err:
                 log.warning("replay of seq %s failed: %s", fields[b"seq"], err)
 
     def _process_frame(self, entry_id: bytes, seq: int, fields: dict[bytes, bytes]) -> None:
+        self._attempts.begin(seq)  # before anything that could take the worker down with this frame
         t0, c0 = time.perf_counter(), time.thread_time()
         try:
             message = unpack(fields[b"msg"])
-            frame = decode_frame(message, self._session_intrinsics())
+            frame = decode_frame(message, self._session_intrinsics(), self.config.max_frame_side)
         except FrameError as err:
             self._reject(entry_id, seq, err.code, str(err))
             return
