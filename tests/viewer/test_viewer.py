@@ -82,6 +82,10 @@ def test_viewer_draws_a_live_session_renders_and_downloads(chromium, live_sessio
             await page.wait_for("window.viewerState.renders >= 1", 60)
             listed = await page.wait_for(
                 f"document.querySelector('#sessions li[data-id=\"{session_id}\"]') !== null", 20)
+            # the key left the address bar (history, bookmarks, Referer) for this tab's sessionStorage only
+            address = await page.evaluate("window.location.href")
+            stored = await page.evaluate("[sessionStorage.getItem('flashmono.apiKey'), "
+                                         "localStorage.getItem('flashmono.apiKey')]")
             shots = {name: await page.screenshot(await _clip(page, name)) for name in ("topdown", "view3d", "render")}
             blank = await page.screenshot({"x": 0, "y": 0, "width": 40, "height": 40})
             # Move the camera: a new render is requested and shown.
@@ -98,11 +102,13 @@ def test_viewer_draws_a_live_session_renders_and_downloads(chromium, live_sessio
             stats = await page.evaluate("document.getElementById('session-stats').textContent")
             return {"shots": shots, "blank": blank, "status": status, "status_later": status_later,
                     "last_map": last_map, "saved": saved, "stats": stats, "listed": listed,
-                    "errors": list(page.console_errors),
+                    "errors": list(page.console_errors), "address": address, "stored": stored,
                     "last_error": await page.evaluate("window.viewerState.lastError")}
 
     result = asyncio.run(scenario())
-    assert result["errors"] == [], result["errors"]
+    assert result["errors"] == [], result["errors"]  # the viewer's CSP blocks nothing it needs
+    assert result["address"] == f"{stack.url}/viewer?session={session_id}"
+    assert result["stored"] == ["viewer", None]
     assert result["last_error"] is None
     assert result["listed"]
     assert f"{frame_count}/{frame_count} frames" in result["stats"]
