@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -17,6 +18,7 @@ from .decide import decide
 from .sweep import inverse_depths, pose_problem, reference_stats, sweep_pixels, view_geometry
 
 log = logging.getLogger(__name__)
+_workspace = threading.local()  # per calling thread: the large intermediate buffers, reused while shapes match
 
 
 @dataclass
@@ -80,6 +82,15 @@ def _kernels(backend: str) -> tuple[str, ModuleType]:
         raise RuntimeError(f"compiled MVS kernels unavailable: {mvs_cpu.load_error()}")
     log.warning("compiled MVS kernels unavailable (%s); using the numpy reference", mvs_cpu.load_error())
     return "reference", reference
+
+
+def _array(name: str, shape: tuple[int, ...], keep: bool) -> np.ndarray:
+    """A float32 array of this shape: this thread's kept one when it fits, else a new one (kept when `keep`)."""
+    array = getattr(_workspace, name, None)
+    if array is None or array.shape != shape:
+        array = np.empty(shape, dtype=np.float32)
+    setattr(_workspace, name, array if keep else None)
+    return array
 
 
 def _default_range(baselines: list[float], config: MultiViewDepthConfig) -> tuple[float, float] | None:
@@ -155,12 +166,17 @@ def estimate_depth(ref_image: np.ndarray, K: np.ndarray, ref_pose: np.ndarray,
     planes = inverse_depths(near, far, config.num_hypotheses)
     A = np.stack([g.A for g in geometries])
     b = np.stack([g.b for g in geometries])
-    cost = kernels.cost_volume(ref, ref_sum, ref_ssd, views, A, b, planes, radius, min_var, config.threads)
+    keep, N, D = config.keep_buffers, len(geometries), len(planes)
+    cost = kernels.cost_volume(ref, ref_sum, ref_ssd, views, A, b, planes, radius, min_var, config.threads,
+                               out=_array("cost", (N, D, h, w), keep))
     timings["cost"] = time.perf_counter() - tick
 
     tick = time.perf_counter()
-    fused, view_min = kernels.fuse_views(cost, config.views_per_pixel, config.threads)
-    total = kernels.sgm(fused, config.sgm_p1, config.sgm_p2, config.sgm_paths, config.threads)
+    fused, view_min = kernels.fuse_views(cost, config.views_per_pixel, config.threads,
+                                         out=_array("fused", (h, w, D), keep))
+    workers = min(config.threads, config.sgm_paths)
+    total = kernels.sgm(fused, config.sgm_p1, config.sgm_p2, config.sgm_paths, config.threads,
+                        out=_array("total", (h, w, D), keep), scratch=_array("scratch", (workers - 1, h, w, D), keep))
     timings["aggregate"] = time.perf_counter() - tick
 
     tick = time.perf_counter()

@@ -57,36 +57,48 @@ def _ptr(a: np.ndarray) -> int:
     return a.ctypes.data
 
 
+def _out(out: np.ndarray | None, shape: tuple[int, ...], dtype=np.float32) -> np.ndarray:
+    """`out` when it is a C-contiguous array of this shape and dtype (reused: no page faults), else a new one."""
+    if out is not None and out.shape == shape and out.dtype == dtype and out.flags.c_contiguous:
+        return out
+    return np.empty(shape, dtype=dtype)
+
+
 def cost_volume(ref: np.ndarray, ref_sum: np.ndarray, ref_ssd: np.ndarray, views: np.ndarray, A: np.ndarray,
-                b: np.ndarray, inv_depths: np.ndarray, radius: int, min_var: float, threads: int = 1) -> np.ndarray:
-    """1 - ZNCC of each view warped onto each plane, float32 [N, D, H, W]; -1 where the view misses the pixel."""
+                b: np.ndarray, inv_depths: np.ndarray, radius: int, min_var: float, threads: int = 1,
+                out: np.ndarray | None = None) -> np.ndarray:
+    """1 - ZNCC of each view warped onto each plane, float32 [N, D, H, W]; -1 where the view misses the pixel.
+    Written into `out` when it fits."""
     N, H, W = views.shape
     D = len(inv_depths)
     inputs = [_c(ref, np.float32), _c(ref_sum, np.float32), _c(ref_ssd, np.float32), _c(views, np.float32),
               _c(A, np.float64), _c(b, np.float64), _c(inv_depths, np.float64)]
-    out = np.empty((N, D, H, W), dtype=np.float32)
+    out = _out(out, (N, D, H, W))
     _lib().mvs_cost_volume(H, W, N, D, *(_ptr(a) for a in inputs), int(radius), float(min_var), int(threads),
                            _ptr(out))
     return out
 
 
-def fuse_views(cost: np.ndarray, keep: int, threads: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """(fused [H, W, D], view_min [N, H, W]) as `reference.fuse_views`."""
+def fuse_views(cost: np.ndarray, keep: int, threads: int = 1,
+               out: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(fused [H, W, D] (into `out` when it fits), view_min [N, H, W]) as `reference.fuse_views`."""
     N, D, H, W = cost.shape
     cost = _c(cost, np.float32)
-    fused = np.empty((H, W, D), dtype=np.float32)
+    fused = _out(out, (H, W, D))
     view_min = np.empty((N, H, W), dtype=np.float32)
     _lib().mvs_fuse_views(N, D, H * W, _ptr(cost), int(keep), int(threads), _ptr(fused), _ptr(view_min))
     return fused, view_min
 
 
-def sgm(cost: np.ndarray, p1: float, p2: float, paths: int, threads: int = 1) -> np.ndarray:
-    """Sum over `paths` directions of the semi-global path costs of cost [H, W, D], float32 [H, W, D]."""
+def sgm(cost: np.ndarray, p1: float, p2: float, paths: int, threads: int = 1, out: np.ndarray | None = None,
+        scratch: np.ndarray | None = None) -> np.ndarray:
+    """Sum over `paths` directions of the semi-global path costs of cost [H, W, D], float32 [H, W, D] (into `out`
+    when it fits; `scratch`: [threads - 1, H, W, D] per-thread partial sums, reused when it fits)."""
     H, W, D = cost.shape
     cost = _c(cost, np.float32)
-    total = np.empty_like(cost)
+    total = _out(out, cost.shape)
     workers = max(1, min(int(threads), int(paths)))
-    scratch = np.empty((workers - 1, H, W, D), dtype=np.float32)
+    scratch = _out(scratch, (workers - 1, H, W, D))
     _lib().mvs_sgm(H, W, D, _ptr(cost), float(p1), float(p2), int(paths), int(threads), _ptr(total), _ptr(scratch))
     return total
 

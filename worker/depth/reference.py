@@ -1,5 +1,5 @@
 """Numpy reference of the compiled kernels (csrc/mvs_cpu.cpp): the same maths, slower; the test oracle and the
-fallback when no C++ compiler is available. Signatures match `mvs_cpu`.
+fallback when no C++ compiler is available. Signatures match `mvs_cpu` (its `out` / `scratch` buffers are ignored).
 """
 
 from __future__ import annotations
@@ -26,13 +26,14 @@ def _bilinear(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 
 def cost_volume(ref: np.ndarray, ref_sum: np.ndarray, ref_ssd: np.ndarray, views: np.ndarray, A: np.ndarray,
-                b: np.ndarray, inv_depths: np.ndarray, radius: int, min_var: float, threads: int = 1) -> np.ndarray:
+                b: np.ndarray, inv_depths: np.ndarray, radius: int, min_var: float, threads: int = 1,
+                out: np.ndarray | None = None) -> np.ndarray:
     """1 - ZNCC of each view warped onto each plane, float32 [N, D, H, W]; UNSEEN where the view misses the pixel."""
     N, H, W = views.shape
     ys, xs = np.mgrid[0:H, 0:W]
     p = np.stack([xs + 0.5, ys + 0.5, np.ones((H, W))], axis=-1)  # [H, W, 3]
     n = window_counts(H, W, radius)
-    out = np.empty((N, len(inv_depths), H, W), dtype=np.float32)
+    volume = np.empty((N, len(inv_depths), H, W), dtype=np.float32)
     for i in range(N):
         base = p @ A[i].T
         for d, w in enumerate(inv_depths):
@@ -49,11 +50,12 @@ def cost_volume(ref: np.ndarray, ref_sum: np.ndarray, ref_ssd: np.ndarray, views
             textured = (var_w > n * min_var) & (var_r > n * min_var)
             cov = s3 - ref_sum.astype(np.float64) * s1 / n
             zncc = np.where(textured, cov / np.sqrt(np.where(textured, var_r * var_w, 1.0)), 0.0)
-            out[i, d] = np.where(seen, 1.0 - np.clip(zncc, -1.0, 1.0), UNSEEN)
-    return out
+            volume[i, d] = np.where(seen, 1.0 - np.clip(zncc, -1.0, 1.0), UNSEEN)
+    return volume
 
 
-def fuse_views(cost: np.ndarray, keep: int, threads: int = 1) -> tuple[np.ndarray, np.ndarray]:
+def fuse_views(cost: np.ndarray, keep: int, threads: int = 1,
+               out: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(fused [H, W, D]: mean of the `keep` lowest seen view costs, 1 where none sees; view_min [N, H, W]: each
     view's lowest seen cost over the hypotheses, UNSEEN where it never sees the pixel)."""
     seen = cost >= 0
@@ -75,7 +77,8 @@ def _sgm_step(c: np.ndarray, prev: np.ndarray, p1: float, p2: float) -> np.ndarr
     return c + v - m
 
 
-def sgm(cost: np.ndarray, p1: float, p2: float, paths: int, threads: int = 1) -> np.ndarray:
+def sgm(cost: np.ndarray, p1: float, p2: float, paths: int, threads: int = 1, out: np.ndarray | None = None,
+        scratch: np.ndarray | None = None) -> np.ndarray:
     """Sum over `paths` directions of the semi-global path costs of cost [H, W, D], float32 [H, W, D]."""
     H, W, D = cost.shape
     total = np.zeros_like(cost)
@@ -110,12 +113,13 @@ def decide_terms(total: np.ndarray, fused: np.ndarray, cost: np.ndarray, view_mi
     D = total.shape[-1]
     best = np.argmin(total, axis=-1)
     interior = (best > 0) & (best < D - 1)
-    a, b, c = (_take(total, np.clip(best + k, 0, D - 1)).astype(np.float64) for k in (-1, 0, 1))
-    curvature = a - 2.0 * b + c
+    a, b, c = (_take(fused, np.clip(best + k, 0, D - 1)).astype(np.float64) for k in (-1, 0, 1))
+    curvature = a - 2.0 * b + c  # the fit uses the matching cost: SGM's penalties pull towards whole hypotheses
     delta = np.where(interior & (curvature > 0), 0.5 * (a - c) / np.where(curvature > 0, curvature, 1.0), 0.0)
     far = np.abs(np.arange(D) - best[..., None]) > 1
     runner_up = np.where(far, total, np.inf).min(axis=-1).astype(np.float64)
-    ratio = np.where(runner_up > 0, b / np.where(runner_up > 0, runner_up, 1.0), 1.0)
+    lowest = _take(total, best).astype(np.float64)
+    ratio = np.where(runner_up > 0, lowest / np.where(runner_up > 0, runner_up, 1.0), 1.0)
     support = np.zeros(best.shape, dtype=np.int16)
     for n in range(cost.shape[0]):
         near = np.full(best.shape, np.inf, dtype=np.float32)

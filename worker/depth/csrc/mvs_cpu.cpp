@@ -272,7 +272,8 @@ extern "C" void mvs_sgm(int H, int W, int D, const float* cost, float P1, float 
     }
 }
 
-// Per pixel, from the aggregated costs total [P, D]: the best hypothesis refined by a parabola (index [P];
+// Per pixel, from the aggregated costs total [P, D]: the best hypothesis refined by a parabola through the fused
+// matching costs around it (index [P];
 // interior [P]: not at either end of the range), the uniqueness 1 - best / runner-up more than one hypothesis away
 // ([P], in [0, 1]), the photometric score 1 - fused cost at the best ([P], clipped to [0, 1]) and the views that
 // agree (support [P]: seen near the best (+-1) with a cost within `margin` of the view's lowest and <= max_cost).
@@ -288,8 +289,9 @@ extern "C" void mvs_decide_terms(int N, int D, int64_t P, const float* total, co
                 if (t[d] < t[best]) best = d;
             const bool inside = best > 0 && best < D - 1;
             double delta = 0.0;
-            if (inside) {
-                const double a = t[best - 1], b = t[best], c = t[best + 1], curvature = a - 2.0 * b + c;
+            if (inside) {  // on the matching cost: SGM's penalties would pull the fit towards whole hypotheses
+                const float* f = fused + p * D;
+                const double a = f[best - 1], b = f[best], c = f[best + 1], curvature = a - 2.0 * b + c;
                 if (curvature > 0) delta = std::min(0.5, std::max(-0.5, 0.5 * (a - c) / curvature));
             }
             index[p] = best + delta;
