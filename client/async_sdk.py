@@ -388,9 +388,9 @@ class AsyncFlashMonoClient:
         """Like `render`, decoded: RGB uint8 [H, W, 3] or depth in metres float32 [H, W]."""
         return decode_png(await self.render(session_id, pose, kind=kind, **camera), kind)
 
-    async def download_map(self, session_id: str) -> bytes:
-        """The session's surfel map as PLY bytes."""
-        return await self._call(rest.map_ply(session_id))
+    async def download_map(self, session_id: str, sh_degree: int = 0) -> bytes:
+        """The session's surfel map as PLY bytes (sh_degree 3: with the 45 zero f_rest coefficients)."""
+        return await self._call(rest.map_ply(session_id, sh_degree))
 
     # ------------------------------------------------------------------------------------------- streaming
     def open_stream(self, session_id: str, *, window: int = 4, max_pending: int = 8, max_retries: int = 20,

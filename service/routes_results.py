@@ -84,12 +84,21 @@ async def render_view(
 @router.get("/map.ply", response_class=Response,
             responses={200: {"content": {"application/octet-stream": {}}, "description": "binary PLY"},
                        409: {"model": ErrorBody}, 503: {"model": ErrorBody}, 504: {"model": ErrorBody}})
-async def export_map(session_id: str, request: Request, principal: Principal = Depends(caller),
-                     reg: Registry = Depends(registry)) -> Response:
-    """The session's 2DGS surfel map as PLY."""
+async def export_map(
+    session_id: str,
+    request: Request,
+    sh_degree: Annotated[int, Query(ge=0, le=3, description="spherical-harmonics degree of the colour properties: 0 "
+                                    "(default) writes f_dc only, 68 bytes a surfel; 3 adds the 45 f_rest "
+                                    "coefficients (all zero: the map's colour is view-independent) that fixed-record "
+                                    "3DGS readers such as SIBR expect, 248 bytes a surfel")] = 0,
+    principal: Principal = Depends(caller),
+    reg: Registry = Depends(registry),
+) -> Response:
+    """The session's 2DGS surfel map as binary PLY (3DGS property layout: x y z nx ny nz f_dc_0..2 [f_rest_..]
+    opacity scale_0..2 rot_0..3)."""
     request.app.state.auth.require(principal, "read", "stream")
     record = await session_for(reg, principal, session_id, write=False)
-    response = await _ask_worker(request, reg, session_id, record, "export_ply", {})
+    response = await _ask_worker(request, reg, session_id, record, "export_ply", {"sh_degree": sh_degree})
     response.headers["content-disposition"] = f'attachment; filename="{session_id}.ply"'
     return response
 

@@ -34,7 +34,8 @@ def test_every_422_has_the_same_body_shape(api):
         assert isinstance(detail, list) and detail
         assert all({"loc", "msg", "type"} <= set(item) for item in detail), detail
     assert unknown_preset.json()["detail"][0]["loc"] == ["body", "preset"]
-    assert "no-such-preset" in unknown_preset.json()["detail"][0]["msg"]
+    assert unknown_preset.json()["detail"][0]["input"] == "no-such-preset"
+    assert "rgbd" in unknown_preset.json()["detail"][0]["msg"]  # names the valid presets
 
 
 def test_a_frame_sent_as_text_json_is_told_to_be_binary_msgpack(api, stack):
@@ -59,3 +60,15 @@ def test_a_frame_of_another_size_is_refused_at_the_gateway(api, stack):
     session = api.get(f"/v1/sessions/{sid}").json()
     assert session["frames_received"] == 2  # the refused frame was never queued
 
+
+
+def test_map_sh_degree_is_validated_and_passed_on(api, stack):
+    sid = api.post("/v1/sessions", json={}).json()["id"]
+    with _stream(stack, sid) as ws:
+        assert _answer(ws, frame_message(0, FRAMES[0]))["type"] == "ack"
+        ws.send('{"type": "finish"}')
+        receive_until(ws, lambda m: m["type"] == "finished", timeout_s=60)
+    assert api.get(f"/v1/sessions/{sid}/map.ply", params={"sh_degree": 4}).status_code == 422
+    for degree in (0, 3):  # the passthrough engine's point PLY has no f_dc: served as it is
+        response = api.get(f"/v1/sessions/{sid}/map.ply", params={"sh_degree": degree})
+        assert response.status_code == 200 and response.content.startswith(b"ply\n")

@@ -65,6 +65,40 @@ def surfels_to_ply_bytes(surfels: Surfels, variant: str = "3dgs", include_keyfra
     return buffer.getvalue()
 
 
+def sh_rest_count(degree: int) -> int:
+    """f_rest coefficients of spherical harmonics up to `degree` (0..3): 3 colour channels x ((degree + 1)^2 - 1)."""
+    if not 0 <= degree <= 3:
+        raise ValueError(f"SH degree must be within 0..3, got {degree}")
+    return 3 * ((degree + 1) ** 2 - 1)
+
+
+def ply_with_sh_degree(data: bytes, degree: int) -> bytes:
+    """The Gaussian PLY `data` with the f_rest properties of SH `degree`: 0 drops them (our surfels keep their colour
+    in f_dc alone, f_rest is all zeros: 68 instead of 248 bytes a surfel), 3 gives the 45 that fixed-record 3DGS
+    readers expect. A PLY without f_dc (not a Gaussian map) is returned unchanged."""
+    wanted = sh_rest_count(degree)
+    try:
+        vertex = PlyData.read(io.BytesIO(data))["vertex"].data
+    except Exception as err:  # plyfile raises several types on malformed input
+        raise ValueError(f"not a readable PLY file: {err}") from err
+    names = list(vertex.dtype.names or ())
+    rest = [n for n in names if n.startswith("f_rest_")]
+    if "f_dc_0" not in names or len(rest) == wanted:
+        return data
+    if any(np.any(vertex[n] != 0) for n in rest):  # (3DGS stores them channel-major: no simple truncation)
+        raise ValueError("the map has non-zero higher-order SH coefficients; it cannot change SH degree")
+    before = [(n, vertex.dtype[n].str) for n in names[:names.index("f_dc_2") + 1]]
+    after = [(n, vertex.dtype[n].str) for n in names if n not in rest and (n, vertex.dtype[n].str) not in before]
+    props = before + [(f"f_rest_{i}", "<f4") for i in range(wanted)] + after
+    record = np.zeros(len(vertex), dtype=props)
+    for name in record.dtype.names:
+        if name in names and not name.startswith("f_rest_"):
+            record[name] = vertex[name]
+    buffer = io.BytesIO()
+    PlyData([PlyElement.describe(record, "vertex")], text=False, byte_order="<").write(buffer)
+    return buffer.getvalue()
+
+
 def surfels_from_ply_bytes(data: bytes) -> Surfels:
     """Surfels from a PLY file in the 3DGS or 2DGS layout (extra properties are ignored; f_rest is dropped)."""
     try:

@@ -29,7 +29,9 @@ class RequestError(ValueError):
 def serve_request(engine: SessionEngine, kind: str, params: dict[str, Any]) -> tuple[str, bytes]:
     """(content type, body) for a "render" or "export_ply" request."""
     if kind == "export_ply":
-        return "application/octet-stream", engine.export_ply()
+        from worker.mapping.ply import ply_with_sh_degree
+
+        return "application/octet-stream", ply_with_sh_degree(engine.export_ply(), int(params.get("sh_degree", 0)))
     if kind != "render":
         raise RequestError(400, f"unknown request kind {kind!r}")
     pose = np.asarray(params["pose"], dtype=np.float64).reshape(4, 4)
