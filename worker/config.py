@@ -1,10 +1,10 @@
 """SlamConfig: every knob of the SLAM engine, typed and validated, with the paper's defaults and named presets.
 
 Sections follow the system's parts: `frontend` (pose source, model, image size, submaps, keyframes), `tracking`
-(the geometric pose sources), `loop` (detection, relocalization, pose graph), `mapping` (voxelization, fusion,
-refinement) and `input` (how given depth and poses are used). `SlamConfig.preset(name)` gives "paper" (the
-paper's settings), "default" (paper settings with the default model), "fast" (CPU-friendly), "rgbd" (RGB-D input on
-a CPU) and "test" (tiny and quick, for unit tests).
+(the geometric pose sources), `depth` (multi-view depth for frames without depth), `loop` (detection,
+relocalization, pose graph), `mapping` (voxelization, fusion, refinement) and `input` (how given depth and poses
+are used). `SlamConfig.preset(name)` gives "paper" (the paper's settings), "default" (paper settings with the
+default model), "fast" (CPU-friendly), "rgbd" (RGB-D input on a CPU) and "test" (tiny and quick, for unit tests).
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from worker.depth.config import MultiViewDepthConfig
 from worker.tracking.rgbd_config import RgbdOdometryConfig
 from worker.tracking.vo_config import VisualOdometryConfig
 
@@ -117,6 +118,12 @@ class InputConfig(_Section):
     surfel_init: Literal["model", "depth"] = Field(
         "model", description="with depth: other surfel attributes from the model, or initialised from image+depth")
     depth_scale_to_pose: bool = Field(True, description="monocular with poses: scale model depth to the poses")
+    depth_source: Literal["auto", "mvs", "model"] = Field(
+        "auto", description="frames without depth: surfels from multi-view stereo on the tracked poses (mvs) or from "
+        "the learned model; auto = the model when it tracks, else mvs")
+    mvs_frames_after: int = Field(
+        4, ge=0, le=64, description="mvs: frames a keyframe waits for, so that it has neighbours on both sides")
+    mvs_buffer_frames: int = Field(16, ge=2, le=256, description="mvs: recent frames kept as neighbour candidates")
 
 
 class TrackingConfig(_Section):
@@ -135,6 +142,7 @@ class SlamConfig(_Section):
     mapping: MappingConfig = Field(default_factory=MappingConfig)
     input: InputConfig = Field(default_factory=InputConfig)
     tracking: TrackingConfig = Field(default_factory=TrackingConfig)
+    depth: MultiViewDepthConfig = Field(default_factory=MultiViewDepthConfig)
     threaded: bool = Field(True, description="frontend and backend in two threads; False = deterministic, inline")
     queue_size: int = Field(8, ge=1, le=1024, description="bound of the frontend->backend keyframe queue")
     device: str = Field("cpu", pattern=r"^(cpu|cuda(:\d+)?)$")

@@ -31,6 +31,7 @@ import torch
 from worker.config import SlamConfig
 from worker.data.frame import Frame, FrameResult
 from worker.engine.backend import KeyframeJob, MapBackend, PoseUpdateJob
+from worker.engine.keyframe_depth import KeyframeDepth
 from worker.engine.keyframes import MotionKeyframeSelector
 from worker.engine.loop_closer import DepthKeyframePoints, LoopCloser
 from worker.engine.stage_times import StageTimes
@@ -91,6 +92,8 @@ class SlamSystem:
         self.bag = None
         self.loop_closer: LoopCloser | None = None
         self.depth_points: DepthKeyframePoints | None = None
+        self.depth_source: str | None = None  # "sensor", "mvs" or "model": where keyframe surfels come from
+        self.keyframe_depth: KeyframeDepth | None = None
         self._started: float | None = None
         self._pending_jobs: list[tuple[KeyframeJob, bool]] = []
         self._with_depth = False
@@ -134,6 +137,7 @@ class SlamSystem:
         if self._finished:
             return
         if self.backend is not None:
+            self._queue_depth_jobs(force=True)
             self._flush_posed_jobs(force=True)
             self.backend.wait_idle()
             if self.config.mapping.final_refine_passes:
@@ -242,11 +246,15 @@ class SlamSystem:
             with self.timings.measure("frontend_inference"):
                 prediction = self._model.predict(frame, intrinsics)
             self._accumulate_path(pose, prediction[1].pose_world.numpy())
+        if self.keyframe_depth is not None:
+            self.keyframe_depth.add_frame(frame.index, frame.image)
         is_kf = self._is_keyframe(tracking, pose)
         if is_kf:
             self._add_keyframe(frame.index, pose, submap_id=tracking.submap_id)
             self.pose_source.keyframe_added(frame, pose)
-            if self.backend is not None:  # the keyframe enters the map before a loop closure can move it
+            if self.keyframe_depth is not None:  # mapped once later frames give it neighbours
+                self.keyframe_depth.add_keyframe(frame.index, self.camera(frame).matrix().numpy(), tracking.depth)
+            elif self.backend is not None:  # the keyframe enters the map before a loop closure can move it
                 self._pending_jobs.append(self._keyframe_job(frame, prediction))
                 self._flush_posed_jobs()
             if self.loop_closer is not None:
@@ -254,8 +262,23 @@ class SlamSystem:
         world = self._traj.add_frame(frame.index, frame.timestamp, self._last_keyframe, pose, is_kf,
                                      tracking.submap_id)
         if self.backend is not None:
+            self._queue_depth_jobs()
             self._flush_posed_jobs()
         return FrameResult(frame.index, frame.timestamp, world, is_kf, tracking.submap_id, self.revision, events)
+
+    def camera(self, frame: Frame) -> Intrinsics:
+        """The frame's camera: given, else the pose source's estimate."""
+        intrinsics = self.frame_intrinsics(frame) or getattr(self.pose_source, "estimated_intrinsics", None)
+        if intrinsics is None:
+            raise ValueError("no intrinsics for this session: give them with the frames or the session")
+        return intrinsics
+
+    def _queue_depth_jobs(self, force: bool = False) -> None:
+        """Multi-view depth jobs of the keyframes that have their neighbours now (all of them when `force`)."""
+        if self.keyframe_depth is None:
+            return
+        for job in self.keyframe_depth.ready_jobs(self._traj.pose_at, self._traj.keyframe_poses.__getitem__, force):
+            self._pending_jobs.append((job, False))
 
     def _is_keyframe(self, tracking: TrackingResult, pose: np.ndarray) -> bool:
         """The first frame always; then the source's hint when it gives one (False while lost), else the motion
@@ -345,11 +368,15 @@ class SlamSystem:
         self.mode = MODE_OF_TRACKING[tracking]
         cfg = self.config
         self.pose_graph = self._new_pose_graph(metric=self._metric_loops())
-        needs_model = tracking == "model" or not (with_depth and cfg.input.surfel_init == "depth")
+        self.depth_source = self._choose_depth_source(tracking, with_depth)
+        needs_model = tracking == "model" or self.depth_source == "model" or (
+            with_depth and cfg.input.surfel_init == "model")
         if needs_model:
             self._build_frontend()
+        if self.depth_source == "mvs" and cfg.mapping.enabled:
+            self.keyframe_depth = KeyframeDepth(cfg.depth, cfg.input.mvs_buffer_frames, cfg.input.mvs_frames_after)
         self.pose_source = self._build_pose_source(tracking)
-        log.info("session tracking: %s (mode %s, depth %s)", tracking, self.mode, with_depth)
+        log.info("session tracking: %s (mode %s), surfels from %s", tracking, self.mode, self.depth_source)
         loops = cfg.loop.enabled and not (tracking == "device" and cfg.input.pose_mode == "fixed")
         if not loops:
             return
@@ -387,6 +414,16 @@ class SlamSystem:
             keyframe_rotation_deg=fc.keyframe_rotation_deg))
         self.bag = HiddenStateBag()
         self._model = ModelTracking(self.tracker, self.bag, fc.long_side, self._estimate_intrinsics)
+
+    def _choose_depth_source(self, tracking: str, with_depth: bool) -> str:
+        """Where keyframe surfels come from: the frames' depth, else multi-view stereo on the tracked poses, or
+        the model (when it tracks, or when the config asks for it)."""
+        if with_depth:
+            return "sensor"
+        requested = self.config.input.depth_source
+        if requested == "auto":
+            return "model" if tracking == "model" else "mvs"
+        return requested
 
     def _build_pose_source(self, tracking: str):
         if tracking == "device":
@@ -549,6 +586,7 @@ class SlamSystem:
             "bag": None if self.bag is None else self.bag.to_bytes(torch.float32),
             "loop": None if self.loop_closer is None else self.loop_closer.state_dict(),
             "depth_points": None if self.depth_points is None else self.depth_points.state_dict(),
+            "keyframe_depth": None if self.keyframe_depth is None else self.keyframe_depth.state_dict(),
             "map": None if self.backend is None else self.backend.state_dict(),
         }
         return pack(state)
@@ -593,6 +631,8 @@ class SlamSystem:
             system.loop_closer.load_state_dict(state["loop"])
         if system.depth_points is not None:
             system.depth_points.load_state_dict(state["depth_points"])
+        if system.keyframe_depth is not None and state.get("keyframe_depth") is not None:
+            system.keyframe_depth.load_state_dict(state["keyframe_depth"])
         if system.backend is not None and state["map"] is not None:
             system.backend.load_state_dict(state["map"])
         return system

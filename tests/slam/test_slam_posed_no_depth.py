@@ -43,7 +43,7 @@ def random_checkpoint(tmp_path_factory) -> str:
 def run(frames: list[Frame], random_checkpoint: str) -> tuple[SlamSystem, list]:
     config = SlamConfig.preset("test", frontend={"keyframe_every": 3, "min_confidence": 1.0,
                                                  "checkpoint": random_checkpoint},
-                               mapping={"refine_iterations": 0})
+                               mapping={"refine_iterations": 0}, input={"depth_source": "model"})
     system = SlamSystem(config)
     results = [system.push(f) for f in frames]
     system.finish()

@@ -13,6 +13,7 @@ import math
 import queue
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -29,7 +30,8 @@ log = logging.getLogger(__name__)
 @dataclass
 class KeyframeJob:
     """One keyframe for the map: pose c2w (Sim(3)), K at the grid's resolution, image float [H,W,3] in [0,1],
-    the per-pixel camera-frame surfel grid (see worker.engine.surfel_init) and the depth used to check renders."""
+    the per-pixel camera-frame surfel grid (see worker.engine.surfel_init) and the depth used to check renders, or
+    `build`, which makes both in the backend thread."""
 
     kf_id: int
     pose: np.ndarray
@@ -37,6 +39,8 @@ class KeyframeJob:
     image: torch.Tensor
     grid: dict[str, torch.Tensor]
     depth: torch.Tensor | None = None
+    # Builds (grid, depth) in the backend thread when they are costly to compute (multi-view depth).
+    build: Callable[[], tuple[dict[str, torch.Tensor], torch.Tensor | None]] | None = None
 
 
 @dataclass
@@ -133,6 +137,10 @@ class MapBackend:
 
     def _process(self, job: KeyframeJob | PoseUpdateJob) -> None:
         start = time.perf_counter()
+        if isinstance(job, KeyframeJob) and job.build is not None:  # outside the lock: renders go on meanwhile
+            with self.timings.measure("map_depth"):
+                job.grid, job.depth = job.build()
+            job.build = None
         with self.lock:
             if isinstance(job, KeyframeJob):
                 self._map_keyframe(job)

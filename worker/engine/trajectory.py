@@ -65,6 +65,13 @@ class Trajectory:
     def pose_of(self, record: FrameRecord) -> np.ndarray:
         return self.keyframe_poses[record.keyframe] @ record.relative
 
+    def pose_at(self, index: int) -> np.ndarray:
+        """The current world pose of frame `index` (recent frames are found first)."""
+        for record in reversed(self.frames):
+            if record.index == index:
+                return self.pose_of(record)
+        raise ValueError(f"frame {index} is not in the trajectory")
+
     def update_keyframes(self, poses: dict[int, np.ndarray]) -> int:
         """Replace keyframe poses (after PGO); returns the new revision."""
         for kf, pose in poses.items():

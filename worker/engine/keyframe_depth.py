@@ -1,0 +1,121 @@
+"""Multi-view depth for keyframes of sessions whose frames carry none (posed RGB phones, visual odometry).
+
+The engine keeps the last frames' images here; each keyframe waits until `frames_after` more frames have arrived
+(neighbours on both sides see around different occluders), then its neighbours are chosen by baseline and view
+angle among the kept frames (worker.depth.select_neighbours) at their current poses, and a `KeyframeJob` is made
+whose surfel grid the backend thread builds from the plane-sweep depth (worker.depth.estimate_depth): confident
+pixels become surfels, the others none.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from worker.depth import MultiViewDepthConfig, estimate_depth, select_neighbours
+from worker.engine.backend import KeyframeJob
+from worker.engine.surfel_init import grid_from_depth
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class PendingKeyframe:
+    """A keyframe waiting for later frames: its id, K, and the depth range its pose source suggests."""
+
+    kf_id: int
+    K: np.ndarray
+    depth_range: tuple[float, float] | None
+    scene_depth: float | None
+
+
+def depth_hint(sparse_depth: np.ndarray | None) -> tuple[tuple[float, float] | None, float | None]:
+    """(sweep range, typical depth) from a pose source's sparse depth (e.g. triangulated points), or (None, None)."""
+    if sparse_depth is None:
+        return None, None
+    values = sparse_depth[np.isfinite(sparse_depth) & (sparse_depth > 0)]
+    if values.size < 20:
+        return None, None
+    near, median, far = np.percentile(values, [2, 50, 98])
+    return (0.5 * float(near), 2.0 * float(far)), float(median)
+
+
+class KeyframeDepth:
+    """The frame ring and the keyframes waiting for their multi-view depth (see the module docstring)."""
+
+    def __init__(self, config: MultiViewDepthConfig, buffer_frames: int, frames_after: int) -> None:
+        self.config = config
+        self.buffer_frames = buffer_frames
+        self.frames_after = frames_after
+        self.images: OrderedDict[int, np.ndarray] = OrderedDict()
+        self.pending: list[PendingKeyframe] = []
+
+    def add_frame(self, index: int, image: np.ndarray) -> None:
+        self.images[int(index)] = image
+        while len(self.images) > self.buffer_frames:
+            self.images.popitem(last=False)
+
+    def add_keyframe(self, kf_id: int, K: np.ndarray, sparse_depth: np.ndarray | None) -> None:
+        depth_range, scene_depth = depth_hint(sparse_depth)
+        self.pending.append(PendingKeyframe(int(kf_id), np.asarray(K, np.float64), depth_range, scene_depth))
+
+    def ready_jobs(self, pose_of: Callable[[int], np.ndarray], keyframe_pose: Callable[[int], np.ndarray],
+                   force: bool = False) -> list[KeyframeJob]:
+        """Jobs of the keyframes that have seen `frames_after` later frames (all of them when `force`)."""
+        jobs = []
+        newest = next(reversed(self.images)) if self.images else -1
+        while self.pending and (force or sum(i > self.pending[0].kf_id for i in self.images) >= self.frames_after
+                                or newest - self.pending[0].kf_id > self.buffer_frames):
+            jobs.append(self._job(self.pending.pop(0), pose_of, keyframe_pose))
+        return jobs
+
+    def _job(self, kf: PendingKeyframe, pose_of: Callable[[int], np.ndarray],
+             keyframe_pose: Callable[[int], np.ndarray]) -> KeyframeJob:
+        ref_image = self.images.get(kf.kf_id)
+        if ref_image is None:
+            raise RuntimeError(f"keyframe {kf.kf_id} left the frame ring before its depth was estimated")
+        ref_pose = _rigid(keyframe_pose(kf.kf_id))
+        candidates = [i for i in self.images if i != kf.kf_id]
+        poses = [_rigid(pose_of(i)) for i in candidates]
+        chosen = select_neighbours(ref_pose, poses, self.config, scene_depth=kf.scene_depth)
+        neighbours = [(self.images[candidates[c]], poses[c]) for c in chosen]
+        config, depth_range, K = self.config, kf.depth_range, kf.K
+        image = torch.from_numpy(ref_image).to(torch.float32) / 255.0
+        Kt = torch.from_numpy(K).to(torch.float32)
+
+        scale = float(np.cbrt(np.linalg.det(np.asarray(keyframe_pose(kf.kf_id))[:3, :3])))
+
+        def build() -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+            estimate = estimate_depth(ref_image, K, ref_pose, neighbours, depth_range=depth_range, config=config)
+            log.debug("keyframe %d: multi-view depth from %d views covers %.0f%%", kf.kf_id, len(neighbours),
+                      100 * estimate.coverage)
+            depth = torch.from_numpy(estimate.depth / scale)  # world units -> the keyframe camera's (Sim(3) pose)
+            return grid_from_depth(image, depth, Kt), depth
+
+        return KeyframeJob(kf.kf_id, keyframe_pose(kf.kf_id), Kt, image, grid={}, depth=None, build=build)
+
+    # ------------------------------------------------------------------------------------------ snapshot/restore
+    def state_dict(self) -> dict[str, Any]:
+        return {"indices": list(self.images), "images": list(self.images.values()),
+                "pending": [{"kf_id": p.kf_id, "K": p.K, "depth_range": p.depth_range, "scene_depth": p.scene_depth}
+                            for p in self.pending]}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.images = OrderedDict((int(i), np.asarray(img, np.uint8)) for i, img in zip(state["indices"],
+                                                                                          state["images"]))
+        self.pending = [PendingKeyframe(int(p["kf_id"]), np.asarray(p["K"], np.float64),
+                                        None if p["depth_range"] is None else tuple(p["depth_range"]),
+                                        p["scene_depth"]) for p in state["pending"]]
+
+
+def _rigid(pose: np.ndarray) -> np.ndarray:
+    """The rigid part of a c2w Sim(3) (the scale divided out of the rotation block)."""
+    out = np.array(pose, np.float64)
+    out[:3, :3] /= np.cbrt(np.linalg.det(out[:3, :3]))
+    return out
