@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import time
 from typing import Annotated, Literal
 
@@ -34,7 +35,8 @@ async def get_trajectory(
     record = await session_for(reg, principal, session_id, write=False)
     poses = await reg.trajectory(session_id, which)
     if format == "tum":
-        return PlainTextResponse(tum_text(poses), media_type="text/plain")
+        # off the event loop: the conversion (and torch's first import) would stall every stream of this gateway
+        return PlainTextResponse(await asyncio.to_thread(tum_text, poses), media_type="text/plain")
     return {"session_id": session_id, "revision": int(record.get("revision") or 0), "which": which, "poses": poses,
             "intrinsics": parse_session(record)["estimated_intrinsics"]}
 
