@@ -84,11 +84,15 @@ class LocalMap:
         self.visible, self.found = self.visible[keep], self.found[keep]
 
     def slide(self, window: int) -> list[Keyframe]:
-        """Keep the last `window` keyframes; drop points none of them sees. Returns the keyframes that left."""
+        """Keep the last `window` keyframes; returns those that left (their point rows still valid until
+        `forget_unobserved`)."""
         gone = self.keyframes[:-window] if len(self.keyframes) > window else []
         self.keyframes = self.keyframes[len(gone):]
-        self.forget(self.observation_counts() == 0)
         return gone
+
+    def forget_unobserved(self) -> None:
+        """Drop the points no keyframe of the window observes."""
+        self.forget(self.observation_counts() == 0)
 
     def to_state(self) -> dict:
         return {"keyframes": [kf.to_state() for kf in self.keyframes], "positions": self.positions,

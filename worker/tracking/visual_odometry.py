@@ -238,9 +238,8 @@ class VisualOdometry:
         m.keyframes.append(kf)
         for other in neighbours:
             self._triangulate(kf, other, K)
-        self._retire(m.slide(self.config.window))
-        stale = (m.visible >= 6) & (m.found < 0.25 * m.visible)
-        m.forget(stale)
+        self._retire(m.slide(self.config.window + self.config.fixed_keyframes))
+        m.forget((m.observation_counts() == 0) | ((m.visible >= 6) & (m.found < 0.25 * m.visible)))
         self._adjust(K)
         self.frames_since_keyframe = 0
         self.tracked_at_keyframe = int((kf.point_ids >= 0).sum())
@@ -268,26 +267,34 @@ class VisualOdometry:
         if len(obs.point) == 0:
             return
         fixed = np.zeros(len(m.keyframes), bool)
-        # The oldest camera holds the pose gauge; the scale is left to the solver's damping (scale drift is what
-        # monocular VO has anyway), and a fresh two-keyframe map is rescaled afterwards.
-        fixed[0] = True
+        # Keyframes older than the adjusted window stay fixed and anchor pose and scale. A young map fixes only its
+        # first camera; its scale is then free, so the map's spread about that camera is restored afterwards.
+        fixed[: max(1, len(m.keyframes) - self.config.window)] = True
+        origin = m.keyframes[0].pose[:3, 3].copy()
+        spread = float(np.median(np.linalg.norm(m.positions - origin, axis=1)))
         poses = np.stack([kf.pose for kf in m.keyframes])
         poses, m.positions, _ = bundle_adjust(poses, fixed, m.positions, obs, K, self.config.ba_iterations,
                                               self.config.huber_sigmas)
         for kf, pose in zip(m.keyframes, poses, strict=True):
             kf.pose = pose
+        if fixed.sum() == 1:
+            self._rescale(origin, spread / max(float(np.median(np.linalg.norm(m.positions - origin, axis=1))), 1e-12))
+            poses = np.stack([kf.pose for kf in m.keyframes])
         bad = reprojection_chi2(poses, m.positions, obs, K) > self.config.chi2_px
         for slot, kp_rows in ((s, obs.point[bad & (obs.keyframe == s)]) for s in range(len(m.keyframes))):
             if len(kp_rows):
                 kf = m.keyframes[slot]
                 kf.point_ids[np.isin(kf.point_ids, kp_rows)] = -1
-        m.forget(m.observation_counts() == 0)
+        m.forget_unobserved()
 
     def _normalise_scale(self) -> None:
         """Scale the map about the first keyframe so that its median point depth is 1."""
+        first = self.map.keyframes[0]
+        self._rescale(first.pose[:3, 3].copy(), 1.0 / max(self._median_depth(first), 1e-9))
+
+    def _rescale(self, origin: np.ndarray, s: float) -> None:
+        """Scale points and keyframe positions about `origin` by s."""
         m = self.map
-        origin = m.keyframes[0].pose[:3, 3].copy()
-        s = 1.0 / max(self._median_depth(m.keyframes[0]), 1e-9)
         m.positions = origin + s * (m.positions - origin)
         for kf in m.keyframes:
             kf.pose = kf.pose.copy()

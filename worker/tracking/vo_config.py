@@ -47,7 +47,9 @@ class VisualOdometryConfig(BaseModel):
                                                                "exceeds this share of the median depth")
     triangulation_neighbours: int = Field(3, ge=1, description="keyframes a new keyframe triangulates with")
     min_parallax_deg: float = Field(0.8, gt=0.0, description="smallest triangulation angle of a new point")
-    window: int = Field(7, ge=2, description="keyframes in the local map and the bundle adjustment")
+    window: int = Field(7, ge=2, description="keyframes the windowed bundle adjustment moves")
+    fixed_keyframes: int = Field(0, ge=0, description="older keyframes kept fixed in the adjustment (they anchor "
+                                                      "pose and scale) and in the local map")
     ba_iterations: int = Field(10, ge=1, description="Levenberg-Marquardt iterations of the windowed adjustment")
     huber_sigmas: float = Field(2.45, gt=0.0, description="Huber kernel width, in pixel sigmas")
 
