@@ -39,6 +39,29 @@ void parallel_jobs(int threads, int64_t n, Job job) {
     for (std::thread& t : pool) t.join();
 }
 
+// h[x] = sum of c[x .. x + 2R] (c is zero-padded by R on each side): the window sums along a row. R is a
+// template parameter so that the inner sum unrolls and the loop over x vectorises.
+template <int R>
+void box_sums_fixed(const float* c, float* h, int W) {
+    for (int x = 0; x < W; ++x) {
+        float sum = 0.0f;
+        for (int j = 0; j <= 2 * R; ++j) sum += c[x + j];
+        h[x] = sum;
+    }
+}
+
+void box_sums(const float* c, float* h, int W, int r) {
+    switch (r) {
+        case 1: return box_sums_fixed<1>(c, h, W);
+        case 2: return box_sums_fixed<2>(c, h, W);
+        case 3: return box_sums_fixed<3>(c, h, W);
+        case 4: return box_sums_fixed<4>(c, h, W);
+        case 5: return box_sums_fixed<5>(c, h, W);
+        case 6: return box_sums_fixed<6>(c, h, W);
+        default: return box_sums_fixed<7>(c, h, W);
+    }
+}
+
 // One (view, hypothesis) plane of the cost volume. Each row of warped samples w, w^2 and ref * w enters running
 // column sums when the window reaches it and leaves when the window has passed; summing 2r + 1 neighbouring column
 // sums (zero-padded at the sides) then gives the window sums. The loops over a row vectorise except the gather.
@@ -52,7 +75,7 @@ struct PlaneSweep {
     std::vector<float> col;        // 3 quantities x (W + 2r): column sums, r zeros on each side
     std::vector<float> u, v, box;  // [W] sample coordinates; 3 x W window sums of the current row
     std::vector<float> cols;       // [W] columns inside each window
-    std::vector<uint8_t> seen;     // (2r + 2) rows x W: centre sample inside the view
+    std::vector<float> seen;       // (2r + 2) rows x W: 1 where the centre sample is inside the view, else 0
 
     PlaneSweep(int H_, int W_, int r_, float min_var_, const float* ref_, const float* ref_sum_, const float* ref_ssd_)
         : H(H_), W(W_), r(r_), min_var(min_var_), ref(ref_), ref_sum(ref_sum_), ref_ssd(ref_ssd_),
@@ -64,7 +87,7 @@ struct PlaneSweep {
     void warp_row(const float* src, const double* A, const double* b, double w, int y) {
         const int slot = y % (2 * r + 2);
         float* q = ring.data() + size_t(slot) * 3 * W;
-        uint8_t* s = seen.data() + size_t(slot) * W;
+        float* s = seen.data() + size_t(slot) * W;
         const float* ref_row = ref + int64_t(y) * W;
         const double py = y + 0.5;
         const float ax = float(A[0]), ay = float(A[3]), az = float(A[6]);
@@ -78,7 +101,7 @@ struct PlaneSweep {
             const float inv = 1.0f / (front ? hz : 1.0f);
             const float ux = front ? (ax * float(x) + hx0) * inv - 0.5f : 0.0f;
             const float vy = front ? (ay * float(x) + hy0) * inv - 0.5f : 0.0f;
-            s[x] = front && ux >= 0.0f && ux <= umax && vy >= 0.0f && vy <= vmax;
+            s[x] = (front && ux >= 0.0f && ux <= umax && vy >= 0.0f && vy <= vmax) ? 1.0f : 0.0f;
             u[x] = std::min(std::max(ux, 0.0f), umax);
             v[x] = std::min(std::max(vy, 0.0f), vmax);
         }
@@ -126,25 +149,19 @@ struct PlaneSweep {
 
     void finish_row(int y, int rows, float* out) {
         const int stride = W + 2 * r;
-        for (int k = 0; k < 3; ++k) {
-            float* h = box.data() + size_t(k) * W;
-            const float* c = col.data() + size_t(k) * stride;
-            std::fill(h, h + W, 0.0f);
-            for (int j = 0; j <= 2 * r; ++j)
-                for (int x = 0; x < W; ++x) h[x] += c[x + j];
-        }
+        for (int k = 0; k < 3; ++k) box_sums(col.data() + size_t(k) * stride, box.data() + size_t(k) * W, W, r);
         const float *s1 = box.data(), *s2 = s1 + W, *s3 = s2 + W;
-        const uint8_t* s = seen.data() + size_t(y % (2 * r + 2)) * W;
+        const float* s = seen.data() + size_t(y % (2 * r + 2)) * W;
         const float* rs = ref_sum + int64_t(y) * W;
         const float* rv = ref_ssd + int64_t(y) * W;
-        for (int x = 0; x < W; ++x) {
+        for (int x = 0; x < W; ++x) {  // branch-free so that it vectorises
             const float n = float(rows) * cols[x], inv_n = 1.0f / n;
             const float var_w = s2[x] - s1[x] * s1[x] * inv_n;
             const float cov = s3[x] - rs[x] * s1[x] * inv_n;
-            const bool textured = var_w > n * min_var && rv[x] > n * min_var;  // else no evidence: ZNCC 0
-            const float zncc = textured ? cov / std::sqrt(std::max(var_w * rv[x], 1e-30f)) : 0.0f;
+            const float textured = (var_w > n * min_var && rv[x] > n * min_var) ? 1.0f : 0.0f;  // else ZNCC 0
+            const float zncc = textured * cov / std::sqrt(std::max(var_w * rv[x], 1e-30f));
             const float cost = 1.0f - std::min(1.0f, std::max(-1.0f, zncc));
-            out[x] = s[x] ? cost : kUnseen;
+            out[x] = s[x] * cost + (1.0f - s[x]) * kUnseen;
         }
     }
 };
@@ -209,7 +226,8 @@ extern "C" void mvs_cost_volume(int H, int W, int N, int D, const float* ref, co
 
 // fused[p, d] = mean of the `keep` lowest seen costs of the N views (1 where no view sees p at d);
 // view_min[n, p] = the lowest seen cost of view n over all hypotheses (kUnseen if it never sees p).
-// Per block of pixels, a compare-exchange network keeps each pixel's `keep` lowest costs sorted (no branches).
+// Per block of pixels, a compare-exchange network keeps each pixel's `keep` lowest costs sorted; every loop over
+// the block is branch-free (vectorises), and the block's [pixels, D] result is copied out in one piece.
 extern "C" void mvs_fuse_views(int N, int D, int64_t P, const float* cost, int keep, int threads, float* fused,
                                float* view_min) {
     constexpr int kBlock = 64;
@@ -217,7 +235,8 @@ extern "C" void mvs_fuse_views(int N, int D, int64_t P, const float* cost, int k
     parallel_jobs(threads, (P + kBlock - 1) / kBlock, [&](int64_t block, int) {
         const int64_t p0 = block * kBlock;
         const int len = int(std::min<int64_t>(P - p0, kBlock));
-        std::vector<float> low(size_t(keep) * kBlock), mins(size_t(N) * kBlock, kBig), count(kBlock);
+        std::vector<float> low(size_t(keep) * kBlock), mins(size_t(N) * kBlock, kBig), count(kBlock), value(kBlock);
+        std::vector<float> out(size_t(kBlock) * D);
         for (int d = 0; d < D; ++d) {
             std::fill(low.begin(), low.end(), kBig);
             std::fill(count.begin(), count.end(), 0.0f);
@@ -225,24 +244,28 @@ extern "C" void mvs_fuse_views(int N, int D, int64_t P, const float* cost, int k
                 const float* c = cost + (int64_t(n) * D + d) * P + p0;
                 float* m = mins.data() + size_t(n) * kBlock;
                 for (int i = 0; i < len; ++i) {
-                    float value = c[i] >= 0.0f ? c[i] : kBig;
-                    count[i] += c[i] >= 0.0f ? 1.0f : 0.0f;
-                    m[i] = std::min(m[i], value);
-                    for (int k = 0; k < keep; ++k) {
-                        float& slot = low[size_t(k) * kBlock + i];
-                        const float lo = std::min(slot, value);
-                        value = std::max(slot, value);
-                        slot = lo;
+                    const float seen = c[i] >= 0.0f ? 1.0f : 0.0f;
+                    value[i] = c[i] >= 0.0f ? c[i] : kBig;
+                    count[i] += seen;
+                    m[i] = std::min(m[i], value[i]);
+                }
+                for (int k = 0; k < keep; ++k) {
+                    float* slot = low.data() + size_t(k) * kBlock;
+                    for (int i = 0; i < len; ++i) {
+                        const float lo = std::min(slot[i], value[i]);
+                        value[i] = std::max(slot[i], value[i]);
+                        slot[i] = lo;
                     }
                 }
             }
             for (int i = 0; i < len; ++i) {
-                const int used = std::min(keep, int(count[i]));
+                const float used = std::min(float(keep), count[i]);
                 float sum = 0.0f;
-                for (int k = 0; k < used; ++k) sum += low[size_t(k) * kBlock + i];
-                fused[(p0 + i) * D + d] = used > 0 ? sum / float(used) : 1.0f;
+                for (int k = 0; k < keep; ++k) sum += float(k) < used ? low[size_t(k) * kBlock + i] : 0.0f;
+                out[size_t(i) * D + d] = used > 0.0f ? sum / used : 1.0f;
             }
         }
+        std::copy(out.begin(), out.begin() + size_t(len) * D, fused + p0 * D);
         for (int n = 0; n < N; ++n)
             for (int i = 0; i < len; ++i) {
                 const float m = mins[size_t(n) * kBlock + i];
