@@ -171,7 +171,8 @@ class FlowControl:
     A frame is *in flight* from sending until its ack (or error). A frame is *pending* at the server from its
     ack until its result (pose or error). The client sends only while in_flight < window and
     in_flight + pending < max_pending. A ``backpressure`` refusal stops new frames until every in-flight frame has
-    an answer; then the refused frames are re-sent in order after an exponential back-off. The server refuses every
+    an answer; then the refused frames are re-sent in order after an exponential back-off, the first one alone
+    until the server accepts it (a full window would mostly be refused again). The server refuses every
     frame after a refused one until that one is re-sent (``resend_from``), so nothing is lost; a refused frame
     older than an accepted one (a server without that rule) is dropped, since re-sending it would reorder the stream.
     `max_retries` bounds the re-send rounds in a row without any frame accepted.
@@ -195,6 +196,7 @@ class FlowControl:
         self.accepted: set[int] = set()  # every seq the server queued
         self.server_queue_depth = 0
         self.refusal_rounds = 0  # re-send rounds since the last accepted frame
+        self.probing = False  # after a refusal round: one frame at a time until the server accepts one
         self.retries = 0
         self.dropped: list[Any] = []
         self._result_before_ack: set[int] = set()
@@ -212,6 +214,7 @@ class FlowControl:
         self.in_flight.discard(seq)
         self.accepted.add(seq)
         self.refusal_rounds = 0
+        self.probing = False
         if seq in self._result_before_ack:
             self._settle(seq)
         else:
@@ -244,7 +247,7 @@ class FlowControl:
 
     # -- decisions
     def can_send(self) -> bool:
-        if self.refused:
+        if self.refused or (self.probing and self.in_flight):
             return False
         return len(self.in_flight) < self.window and len(self.in_flight) + len(self.pending) < self.max_pending
 
@@ -274,6 +277,7 @@ class FlowControl:
             else:
                 resend.append((seq, item))
         self.refused.clear()
+        self.probing = True
         self.retries += len(resend)
         delay = min(self.max_backoff_s, self.backoff_s * (2 ** (self.refusal_rounds - 1)))
         return resend, delay

@@ -116,3 +116,15 @@ def test_invalid_settings_are_rejected() -> None:
         FlowControl(window=0)
     with pytest.raises(ValueError):
         FlowControl(max_retries=-1)
+
+
+def test_after_a_refusal_round_one_frame_probes_until_one_is_accepted() -> None:
+    flow = FlowControl(window=4, max_pending=8)
+    for seq in range(3):
+        flow.on_sent(seq, f"f{seq}")
+        flow.on_refused(seq)
+    resend, _ = flow.take_resends()
+    flow.on_sent(*resend[0])
+    assert not flow.can_send()  # the window is 4, but only the probe goes out
+    flow.on_ack(0, 4)
+    assert flow.can_send()
