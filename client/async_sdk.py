@@ -43,6 +43,7 @@ from client.models import (
     Trajectory,
     event_from_message,
 )
+from client.resume import ResumePoint, fetch_resume_point, reconcile
 from client.streaming import FlowControl, WireOptions, encode_frame_message, open_frames
 
 if TYPE_CHECKING:
@@ -51,6 +52,8 @@ if TYPE_CHECKING:
 EventCallback = Callable[[StreamEvent], Any]
 # Error codes with which the gateway refuses a whole stream, and the HTTP status they stand for.
 _REFUSAL_STATUS = {"unauthorized": 401, "forbidden": 403, "not_found": 404}
+# Close codes after which re-opening the stream cannot help (auth, no such session, takes no frames).
+_FINAL_CLOSE_CODES = (4401, 4403, 4404, 4409)
 DEFAULT_SERVER = "http://127.0.0.1:8000"
 
 
@@ -80,6 +83,13 @@ def decode_png(data: bytes, kind: str = "color") -> np.ndarray:
     return cv2.cvtColor(image[..., :3], cv2.COLOR_BGR2RGB)
 
 
+def _json_or_text(response: httpx.Response) -> Any:
+    try:
+        return response.json()
+    except ValueError:
+        return response.text
+
+
 class AsyncFrameStream:
     """One WebSocket stream of frames into a session, with flow control and live events.
 
@@ -92,7 +102,11 @@ class AsyncFrameStream:
 
     def __init__(self, url: str, session_id: str, headers: dict[str, str], *, flow: FlowControl | None = None,
                  wire: WireOptions = WireOptions(), on_event: EventCallback | None = None,
-                 idle_timeout_s: float = 300.0, raise_on_frame_error: bool = False) -> None:
+                 idle_timeout_s: float = 300.0, raise_on_frame_error: bool = False,
+                 resume: Callable[[bool], Awaitable[ResumePoint]] | None = None, reconnect_s: float = 30.0) -> None:
+        """`resume(with_results)` asks the server (REST) where the session stands: the stream then starts after
+        its last accepted seq, and a lost connection is re-opened (for up to `reconnect_s`, then
+        ServerUnreachableError) and caught up (see client.resume) instead of failing the stream."""
         self.url = url
         self.session_id = session_id
         self.headers = headers
@@ -111,15 +125,38 @@ class AsyncFrameStream:
         self._failure: FlashMonoError | None = None
         self._events: asyncio.Queue[StreamEvent | None] = asyncio.Queue()
         self._started = 0.0
+        self.resume = resume
+        self.reconnect_s = reconnect_s
+        self._reconnecting: asyncio.Task | None = None
+        self._finish_sent = False
+        self._closing = False
+        self._result_seqs: set[int] = set()
 
     # -------------------------------------------------------------------------------------------- lifecycle
     async def connect(self) -> AsyncFrameStream:
+        if self.resume is not None:  # a stream opened again on a session continues after its last accepted seq
+            point = await self._resume_point(with_results=False)
+            self._next_seq = max(self._next_seq, point.last_seq + 1)
+        await self._open(open_timeout_s=30)
+        self._started = time.monotonic()
+        return self
+
+    async def _resume_point(self, with_results: bool) -> ResumePoint:
+        try:
+            return await self.resume(with_results)
+        except httpx.TransportError as err:
+            raise ServerUnreachableError(f"cannot reach the server to resume the stream: {err}") from err
+        except httpx.HTTPStatusError as err:
+            raise error_for_status(err.response.status_code, _json_or_text(err.response)) from err
+
+    async def _open(self, open_timeout_s: float) -> None:
+        """Open the socket and start its reader (keepalive pings find a silent server within ~15 s)."""
         import websockets
         from websockets.exceptions import InvalidStatus
 
         try:
             self._ws = await websockets.connect(self.url, additional_headers=self.headers, max_size=2**24,
-                                                open_timeout=30)
+                                                open_timeout=open_timeout_s, ping_interval=5, ping_timeout=10)
         except InvalidStatus as err:
             response = err.response
             body: Any = bytes(response.body or b"").decode("utf-8", "replace")
@@ -128,11 +165,9 @@ class AsyncFrameStream:
             except ValueError:
                 pass
             raise error_for_status(response.status_code, body, response.reason_phrase) from err
-        except OSError as err:
+        except (OSError, TimeoutError) as err:
             raise ServerUnreachableError(f"cannot open the stream at {self.url}: {err}") from err
-        self._started = time.monotonic()
         self._reader = asyncio.create_task(self._read_loop())
-        return self
 
     async def __aenter__(self) -> AsyncFrameStream:
         return await self.connect()
@@ -142,6 +177,9 @@ class AsyncFrameStream:
 
     async def close(self) -> None:
         """Close the socket (without finishing the session) and stop the reader."""
+        self._closing = True
+        if self._reconnecting is not None:
+            self._reconnecting.cancel()
         if self._ws is not None:
             await self._ws.close()
         if self._reader is not None:
@@ -164,7 +202,7 @@ class AsyncFrameStream:
     async def finish(self, timeout_s: float | None = None) -> StreamSummary:
         """Send what is left, tell the server no more frames will come and wait for it to process them all."""
         await self._pump(lambda: not self._outbox and not self.flow.in_flight and not self.flow.refused)
-        await self._ws.send(json.dumps({"type": "finish"}))
+        await self._send_finish()
         wait_s = timeout_s if timeout_s is not None else self.idle_timeout_s
         while not self._finished.is_set():
             self._raise_if_failed()
@@ -175,6 +213,15 @@ class AsyncFrameStream:
                 raise StreamError(f"the server did not finish within {wait_s:.0f} s", code="timeout") from err
         await self.close()
         return self.summary
+
+    async def _send_finish(self) -> None:
+        """Send "finish"; after a lost connection the reconnect sends it again if the server did not get it."""
+        self._finish_sent = True
+        try:
+            await self._ws.send(json.dumps({"type": "finish"}))
+        except Exception as err:  # websockets raises ConnectionClosed subclasses
+            if not self._may_reconnect():
+                raise self._failure or StreamError(f"the stream closed while finishing: {err}", code="closed") from err
 
     async def ping(self) -> None:
         await self._ws.send(json.dumps({"type": "ping"}))
@@ -209,6 +256,8 @@ class AsyncFrameStream:
         try:
             await self._ws.send(payload)
         except Exception as err:  # websockets raises ConnectionClosed subclasses
+            if self._may_reconnect():
+                return  # in flight: the reconnect re-sends it unless the server had queued it
             raise self._failure or StreamError(f"the stream closed while sending: {err}", code="closed") from err
         self.summary.frames_sent += first_send  # distinct frames; re-sends are counted in backpressure_retries
 
@@ -229,12 +278,81 @@ class AsyncFrameStream:
         except Exception as err:  # a bug in a callback or a malformed message must not hang the sender
             self._failure = self._failure or StreamError(f"stream reader failed: {err!r}", code="client_error")
         finally:
-            if not self._finished.is_set() and self._failure is None:
-                close = getattr(self._ws, "close_reason", None) or getattr(self._ws, "close_code", None)
-                self._failure = StreamError(f"the server closed the stream ({close or 'no reason given'})",
-                                            code="closed")
-            self._events.put_nowait(None)
+            if not self._finished.is_set() and self._failure is None and self._may_reconnect():
+                if self._reconnecting is None or self._reconnecting.done():
+                    self._reconnecting = asyncio.create_task(self._reconnect())
+            else:
+                if not self._finished.is_set() and self._failure is None:
+                    close = getattr(self._ws, "close_reason", None) or getattr(self._ws, "close_code", None)
+                    self._failure = StreamError(f"the server closed the stream ({close or 'no reason given'})",
+                                                code="closed")
+                self._events.put_nowait(None)
             self._changed.set()
+
+    def _may_reconnect(self) -> bool:
+        """A lost connection is re-opened unless the stream is closing or the server refused it for good."""
+        code = getattr(self._ws, "close_code", None)
+        return (self.resume is not None and self.reconnect_s > 0 and not self._closing
+                and not self._finished.is_set() and self._failure is None and code not in _FINAL_CLOSE_CODES)
+
+    async def _reconnect(self) -> None:
+        """Re-open the stream and catch up with the server; ServerUnreachableError after `reconnect_s`."""
+        deadline = time.monotonic() + self.reconnect_s
+        delay = 0.2
+        while True:
+            try:
+                point = await self._resume_point(with_results=True)
+                if point.status in ("finishing", "finished", "failed") and self._finish_sent:
+                    await self._finish_via_rest(point, deadline)
+                    return
+                await self._open(open_timeout_s=max(1.0, min(10.0, deadline - time.monotonic())))
+                point = await self._resume_point(with_results=True)  # results up to the new socket's start
+                break
+            except ServerUnreachableError as err:
+                if time.monotonic() + delay > deadline:
+                    self._fail(ServerUnreachableError(
+                        f"lost the stream of session {self.session_id} and could not reconnect within "
+                        f"{self.reconnect_s:g} s ({self.flow.unsettled} frames unsettled): {err}"))
+                    return
+                await asyncio.sleep(delay)
+                delay = min(2.0, delay * 2)
+            except FlashMonoError as err:
+                self._fail(err)
+                return
+        self.summary.reconnects += 1
+        resend, missed = reconcile(self.flow, point)
+        self._outbox.extendleft(reversed(resend))
+        for message in missed:
+            await self._handle(json.dumps(message))
+        if self._finish_sent and point.status in ("created", "streaming") and not resend:
+            await self._ws.send(json.dumps({"type": "finish"}))  # the server never got it
+        self._changed.set()
+
+    async def _finish_via_rest(self, point: ResumePoint, deadline: float) -> None:
+        """The connection broke after "finish": wait for the session to finish (REST), then report its results."""
+        wait_until = max(deadline, time.monotonic() + self.idle_timeout_s)
+        while point.status == "finishing" and time.monotonic() < wait_until:
+            await asyncio.sleep(0.5)
+            point = await self._resume_point(with_results=True)
+        if point.status != "finished":
+            self._fail(StreamError(f"the session is {point.status} after the connection was lost",
+                                   code="engine_failed" if point.status == "failed" else "timeout"))
+            return
+        self.summary.reconnects += 1
+        for seq in sorted(self.flow.in_flight):
+            self.flow.on_ack(seq)
+        _, missed = reconcile(self.flow, point)
+        for message in missed:
+            await self._handle(json.dumps(message))
+        self.summary.finished_frames = len(point.poses)
+        self._finished.set()
+        self._events.put_nowait(None)
+        self._changed.set()
+
+    def _fail(self, error: FlashMonoError) -> None:
+        self._failure = self._failure or error
+        self._events.put_nowait(None)
+        self._changed.set()
 
     async def _handle(self, raw: str | bytes) -> None:
         try:
@@ -247,6 +365,10 @@ class AsyncFrameStream:
             return
         kind = message.get("type")
         seq = message.get("seq")
+        if kind == "pose" and seq in self._result_seqs:
+            return  # already reported (a result caught up from the trajectory after a reconnect)
+        if kind == "pose":
+            self._result_seqs.add(int(seq))
         if kind == "ack":
             depth = message.get("queue_depth")
             self.flow.on_ack(int(seq), depth)
@@ -395,12 +517,21 @@ class AsyncFlashMonoClient:
     # ------------------------------------------------------------------------------------------- streaming
     def open_stream(self, session_id: str, *, window: int = 4, max_pending: int = 8, max_retries: int = 20,
                     wire: WireOptions = WireOptions(), on_event: EventCallback | None = None,
-                    idle_timeout_s: float = 300.0, raise_on_frame_error: bool = False) -> AsyncFrameStream:
-        """A stream into `session_id` (connect with `async with`). See AsyncFrameStream and FlowControl."""
+                    idle_timeout_s: float = 300.0, raise_on_frame_error: bool = False,
+                    reconnect_s: float = 30.0) -> AsyncFrameStream:
+        """A stream into `session_id` (connect with `async with`). See AsyncFrameStream and FlowControl.
+
+        The stream starts after the session's last accepted seq, and re-opens a lost connection for up to
+        `reconnect_s` seconds (0: never), catching up without loss or renumbering (client.resume)."""
         url = websocket_url(self.server_url, f"{rest.API_PREFIX}/sessions/{quote(session_id, safe='')}/stream")
         flow = FlowControl(window=window, max_pending=max_pending, max_retries=max_retries)
+
+        def resume(with_results: bool) -> Awaitable[ResumePoint]:
+            return fetch_resume_point(self._http, session_id, with_results)
+
         return AsyncFrameStream(url, session_id, self._auth_headers(), flow=flow, wire=wire, on_event=on_event,
-                                idle_timeout_s=idle_timeout_s, raise_on_frame_error=raise_on_frame_error)
+                                idle_timeout_s=idle_timeout_s, raise_on_frame_error=raise_on_frame_error,
+                                resume=resume, reconnect_s=reconnect_s)
 
     async def stream(self, session_id: str, source: Any, *, on_event: EventCallback | None = None,
                      on_sent: Callable[[StreamSummary], Any] | None = None, fps: float | None = None,

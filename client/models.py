@@ -177,6 +177,7 @@ class StreamSummary:
     finished_frames: int | None = None
     elapsed_s: float = 0.0
     max_queue_depth: int = 0
+    reconnects: int = 0  # connections re-opened after a break (the stream caught up each time)
 
     @property
     def fps(self) -> float:

@@ -233,4 +233,5 @@ def parse_session(record: dict[str, Any]) -> dict[str, Any]:
     }
     for name in _INT_FIELDS:
         out[name] = int(record.get(name) or 0)
+    out["last_seq"] = int(record.get("last_seq") or -1)
     return out

@@ -57,6 +57,8 @@ class Session(BaseModel):
     frames_received: int = Field(description="frames accepted into the session's queue")
     frames_processed: int = Field(description="frames the engine has tracked (each seq counted once)")
     frames_rejected: int = Field(0, description="accepted frames the worker refused (corrupt image, ...)")
+    last_seq: int = Field(-1, description="the highest frame seq accepted so far (-1: none); a stream opened again "
+                                          "(after a lost connection) continues after it")
     keyframes: int
     revision: int = Field(description="trajectory revision; grows when a loop closure rewrites past poses")
     worker: str | None = Field(None, description="id of the worker that owns (or last owned) the session")
