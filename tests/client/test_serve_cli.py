@@ -1,5 +1,6 @@
-"""`flashmono serve` as a real process: its --help states the defaults, and SIGTERM (kill, systemd, docker stop)
-stops the gateway, its workers and the embedded Redis and removes Redis's temp dir, like Ctrl-C."""
+"""`flashmono serve` as a real process: its --help states the defaults, a server without API keys says at start-up
+that it is open, and SIGTERM (kill, systemd, docker stop) stops the gateway, its workers and the embedded Redis and
+removes Redis's temp dir, like Ctrl-C."""
 
 from __future__ import annotations
 
@@ -90,6 +91,8 @@ def test_sigterm_stops_every_child_and_removes_the_temp_dir(tmp_path) -> None:
         title = " ".join(_cmdline(redis[0]))  # redis-server retitles itself "... unixsocket:/path/redis.sock"
         socket_dir = Path(re.search(r"unixsocket[: ]+(\S+)", title).group(1)).parent
         assert socket_dir.is_dir()
+
+        assert "AUTH IS OFF" in (tmp_path / "serve.log").read_text()  # no keys: open, and the log says so
 
         serve.send_signal(signal.SIGTERM)
         assert serve.wait(timeout=60) == 0, (tmp_path / "serve.log").read_text()

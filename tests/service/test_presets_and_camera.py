@@ -3,15 +3,18 @@ camera the engine works with (`estimated_intrinsics` on the session and the traj
 
 from __future__ import annotations
 
+import math
+
 import httpx
 import pytest
 from conftest import STREAM_KEY
 from service_helpers import frame_message, icl_frames, receive_until
 from websockets.sync.client import connect
 
+from client.streaming import open_frames
 from service.presets import PRESET_INFO, PresetName
 from worker.config import PRESETS
-from worker.runtime.engine import close_engine, create_engine
+from worker.runtime.engine import close_engine, create_engine, engine_intrinsics
 
 FRAMES = icl_frames(3)
 FRAME_K = {"fx": 250.0, "fy": 251.0, "cx": 160.5, "cy": 119.5}
@@ -64,3 +67,17 @@ def test_given_intrinsics_are_the_camera_before_any_frame(api):
     given = {"fx": 262.5, "fy": 262.5, "cx": 159.75, "cy": 119.75, "width": 320, "height": 240}
     created = api.post("/v1/sessions", json={"intrinsics": given}).json()
     assert created["estimated_intrinsics"] == given
+
+
+def test_the_slam_engine_reports_the_camera_it_uses_for_monocular_frames(data_dir):
+    engine = create_engine("slam", "test", None)
+    try:
+        assert engine_intrinsics(engine) is None  # nothing known before a frame
+        for frame in open_frames(data_dir / "icl_mini", max_frames=2):
+            frame.intrinsics, frame.depth, frame.pose = None, None, None  # a phone without intrinsics
+            engine.push(frame)
+        camera = engine_intrinsics(engine)
+    finally:
+        close_engine(engine)
+    assert (camera["width"], camera["height"]) == (320, 240)
+    assert all(math.isfinite(camera[k]) and camera[k] > 0 for k in ("fx", "fy", "cx", "cy"))
