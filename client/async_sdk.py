@@ -28,6 +28,7 @@ import numpy as np
 from client import rest
 from client.errors import (
     FlashMonoError,
+    ServerError,
     ServerUnreachableError,
     StreamError,
     error_for_status,
@@ -308,7 +309,7 @@ class AsyncFrameStream:
                 await self._open(open_timeout_s=max(1.0, min(10.0, deadline - time.monotonic())))
                 point = await self._resume_point(with_results=True)  # results up to the new socket's start
                 break
-            except ServerUnreachableError as err:
+            except (ServerUnreachableError, ServerError) as err:  # down, or up without Redis yet (503)
                 if time.monotonic() + delay > deadline:
                     self._fail(ServerUnreachableError(
                         f"lost the stream of session {self.session_id} and could not reconnect within "
@@ -394,7 +395,7 @@ class AsyncFrameStream:
             self._failure = error_for_status(status, {"detail": message.get("message") or message.get("code")})
             return
         error = stream_error_from_frame(message)
-        if error.seq is not None and error.code == "backpressure":
+        if error.seq is not None and error.code in ("backpressure", "unavailable"):  # not queued: re-send later
             self.flow.on_refused(error.seq)
             return
         self.summary.errors.append(message)
