@@ -240,7 +240,7 @@ class SlamSystem:
         with self.timings.measure(stage):
             tracking = self.pose_source.track(frame, intrinsics)
         pose = _checked_pose(frame, tracking)
-        events: list[dict[str, Any]] = list(tracking.events)
+        events = [self._apply_tracking_event(event) for event in tracking.events]
         prediction = tracking.prediction
         if prediction is None and self._model is not None:  # the model predicts the surfels beside the source
             with self.timings.measure("frontend_inference"):
@@ -265,6 +265,18 @@ class SlamSystem:
             self._queue_depth_jobs()
             self._flush_posed_jobs()
         return FrameResult(frame.index, frame.timestamp, world, is_kf, tracking.submap_id, self.revision, events)
+
+    def _apply_tracking_event(self, event: dict[str, Any]) -> dict[str, Any]:
+        """Act on a pose source's event; returns it as clients get it. `initialized` (monocular odometry) carries
+        the re-estimated poses of the frames it waited for: they replace the placeholders (a new revision)."""
+        if event.get("type") != "initialized" or not event.get("frames"):
+            return dict(event)
+        poses = {int(i): np.asarray(p, np.float64) for i, p in event["frames"]}
+        revised = {i: p for i, p in poses.items() if np.all(np.isfinite(p))}
+        out = {k: v for k, v in event.items() if k != "frames"}
+        out["revision"] = self._traj.revise_frames(revised)
+        out["frames_revised"] = len(revised)
+        return out
 
     def camera(self, frame: Frame) -> Intrinsics:
         """The frame's camera: given, else the pose source's estimate."""
@@ -313,9 +325,7 @@ class SlamSystem:
         return world
 
     def _posed_loop(self, frame: Frame) -> list[dict[str, Any]]:
-        intr = self.frame_intrinsics(frame)
-        if intr is None:
-            raise ValueError("posed RGB-D mode needs intrinsics: give them with the frames or to SlamSystem()")
+        intr = self.camera(frame)
         self.depth_points.add(frame.index, torch.from_numpy(np.asarray(frame.depth, np.float32)), intr.matrix())
         image = torch.from_numpy(frame.image).permute(2, 0, 1)[None].float() / 255.0
         return self._close_loop(frame.index, image, intr)
@@ -346,9 +356,7 @@ class SlamSystem:
         else from the model's prediction."""
         world_pose = self._traj.keyframe_poses[frame.index]
         if self._uses_depth(frame) and self.config.input.surfel_init == "depth" and self._metric_poses():
-            intr = self.frame_intrinsics(frame)
-            if intr is None:
-                raise ValueError("posed RGB-D mode needs intrinsics: give them with the frames or to SlamSystem()")
+            intr = self.camera(frame)
             image = torch.from_numpy(frame.image).to(torch.float32) / 255.0
             depth = torch.from_numpy(np.asarray(frame.depth, np.float32))
             return KeyframeJob(frame.index, world_pose, intr.matrix(), image, grid_from_depth(image, depth,
@@ -449,9 +457,15 @@ class SlamSystem:
         return intr
 
     def estimated_intrinsics(self) -> Intrinsics | None:
-        """The camera at the input frames' resolution: given, or estimated from the model's points."""
-        if self.intrinsics is not None or self.model_intrinsics is None or self._frame_size is None:
+        """The camera at the input frames' resolution: given, else the pose source's estimate (visual odometry's
+        self-calibration, RGB-D odometry's guess), else the model's (from its points)."""
+        if self.intrinsics is not None or self._frame_size is None:
             return self.intrinsics
+        from_source = getattr(self.pose_source, "estimated_intrinsics", None)
+        if from_source is not None:
+            return from_source
+        if self.model_intrinsics is None:
+            return None
         return _uncrop_intrinsics(self.model_intrinsics, self._prep_geometry(), *self._frame_size)
 
     def _prep_geometry(self) -> tuple[float, tuple[int, int, int, int]]:

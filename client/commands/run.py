@@ -24,6 +24,9 @@ def add_run_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", default=None, help="JSON file of SlamConfig overrides (nested sections)")
     parser.add_argument("--drift", type=float, nargs=2, default=None, metavar=("DEG", "M"),
                         help="posed mode: inject odometry drift of DEG degrees and M metres per frame")
+    parser.add_argument("--unknown-intrinsics", action="store_true",
+                        help="withhold the dataset's camera intrinsics: the system estimates them (reported in "
+                        "metrics.json and intrinsics.json)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -67,7 +70,7 @@ def run_one(args: argparse.Namespace, source: str, out_dir: str) -> dict:
     try:
         return run_sequence(source, out_dir, config, use_gt_depth=args.use_gt_depth, use_gt_poses=args.use_gt_poses,
                             max_frames=args.max_frames, stride=args.stride, resize=args.resize, drift=drift,
-                            progress=progress)
+                            progress=progress, unknown_intrinsics=args.unknown_intrinsics)
     finally:
         bar.close()
 

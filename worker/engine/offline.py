@@ -53,6 +53,7 @@ def run_sequence(
     drift: PoseDrift | None = None,
     eval_every: int = 1,
     progress: Callable[[int, int | None], None] | None = None,
+    unknown_intrinsics: bool = False,
 ) -> dict[str, Any]:
     """Run one sequence end to end and evaluate it (see the module docstring)."""
     from worker.data import open_source
@@ -68,7 +69,8 @@ def run_sequence(
         total = len(src)
     except TypeError:
         total = None
-    system = SlamSystem(config, intrinsics=src.intrinsics)
+    given_intrinsics = None if unknown_intrinsics else src.intrinsics
+    system = SlamSystem(config, intrinsics=given_intrinsics)
     frames: list[Frame] = []
     results = []
     injector = None if drift is None else drift.injector()
@@ -76,6 +78,8 @@ def run_sequence(
     for k, frame in enumerate(src):
         if injector is not None and frame.pose is not None:
             frame.pose = injector.apply(frame.pose)
+        if unknown_intrinsics:
+            frame.intrinsics = None
         results.append(system.push(frame))
         frames.append(frame)
         if progress is not None:
@@ -90,7 +94,7 @@ def run_sequence(
     _write_trajectory(out / "trajectory_keyframes.tum", system.trajectory("keyframes"))
     intrinsics = system.estimated_intrinsics()
     (out / "intrinsics.json").write_text(json.dumps(
-        {**(intrinsics.to_dict() if intrinsics else {}), "estimated": src.intrinsics is None}, indent=1))
+        {**(intrinsics.to_dict() if intrinsics else {}), "estimated": given_intrinsics is None}, indent=1))
     metrics: dict[str, Any] = {
         "sequence": src.name, "dataset": _dataset_name(source), "method": "Flash-Mono",
         "mode": system.mode, "preset": config.name, "num_frames": len(frames),
@@ -98,7 +102,9 @@ def run_sequence(
         "revision": system.revision, "runtime_s": runtime, "fps": len(frames) / runtime,
         # the same without the end-of-run refinement: the rate a live stream is tracked and mapped at
         "fps_streaming": len(frames) / max(1e-9, runtime - system.timings.seconds["map_final_refine"]),
-        "use_gt_depth": use_gt_depth, "use_gt_poses": use_gt_poses,
+        "use_gt_depth": use_gt_depth, "use_gt_poses": use_gt_poses, "tracking": system.tracking,
+        "depth_source": system.depth_source,
+        "intrinsics": intrinsics.to_dict() if intrinsics else None, "intrinsics_estimated": given_intrinsics is None,
         "drift": None if drift is None else drift.to_dict(),
         "runtime_breakdown": system.timings.breakdown(len(frames)),
     }

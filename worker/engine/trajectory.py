@@ -72,6 +72,16 @@ class Trajectory:
                 return self.pose_of(record)
         raise ValueError(f"frame {index} is not in the trajectory")
 
+    def revise_frames(self, poses: dict[int, np.ndarray]) -> int:
+        """Replace the tracked poses of past non-keyframes (a pose source re-estimated them, e.g. the frames
+        before a monocular initialisation); returns the new revision."""
+        for record in self.frames:
+            if record.index in poses and not record.is_keyframe:
+                record.relative = _inv(self.tracked_keyframe_poses[record.keyframe]) @ np.asarray(
+                    poses[record.index], np.float64)
+        self.revision += 1
+        return self.revision
+
     def update_keyframes(self, poses: dict[int, np.ndarray]) -> int:
         """Replace keyframe poses (after PGO); returns the new revision."""
         for kf, pose in poses.items():

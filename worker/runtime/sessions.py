@@ -32,6 +32,9 @@ from worker.runtime.similarity import similarity_scale
 from worker.runtime.stats import StageStats
 from worker.serialization import pack, unpack
 
+# Pose-source events forwarded to the clients as their own messages.
+TRACKING_EVENTS = ("tracking_lost", "relocalized", "initialized")
+
 log = logging.getLogger(__name__)
 
 # Both scripts fence on the lease: a worker that lost its session (paused past its lease) stores nothing more.
@@ -322,6 +325,9 @@ class SessionRunner(threading.Thread):
         self.stats.add("dispatch_cpu", (c1 - c0) + (c3 - c2))
         if result.revision != self._revision or any(e.get("type") == "loop_closed" for e in result.events):
             self._publish_revision(result.revision, result.events)
+        for event in result.events:
+            if event.get("type") in TRACKING_EVENTS:
+                self._publish_tracking_event(seq, event)
         if not self._session.get("estimated_intrinsics"):
             self._publish_estimated_intrinsics()
         if result.is_keyframe:
@@ -355,11 +361,20 @@ class SessionRunner(threading.Thread):
             self._lease_lost.set()
             raise LeaseLost
 
+    def _publish_tracking_event(self, seq: int, event: dict[str, Any]) -> None:
+        """Tell the clients that tracking was lost, came back or initialised at frame `seq` (never a silent jump)."""
+        message = {**{k: v for k, v in event.items() if isinstance(v, (int, float, str, bool))}, "seq": seq}
+        self.client.xadd(keys.outbox(self.session_id), {"msg": json.dumps(message).encode()},
+                         maxlen=self.config.outbox_maxlen, approximate=True)
+
     def _publish_revision(self, revision: int, events: list[dict[str, Any]]) -> None:
-        """A loop closure rewrote the past: store the whole new trajectory and tell the clients."""
+        """A loop closure (or a pose source's re-estimate of past frames) rewrote the past: store the whole new
+        trajectory and tell the clients (a tracking event that rewrote it carries the revision itself)."""
         self._revision = revision
         self._store_trajectory()
-        loops = [e for e in events if e.get("type") == "loop_closed"] or [{"type": "loop_closed"}]
+        loops = [e for e in events if e.get("type") == "loop_closed"]
+        if not loops and not any(e.get("type") in TRACKING_EVENTS and "revision" in e for e in events):
+            loops = [{"type": "loop_closed"}]
         for event in loops:
             message = {**{k: v for k, v in event.items() if isinstance(v, (int, float, str, bool))},
                        "type": "loop_closed", "revision": revision}

@@ -27,3 +27,5 @@ class RgbdOdometryConfig(BaseModel):
         0.5, gt=0, description="tracking is lost when the pose leaves the motion model's guess by more than this "
         "fraction of the median depth")
     reference_ring: int = Field(6, ge=1, le=64, description="past reference keyframes kept for relocalization")
+    focal_guess: float = Field(
+        0.8, gt=0.1, lt=5.0, description="frames without intrinsics: focal length as a share of the long side")

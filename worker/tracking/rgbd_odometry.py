@@ -70,6 +70,7 @@ class RgbdOdometry:
         self.previous_pose: np.ndarray | None = None
         self.lost = False
         self.last_overlap = 1.0
+        self.estimated_intrinsics: Intrinsics | None = None  # only when frames come without intrinsics
 
     @property
     def reference(self) -> _Reference | None:
@@ -78,8 +79,7 @@ class RgbdOdometry:
     def track(self, frame: Frame, intrinsics: Intrinsics | None) -> TrackingResult:
         if frame.depth is None:
             raise ValueError(f"frame {frame.index} has no depth: RGB-D odometry needs depth on every frame")
-        if intrinsics is None:
-            raise ValueError("RGB-D odometry needs intrinsics: give them with the frames or the session")
+        intrinsics = intrinsics or self._guess_intrinsics(frame)
         K = intrinsics.matrix().numpy().astype(np.float64)
         grey = grey_of(frame.image)
         depth = np.nan_to_num(np.asarray(frame.depth, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
@@ -99,6 +99,17 @@ class RgbdOdometry:
         self._advance(pose)
         self._maybe_new_reference(frame, grey, depth, pose)
         return TrackingResult(pose, depth=depth)
+
+    def _guess_intrinsics(self, frame: Frame) -> Intrinsics:
+        """A camera for frames without one: centred principal point, focal `focal_guess` x the long side (a
+        typical phone or RGB-D camera); reported as the session's estimate."""
+        if self.estimated_intrinsics is None or (self.estimated_intrinsics.width, self.estimated_intrinsics.height
+                                                 ) != (frame.width, frame.height):
+            focal = self.config.focal_guess * max(frame.width, frame.height)
+            self.estimated_intrinsics = Intrinsics(focal, focal, frame.width / 2, frame.height / 2, frame.width,
+                                                   frame.height)
+            log.warning("RGB-D odometry without intrinsics: assuming a focal length of %.1f px", focal)
+        return self.estimated_intrinsics
 
     def keyframe_added(self, frame: Frame, pose: np.ndarray) -> None:
         """Engine keyframes are independent of the odometry's references."""
@@ -162,7 +173,9 @@ class RgbdOdometry:
     # ------------------------------------------------------------------------------------------ snapshot/restore
     def state_dict(self) -> dict[str, Any]:
         return {"references": [r.to_dict() for r in self.references], "last_pose": self.last_pose,
-                "previous_pose": self.previous_pose, "lost": self.lost}
+                "previous_pose": self.previous_pose, "lost": self.lost,
+                "estimated_intrinsics": None if self.estimated_intrinsics is None else
+                self.estimated_intrinsics.to_dict()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.references = deque((_Reference.from_dict(r) for r in state["references"]),
@@ -171,3 +184,5 @@ class RgbdOdometry:
         self.previous_pose = None if state["previous_pose"] is None else np.asarray(state["previous_pose"],
                                                                                     np.float64)
         self.lost = bool(state["lost"])
+        if state.get("estimated_intrinsics"):
+            self.estimated_intrinsics = Intrinsics.from_dict(state["estimated_intrinsics"])

@@ -1,0 +1,47 @@
+"""Tracking events reach the client: RGB-D frames without poses streamed to a real stack (gateway, worker with the
+real engine, Redis); a black frame with no depth gives a `tracking_lost` message at its seq and the pose of the
+frame before it, the next real frame a `relocalized` message, and every pose stays finite."""
+
+from __future__ import annotations
+
+import cv2
+import httpx
+import numpy as np
+import pytest
+from service_helpers import ICL_INTRINSICS, frame_message, icl_frames, of_type, receive_until
+from websockets.sync.client import connect
+
+from service.launcher import LocalStack
+
+FRAMES = 8
+BLACK = 4
+SCALE = 0.5
+INTRINSICS = {k: (v * SCALE if k in ("fx", "fy", "cx", "cy") else int(v * SCALE)) for k, v in ICL_INTRINSICS.items()}
+
+
+@pytest.fixture(scope="module")
+def stack():
+    env = {"FLASHMONO_ENGINE": "slam", "FLASHMONO_TORCH_THREADS": "1", "FLASHMONO_LOG_LEVEL": "WARNING"}
+    with LocalStack(workers=1, worker_env=env) as running:
+        yield running
+
+
+def test_lost_and_relocalized_messages_over_the_websocket(stack) -> None:
+    frames = icl_frames(FRAMES, scale=SCALE)
+    black = dict(frames[BLACK])
+    black["jpeg"] = cv2.imencode(".jpg", np.zeros((120, 160, 3), np.uint8))[1].tobytes()
+    black["depth"] = cv2.imencode(".png", np.zeros((120, 160), np.uint16))[1].tobytes()
+    frames[BLACK] = black
+    with httpx.Client(base_url=stack.base_url, timeout=60) as api:
+        sid = api.post("/v1/sessions", json={"intrinsics": INTRINSICS, "preset": "fast"}).json()["id"]
+        with connect(f"{stack.ws_url}/v1/sessions/{sid}/stream", open_timeout=30) as ws:
+            for seq, frame in enumerate(frames):
+                ws.send(frame_message(seq, frame, with_depth=True))  # depth, no device poses: RGB-D odometry
+            messages = receive_until(ws, lambda m: m["type"] == "pose" and m["seq"] == FRAMES - 1, timeout_s=180)
+    assert not of_type(messages, "error"), of_type(messages, "error")
+    lost, back = of_type(messages, "tracking_lost"), of_type(messages, "relocalized")
+    assert [m["seq"] for m in lost] == [BLACK] and lost[0]["reason"]
+    assert [m["seq"] for m in back] == [BLACK + 1]
+    poses = {m["seq"]: np.reshape(m["pose"], (4, 4)) for m in of_type(messages, "pose")}
+    assert sorted(poses) == list(range(FRAMES)) and all(np.isfinite(p).all() for p in poses.values())
+    np.testing.assert_allclose(poses[BLACK], poses[BLACK - 1])  # held, not a jump
