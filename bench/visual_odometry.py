@@ -1,0 +1,138 @@
+"""Monocular visual odometry (worker.tracking.visual_odometry) on ICL living room 1, 211 frames at 320x240.
+
+Measures ATE RMSE after Sim(3) alignment, how many frames were tracked, the loss / relocalisation events, and the time
+per frame (single process; this machine's other load is printed with the figures). The peer in the same run is
+COLMAP's incremental mapping (pycolmap, bench extra: SIFT, sequential matching, fixed intrinsics) of the same frames:
+its ATE over the frames it registered and its time per frame. Targets: ATE <= 3 cm, every frame tracked or
+relocalised and reported, >= 8 frames/s on 2 cores.
+
+    python -m bench visual_odometry [--data PATH] [--frames N] [--no-colmap] [--uncalibrated]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from worker.data import open_source
+from worker.eval import absolute_trajectory_error
+from worker.tracking.visual_odometry import VisualOdometry
+
+DEFAULT_DATA = Path("/work/shared/data/icl_livingroom1_micro")
+
+
+def _load(path: Path, frames: int) -> list:
+    source = open_source(path, resize=(320, 240), use_gt_depth=False, use_gt_poses=False, max_frames=frames)
+    return list(source)
+
+
+def run_vo(frames: list, calibrated: bool = True) -> dict:
+    """VO over the frames: trajectory (rewritten by the initialisation event), ATE, events and timing."""
+    vo = VisualOdometry()
+    poses, seconds, tracked, events = [], [], 0, []
+    for frame in frames:
+        start = time.perf_counter()
+        result = vo.track(frame, frame.intrinsics if calibrated else None)
+        seconds.append(time.perf_counter() - start)
+        poses.append(result.pose)
+        tracked += bool(result.tracked)
+        for event in result.events:
+            if event["type"] == "initialized":
+                for index, pose in event["frames"]:
+                    poses[index] = np.asarray(pose)
+            events.append((frame.index, event["type"]))
+    gt = np.stack([f.gt_pose for f in frames])
+    ate = absolute_trajectory_error(np.stack(poses), gt, "sim3")
+    return {"ate_m": ate.rmse, "ate_max_m": ate.max, "tracked": tracked, "frames": len(frames), "events": events,
+            "ms_per_frame": 1e3 * float(np.mean(seconds)), "ms_p95": 1e3 * float(np.percentile(seconds, 95)),
+            "fps": 1.0 / float(np.mean(seconds)), "intrinsics": vo.estimated_intrinsics}
+
+
+def run_colmap(frames: list) -> dict | str:
+    """pycolmap incremental mapping of the same frames (fixed pinhole intrinsics), or why it did not run."""
+    try:
+        import pycolmap
+    except ImportError:
+        return "pycolmap is not installed (pip install '.[bench]'): COLMAP peer skipped"
+    k = frames[0].intrinsics
+    with tempfile.TemporaryDirectory() as tmp:
+        images, database, out = Path(tmp) / "images", Path(tmp) / "db.db", Path(tmp) / "sparse"
+        images.mkdir()
+        out.mkdir()
+        for f in frames:
+            cv2.imwrite(str(images / f"{f.index:05d}.png"), cv2.cvtColor(f.image, cv2.COLOR_RGB2BGR))
+        start = time.perf_counter()
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = "PINHOLE"
+        # COLMAP puts pixel centres at +0.5 like this project, so the principal point carries over unchanged.
+        reader.camera_params = f"{k.fx},{k.fy},{k.cx},{k.cy}"
+        pycolmap.extract_features(database, images, camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+                                  device=pycolmap.Device.cpu)
+        pycolmap.match_sequential(database, device=pycolmap.Device.cpu)
+        options = pycolmap.IncrementalPipelineOptions()
+        options.ba_refine_focal_length = False
+        options.ba_refine_principal_point = False
+        options.ba_refine_extra_params = False
+        maps = pycolmap.incremental_mapping(database, images, out, options)
+        seconds = time.perf_counter() - start
+    if not maps:
+        return f"COLMAP registered no model ({seconds:.1f} s)"
+    model = max(maps.values(), key=lambda r: r.num_reg_images())
+    est, gt = [], []
+    for image in model.images.values():
+        if not image.has_pose:
+            continue
+        w2c = np.eye(4)
+        w2c[:3] = image.cam_from_world().matrix()
+        est.append(np.linalg.inv(w2c))
+        gt.append(frames[int(Path(image.name).stem)].gt_pose)
+    ate = absolute_trajectory_error(np.stack(est), np.stack(gt), "sim3")
+    return {"ate_m": ate.rmse, "registered": len(est), "frames": len(frames), "models": len(maps),
+            "ms_per_frame": 1e3 * seconds / len(frames)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m bench visual_odometry", description=__doc__.split("\n")[0])
+    parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
+    parser.add_argument("--frames", type=int, default=211)
+    parser.add_argument("--no-colmap", action="store_true")
+    parser.add_argument("--uncalibrated", action="store_true", help="also run VO without intrinsics")
+    args = parser.parse_args(argv)
+    if not args.data.exists():
+        print(f"no data at {args.data}: skipped")
+        return 0
+    frames = _load(args.data, args.frames)
+    path_m = float(np.linalg.norm(np.diff(np.stack([f.gt_pose[:3, 3] for f in frames]), axis=0), axis=1).sum())
+    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs; "
+          f"load before: {os.getloadavg()}")
+    print(f"{args.data.name}: {len(frames)} frames at 320x240, path {path_m:.2f} m")
+    runs = [("VO (given intrinsics)", run_vo(frames))]
+    if args.uncalibrated:
+        runs.append(("VO (no intrinsics)", run_vo(frames, calibrated=False)))
+    for name, r in runs:
+        lost = [i for i, kind in r["events"] if kind == "tracking_lost"]
+        back = [i for i, kind in r["events"] if kind == "relocalized"]
+        print(f"{name}: ATE {100 * r['ate_m']:.2f} cm (max {100 * r['ate_max_m']:.2f}), tracked {r['tracked']}/"
+              f"{r['frames']}, lost at {lost}, relocalised at {back}, {r['ms_per_frame']:.1f} ms/frame "
+              f"(p95 {r['ms_p95']:.1f}) = {r['fps']:.1f} frames/s"
+              + (f", intrinsics {r['intrinsics']}" if r["intrinsics"] is not None else ""))
+    if not args.no_colmap:
+        peer = run_colmap(frames)
+        if isinstance(peer, str):
+            print(peer)
+        else:
+            print(f"COLMAP incremental (pycolmap): ATE {100 * peer['ate_m']:.2f} cm over {peer['registered']}/"
+                  f"{peer['frames']} registered frames ({peer['models']} models), {peer['ms_per_frame']:.0f} ms/frame")
+    print(f"load after: {os.getloadavg()}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
