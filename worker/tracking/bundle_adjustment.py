@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .projection import invert_pose, project
+from .projection import invert_pose, project, projection_jacobians
 
 
 @dataclass
@@ -35,13 +35,6 @@ def reprojection_chi2(poses: np.ndarray, points: np.ndarray, obs: Observations, 
         uv, z = project(points[obs.point[sel]], poses[k], K)
         out[sel] = np.where(z > 0, ((uv - obs.uv[sel]) ** 2).sum(1) / obs.sigma[sel] ** 2, np.inf)
     return out
-
-
-def _skew(p: np.ndarray) -> np.ndarray:
-    """[p]_x for rows p [N, 3] -> [N, 3, 3]."""
-    z = np.zeros(len(p))
-    x, y, w = p[:, 0], p[:, 1], p[:, 2]
-    return np.stack([np.stack([z, -w, y], 1), np.stack([w, z, -x], 1), np.stack([-y, x, z], 1)], 1)
 
 
 class _Problem:
@@ -72,14 +65,8 @@ class _Problem:
 
     def jacobians(self, R: np.ndarray, pc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """d(pixel)/d(xi) [O, 2, 6] and d(pixel)/d(X) [O, 2, 3]."""
-        K = self.K
-        x, y, z = pc[:, 0], pc[:, 1], np.maximum(pc[:, 2], 1e-9)
-        zero = np.zeros(len(pc))
-        J_proj = np.stack([np.stack([K[0, 0] / z, zero, -K[0, 0] * x / z ** 2], 1),
-                           np.stack([zero, K[1, 1] / z, -K[1, 1] * y / z ** 2], 1)], 1)
-        J_pose = np.concatenate([J_proj, J_proj @ -_skew(pc)], axis=2)
-        J_point = J_proj @ R[self.obs.keyframe]
-        return J_pose, J_point
+        J_proj, J_pose = projection_jacobians(pc, self.K)
+        return J_pose, J_proj @ R[self.obs.keyframe]
 
 
 def _pairs(point: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -1,4 +1,5 @@
-"""Windowed bundle adjustment of keyframe poses and points with GTSAM projection factors and a Huber kernel.
+"""Windowed bundle adjustment with GTSAM projection factors and a Huber kernel: the oracle of the numpy solver in
+`bundle_adjustment` (same inputs, same outputs).
 
 Keyframes marked fixed hold the gauge (a monocular map has 7 free dimensions: two fixed cameras remove them). Only
 points seen by at least two of the adjusted keyframes are variables; other observations are left out.
@@ -6,35 +7,13 @@ points seen by at least two of the adjusted keyframes are variables; other obser
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import gtsam
 import numpy as np
 
-from .projection import project
+from .bundle_adjustment import Observations
 
 _X = gtsam.symbol_shorthand.X
 _L = gtsam.symbol_shorthand.L
-
-
-@dataclass
-class Observations:
-    """Keypoint observations: keyframe slot [O], point row [O], pixel uv [O, 2] and pixel sigma [O]."""
-
-    keyframe: np.ndarray
-    point: np.ndarray
-    uv: np.ndarray
-    sigma: np.ndarray
-
-
-def reprojection_chi2(poses: np.ndarray, points: np.ndarray, obs: Observations, K: np.ndarray) -> np.ndarray:
-    """Squared reprojection error of each observation in sigmas (inf behind the camera)."""
-    out = np.full(len(obs.point), np.inf)
-    for k in np.unique(obs.keyframe):
-        sel = np.flatnonzero(obs.keyframe == k)
-        uv, z = project(points[obs.point[sel]], poses[k], K)
-        out[sel] = np.where(z > 0, ((uv - obs.uv[sel]) ** 2).sum(1) / obs.sigma[sel] ** 2, np.inf)
-    return out
 
 
 def bundle_adjust(poses: np.ndarray, fixed: np.ndarray, points: np.ndarray, obs: Observations, K: np.ndarray,

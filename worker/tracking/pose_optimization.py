@@ -10,14 +10,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from .projection import invert_pose
-
-
-def _skew_rows(p: np.ndarray) -> np.ndarray:
-    """-[p]_x for each row p [N, 3] -> [N, 3, 3]."""
-    z = np.zeros(len(p))
-    x, y, w = p[:, 0], p[:, 1], p[:, 2]
-    return -np.stack([np.stack([z, -w, y], 1), np.stack([w, z, -x], 1), np.stack([-y, x, z], 1)], 1)
+from .projection import invert_pose, projection_jacobians
 
 
 def _residuals(R: np.ndarray, t: np.ndarray, points: np.ndarray, uv: np.ndarray, K: np.ndarray
@@ -28,23 +21,12 @@ def _residuals(R: np.ndarray, t: np.ndarray, points: np.ndarray, uv: np.ndarray,
     return proj - uv, pc
 
 
-def _jacobians(pc: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """d(pixel)/d(xi) [N, 2, 6]."""
-    fx, fy = K[0, 0], K[1, 1]
-    x, y, z = pc[:, 0], pc[:, 1], np.maximum(pc[:, 2], 1e-9)
-    zero = np.zeros(len(pc))
-    J_proj = np.stack([np.stack([fx / z, zero, -fx * x / z ** 2], 1),
-                       np.stack([zero, fy / z, -fy * y / z ** 2], 1)], 1)
-    J_point = np.concatenate([np.broadcast_to(np.eye(3), (len(pc), 3, 3)), _skew_rows(pc)], axis=2)
-    return J_proj @ J_point
-
-
 def _gauss_newton(R, t, points, uv, info, K, huber, iterations):
     for _ in range(iterations):
         r, pc = _residuals(R, t, points, uv, K)
         e = np.sqrt((r ** 2).sum(1) * info)
         w = info * np.where(e <= huber, 1.0, huber / np.maximum(e, 1e-12)) * (pc[:, 2] > 1e-6)
-        J = _jacobians(pc, K)
+        J = projection_jacobians(pc, K)[1]
         H = np.einsum("nik,n,nil->kl", J, w, J)
         g = np.einsum("nik,n,ni->k", J, w, r)
         try:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from .projection import bearings, invert_pose, project
+from .projection import invert_pose, project
 
 
 def triangulate(pose_a: np.ndarray, pose_b: np.ndarray, uv_a: np.ndarray, uv_b: np.ndarray, K: np.ndarray
@@ -41,10 +41,3 @@ def good_points(points: np.ndarray, pose_a: np.ndarray, pose_b: np.ndarray, uv_a
     ok &= parallax_cos(safe, pose_a, pose_b) < np.cos(np.deg2rad(min_parallax_deg))
     return ok
 
-
-def ray_parallax_deg(uv_a: np.ndarray, uv_b: np.ndarray, rotation_ab: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Angle in degrees between matched rays once camera b's ray is rotated into camera a (rotation-compensated
-    flow: near 0 for a pure rotation whatever the scene)."""
-    ra = bearings(uv_a, K)
-    rb = bearings(uv_b, K) @ rotation_ab.T
-    return np.rad2deg(np.arccos(np.clip((ra * rb).sum(1), -1.0, 1.0)))
