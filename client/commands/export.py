@@ -16,13 +16,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("session_id", metavar="ID", help="session id")
     add_server_options(parser)
     parser.add_argument("--out", default="map.ply", help="output file, '-' for stdout (default %(default)s)")
+    parser.add_argument("--sh-degree", type=int, choices=(0, 3), default=0,
+                        help="0: colour as f_dc only, 68 bytes a surfel; 3: with the 45 zero f_rest coefficients "
+                             "fixed-record 3DGS readers (SIBR) expect, 248 bytes (default %(default)s)")
     parser.set_defaults(func=run)
 
 
 @reports_errors
 def run(args: argparse.Namespace) -> int:
     with make_client(args) as client:
-        data = client.download_map(args.session_id)
+        data = client.download_map(args.session_id, sh_degree=args.sh_degree)
     write_output(data, args.out)
     if args.out != "-":
         print(f"wrote {len(data)} bytes to {args.out}", file=sys.stderr)
