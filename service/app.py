@@ -14,6 +14,7 @@ from fastapi.staticfiles import StaticFiles
 from service import hardening, routes_health, routes_presets, routes_results, routes_sessions, routes_stream
 from service.auth import Authenticator
 from service.metrics import GatewayMetrics
+from service.outbox_hub import OutboxHub
 from service.registry import Registry
 from service.settings import Settings
 from service.websocket_doc import WEBSOCKET_DOC
@@ -37,12 +38,20 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
-        client = aioredis.Redis.from_url(settings.redis_url, health_check_interval=30)
+        # a bounded pool: a burst of requests waits for a connection instead of opening hundreds
+        pool = aioredis.BlockingConnectionPool.from_url(settings.redis_url, max_connections=settings.redis_connections,
+                                                        timeout=10, health_check_interval=30,
+                                                        client_name="flashmono-gateway")
+        client = aioredis.Redis(connection_pool=pool)
         app.state.registry = Registry(client)
+        app.state.outbox_hub = OutboxHub(client)
+        app.state.outbox_hub.start()
         try:
             yield
         finally:
+            await app.state.outbox_hub.stop()
             await client.aclose()
+            await pool.aclose()
 
     app = FastAPI(title="Flash-Mono", version=API_VERSION, lifespan=lifespan,
                   description="Real-time monocular 2D Gaussian-splatting SLAM as a service. Authenticate with "

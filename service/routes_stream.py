@@ -17,6 +17,7 @@ from service.auth import request_key
 from service.deps import session_for
 from service.frame_validation import FrameRejected, check_frame_message
 from service.hardening import origin_allowed
+from service.outbox_hub import SESSION_DELETED, OutboxHub
 from service.registry import (
     NO_SESSION,
     NOT_ACCEPTING,
@@ -25,8 +26,7 @@ from service.registry import (
     SIZE_MISMATCH,
     Registry,
 )
-from worker.runtime import keys
-from worker.runtime.outage import REDIS_DOWN, Backoff, OutageLog
+from worker.runtime.outage import REDIS_DOWN
 
 log = logging.getLogger(__name__)
 router = APIRouter()
@@ -68,6 +68,13 @@ async def stream_frames(websocket: WebSocket, session_id: str) -> None:
         await websocket.send_text(json.dumps({"type": "error", "code": "not_accepting",
                                               "message": f"session is {record['status']}; it takes no frames"}))
         await websocket.close(code=4409)
+        return
+    limit = app.state.settings.max_streams
+    if app.state.outbox_hub.streams >= limit:
+        await websocket.send_text(json.dumps({"type": "error", "code": "too_many_streams",
+                                              "message": f"this gateway has {limit} open streams, its limit "
+                                                         "(FLASHMONO_MAX_STREAMS); retry shortly or on another one"}))
+        await websocket.close(code=1013, reason="too many open streams")
         return
     stream = _Stream(websocket, reg, session_id, json.loads(record.get("intrinsics") or "null"))
     await stream.run()
@@ -219,32 +226,25 @@ class _Stream:
             await self.error("bad_message", f"unknown control message type {kind!r}; expected finish or ping")
 
     async def _forward_results(self, last_id: str) -> None:
-        """Relay the outbox (pose, loop_closed, error, finished) to the client; close after "finished"."""
-        client = self.reg.client
-        outbox = keys.outbox(self.session_id)
-        backoff = Backoff()
-        outage = OutageLog(log, f"stream of session {self.session_id}")
-        while True:
-            try:  # the outbox is durable: after an outage, forwarding goes on from the last id sent
-                reply = await client.xread({outbox: last_id}, count=256, block=1000)
-                if not reply and not await client.exists(keys.session(self.session_id)):
+        """Relay the outbox (pose, loop_closed, error, finished) to the client; close after "finished".
+
+        The gateway's one OutboxHub reads every stream's outbox (one Redis connection for all streams, surviving
+        outages and stalls); this task only forwards this stream's entries, at the client's pace."""
+        hub: OutboxHub = self.ws.app.state.outbox_hub
+        subscription = hub.subscribe(self.session_id, last_id)
+        try:
+            while True:
+                text = await subscription.queue.get()
+                if text is SESSION_DELETED:
                     await self.error("not_found", "the session was deleted")
                     await self._close(4404)
                     return
-                outage.recovered()
-                backoff.reset()
-            except REDIS_DOWN as err:
-                outage.failed(err)
-                await asyncio.sleep(backoff.next_delay())
-                continue
-            for _stream, entries in reply or []:
-                for entry_id, fields in entries:
-                    last_id = entry_id.decode()
-                    text = fields[b"msg"].decode()  # each seq appears once: the worker's store is idempotent
-                    await self.send(text)
-                    if text.startswith('{"type": "finished"'):
-                        await self._close(1000)
-                        return
+                await self.send(text)  # each seq appears once: the worker's store is idempotent
+                if text.startswith('{"type": "finished"'):
+                    await self._close(1000)
+                    return
+        finally:
+            hub.unsubscribe(subscription)
 
     async def _close(self, code: int) -> None:
         self._closed.set()

@@ -16,7 +16,8 @@ class Settings:
     {key: [scopes]}); FLASHMONO_MAX_QUEUE (frames queued per session, 64); FLASHMONO_MAX_FRAME_BYTES (8 MiB);
     FLASHMONO_REQUEST_TIMEOUT_S (render/export reply timeout, 60); FLASHMONO_MAX_RENDER_PIXELS (4096*4096);
     FLASHMONO_MAX_BODY_BYTES (HTTP request bodies, 1 MiB); FLASHMONO_ALLOWED_ORIGINS (comma-separated origins a
-    browser may open the WebSocket from besides the gateway's own, "*" for any)."""
+    browser may open the WebSocket from besides the gateway's own, "*" for any); FLASHMONO_MAX_STREAMS (open
+    WebSockets per gateway process, 2000); FLASHMONO_REDIS_CONNECTIONS (the gateway's Redis connection pool, 64)."""
 
     redis_url: str = "redis://127.0.0.1:6379/0"
     api_keys: dict[str, frozenset[str]] = field(default_factory=dict)
@@ -26,6 +27,8 @@ class Settings:
     max_render_pixels: int = 4096 * 4096
     max_body_bytes: int = 1024 * 1024
     allowed_origins: frozenset[str] = frozenset()
+    max_streams: int = 2000
+    redis_connections: int = 64
 
     @property
     def auth_enabled(self) -> bool:
@@ -45,6 +48,8 @@ class Settings:
             request_timeout_s=float(env.get("FLASHMONO_REQUEST_TIMEOUT_S", cls.request_timeout_s)),
             max_render_pixels=int(env.get("FLASHMONO_MAX_RENDER_PIXELS", cls.max_render_pixels)),
             max_body_bytes=int(env.get("FLASHMONO_MAX_BODY_BYTES", cls.max_body_bytes)),
+            max_streams=int(env.get("FLASHMONO_MAX_STREAMS", cls.max_streams)),
+            redis_connections=int(env.get("FLASHMONO_REDIS_CONNECTIONS", cls.redis_connections)),
             allowed_origins=frozenset(o.strip().rstrip("/") for o in env.get("FLASHMONO_ALLOWED_ORIGINS", "").split(",")
                                       if o.strip()),
         )
@@ -53,6 +58,8 @@ class Settings:
                              ">= 1024")
         if settings.request_timeout_s <= 0:
             raise ValueError("FLASHMONO_REQUEST_TIMEOUT_S must be positive")
+        if settings.max_streams < 1 or settings.redis_connections < 4:
+            raise ValueError("FLASHMONO_MAX_STREAMS must be >= 1 and FLASHMONO_REDIS_CONNECTIONS >= 4")
         return settings
 
 
