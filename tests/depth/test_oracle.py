@@ -55,7 +55,7 @@ def test_fuse_sgm_and_decision_terms(inputs):
     np.testing.assert_allclose(fast.index, slow.index, atol=1e-6)
     for name in ("interior", "support"):
         np.testing.assert_array_equal(getattr(fast, name), getattr(slow, name))
-    for name in ("uniqueness", "photometric"):
+    for name in ("uniqueness", "margin", "photometric"):
         np.testing.assert_allclose(getattr(fast, name), getattr(slow, name), atol=1e-5)
 
 

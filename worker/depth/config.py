@@ -20,7 +20,7 @@ class MultiViewDepthConfig(BaseModel):
     num_views: int = Field(4, ge=1, le=16, description="Neighbouring frames used per keyframe (at most).")
     min_parallax: float = Field(0.02, gt=0, description="Smallest baseline / scene depth for a neighbour.")
     max_parallax: float = Field(0.6, gt=0, description="Largest baseline / scene depth for a neighbour.")
-    target_parallax: float = Field(0.1, gt=0, description="Preferred baseline / scene depth.")
+    target_parallax: float = Field(0.07, gt=0, description="Preferred baseline / scene depth.")
     max_view_angle_deg: float = Field(
         45.0, gt=0, le=180, description="Largest angle between the keyframe's and a neighbour's optical axes.")
 
@@ -45,6 +45,9 @@ class MultiViewDepthConfig(BaseModel):
     max_view_cost: float = Field(0.6, gt=0, le=2, description="A view agrees only below this cost (1 - ZNCC).")
     uniqueness_full: float = Field(
         0.1, gt=0, description="Relative margin of the best aggregated cost over the runner-up worth full confidence.")
+    margin_full: float = Field(
+        0.03, gt=0, description="Margin of the best matching cost (1 - ZNCC) below every hypothesis more than two "
+                                "away worth full confidence (intensity ramps match at many depths).")
     min_confidence: float = Field(0.25, ge=0, le=1, description="Pixels below this confidence get depth 0.")
     edge_jump: float = Field(
         0.1, ge=0, description="Drop pixels within a window radius of a point farther by this fraction of inverse "

@@ -13,12 +13,14 @@ from .config import MultiViewDepthConfig
 @dataclass
 class DecisionTerms:
     """Per pixel: the best hypothesis refined by a parabola (index, float64), whether it is inside the range
-    (interior, bool), uniqueness against the runner-up (float32 in [0, 1]), the photometric score 1 - fused cost
-    at the best (float32 in [0, 1]) and the number of views that agree (support, int16)."""
+    (interior, bool), uniqueness of the aggregated cost against its runner-up (float32 in [0, 1]), the matching
+    cost's margin below any hypothesis more than two away (float32 >= 0), the photometric score 1 - fused cost at
+    the best (float32 in [0, 1]) and the number of views that agree (support, int16)."""
 
     index: np.ndarray
     interior: np.ndarray
     uniqueness: np.ndarray
+    margin: np.ndarray
     photometric: np.ndarray
     support: np.ndarray
 
@@ -58,11 +60,12 @@ def small_speckles(index: np.ndarray, ok: np.ndarray, max_size: int, max_step: f
 
 def decide(terms: DecisionTerms, inv_depths: np.ndarray, config: MultiViewDepthConfig) -> Decision:
     """Inverse depth at the refined index (hypotheses are uniform in inverse depth); confidence = photometric score
-    x uniqueness (full at `uniqueness_full`), zeroed at the range ends, where fewer than `min_views` agree, on the
+    x distinctiveness (the lower of uniqueness / `uniqueness_full` and margin / `margin_full`, at most 1), zeroed
+    at the range ends, where fewer than `min_views` agree, on the
     near side of depth edges and in small isolated regions."""
     step = (inv_depths[-1] - inv_depths[0]) / max(len(inv_depths) - 1, 1)
     inv_depth = inv_depths[0] + terms.index * step
-    distinct = np.clip(terms.uniqueness / config.uniqueness_full, 0.0, 1.0)
+    distinct = np.clip(np.minimum(terms.uniqueness / config.uniqueness_full, terms.margin / config.margin_full), 0, 1)
     confidence = terms.photometric * distinct
     ok = terms.interior & (terms.support >= config.min_views) & (inv_depth > 0)
     ok &= confidence >= config.min_confidence

@@ -25,7 +25,7 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.mvs_cost_volume.argtypes = [i32, i32, i32, i32, p, p, p, p, p, p, p, i32, f32, i32, p]
     lib.mvs_fuse_views.argtypes = [i32, i32, i64, p, i32, i32, p, p]
     lib.mvs_sgm.argtypes = [i32, i32, i32, p, f32, f32, i32, i32, p, p]
-    lib.mvs_decide_terms.argtypes = [i32, i32, i64, p, p, p, p, f32, f32, i32, p, p, p, p, p]
+    lib.mvs_decide_terms.argtypes = [i32, i32, i64, p, p, p, p, f32, f32, i32, p, p, p, p, p, p]
     for fn in (lib.mvs_cost_volume, lib.mvs_fuse_views, lib.mvs_sgm, lib.mvs_decide_terms):
         fn.restype = None
 
@@ -110,9 +110,9 @@ def decide_terms(total: np.ndarray, fused: np.ndarray, cost: np.ndarray, view_mi
     N = cost.shape[0]
     inputs = [_c(total, np.float32), _c(fused, np.float32), _c(cost, np.float32), _c(view_min, np.float32)]
     terms = DecisionTerms(index=np.empty((H, W)), interior=np.empty((H, W), dtype=bool),
-                          uniqueness=np.empty((H, W), dtype=np.float32),
+                          uniqueness=np.empty((H, W), dtype=np.float32), margin=np.empty((H, W), dtype=np.float32),
                           photometric=np.empty((H, W), dtype=np.float32), support=np.empty((H, W), dtype=np.int16))
     _lib().mvs_decide_terms(N, D, H * W, *(_ptr(a) for a in inputs), float(margin), float(max_cost), int(threads),
-                            _ptr(terms.index), _ptr(terms.interior), _ptr(terms.uniqueness), _ptr(terms.photometric),
-                            _ptr(terms.support))
+                            _ptr(terms.index), _ptr(terms.interior), _ptr(terms.uniqueness), _ptr(terms.margin),
+                            _ptr(terms.photometric), _ptr(terms.support))
     return terms

@@ -128,7 +128,9 @@ def decide_terms(total: np.ndarray, fused: np.ndarray, cost: np.ndarray, view_mi
             near = np.minimum(near, np.where(view >= 0, view, np.inf))
         support += (np.isfinite(near) & (near <= view_min[n] + np.float32(margin)) & (near <= max_cost)).astype(
             np.int16)
+    rival = np.where(np.abs(np.arange(D) - best[..., None]) > 2, fused, np.float32(2.0)).min(axis=-1)
     return DecisionTerms(index=best + np.clip(delta, -0.5, 0.5), interior=interior,
                          uniqueness=np.clip(1.0 - ratio, 0.0, 1.0).astype(np.float32),
+                         margin=np.maximum(rival - _take(fused, best), 0.0).astype(np.float32),
                          photometric=np.clip(1.0 - _take(fused, best), 0.0, 1.0).astype(np.float32),
                          support=support)

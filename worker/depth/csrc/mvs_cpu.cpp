@@ -295,14 +295,19 @@ extern "C" void mvs_sgm(int H, int W, int D, const float* cost, float P1, float 
     }
 }
 
-// Per pixel, from the aggregated costs total [P, D]: the best hypothesis refined by a parabola through the fused
-// matching costs around it (index [P];
-// interior [P]: not at either end of the range), the uniqueness 1 - best / runner-up more than one hypothesis away
-// ([P], in [0, 1]), the photometric score 1 - fused cost at the best ([P], clipped to [0, 1]) and the views that
-// agree (support [P]: seen near the best (+-1) with a cost within `margin` of the view's lowest and <= max_cost).
+// Per pixel, from the aggregated costs total [P, D] and the fused matching costs fused [P, D]:
+//   index [P]: the best hypothesis of total, refined by a parabola through the fused costs around it;
+//   interior [P]: the best is not at either end of the range;
+//   uniq [P]: 1 - best / runner-up of total more than one hypothesis away, in [0, 1];
+//   match_margin [P]: how far the best's fused cost lies below every hypothesis more than two away (ramps and flat
+//     shading match equally well at many depths);
+//   photo [P]: 1 - fused cost at the best, clipped to [0, 1];
+//   support [P]: views that see the point near the best (+-1) with a cost within `margin` of their own lowest and
+//     at most max_cost.
 extern "C" void mvs_decide_terms(int N, int D, int64_t P, const float* total, const float* fused, const float* cost,
                                  const float* view_min, float margin, float max_cost, int threads, double* index,
-                                 uint8_t* interior, float* uniq, float* photo, int16_t* support) {
+                                 uint8_t* interior, float* uniq, float* match_margin, float* photo,
+                                 int16_t* support) {
     constexpr int64_t kBlock = 256;
     parallel_jobs(threads, (P + kBlock - 1) / kBlock, [&](int64_t block, int) {
         for (int64_t p = block * kBlock; p < std::min(P, (block + 1) * kBlock); ++p) {
@@ -324,7 +329,12 @@ extern "C" void mvs_decide_terms(int N, int D, int64_t P, const float* total, co
                 if (std::abs(d - best) > 1 && (runner_up < 0.0f || t[d] < runner_up)) runner_up = t[d];
             const double ratio = runner_up > 0.0f ? double(t[best]) / runner_up : 1.0;
             uniq[p] = float(std::min(1.0, std::max(0.0, 1.0 - ratio)));
-            photo[p] = std::min(1.0f, std::max(0.0f, 1.0f - fused[p * D + best]));
+            const float* f = fused + p * D;
+            float rival = 2.0f;  // the matching cost cannot exceed 2
+            for (int d = 0; d < D; ++d)
+                if (std::abs(d - best) > 2) rival = std::min(rival, f[d]);
+            match_margin[p] = std::max(0.0f, rival - f[best]);
+            photo[p] = std::min(1.0f, std::max(0.0f, 1.0f - f[best]));
             int16_t agree = 0;
             for (int n = 0; n < N; ++n) {
                 float near = -1.0f;
