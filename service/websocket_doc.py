@@ -30,6 +30,7 @@ FRAME_ERROR_CODES = {
     "too_large": "the message exceeds FLASHMONO_MAX_FRAME_BYTES",
     "bad_frame": "the worker could not use an acked frame (the engine refused it)",
     "not_accepting": "the session is finishing or finished: not queued",
+    "too_many_streams": "this gateway holds FLASHMONO_MAX_STREAMS open streams: retry shortly (then close 1013)",
     "not_found": "the session was deleted (then close 4404)",
     "unauthorized": "missing or unknown API key (then close 4401)",
     "forbidden": "the key lacks the stream scope or did not create the session (then close 4403)",
@@ -41,7 +42,8 @@ CLOSE_CODES = {
     "1000": "after `finished`: every frame was processed",
     "1009": "a message larger than the server's WebSocket limit (about 2 x FLASHMONO_MAX_FRAME_BYTES); no error "
             "frame (the WebSocket layer closes)",
-    "1013": "the session store (Redis) is unreachable at connect time: reconnect shortly",
+    "1013": "try again later: the session store (Redis) is unreachable at connect time, or the gateway holds its "
+            "FLASHMONO_MAX_STREAMS open streams",
     "4401": "unauthorized: missing or unknown key (header, or ?api_key=)",
     "4403": "forbidden: the key lacks the stream scope, did not create the session, or the Origin is not allowed",
     "4404": "the session does not exist or was deleted",
@@ -110,8 +112,8 @@ WEBSOCKET_DOC = {
                                       "passes over every held keyframe (at most 66: the window and 64 archived), "
                                       "about 0.1 s per keyframe and pass at 320x240 on 2 CPU cores: 30 s for the "
                                       "211-frame ICL sequence (36 keyframes), up to about a minute for long "
-                                      "sessions (bench/RESULTS.md). No progress messages come meanwhile; the "
-                                      "session's status stays `finishing` until then"},
+                                      "sessions (bench/RESULTS.md). Meanwhile `finishing` messages come every 2 s "
+                                      "and the session's status stays `finishing`"},
             "ping": {"encoding": "text JSON", "schema": {"type": "object", "properties": {"type": {"const": "ping"}}},
                      "description": "answered by {type: pong}"},
         },
@@ -139,6 +141,10 @@ WEBSOCKET_DOC = {
                                                                   "re-send next"}},
                 "description": "a refused or unusable frame (never silently dropped) or a session-level problem; "
                                "the stream stays open except where close_codes says otherwise"},
+            "finishing": {"type": "object", "properties": {
+                "type": {"const": "finishing"}, "elapsed_s": {"type": "number", "description": "since finish began"}},
+                "description": "the worker is finishing the session (after the last queued frame): sent when it "
+                               "starts and every 2 s until `finished`"},
             "finished": {"type": "object", "properties": {
                 "type": {"const": "finished"}, "frames": {"type": "integer", "description": "frames processed"}}},
             "pong": {"type": "object", "properties": {"type": {"const": "pong"}}},

@@ -55,7 +55,8 @@ def test_bad_query_key_and_finished_session_close_after_an_error_message(api, st
     with connect(f"{stack.ws_url}/v1/sessions/{sid}/stream", additional_headers={"X-API-Key": STREAM_KEY},
                  open_timeout=20) as ws:
         ws.send('{"type": "finish"}')
-        receive_until(ws, lambda m: m["type"] == "finished", timeout_s=60)
+        ending = [m["type"] for m in receive_until(ws, lambda m: m["type"] == "finished", timeout_s=60)]
+    assert ending[-2:] == ["finishing", "finished"]  # progress while the worker finishes
     message, code = _closed_after_error(f"{stack.ws_url}/v1/sessions/{sid}/stream",
                                         {"X-API-Key": STREAM_KEY})
     assert (message["type"], message["code"], code) == ("error", "not_accepting", 4409) and message["message"]

@@ -26,6 +26,7 @@ from worker.runtime.engine import SessionEngine, close_engine, create_engine, en
 from worker.runtime.frames import DEFAULT_MAX_SIDE, FrameError, decode_frame
 from worker.runtime.leases import Leases
 from worker.runtime.outage import REDIS_DOWN
+from worker.runtime.progress import FinishProgress
 from worker.runtime.quarantine import FrameAttempts
 from worker.runtime.requests import handle_request
 from worker.runtime.similarity import similarity_scale
@@ -405,7 +406,8 @@ class SessionRunner(threading.Thread):
         self.stats.add("snapshot", time.perf_counter() - t0)
 
     def _finish(self, entry_id: bytes) -> None:
-        self.engine.finish()
+        with FinishProgress(self.client, self.session_id, outbox_maxlen=self.config.outbox_maxlen):
+            self.engine.finish()
         if not self.leases.renew(self.session_id):
             self._lease_lost.set()
             raise LeaseLost
