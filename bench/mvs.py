@@ -10,7 +10,7 @@ Sparse photos: a held-out synthetic room; each reference photo gets four neighbo
 by 20-30 degrees (left, right, up, down). SGBM: the keyframe and its chosen neighbour with the most sideways
 baseline, rectified (cv2.stereoRectify + remap), StereoSGBM, the disparities back-projected into the keyframe.
 
-Usage: python -m bench mvs [-- --every 6 --threads 2 --data PATH --seed 10003 --photos 6]
+Usage: python -m bench mvs [-- --every 6 --threads 2 --data PATH --seed 10003 --photos 6 --no-range --no-sgbm]
 """
 
 from __future__ import annotations
@@ -144,6 +144,8 @@ def bench_icl(args, config) -> list[str]:
         depth_range, scene_depth = _range_from_points(frame.depth, rng)
         others = [i for i in range(len(frames)) if i != k]
         chosen = select_neighbours(frame.pose, [frames[i].pose for i in others], config, scene_depth)
+        if args.no_range:  # the swept range from the poses alone (neighbours still chosen with the scene depth)
+            depth_range = None
         neighbours = [(frames[others[i]].image, frames[others[i]].pose) for i in chosen]
         if n == 0:  # warm-up: compiles (or loads) the kernels and sizes the buffers
             estimate_depth(frame.image, K, frame.pose, neighbours, depth_range, config)
@@ -157,7 +159,8 @@ def bench_icl(args, config) -> list[str]:
         if not args.no_sgbm and neighbours:
             j = _sideways(frame.pose, [p for _, p in neighbours])
             start = time.perf_counter()
-            sgbm = sgbm_depth(frame.image, frame.pose, neighbours[j][0], neighbours[j][1], K, depth_range)
+            sgbm = sgbm_depth(frame.image, frame.pose, neighbours[j][0], neighbours[j][1], K,
+                              depth_range or est.depth_range)
             sgbm_ms = 1000 * (time.perf_counter() - start)
             s_l1, s_cov = _score(sgbm, frame.depth)
             peer.append({"l1": s_l1, "coverage": s_cov, "ms": sgbm_ms})
@@ -230,6 +233,8 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--photos", type=int, default=6)
     parser.add_argument("--no-sgbm", action="store_true")
     parser.add_argument("--no-photos", action="store_true")
+    parser.add_argument("--no-range", action="store_true",
+                        help="ICL with the swept depth range from the poses alone (multiples of the baseline)")
     args = parser.parse_args(argv)
 
     from worker.depth import MultiViewDepthConfig, mvs_cpu

@@ -56,9 +56,10 @@ class MultiViewDepthConfig(BaseModel):
         100, ge=0, description="Drop connected confident regions smaller than this many pixels (0 disables).")
     speckle_step: float = Field(2.0, gt=0, description="Hypotheses between neighbours of one connected region.")
 
-    # depth range when none is given: multiples of the median keyframe-neighbour baseline
-    near_over_baseline: float = Field(2.0, gt=0, description="Default nearest depth / median baseline.")
-    far_over_baseline: float = Field(50.0, gt=0, description="Default farthest depth / median baseline.")
+    # depth range when none is given: multiples of the median keyframe-neighbour baseline (4 to 100: parallax 0.25
+    # to 0.01, around target_parallax)
+    near_over_baseline: float = Field(4.0, gt=0, description="Default nearest depth / median baseline.")
+    far_over_baseline: float = Field(100.0, gt=0, description="Default farthest depth / median baseline.")
     min_sweep_pixels: float = Field(
         4.0, ge=0, description="A neighbour whose epipolar segment over the range is shorter (pixels) is dropped.")
 
