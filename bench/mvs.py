@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import statistics
 import time
 from pathlib import Path
@@ -25,19 +24,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from bench.render import machine
+
 DATA = Path("/work/shared/data/icl_livingroom1_micro")
-
-
-def machine() -> str:
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{cpu}, {os.cpu_count()} logical CPUs, load average {os.getloadavg()[0]:.1f}"
 
 
 def _K(intrinsics) -> np.ndarray:
@@ -115,9 +104,10 @@ def sgbm_depth(ref_image: np.ndarray, ref_pose: np.ndarray, image: np.ndarray, p
     z = f_rect * baseline / disparity[ok]
     rect = np.stack([(xs - P1[0, 2]) / f_rect * z, (ys - P1[1, 2]) / P1[1, 1] * z, z], axis=1)
     cam = rect @ R1  # rectified -> reference camera (R1 maps reference to rectified)
+    cam = cam[np.isfinite(cam).all(axis=1) & (cam[:, 2] > 1e-6)]
     u = np.round(K_cv[0, 0] * cam[:, 0] / cam[:, 2] + K_cv[0, 2]).astype(int)
     v = np.round(K_cv[1, 1] * cam[:, 1] / cam[:, 2] + K_cv[1, 2]).astype(int)
-    inside = (cam[:, 2] > 0) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+    inside = (u >= 0) & (u < W) & (v >= 0) & (v < H)
     depth = np.full((H, W), np.inf, np.float32)
     np.minimum.at(depth, (v[inside], u[inside]), cam[inside, 2].astype(np.float32))  # nearest surface wins
     return np.where(np.isfinite(depth), depth, 0.0).astype(np.float32)
