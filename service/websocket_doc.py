@@ -131,6 +131,24 @@ WEBSOCKET_DOC = {
                 "type": {"const": "loop_closed"}, "revision": {"type": "integer"}},
                 "additionalProperties": True,
                 "description": "a loop closure rewrote past poses: GET the trajectory for revision `revision`"},
+            "tracking_lost": {"type": "object", "properties": {
+                "type": {"const": "tracking_lost"}, "seq": {"type": "integer", "description": "the frame it is at"},
+                "reason": {"type": "string"}},
+                "additionalProperties": True,
+                "description": "the pose source lost the camera (a black, textureless or blurred view, no depth, a "
+                               "sudden jump): until `relocalized`, poses hold the last good one and no keyframes are "
+                               "made; never a silent jump"},
+            "relocalized": {"type": "object", "properties": {
+                "type": {"const": "relocalized"}, "seq": {"type": "integer"}},
+                "additionalProperties": True,
+                "description": "tracking is back at frame `seq`, placed against an earlier keyframe"},
+            "initialized": {"type": "object", "properties": {
+                "type": {"const": "initialized"}, "seq": {"type": "integer"}, "revision": {"type": "integer"},
+                "frames_revised": {"type": "integer"}},
+                "additionalProperties": True,
+                "description": "RGB-only sessions: visual odometry made its first map at frame `seq`; the frames "
+                               "before it, sent at the first frame's pose, were re-estimated: GET the trajectory "
+                               "for revision `revision`"},
             "error": {"type": "object", "required": ["type", "code", "message"], "properties": {
                 "type": {"const": "error"}, "seq": {"type": "integer", "description": "the frame it is about"},
                 "message": {"type": "string"},

@@ -419,18 +419,28 @@ class SyntheticSequence(FrameSource):
     """
 
     def __init__(self, seed: int, num_frames: int = 60, width: int = 320, height: int = 240, revisit: bool = True,
-                 fps: float = 30.0, options: SourceOptions | None = None) -> None:
+                 fps: float = 30.0, options: SourceOptions | None = None, scene: str = "room") -> None:
         super().__init__(options or SourceOptions())
         if num_frames < 1 or width < 8 or height < 8 or fps <= 0:
             raise DatasetError(f"bad synthetic sequence: frames={num_frames}, size={width}x{height}, fps={fps}")
-        self.scene = SyntheticScene(seed)
-        self.name = f"synthetic-{seed}"
+        if scene not in SCENE_KINDS:
+            raise DatasetError(f"unknown synthetic scene {scene!r}; choose one of {SCENE_KINDS}")
+        if scene == "street":
+            from worker.data.street import StreetScene
+
+            self.scene = StreetScene(seed)
+        else:
+            self.scene = SyntheticScene(seed)
+        self.name = f"synthetic-{seed}" if scene == "room" else f"synthetic-{scene}-{seed}"
         self.fps = float(fps)
         self.revisit = revisit
         size = self.options.resize or (width, height)
         native = self.options.intrinsics or default_intrinsics(width, height)
         self.intrinsics = native.scaled(*size)
-        all_poses = self.scene.camera_path(num_frames, revisit)
+        try:
+            all_poses = self.scene.camera_path(num_frames, revisit)
+        except ValueError as exc:
+            raise DatasetError(str(exc)) from exc
         self._positions = list(self.options.selected(num_frames))
         self.poses = all_poses[self._positions]
 
@@ -458,12 +468,13 @@ def make_sequence(seed: int, num_frames: int = 60, width: int = 320, height: int
     return SyntheticSequence(seed, num_frames, width, height, revisit, fps, SourceOptions(**options))
 
 
+SCENE_KINDS = ("room", "street")
 _URI_KEYS = {"seed": int, "frames": int, "width": int, "height": int, "fps": float,
-             "revisit": lambda v: v.lower() in ("1", "true", "yes")}
+             "revisit": lambda v: v.lower() in ("1", "true", "yes"), "scene": str}
 
 
 def parse_synthetic_uri(uri: str) -> dict:
-    """Parameters of `synthetic://seed=3?frames=60&width=320&height=240[&revisit=1&fps=30]`."""
+    """Parameters of `synthetic://seed=3?frames=60&width=320&height=240[&revisit=1&fps=30&scene=street]`."""
     if not uri.startswith("synthetic://"):
         raise DatasetError(f"not a synthetic:// URI: {uri!r}")
     params = {}
@@ -486,6 +497,6 @@ def open_synthetic_uri(uri: str, options: SourceOptions, **extra) -> SyntheticSe
     try:
         return SyntheticSequence(params["seed"], params.get("frames", 60), params.get("width", 320),
                                  params.get("height", 240), params.get("revisit", True), params.get("fps", 30.0),
-                                 options)
+                                 options, params.get("scene", "room"))
     except ValueError as exc:
         raise DatasetError(str(exc)) from exc

@@ -29,3 +29,6 @@ class RgbdOdometryConfig(BaseModel):
     reference_ring: int = Field(6, ge=1, le=64, description="past reference keyframes kept for relocalization")
     focal_guess: float = Field(
         0.8, gt=0.1, lt=5.0, description="frames without intrinsics: focal length as a share of the long side")
+    seed_difference: float = Field(
+        0.03, gt=0, description="a second alignment from the feature-based guess when it differs from the motion "
+        "model's by more than this fraction of the median depth (or 2 degrees)")

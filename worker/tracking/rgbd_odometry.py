@@ -1,5 +1,7 @@
 """RGB-D odometry as a pose source: each frame densely aligned to a reference keyframe (worker.tracking.
-dense_alignment), seeded by constant velocity; the reference moves on when the view has changed enough.
+dense_alignment), seeded by constant velocity and, where it disagrees, also by a feature-based PnP guess
+(worker.tracking.feature_seed; the better-fitting alignment wins); the reference moves on when the view has changed
+enough.
 
 Tracking is declared lost when an alignment is ill-posed (too little depth or texture), overlaps the reference too
 little, or leaves large residuals; the pose then stays at the last good one (never a jump) and every following frame
@@ -19,11 +21,40 @@ import numpy as np
 from worker.data.frame import Frame
 from worker.geometry import Intrinsics
 from worker.tracking.base import TrackingResult
-from worker.tracking.dense_alignment import AlignmentSettings, PyramidLevel, align, build_pyramid
+from worker.tracking.dense_alignment import AlignmentResult, AlignmentSettings, PyramidLevel, align, build_pyramid
+from worker.tracking.feature_seed import KeypointSet, detect, pnp_seed
 from worker.tracking.motion import motion_model_pose, relative_motion
 from worker.tracking.rgbd_config import RgbdOdometryConfig
 
 log = logging.getLogger(__name__)
+
+
+class _Current:
+    """The frame being tracked: its pyramid and, computed on first use, its keypoints."""
+
+    def __init__(self, pyramid: list[PyramidLevel], grey: np.ndarray) -> None:
+        self.pyramid, self.grey = pyramid, grey
+        self._keypoints: KeypointSet | None = None
+
+    def keypoints(self) -> KeypointSet:
+        if self._keypoints is None:
+            self._keypoints = detect(_u8(self.grey))
+        return self._keypoints
+
+
+def _u8(grey: np.ndarray) -> np.ndarray:
+    return np.clip(grey * 255.0 + 0.5, 0, 255).astype(np.uint8)
+
+
+def _differs(a: np.ndarray, b: np.ndarray, translation: float, rotation_deg: float = 2.0) -> bool:
+    moved, turned = relative_motion(a, b)
+    return moved > translation or turned > rotation_deg
+
+
+def _best(results: list[AlignmentResult]) -> AlignmentResult:
+    """The well-posed alignment with the smallest photometric residual (the first one when none is well posed)."""
+    usable = [r for r in results if r.ok]
+    return min(usable, key=lambda r: r.photometric_rms) if usable else results[0]
 
 
 def grey_of(image: np.ndarray) -> np.ndarray:
@@ -39,11 +70,17 @@ class _Reference:
         valid = depth[depth > 0]
         self.median_depth = float(np.median(valid)) if valid.size else 1.0
         self._pyramid: list[PyramidLevel] | None = None
+        self._keypoints: KeypointSet | None = None
 
     def pyramid(self, K: np.ndarray, levels: int) -> list[PyramidLevel]:
         if self._pyramid is None:
             self._pyramid = build_pyramid(self.grey, self.depth, K, levels)
         return self._pyramid
+
+    def keypoints(self, K: np.ndarray, levels: int) -> KeypointSet:
+        if self._keypoints is None:
+            self._keypoints = detect(_u8(self.grey), self.pyramid(K, levels)[0].points)
+        return self._keypoints
 
     def to_dict(self) -> dict[str, Any]:
         return {"index": self.index, "pose": self.pose, "grey": (self.grey * 255).round().astype(np.uint8),
@@ -86,7 +123,7 @@ class RgbdOdometry:
         depth[depth < 0] = 0.0
         if self.reference is None:
             return self._first(frame, grey, depth)
-        current = build_pyramid(grey, depth, K, self.config.pyramid_levels)
+        current = _Current(build_pyramid(grey, depth, K, self.config.pyramid_levels), grey)
         if self.lost:
             return self._relocalize(frame, grey, depth, current, K)
         guess = motion_model_pose(self.previous_pose, self.last_pose)
@@ -125,12 +162,17 @@ class RgbdOdometry:
         self._advance(pose)
         return TrackingResult(pose, depth=depth)
 
-    def _align_to(self, ref: _Reference, current: list[PyramidLevel], guess: np.ndarray, K: np.ndarray
+    def _align_to(self, ref: _Reference, current: _Current, guess: np.ndarray, K: np.ndarray
                   ) -> tuple[np.ndarray | None, str]:
-        """The current pose aligned to `ref` from `guess` (c2w), or (None, why not)."""
+        """The current pose aligned to `ref` from `guess` (c2w) and from the feature seed where that differs, or
+        (None, why not)."""
         c = self.config
         T_init = np.linalg.inv(guess) @ ref.pose  # T_cur_ref
-        result = align(ref.pyramid(K, c.pyramid_levels), current, T_init, self.settings)
+        seeds = [T_init]
+        seed = pnp_seed(ref.keypoints(K, c.pyramid_levels), current.keypoints(), K)
+        if seed is not None and _differs(seed, T_init, c.seed_difference * ref.median_depth):
+            seeds.append(seed)
+        result = _best([align(ref.pyramid(K, c.pyramid_levels), current.pyramid, T, self.settings) for T in seeds])
         self.last_overlap = result.overlap
         if not result.ok:
             return None, "too little depth or texture to align"
@@ -144,7 +186,7 @@ class RgbdOdometry:
             return None, f"the alignment jumped {jump:.2f} from the motion model"
         return pose, ""
 
-    def _relocalize(self, frame: Frame, grey: np.ndarray, depth: np.ndarray, current: list[PyramidLevel],
+    def _relocalize(self, frame: Frame, grey: np.ndarray, depth: np.ndarray, current: _Current,
                     K: np.ndarray) -> TrackingResult:
         for ref in reversed(self.references):
             pose, _ = self._align_to(ref, current, self.last_pose, K)

@@ -79,9 +79,10 @@ class ModelTracking:
 
     def predict(self, frame: Frame, intrinsics: Intrinsics | None):
         """(prep, tracked): the preprocessed frame and the tracker's output for it."""
-        from worker.frontend.preprocess import prepare_image
+        from worker.frontend.preprocess import prepare_image, resample_for
 
-        prep = prepare_image(frame.image, intrinsics, long_side=self.long_side)
+        prep = prepare_image(frame.image, intrinsics, long_side=self.long_side,
+                             resample=resample_for(self.tracker.model))
         tracked = self.tracker.track(frame.index, prep.tensor, prep.intrinsics or self.model_intrinsics)
         self.bag.add_finished(self.tracker.pop_finished_submaps())
         if self.model_intrinsics is None:
