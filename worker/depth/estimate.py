@@ -3,22 +3,18 @@
 from __future__ import annotations
 
 import logging
-import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from types import ModuleType
 
 import cv2
 import numpy as np
 
-from . import mvs_cpu, reference
 from .config import MultiViewDepthConfig
-from .decide import decide
-from .sweep import inverse_depths, pose_problem, reference_stats, sweep_pixels, view_geometry
+from .pipeline import sweep
+from .sweep import ViewGeometry, inverse_depths, pose_problem, sweep_pixels, view_geometry
 
 log = logging.getLogger(__name__)
-_workspace = threading.local()  # per calling thread: the large intermediate buffers, reused while shapes match
 
 
 @dataclass
@@ -73,24 +69,34 @@ def _grey(image: np.ndarray, scale: float) -> np.ndarray:
     return cv2.resize(grey, (max(8, round(W * scale)), max(8, round(H * scale))), interpolation=cv2.INTER_AREA)
 
 
-def _kernels(backend: str) -> tuple[str, ModuleType]:
-    if backend == "reference":
-        return "reference", reference
-    if mvs_cpu.available():
-        return "cpu", mvs_cpu
-    if backend == "cpu":
-        raise RuntimeError(f"compiled MVS kernels unavailable: {mvs_cpu.load_error()}")
-    log.warning("compiled MVS kernels unavailable (%s); using the numpy reference", mvs_cpu.load_error())
-    return "reference", reference
+def _usable(neighbours: Sequence) -> list[int]:
+    """Indices of the neighbours whose pose can be used (the others are skipped with a warning)."""
+    usable = []
+    for i, (_, pose) in enumerate(neighbours):
+        if (problem := pose_problem(np.asarray(pose, dtype=np.float64))) is not None:
+            log.warning("estimate_depth: neighbour %d skipped: %s", i, problem)
+        else:
+            usable.append(i)
+    return usable
 
 
-def _array(name: str, shape: tuple[int, ...], keep: bool) -> np.ndarray:
-    """A float32 array of this shape: this thread's kept one when it fits, else a new one (kept when `keep`)."""
-    array = getattr(_workspace, name, None)
-    if array is None or array.shape != shape:
-        array = np.empty(shape, dtype=np.float32)
-    setattr(_workspace, name, array if keep else None)
-    return array
+def _with_parallax(indices: list[int], poses: list[np.ndarray], ref_pose: np.ndarray, K: np.ndarray,
+                   shape: tuple[int, int], depth_range: tuple[float, float],
+                   config: MultiViewDepthConfig) -> tuple[list[int], list[ViewGeometry]]:
+    """The neighbours (indices, geometries) whose epipolar segment over the range is long enough to measure depth
+    (in full-resolution pixels); the others are dropped with a warning."""
+    kept, geometries = [], []
+    h, w = shape
+    for i, pose in zip(indices, poses, strict=True):
+        geometry = view_geometry(K, ref_pose, pose)
+        extent = sweep_pixels(geometry, w, h, *depth_range) / config.scale
+        if extent < config.min_sweep_pixels:
+            log.warning("estimate_depth: neighbour %d dropped: its epipolar sweep is %.2f px (no baseline or pure "
+                        "rotation)", i, extent)
+            continue
+        kept.append(i)
+        geometries.append(geometry)
+    return kept, geometries
 
 
 def _default_range(baselines: list[float], config: MultiViewDepthConfig) -> tuple[float, float] | None:
@@ -123,13 +129,7 @@ def estimate_depth(ref_image: np.ndarray, K: np.ndarray, ref_pose: np.ndarray,
         near, far = (float(v) for v in depth_range)
         if not (np.isfinite(near) and np.isfinite(far) and 0 < near < far):
             raise ValueError(f"depth_range must be finite with 0 < near < far, got {depth_range}")
-    usable = []
-    for i, (_, pose) in enumerate(neighbours):
-        if (problem := pose_problem(np.asarray(pose, dtype=np.float64))) is not None:
-            log.warning("estimate_depth: neighbour %d skipped: %s", i, problem)
-        else:
-            usable.append(i)
-    usable = usable[: config.num_views]
+    usable = _usable(neighbours)[: config.num_views]
     if not usable:
         return _empty(shape, "no usable neighbour (%d given)", len(neighbours))
     poses = [np.asarray(neighbours[i][1], dtype=np.float64) for i in usable]
@@ -143,54 +143,22 @@ def estimate_depth(ref_image: np.ndarray, K: np.ndarray, ref_pose: np.ndarray,
     scale = config.scale
     Ks = np.diag([scale, scale, 1.0]) @ K
     ref = _grey(ref_image, scale)
-    h, w = ref.shape
-    geometries, kept = [], []
-    for i, pose in zip(usable, poses, strict=True):
-        geometry = view_geometry(Ks, ref_pose, pose)
-        extent = sweep_pixels(geometry, w, h, near, far) / scale
-        if extent < config.min_sweep_pixels:
-            log.warning("estimate_depth: neighbour %d dropped: its epipolar sweep is %.2f px (no baseline or pure "
-                        "rotation)", i, extent)
-            continue
-        geometries.append(geometry)
-        kept.append(i)
+    kept, geometries = _with_parallax(usable, poses, ref_pose, Ks, ref.shape, (near, far), config)
     if len(kept) < config.min_views:
         return _empty(shape, "%d neighbour(s) with parallax, fewer than min_views = %d", len(kept), config.min_views)
     views = np.stack([_grey(neighbours[i][0], scale) for i in kept])
-    backend, kernels = _kernels(config.backend)
     timings = {"prepare": time.perf_counter() - started}
-
-    tick = time.perf_counter()
-    radius, min_var = config.window_radius, config.min_texture_std ** 2
-    ref_sum, ref_ssd = reference_stats(ref, radius)
     planes = inverse_depths(near, far, config.num_hypotheses)
-    A = np.stack([g.A for g in geometries])
-    b = np.stack([g.b for g in geometries])
-    keep, N, D = config.keep_buffers, len(geometries), len(planes)
-    cost = kernels.cost_volume(ref, ref_sum, ref_ssd, views, A, b, planes, radius, min_var, config.threads,
-                               out=_array("cost", (N, D, h, w), keep))
-    timings["cost"] = time.perf_counter() - tick
+    backend, result = sweep(ref, views, geometries, planes, config, timings)
 
     tick = time.perf_counter()
-    fused, view_min = kernels.fuse_views(cost, config.views_per_pixel, config.threads,
-                                         out=_array("fused", (h, w, D), keep))
-    workers = min(config.threads, config.sgm_paths)
-    total = kernels.sgm(fused, config.sgm_p1, config.sgm_p2, config.sgm_paths, config.threads,
-                        out=_array("total", (h, w, D), keep), scratch=_array("scratch", (workers - 1, h, w, D), keep))
-    timings["aggregate"] = time.perf_counter() - tick
-
-    tick = time.perf_counter()
-    terms = kernels.decide_terms(total, fused, cost, view_min, config.support_margin, config.max_view_cost,
-                                 config.threads)
-    result = decide(terms, planes, config)
     confidence, support = result.confidence, result.support
-    depth = np.where(result.ok, 1.0 / np.maximum(result.inv_depth, 1e-12), 0.0)
-    depth = depth.astype(np.float32)
+    depth = np.where(result.ok, 1.0 / np.maximum(result.inv_depth, 1e-12), 0.0).astype(np.float32)
     if scale != 1.0:
         size = (shape[1], shape[0])
         depth, confidence, support = (cv2.resize(a, size, interpolation=cv2.INTER_NEAREST)
                                       for a in (depth, confidence, support))
-    timings["decide"] = time.perf_counter() - tick
+    timings["decide"] += time.perf_counter() - tick
     timings["total"] = time.perf_counter() - started
     estimate = DepthEstimate(depth, confidence, support.astype(np.int16), kept, (float(near), float(far)), backend,
                              timings)
