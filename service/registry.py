@@ -16,6 +16,7 @@ import msgpack
 import redis.asyncio as aioredis
 
 from worker.runtime import keys
+from worker.runtime.failpoints import failpoint
 from worker.runtime.similarity import similarity_scale
 
 # Atomically: check the session accepts frames, seq increases, the queue has room; enqueue; count.
@@ -113,8 +114,8 @@ class Registry:
 
     async def get_raw(self, session_id: str) -> dict[str, str] | None:
         raw = await self.client.hgetall(keys.session(session_id))
-        if not raw:
-            return None
+        if not raw or b"id" not in raw or b"status" not in raw:
+            return None  # absent, or a partial record left by an older worker writing after a delete
         return {k.decode(): v.decode() for k, v in raw.items()}
 
     async def list_sessions(self, *, status: str | None, device_id: str | None, name: str | None, limit: int,
@@ -145,6 +146,7 @@ class Registry:
         return [session for _, session in page], next_cursor
 
     async def delete_session(self, session_id: str, record: dict[str, str]) -> None:
+        failpoint("delete:gateway")
         pipe = self.client.pipeline(transaction=True)
         pipe.delete(*keys.all_session_keys(session_id))
         if record.get("index_member"):

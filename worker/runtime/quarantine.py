@@ -13,6 +13,7 @@ import redis
 from worker.runtime import keys
 
 _BEGIN = """
+if redis.call('EXISTS', KEYS[2]) == 0 then return 0 end
 local value = redis.call('GET', KEYS[1])
 local attempts = 1
 if value then
@@ -35,12 +36,14 @@ class FrameAttempts:
         if max_attempts < 1:
             raise ValueError("max_attempts must be >= 1")
         self.key = keys.inflight(session_id)
+        self.session_key = keys.session(session_id)
         self.max_attempts = max_attempts
         self._begin = client.register_script(_BEGIN)
 
     def begin(self, seq: int) -> int:
-        """Record that this worker starts frame `seq` (its attempt number); PoisonFrame past max_attempts."""
-        attempts = int(self._begin(keys=[self.key], args=[seq]))
+        """Record that this worker starts frame `seq` (its attempt number; 0 when the session no longer exists);
+        PoisonFrame past max_attempts."""
+        attempts = int(self._begin(keys=[self.key, self.session_key], args=[seq]))
         if attempts > self.max_attempts:
             died = attempts - 1
             raise PoisonFrame(f"frame {seq} was quarantined: the worker{'s' if died > 1 else ''} processing it "

@@ -23,11 +23,13 @@ import redis
 from worker.geometry import Intrinsics
 from worker.runtime import keys
 from worker.runtime.engine import SessionEngine, close_engine, create_engine, engine_intrinsics, restore_engine
+from worker.runtime.failpoints import failpoint
 from worker.runtime.frames import DEFAULT_MAX_SIDE, FrameError, decode_frame
 from worker.runtime.leases import Leases
 from worker.runtime.outage import REDIS_DOWN
 from worker.runtime.progress import FinishProgress
 from worker.runtime.quarantine import FrameAttempts
+from worker.runtime.record import SessionRecord
 from worker.runtime.requests import handle_request
 from worker.runtime.similarity import similarity_scale
 from worker.runtime.stats import StageStats
@@ -65,6 +67,7 @@ return new
 """
 
 _STORE_SNAPSHOT = """
+if redis.call('EXISTS', KEYS[4]) == 0 then return -1 end
 if redis.call('GET', KEYS[3]) ~= ARGV[1] then return -2 end
 redis.call('HSET', KEYS[1], 'data', ARGV[2], 'seq', ARGV[3], 'stream_id', ARGV[4], 'engine', ARGV[5],
            'created_at', ARGV[6])
@@ -151,6 +154,7 @@ class SessionRunner(threading.Thread):
         self._store_rejection = client.register_script(_STORE_REJECTION)
         self._store_snapshot = client.register_script(_STORE_SNAPSHOT)
         self._attempts = FrameAttempts(client, session_id, config.max_frame_attempts)
+        self._record = SessionRecord(client, session_id)
 
     # --- control from the worker --------------------------------------------------------------------------------
     def stop(self) -> None:
@@ -167,9 +171,7 @@ class SessionRunner(threading.Thread):
             self._restore_and_replay()
             self._process_until_done()
         except SessionGone:
-            log.info("session %s was deleted", self.session_id)
-            self.terminal = True
-            self.client.delete(*keys.all_session_keys(self.session_id))
+            self._clean_up_deleted()
         except LeaseLost:
             log.warning("session %s: lease lost, stopping", self.session_id)
         except REDIS_DOWN as err:
@@ -177,8 +179,11 @@ class SessionRunner(threading.Thread):
             log.warning("session %s: Redis unreachable (%s); pausing it", self.session_id, err)
             self.interrupted = True
         except Exception as err:
-            log.exception("session %s failed", self.session_id)
-            self._fail(err)
+            if self._deleted():  # e.g. NOGROUP: the delete removed the streams under a running step
+                self._clean_up_deleted()
+            else:
+                log.exception("session %s failed", self.session_id)
+                self._fail(err)
         finally:
             close_engine(self.engine)
             if not self._lease_lost.is_set() and not self.interrupted:
@@ -187,13 +192,27 @@ class SessionRunner(threading.Thread):
                 except REDIS_DOWN:
                     pass  # the lease expires on its own
 
+    def _deleted(self) -> bool:
+        try:
+            return not self.client.exists(keys.session(self.session_id))
+        except redis.RedisError:
+            return False
+
+    def _clean_up_deleted(self) -> None:
+        """The session was deleted while we ran it: remove what we created since (streams, lease)."""
+        log.info("session %s was deleted", self.session_id)
+        self.terminal = True
+        failpoint("delete:worker")
+        self.client.delete(*keys.all_session_keys(self.session_id))
+
     def _load_session(self) -> None:
         raw = self.client.hgetall(keys.session(self.session_id))
         if not raw:
             raise SessionGone
         self._session = {k.decode(): v.decode() for k, v in raw.items() if k != b"owner"}
         self._revision = int(self._session.get("revision", 0))
-        self.client.hset(keys.session(self.session_id), mapping={"worker": self.worker_id, "updated_at": now_iso()})
+        if not self._record.update({"worker": self.worker_id, "updated_at": now_iso()}):
+            raise SessionGone
 
     def _session_intrinsics(self) -> dict[str, Any] | None:
         text = self._session.get("intrinsics")
@@ -231,6 +250,7 @@ class SessionRunner(threading.Thread):
                 self._handle_entry(entry_id, fields)
                 after = entry_id
         self._cursor = stream_id_tuple(after)
+        self._resume_interrupted_finish()
 
     def _process_until_done(self) -> None:
         streams = {keys.inbox(self.session_id): ">", keys.session_requests(self.session_id): ">"}
@@ -289,7 +309,8 @@ class SessionRunner(threading.Thread):
                 log.warning("replay of seq %s failed: %s", fields[b"seq"], err)
 
     def _process_frame(self, entry_id: bytes, seq: int, fields: dict[bytes, bytes]) -> None:
-        self._attempts.begin(seq)  # before anything that could take the worker down with this frame
+        if not self._attempts.begin(seq):  # before anything that could take the worker down with this frame
+            raise SessionGone
         t0, c0 = time.perf_counter(), time.thread_time()
         try:
             message = unpack(fields[b"msg"])
@@ -342,7 +363,8 @@ class SessionRunner(threading.Thread):
         camera = engine_intrinsics(self.engine)
         if camera is not None:
             text = json.dumps(camera)
-            self.client.hset(keys.session(self.session_id), "estimated_intrinsics", text)
+            if not self._record.update({"estimated_intrinsics": text}):
+                raise SessionGone
             self._session["estimated_intrinsics"] = text
 
     def _reject(self, entry_id: bytes, seq: int, code: str, message: str) -> None:
@@ -387,18 +409,16 @@ class SessionRunner(threading.Thread):
         mapping = {int(i): pack({"t": float(t), "p": np.asarray(p, dtype=np.float64).reshape(-1).tolist(),
                                  "kf": int(i) in keyframes})
                    for i, t, p in self.engine.trajectory("all")}
-        if mapping:
-            pipe = self.client.pipeline(transaction=True)
-            pipe.hset(keys.poses(self.session_id), mapping=mapping)
-            pipe.hset(keys.session(self.session_id), mapping={"revision": self._revision, "keyframes": len(keyframes),
-                                                             "updated_at": now_iso()})
-            pipe.execute()
+        fields = {"revision": self._revision, "keyframes": len(keyframes), "updated_at": now_iso()}
+        if mapping and not self._record.store_trajectory(mapping, fields):
+            raise SessionGone
 
     def _write_snapshot(self, seq: int, entry_id: bytes) -> None:
         t0 = time.perf_counter()
         blob = self.engine.snapshot()
         status = self._store_snapshot(
-            keys=[keys.snapshot(self.session_id), keys.inbox(self.session_id), keys.lease(self.session_id)],
+            keys=[keys.snapshot(self.session_id), keys.inbox(self.session_id), keys.lease(self.session_id),
+                  keys.session(self.session_id)],
             args=[self.worker_id, blob, seq, entry_id, self.config.engine_kind, now_iso()])
         self._check_store_status(status)
         self._last_id = entry_id
@@ -411,30 +431,43 @@ class SessionRunner(threading.Thread):
         if not self.leases.renew(self.session_id):
             self._lease_lost.set()
             raise LeaseLost
+        failpoint("finish:engine")
         self._revision = int(getattr(self.engine, "revision", self._revision))
         self._store_trajectory()
+        failpoint("finish:trajectory")
         last_seq = max(self._done_seqs) if self._done_seqs else -1
         self._write_snapshot(last_seq, entry_id)
+        failpoint("finish:snapshot")
+        self._mark_finished(entry_id)
+
+    def _mark_finished(self, entry_id: bytes) -> None:
+        """The last step of finishing, after the final snapshot: status, the `finished` message, the ack."""
         frames = int(self.client.hget(keys.session(self.session_id), "frames_processed") or 0)
-        pipe = self.client.pipeline(transaction=True)
-        pipe.hset(keys.session(self.session_id), mapping={"status": "finished", "updated_at": now_iso()})
-        pipe.xadd(keys.outbox(self.session_id), {"msg": json.dumps({"type": "finished", "frames": frames}).encode()},
-                  maxlen=self.config.outbox_maxlen, approximate=True)
-        pipe.xack(keys.inbox(self.session_id), keys.GROUP, entry_id)
-        pipe.execute()
+        message = json.dumps({"type": "finished", "frames": frames}).encode()
+        if not self._record.close({"status": "finished", "updated_at": now_iso()}, message,
+                                  self.config.outbox_maxlen, entry_id):
+            raise SessionGone
+        failpoint("finish:marked")
         self.terminal = True
+
+    def _resume_interrupted_finish(self) -> None:
+        """A worker died after the final snapshot but before marking the session finished: the restored engine is
+        the finished one and its snapshot sits at the finish entry, so only the marking is left to do."""
+        if self.terminal or self._session.get("status") != "finishing":
+            return
+        entries = self.client.xrange(keys.inbox(self.session_id), min=self._last_id, max=self._last_id)
+        if entries and entries[0][1].get(b"kind") == b"finish":
+            log.info("session %s: completing a finish its previous worker did not", self.session_id)
+            self._revision = int(getattr(self.engine, "revision", self._revision))
+            self._store_trajectory()
+            self._mark_finished(entries[0][0])
 
     def _fail(self, err: Exception) -> None:
         self.terminal = True
         try:
-            if not self.client.exists(keys.session(self.session_id)):
-                return
             message = json.dumps({"type": "error", "code": "engine_failed", "message": f"session failed: {err}"})
-            pipe = self.client.pipeline(transaction=True)
-            pipe.hset(keys.session(self.session_id), mapping={"status": "failed", "error": str(err)[:500],
-                                                             "updated_at": now_iso()})
-            pipe.xadd(keys.outbox(self.session_id), {"msg": message.encode()})
-            pipe.execute()
+            self._record.close({"status": "failed", "error": str(err)[:500], "updated_at": now_iso()},
+                               message.encode(), self.config.outbox_maxlen)
         except redis.RedisError:
             log.exception("could not record the failure of session %s", self.session_id)
 

@@ -1,0 +1,67 @@
+"""A worker's writes to a session's record, each one atomic and only while the record exists.
+
+A session deleted while its worker still runs must stay deleted: a plain HSET after the gateway's delete would
+recreate a partial record (no id, no status) that every later request trips over. Every write here checks that
+the record exists in the same Lua call, and reports False when it does not (the session is gone).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import redis
+
+from worker.runtime import keys
+
+_UPDATE = """
+if redis.call('EXISTS', KEYS[1]) == 0 then return 0 end
+for i = 1, #ARGV, 2 do redis.call('HSET', KEYS[1], ARGV[i], ARGV[i + 1]) end
+return 1
+"""
+# ARGV: n (the count of session field/value arguments), the session's fields and values, then seq/record pairs
+_STORE_TRAJECTORY = """
+if redis.call('EXISTS', KEYS[1]) == 0 then return 0 end
+local n = tonumber(ARGV[1])
+for i = 2, n, 2 do redis.call('HSET', KEYS[1], ARGV[i], ARGV[i + 1]) end
+for i = n + 2, #ARGV, 2 do redis.call('HSET', KEYS[2], ARGV[i], ARGV[i + 1]) end
+return 1
+"""
+# The last step of a session (finished or failed): its fields, its final outbound message, the inbox entry acked
+_CLOSE = """
+if redis.call('EXISTS', KEYS[1]) == 0 then return 0 end
+for i = 4, #ARGV, 2 do redis.call('HSET', KEYS[1], ARGV[i], ARGV[i + 1]) end
+redis.call('XADD', KEYS[2], 'MAXLEN', '~', ARGV[2], '*', 'msg', ARGV[1])
+if ARGV[3] ~= '' then redis.call('XACK', KEYS[3], 'workers', ARGV[3]) end
+return 1
+"""
+
+
+def _flat(mapping: Mapping[str | int, object]) -> list:
+    return [x for pair in mapping.items() for x in pair]
+
+
+class SessionRecord:
+    """Existence-checked writes to one session's hash (and the keys that go with it)."""
+
+    def __init__(self, client: redis.Redis, session_id: str) -> None:
+        self.session_id = session_id
+        self._update = client.register_script(_UPDATE)
+        self._store_trajectory = client.register_script(_STORE_TRAJECTORY)
+        self._close = client.register_script(_CLOSE)
+
+    def update(self, fields: Mapping[str, object]) -> bool:
+        """HSET `fields`; False when the session no longer exists."""
+        return bool(self._update(keys=[keys.session(self.session_id)], args=_flat(fields)))
+
+    def store_trajectory(self, poses: Mapping[int, bytes], fields: Mapping[str, object]) -> bool:
+        """Every pose record (seq -> msgpack) and the session's `fields`, together; False when it is gone."""
+        session_args = _flat(fields)
+        return bool(self._store_trajectory(keys=[keys.session(self.session_id), keys.poses(self.session_id)],
+                                           args=[len(session_args), *session_args, *_flat(poses)]))
+
+    def close(self, fields: Mapping[str, object], message: bytes, outbox_maxlen: int,
+              inbox_entry: bytes | None = None) -> bool:
+        """Set the final `fields` (status...), publish `message` and ack `inbox_entry`, together."""
+        return bool(self._close(keys=[keys.session(self.session_id), keys.outbox(self.session_id),
+                                      keys.inbox(self.session_id)],
+                                args=[message, outbox_maxlen, inbox_entry or b"", *_flat(fields)]))
