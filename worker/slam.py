@@ -99,6 +99,8 @@ class SlamSystem:
         self._with_depth = False
         self._wall_offset = 0.0  # wall time of the run before a restore
         self._previous_poses: tuple[np.ndarray, np.ndarray] | None = None
+        self._last_frame: tuple[Frame, bool] | None = None  # the newest frame and whether tracking held
+        self.last_frame_mapped: int | None = None  # the final frame's index when finish() mapped it too
 
     # ------------------------------------------------------------------------------------------------ public API
     @property
@@ -137,6 +139,7 @@ class SlamSystem:
         if self._finished:
             return
         if self.backend is not None:
+            self._map_last_frame()
             self._queue_depth_jobs(force=True)
             self._flush_posed_jobs(force=True)
             self.backend.wait_idle()
@@ -261,6 +264,7 @@ class SlamSystem:
                 events += self._keyframe_loop(frame, prediction)
         world = self._traj.add_frame(frame.index, frame.timestamp, self._last_keyframe, pose, is_kf,
                                      tracking.submap_id)
+        self._last_frame = None if is_kf else (frame, tracking.tracked)
         if self.backend is not None:
             self._queue_depth_jobs()
             self._flush_posed_jobs()
@@ -278,6 +282,28 @@ class SlamSystem:
         out["frames_revised"] = len(revised)
         return out
 
+    def _map_last_frame(self) -> None:
+        """At the end of a session the newest view enters the map too (when it is not a keyframe already and was
+        tracked): it is the view a user looks at first. Keyframe-like surfels from its depth, sensor or multi-view;
+        not a pose-graph node (nothing moves it any more)."""
+        if self._last_frame is None or self.depth_source == "model":
+            return
+        frame, tracked = self._last_frame
+        self._last_frame = None
+        sensor = self.depth_source == "sensor"
+        if not tracked or (sensor and (frame.depth is None or self.config.input.surfel_init != "depth")):
+            return
+        pose = self._traj.pose_at(frame.index)
+        K = self.camera(frame).matrix()
+        if self.keyframe_depth is not None:
+            self.keyframe_depth.add_keyframe(frame.index, K.numpy(), None)
+        else:
+            image = torch.from_numpy(frame.image).to(torch.float32) / 255.0
+            depth = torch.from_numpy(np.asarray(frame.depth, np.float32))
+            self._pending_jobs.append((KeyframeJob(frame.index, pose, K, image, grid_from_depth(image, depth, K),
+                                                   depth), False))
+        self.last_frame_mapped = frame.index
+
     def camera(self, frame: Frame) -> Intrinsics:
         """The frame's camera: given, else the pose source's estimate."""
         intrinsics = self.frame_intrinsics(frame) or getattr(self.pose_source, "estimated_intrinsics", None)
@@ -289,7 +315,7 @@ class SlamSystem:
         """Multi-view depth jobs of the keyframes that have their neighbours now (all of them when `force`)."""
         if self.keyframe_depth is None:
             return
-        for job in self.keyframe_depth.ready_jobs(self._traj.pose_at, self._traj.keyframe_poses.__getitem__, force):
+        for job in self.keyframe_depth.ready_jobs(self._traj.pose_at, force):
             self._pending_jobs.append((job, False))
 
     def _is_keyframe(self, tracking: TrackingResult, pose: np.ndarray) -> bool:

@@ -54,6 +54,9 @@ def test_rgbd_frames_without_poses_are_tracked_and_mapped(rgbd_frames) -> None:
     assert sum(r.is_keyframe for r in results) >= 3 and system.num_gaussians > 1000
     rgb, _ = system.render_view(poses[5], intr.matrix(), intr.width, intr.height)
     assert float(np.abs(rgb.astype(np.float32) - frames[5].image).mean()) < 20  # the map explains the view
+    assert not results[-1].is_keyframe and system.last_frame_mapped == frames[-1].index  # finish maps the last view
+    rgb, _ = system.render_view(poses[-1], intr.matrix(), intr.width, intr.height)
+    assert float(np.abs(rgb.astype(np.float32) - frames[-1].image).mean()) < 20
     system.close()
 
 

@@ -65,22 +65,22 @@ class KeyframeDepth:
         depth_range, scene_depth = depth_hint(sparse_depth)
         self.pending.append(PendingKeyframe(int(kf_id), np.asarray(K, np.float64), depth_range, scene_depth))
 
-    def ready_jobs(self, pose_of: Callable[[int], np.ndarray], keyframe_pose: Callable[[int], np.ndarray],
-                   force: bool = False) -> list[KeyframeJob]:
-        """Jobs of the keyframes that have seen `frames_after` later frames (all of them when `force`)."""
+    def ready_jobs(self, pose_of: Callable[[int], np.ndarray], force: bool = False) -> list[KeyframeJob]:
+        """Jobs of the keyframes that have seen `frames_after` later frames (all of them when `force`); `pose_of`
+        gives any kept frame's current world pose."""
         jobs = []
         newest = next(reversed(self.images)) if self.images else -1
         while self.pending and (force or sum(i > self.pending[0].kf_id for i in self.images) >= self.frames_after
                                 or newest - self.pending[0].kf_id > self.buffer_frames):
-            jobs.append(self._job(self.pending.pop(0), pose_of, keyframe_pose))
+            jobs.append(self._job(self.pending.pop(0), pose_of))
         return jobs
 
-    def _job(self, kf: PendingKeyframe, pose_of: Callable[[int], np.ndarray],
-             keyframe_pose: Callable[[int], np.ndarray]) -> KeyframeJob:
+    def _job(self, kf: PendingKeyframe, pose_of: Callable[[int], np.ndarray]) -> KeyframeJob:
         ref_image = self.images.get(kf.kf_id)
         if ref_image is None:
             raise RuntimeError(f"keyframe {kf.kf_id} left the frame ring before its depth was estimated")
-        ref_pose = _rigid(keyframe_pose(kf.kf_id))
+        world_pose = pose_of(kf.kf_id)
+        ref_pose = _rigid(world_pose)
         candidates = [i for i in self.images if i != kf.kf_id]
         poses = [_rigid(pose_of(i)) for i in candidates]
         chosen = select_neighbours(ref_pose, poses, self.config, scene_depth=kf.scene_depth)
@@ -89,7 +89,7 @@ class KeyframeDepth:
         image = torch.from_numpy(ref_image).to(torch.float32) / 255.0
         Kt = torch.from_numpy(K).to(torch.float32)
 
-        scale = float(np.cbrt(np.linalg.det(np.asarray(keyframe_pose(kf.kf_id))[:3, :3])))
+        scale = float(np.cbrt(np.linalg.det(world_pose[:3, :3])))
 
         def build() -> tuple[dict[str, torch.Tensor], torch.Tensor]:
             estimate = estimate_depth(ref_image, K, ref_pose, neighbours, depth_range=depth_range, config=config)
@@ -98,7 +98,7 @@ class KeyframeDepth:
             depth = torch.from_numpy(estimate.depth / scale)  # world units -> the keyframe camera's (Sim(3) pose)
             return grid_from_depth(image, depth, Kt), depth
 
-        return KeyframeJob(kf.kf_id, keyframe_pose(kf.kf_id), Kt, image, grid={}, depth=None, build=build)
+        return KeyframeJob(kf.kf_id, world_pose, Kt, image, grid={}, depth=None, build=build)
 
     # ------------------------------------------------------------------------------------------ snapshot/restore
     def state_dict(self) -> dict[str, Any]:

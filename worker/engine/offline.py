@@ -150,7 +150,8 @@ def _render_metrics(system, frames: list[Frame], results, poses, intrinsics, out
 
     if intrinsics is None:
         return {"psnr": None, "ssim": None, "lpips": None, "depth_l1": None, "lpips_note": "no intrinsics"}
-    chosen = non_keyframe_indices([r.is_keyframe for r in results], every) or list(range(len(frames)))
+    mapped = [r.is_keyframe or r.index == system.last_frame_mapped for r in results]  # the final view is mapped
+    chosen = non_keyframe_indices(mapped, every) or list(range(len(frames)))
     metric_depth = system.config.input.use_depth
     K = intrinsics.matrix().numpy()
     (out / "renders").mkdir(exist_ok=True)
