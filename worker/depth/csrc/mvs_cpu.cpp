@@ -73,14 +73,15 @@ struct PlaneSweep {
     const float* ref_ssd;  // [H, W] window sums of squared deviations from the window mean
     std::vector<float> ring;       // (2r + 2) rows x 3 quantities x W
     std::vector<float> col;        // 3 quantities x (W + 2r): column sums, r zeros on each side
-    std::vector<float> u, v, box;  // [W] sample coordinates; 3 x W window sums of the current row
+    std::vector<float> u, v, box;  // [W] bilinear weights within each sample's cell; 3 x W window sums of a row
+    std::vector<float> cell;       // [W] index of each sample's top-left pixel (a whole number)
     std::vector<float> cols;       // [W] columns inside each window
     std::vector<float> seen;       // (2r + 2) rows x W: 1 where the centre sample is inside the view, else 0
 
     PlaneSweep(int H_, int W_, int r_, float min_var_, const float* ref_, const float* ref_sum_, const float* ref_ssd_)
         : H(H_), W(W_), r(r_), min_var(min_var_), ref(ref_), ref_sum(ref_sum_), ref_ssd(ref_ssd_),
           ring(size_t(2 * r_ + 2) * 3 * W_), col(size_t(3) * (W_ + 2 * r_)), u(W_), v(W_), box(size_t(3) * W_),
-          cols(W_), seen(size_t(2 * r_ + 2) * W_) {
+          cell(W_), cols(W_), seen(size_t(2 * r_ + 2) * W_) {
         for (int x = 0; x < W; ++x) cols[x] = float(std::min(W - 1, x + r) - std::max(0, x - r) + 1);
     }
 
@@ -95,24 +96,26 @@ struct PlaneSweep {
         const float hy0 = float(A[4] * py + A[5] + w * b[1]) + 0.5f * ay;
         const float hz0 = float(A[7] * py + A[8] + w * b[2]) + 0.5f * az;
         const float umax = float(W - 1), vmax = float(H - 1);
-        for (int x = 0; x < W; ++x) {
+        const float xmax = float(W - 2), ymax = float(H - 2), width = float(W);
+        for (int x = 0; x < W; ++x) {  // sample positions, bilinear cells and weights (vectorises)
             const float hz = az * float(x) + hz0;
             const bool front = hz > float(kMinZ);
             const float inv = 1.0f / (front ? hz : 1.0f);
             const float ux = front ? (ax * float(x) + hx0) * inv - 0.5f : 0.0f;
             const float vy = front ? (ay * float(x) + hy0) * inv - 0.5f : 0.0f;
             s[x] = (front && ux >= 0.0f && ux <= umax && vy >= 0.0f && vy <= vmax) ? 1.0f : 0.0f;
-            u[x] = std::min(std::max(ux, 0.0f), umax);
-            v[x] = std::min(std::max(vy, 0.0f), vmax);
+            const float uc = std::min(std::max(ux, 0.0f), umax), vc = std::min(std::max(vy, 0.0f), vmax);
+            const float x0 = std::min(float(int(uc)), xmax), y0 = std::min(float(int(vc)), ymax);
+            u[x] = uc - x0;
+            v[x] = vc - y0;
+            cell[x] = y0 * width + x0;  // exact in float for images below 2^24 pixels
         }
-        for (int x = 0; x < W; ++x) {  // bilinear gather
-            const int x0 = std::min(int(u[x]), W - 2), y0 = std::min(int(v[x]), H - 2);
-            const float fx = u[x] - float(x0), fy = v[x] - float(y0);
-            const float* r0 = src + int64_t(y0) * W + x0;
+        for (int x = 0; x < W; ++x) {  // the gather
+            const float* r0 = src + int(cell[x]);
             const float* r1 = r0 + W;
-            const float top = r0[0] + fx * (r0[1] - r0[0]);
-            const float bottom = r1[0] + fx * (r1[1] - r1[0]);
-            q[x] = top + fy * (bottom - top);
+            const float top = r0[0] + u[x] * (r0[1] - r0[0]);
+            const float bottom = r1[0] + u[x] * (r1[1] - r1[0]);
+            q[x] = top + v[x] * (bottom - top);
         }
         for (int x = 0; x < W; ++x) {
             q[W + x] = q[x] * q[x];
@@ -120,13 +123,23 @@ struct PlaneSweep {
         }
     }
 
-    void add_row(int y, float sign) {
-        const float* q = ring.data() + size_t(y % (2 * r + 2)) * 3 * W;
+    // Column sums += row `enter` - row `leave` (either may be -1: none), in one pass over the sums.
+    void update_columns(int enter, int leave) {
+        const size_t slots = size_t(2 * r + 2);
+        const float* qa = enter >= 0 ? ring.data() + size_t(enter) % slots * 3 * W : nullptr;
+        const float* qs = leave >= 0 ? ring.data() + size_t(leave) % slots * 3 * W : nullptr;
         const int stride = W + 2 * r;
         for (int k = 0; k < 3; ++k) {
             float* c = col.data() + size_t(k) * stride + r;
-            const float* qk = q + size_t(k) * W;
-            for (int x = 0; x < W; ++x) c[x] += sign * qk[x];
+            const float* a = qa ? qa + size_t(k) * W : nullptr;
+            const float* b = qs ? qs + size_t(k) * W : nullptr;
+            if (a && b) {
+                for (int x = 0; x < W; ++x) c[x] += a[x] - b[x];
+            } else if (a) {
+                for (int x = 0; x < W; ++x) c[x] += a[x];
+            } else if (b) {
+                for (int x = 0; x < W; ++x) c[x] -= b[x];
+            }
         }
     }
 
@@ -134,14 +147,12 @@ struct PlaneSweep {
         std::fill(col.begin(), col.end(), 0.0f);
         for (int y = 0; y < std::min(r, H); ++y) {
             warp_row(src, A, b, w, y);
-            add_row(y, 1.0f);
+            update_columns(y, -1);
         }
         for (int y = 0; y < H; ++y) {
-            if (y + r < H) {
-                warp_row(src, A, b, w, y + r);
-                add_row(y + r, 1.0f);
-            }
-            if (y - r - 1 >= 0) add_row(y - r - 1, -1.0f);
+            const int enter = y + r < H ? y + r : -1, leave = y - r - 1;
+            if (enter >= 0) warp_row(src, A, b, w, enter);
+            update_columns(enter, leave);
             const int rows = std::min(H - 1, y + r) - std::max(0, y - r) + 1;
             finish_row(y, rows, out + int64_t(y) * W);
         }
