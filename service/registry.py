@@ -63,6 +63,17 @@ return 1
 """
 
 _BLPOP_SLICE_S = 2.0
+# A stream opened on an abandoned session within the grace period revives it: streaming again, and a new job so
+# that a worker resumes it from its snapshot. 1 revived, 0 past the grace period, -1 not abandoned.
+_REVIVE = """
+local f = redis.call('HMGET', KEYS[1], 'status', 'abandoned_at')
+if f[1] ~= 'abandoned' then return -1 end
+if tonumber(ARGV[1]) - tonumber(f[2] or '0') > tonumber(ARGV[2]) then return 0 end
+redis.call('HSET', KEYS[1], 'status', 'streaming', 'updated_at', ARGV[3])
+redis.call('HDEL', KEYS[1], 'abandoned_at')
+redis.call('XADD', KEYS[2], '*', 'session_id', ARGV[4])
+return 1
+"""
 INGEST_ACCEPTED, NO_SESSION, NOT_ACCEPTING, SEQ_NOT_INCREASING, QUEUE_FULL, SIZE_MISMATCH = 0, -1, -2, -3, -4, -5
 _INT_FIELDS = ("frames_received", "frames_processed", "frames_rejected", "keyframes", "revision")
 
@@ -90,6 +101,7 @@ class Registry:
         self.client = client
         self._ingest = client.register_script(_INGEST)
         self._finish = client.register_script(_FINISH)
+        self._revive = client.register_script(_REVIVE)
 
     # --- sessions -----------------------------------------------------------------------------------------------
     async def create_session(self, body: dict[str, Any], owner: str) -> dict[str, Any]:
@@ -108,9 +120,26 @@ class Registry:
         pipe.hset(keys.session(session_id), mapping=record)
         pipe.hset(keys.session(session_id), "index_member", member)
         pipe.zadd(keys.SESSIONS_INDEX, {member: 0})
+        pipe.zadd(keys.owner_live(owner), {session_id: 0})
         pipe.xadd(keys.JOBS, {"session_id": session_id})
         await pipe.execute()
         return parse_session(record)
+
+    async def live_sessions_of(self, owner: str) -> int:
+        """How many sessions `owner` created are still live (created, streaming, finishing); the others leave its
+        set here. Concurrent creates may each see the same count: the quota can be passed by that many."""
+        members = [m.decode() for m in await self.client.zrange(keys.owner_live(owner), 0, -1)]
+        if not members:
+            return 0
+        pipe = self.client.pipeline(transaction=False)
+        for session_id in members:
+            pipe.hget(keys.session(session_id), "status")
+        statuses = await pipe.execute()
+        ended = [sid for sid, status in zip(members, statuses) if status is None
+                 or status.decode() not in keys.LIVE_STATUSES]
+        if ended:
+            await self.client.zrem(keys.owner_live(owner), *ended)
+        return len(members) - len(ended)
 
     async def get_raw(self, session_id: str) -> dict[str, str] | None:
         raw = await self.client.hgetall(keys.session(session_id))
@@ -151,6 +180,8 @@ class Registry:
         pipe.delete(*keys.all_session_keys(session_id))
         if record.get("index_member"):
             pipe.zrem(keys.SESSIONS_INDEX, record["index_member"])
+        if record.get("owner"):
+            pipe.zrem(keys.owner_live(record["owner"]), session_id)
         await pipe.execute()
 
     # --- streaming ----------------------------------------------------------------------------------------------
@@ -165,6 +196,12 @@ class Registry:
     async def request_finish(self, session_id: str) -> int:
         """1 finishing now, 0 already finishing/finished, -1 no such session."""
         return int(await self._finish(keys=[keys.session(session_id), keys.inbox(session_id)], args=[now_iso()]))
+
+    async def revive(self, session_id: str, grace_s: float) -> int:
+        """1: the abandoned session streams again (a worker resumes it); 0: abandoned too long ago; -1: not
+        abandoned."""
+        return int(await self._revive(keys=[keys.session(session_id), keys.JOBS],
+                                      args=[f"{time.time():.3f}", grace_s, now_iso(), session_id]))
 
     async def last_outbox_id(self, session_id: str) -> str:
         entries = await self.client.xrevrange(keys.outbox(session_id), count=1)

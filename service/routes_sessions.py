@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Query, Request, Response
+from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 from fastapi.exceptions import RequestValidationError
 
 from service.auth import Principal, caller
@@ -16,7 +16,9 @@ router = APIRouter(prefix="/v1/sessions", tags=["sessions"],
                    responses={401: {"model": ErrorBody}, 403: {"model": ErrorBody}})
 
 
-@router.post("", status_code=201, response_model=Session, responses={422: {"description": "invalid body"}})
+@router.post("", status_code=201, response_model=Session,
+             responses={422: {"description": "invalid body"},
+                        429: {"model": ErrorBody, "description": "the key's quota of live sessions is used up"}})
 async def create_session(body: SessionCreate, request: Request, principal: Principal = Depends(caller),
                          reg: Registry = Depends(registry)) -> dict:
     """Create a session; a worker picks it up. Needs the `stream` scope."""
@@ -28,6 +30,10 @@ async def create_session(body: SessionCreate, request: Request, principal: Princ
         except (ValueError, KeyError) as err:  # the same 422 body as every other invalid field
             raise RequestValidationError([{"type": "value_error", "loc": ("body", "preset"), "input": body.preset,
                                            "msg": f"unknown preset {body.preset!r}: {err}"}]) from err
+    quota = request.app.state.settings.max_live_sessions
+    if quota and await reg.live_sessions_of(principal.key_id) >= quota:
+        raise HTTPException(429, f"this API key has {quota} live sessions, its limit (FLASHMONO_MAX_LIVE_SESSIONS): "
+                                 "finish or delete one first")
     session = await reg.create_session(body.model_dump(mode="json"), owner=principal.key_id)
     request.app.state.metrics.sessions_created.inc()
     return session

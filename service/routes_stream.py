@@ -64,9 +64,16 @@ async def stream_frames(websocket: WebSocket, session_id: str) -> None:
         await websocket.close(code=4000 + err.status_code, reason=str(err.detail)[:120])
         return
     await websocket.accept()
+    if record["status"] == "abandoned":
+        grace = app.state.settings.abandoned_grace_s
+        if await reg.revive(session_id, grace) == 1:
+            record["status"] = "streaming"
+        else:
+            record["error"] = f"it was abandoned (no frames) more than {grace:g} s ago and can no longer be resumed"
     if record["status"] not in ("created", "streaming"):
+        why = f": {record['error']}" if record["status"] == "abandoned" else ""
         await websocket.send_text(json.dumps({"type": "error", "code": "not_accepting",
-                                              "message": f"session is {record['status']}; it takes no frames"}))
+                                              "message": f"session is {record['status']}; it takes no frames{why}"}))
         await websocket.close(code=4409)
         return
     limit = app.state.settings.max_streams

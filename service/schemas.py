@@ -9,7 +9,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from service.presets import PresetName, preset_field_description
 
-SessionStatus = Literal["created", "streaming", "finishing", "finished", "failed"]
+SessionStatus = Literal["created", "streaming", "finishing", "finished", "failed", "abandoned"]
 PoseMode = Literal["prior", "fixed", "ignore"]
 POSE_MODE_DOC = ("what the engine does with the device poses frames carry: `prior` (default) refines them (loop "
                  "closures may move them), `fixed` keeps them exactly as sent (accurate ARKit/ARCore poses: no loop "

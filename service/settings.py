@@ -17,7 +17,9 @@ class Settings:
     FLASHMONO_REQUEST_TIMEOUT_S (render/export reply timeout, 60); FLASHMONO_MAX_RENDER_PIXELS (4096*4096);
     FLASHMONO_MAX_BODY_BYTES (HTTP request bodies, 1 MiB); FLASHMONO_ALLOWED_ORIGINS (comma-separated origins a
     browser may open the WebSocket from besides the gateway's own, "*" for any); FLASHMONO_MAX_STREAMS (open
-    WebSockets per gateway process, 2000); FLASHMONO_REDIS_CONNECTIONS (the gateway's Redis connection pool, 64)."""
+    WebSockets per gateway process, 2000); FLASHMONO_REDIS_CONNECTIONS (the gateway's Redis connection pool, 64);
+    FLASHMONO_MAX_LIVE_SESSIONS (live sessions per API key, 100; 0: no limit); FLASHMONO_ABANDONED_GRACE_S (how long
+    a session abandoned for want of frames can still be resumed by opening its stream, 3600)."""
 
     redis_url: str = "redis://127.0.0.1:6379/0"
     api_keys: dict[str, frozenset[str]] = field(default_factory=dict)
@@ -29,6 +31,8 @@ class Settings:
     allowed_origins: frozenset[str] = frozenset()
     max_streams: int = 2000
     redis_connections: int = 64
+    max_live_sessions: int = 100
+    abandoned_grace_s: float = 3600.0
 
     @property
     def auth_enabled(self) -> bool:
@@ -50,6 +54,8 @@ class Settings:
             max_body_bytes=int(env.get("FLASHMONO_MAX_BODY_BYTES", cls.max_body_bytes)),
             max_streams=int(env.get("FLASHMONO_MAX_STREAMS", cls.max_streams)),
             redis_connections=int(env.get("FLASHMONO_REDIS_CONNECTIONS", cls.redis_connections)),
+            max_live_sessions=int(env.get("FLASHMONO_MAX_LIVE_SESSIONS", cls.max_live_sessions)),
+            abandoned_grace_s=float(env.get("FLASHMONO_ABANDONED_GRACE_S", cls.abandoned_grace_s)),
             allowed_origins=frozenset(o.strip().rstrip("/") for o in env.get("FLASHMONO_ALLOWED_ORIGINS", "").split(",")
                                       if o.strip()),
         )
@@ -58,7 +64,7 @@ class Settings:
                              ">= 1024")
         if settings.request_timeout_s <= 0:
             raise ValueError("FLASHMONO_REQUEST_TIMEOUT_S must be positive")
-        if settings.max_streams < 1 or settings.redis_connections < 4:
+        if settings.max_streams < 1 or settings.redis_connections < 4 or settings.max_live_sessions < 0:
             raise ValueError("FLASHMONO_MAX_STREAMS must be >= 1 and FLASHMONO_REDIS_CONNECTIONS >= 4")
         return settings
 

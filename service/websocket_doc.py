@@ -36,6 +36,8 @@ FRAME_ERROR_CODES = {
     "forbidden": "the key lacks the stream scope or did not create the session (then close 4403)",
     "forbidden_origin": "a browser Origin not in FLASHMONO_ALLOWED_ORIGINS (then close 4403)",
     "engine_failed": "the session failed in the worker (status failed)",
+    "abandoned": "no frame for FLASHMONO_IDLE_TIMEOUT_S (600 s): the session is abandoned and its worker slot freed; "
+                 "opening its stream again within FLASHMONO_ABANDONED_GRACE_S (3600 s) resumes it",
 }
 
 CLOSE_CODES = {

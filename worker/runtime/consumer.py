@@ -136,7 +136,7 @@ class Worker:
             self._waiting.pop(session_id, None)
             return
         status = self.client.hget(keys.session(session_id), "status")
-        if status is None or status.decode() in ("finished", "failed"):
+        if status is None or status.decode() in ("finished", "failed", "abandoned"):
             self.client.xack(keys.JOBS, keys.GROUP, job_id)
             self._waiting.pop(session_id, None)
             return

@@ -17,6 +17,7 @@ Global:
   fm:worker:{wid}        string heartbeat of a live worker (expires)
   fm:workerstats:{wid}   hash   per-stage latency sums and counts
   fm:reply:{request_id}  list   the reply to one request
+  fm:owner:{key_id}:live zset   ids of the sessions an API key created that may still be live (per-key quota)
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ REQUESTS = "fm:requests"
 WORKER_PREFIX = "fm:worker:"
 WORKER_STATS_PREFIX = "fm:workerstats:"
 
-STATUSES = ("created", "streaming", "finishing", "finished", "failed")
+STATUSES = ("created", "streaming", "finishing", "finished", "failed", "abandoned")
 LIVE_STATUSES = ("created", "streaming", "finishing")
 
 
@@ -74,6 +75,10 @@ def worker(worker_id: str) -> str:
 
 def worker_stats(worker_id: str) -> str:
     return f"{WORKER_STATS_PREFIX}{worker_id}"
+
+
+def owner_live(key_id: str) -> str:
+    return f"fm:owner:{key_id}:live"
 
 
 def reply(request_id: str) -> str:

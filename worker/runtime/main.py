@@ -3,7 +3,8 @@
 Environment (flags override): REDIS_URL (required here), FLASHMONO_WORKER_ID, FLASHMONO_ENGINE (slam|passthrough),
 FLASHMONO_LEASE_TTL_MS (10000), FLASHMONO_SNAPSHOT_EVERY (keyframes between snapshots, 5),
 FLASHMONO_MAX_SESSIONS (sessions per worker, 16), FLASHMONO_TORCH_THREADS (torch intra-op threads),
-FLASHMONO_MAX_FRAME_SIDE (640), FLASHMONO_MAX_FRAME_ATTEMPTS (2), FLASHMONO_MEMORY_BUDGET_MB (0: none).
+FLASHMONO_MAX_FRAME_SIDE (640), FLASHMONO_MAX_FRAME_ATTEMPTS (2), FLASHMONO_MEMORY_BUDGET_MB (0: none),
+FLASHMONO_IDLE_TIMEOUT_S (600; 0: never).
 """
 
 from __future__ import annotations
@@ -40,6 +41,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="workers that may die processing one frame before it is quarantined (session failed)")
     parser.add_argument("--memory-budget-mb", type=int, default=int(env("FLASHMONO_MEMORY_BUDGET_MB", "0")),
                         help="take no new session while this process's resident memory is above it (0: no limit)")
+    parser.add_argument("--idle-timeout-s", type=float, default=float(env("FLASHMONO_IDLE_TIMEOUT_S", "600")),
+                        help="a session without frames this long is abandoned and its slot freed (0: never)")
     parser.add_argument("--torch-threads", type=int, default=int(env("FLASHMONO_TORCH_THREADS", "0")))
     parser.add_argument("--log-level", default=env("FLASHMONO_LOG_LEVEL", "INFO"))
     return parser
@@ -64,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
     config = RuntimeConfig(engine_kind=args.engine, lease_ttl_ms=args.lease_ttl_ms,
                            snapshot_every_keyframes=args.snapshot_every, max_sessions=args.max_sessions,
                            max_frame_side=args.max_frame_side, max_frame_attempts=args.max_frame_attempts,
-                           memory_budget_mb=args.memory_budget_mb)
+                           memory_budget_mb=args.memory_budget_mb, idle_timeout_s=args.idle_timeout_s)
     # No silent retries inside redis-py: a lost connection surfaces to the worker's loops, which wait the outage
     # out and resume each session from its snapshot (a retried XREADGROUP could lose the entries of its reply).
     client = redis.Redis.from_url(args.redis_url, health_check_interval=30, retry=Retry(NoBackoff(), 0))

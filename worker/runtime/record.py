@@ -35,6 +35,16 @@ if ARGV[3] ~= '' then redis.call('XACK', KEYS[3], 'workers', ARGV[3]) end
 return 1
 """
 
+# Idle: abandon only a session that takes frames and has none waiting (a frame that just got in keeps it alive)
+_ABANDON = """
+local f = redis.call('HMGET', KEYS[1], 'status', 'frames_received', 'frames_processed', 'frames_rejected')
+if not f[1] or (f[1] ~= 'created' and f[1] ~= 'streaming') then return 0 end
+if tonumber(f[2] or '0') - tonumber(f[3] or '0') - tonumber(f[4] or '0') > 0 then return 0 end
+redis.call('HSET', KEYS[1], 'status', 'abandoned', 'abandoned_at', ARGV[3], 'updated_at', ARGV[4])
+redis.call('XADD', KEYS[2], 'MAXLEN', '~', ARGV[2], '*', 'msg', ARGV[1])
+return 1
+"""
+
 
 def _flat(mapping: Mapping[str | int, object]) -> list:
     return [x for pair in mapping.items() for x in pair]
@@ -48,6 +58,7 @@ class SessionRecord:
         self._update = client.register_script(_UPDATE)
         self._store_trajectory = client.register_script(_STORE_TRAJECTORY)
         self._close = client.register_script(_CLOSE)
+        self._abandon = client.register_script(_ABANDON)
 
     def update(self, fields: Mapping[str, object]) -> bool:
         """HSET `fields`; False when the session no longer exists."""
@@ -65,3 +76,8 @@ class SessionRecord:
         return bool(self._close(keys=[keys.session(self.session_id), keys.outbox(self.session_id),
                                       keys.inbox(self.session_id)],
                                 args=[message, outbox_maxlen, inbox_entry or b"", *_flat(fields)]))
+
+    def abandon(self, message: bytes, outbox_maxlen: int, now_epoch_s: float, now_iso: str) -> bool:
+        """Mark an idle session `abandoned` (publishing `message`) unless frames wait or it no longer takes any."""
+        return bool(self._abandon(keys=[keys.session(self.session_id), keys.outbox(self.session_id)],
+                                  args=[message, outbox_maxlen, f"{now_epoch_s:.3f}", now_iso]))

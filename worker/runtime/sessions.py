@@ -89,6 +89,7 @@ class RuntimeConfig:
     max_frame_side: int = DEFAULT_MAX_SIDE  # frames are worked on at most this long a side
     max_frame_attempts: int = 2  # workers that may die on one frame before it is quarantined
     memory_budget_mb: int = 0  # no new session while the worker's resident memory is above it (0: no limit)
+    idle_timeout_s: float = 600.0  # a session without frames this long is abandoned, its slot freed (0: never)
 
 
 class SessionGone(Exception):
@@ -254,6 +255,7 @@ class SessionRunner(threading.Thread):
 
     def _process_until_done(self) -> None:
         streams = {keys.inbox(self.session_id): ">", keys.session_requests(self.session_id): ">"}
+        idle_since = time.monotonic()
         while not self.terminal:
             if self._stop_event.is_set():
                 return
@@ -270,7 +272,11 @@ class SessionRunner(threading.Thread):
             if not reply:
                 if not self.client.exists(keys.session(self.session_id)):
                     raise SessionGone
+                timeout = self.config.idle_timeout_s
+                if timeout and time.monotonic() - idle_since > timeout and not self._abandon(timeout):
+                    idle_since = time.monotonic()  # a frame got in meanwhile: not idle after all
                 continue
+            idle_since = time.monotonic()
             frames = sum(len(e) for s, e in reply if s.decode() == keys.inbox(self.session_id))
             if frames:
                 self.stats.add("read", time.perf_counter() - t0, frames)
@@ -366,6 +372,20 @@ class SessionRunner(threading.Thread):
             if not self._record.update({"estimated_intrinsics": text}):
                 raise SessionGone
             self._session["estimated_intrinsics"] = text
+
+    def _abandon(self, idle_s: float) -> bool:
+        """No frame for `idle_s`: snapshot what was processed, mark the session `abandoned` and free this slot.
+        A stream opened within the gateway's grace period resumes it (from this snapshot) on any worker."""
+        if self._done_seqs and self._cursor != stream_id_tuple(self._last_id):
+            self._write_snapshot(max(self._done_seqs), f"{self._cursor[0]}-{self._cursor[1]}".encode())
+        message = json.dumps({"type": "error", "code": "abandoned",
+                              "message": f"no frame for {idle_s:g} s: the session was abandoned; open a stream "
+                                         "again within the grace period to resume it"}).encode()
+        if not self._record.abandon(message, self.config.outbox_maxlen, time.time(), now_iso()):
+            return False
+        log.info("session %s abandoned after %g s without frames", self.session_id, idle_s)
+        self.terminal = True
+        return True
 
     def _reject(self, entry_id: bytes, seq: int, code: str, message: str) -> None:
         out = json.dumps({"type": "error", "code": code, "message": message, "seq": seq}).encode()

@@ -1,0 +1,83 @@
+"""Fairness and lifecycle: idle sessions are abandoned (freeing their worker slot) and resumable within a grace
+period, and each API key has a quota of live sessions."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import httpx
+import pytest
+from runtime_helpers import WORKER_ENV, receive_until, synthetic_frame, wait_for
+from websockets.sync.client import connect
+
+from service.launcher import LocalStack
+
+KEYS = "key-a=stream,read;key-b=stream,read"
+GRACE_S = 6.0
+
+
+@pytest.fixture(scope="module")
+def stack():
+    worker_env = {**WORKER_ENV, "FLASHMONO_IDLE_TIMEOUT_S": "2", "FLASHMONO_MAX_SESSIONS": "2"}
+    gateway_env = {"FLASHMONO_API_KEYS": KEYS, "FLASHMONO_MAX_LIVE_SESSIONS": "3",
+                   "FLASHMONO_ABANDONED_GRACE_S": str(GRACE_S)}
+    with LocalStack(workers=1, worker_env=worker_env, gateway_env=gateway_env) as local:
+        yield local
+
+
+def client(stack, key: str) -> httpx.Client:
+    return httpx.Client(base_url=stack.base_url, headers={"X-API-Key": key}, timeout=30)
+
+
+def stream(stack, sid: str, key: str):
+    return connect(f"{stack.ws_url}/v1/sessions/{sid}/stream", additional_headers={"X-API-Key": key},
+                   open_timeout=20)
+
+
+def status(api: httpx.Client, sid: str) -> str:
+    return api.get(f"/v1/sessions/{sid}").json()["status"]
+
+
+def test_idle_sessions_free_their_slot_and_resume_within_the_grace_period(stack):
+    with client(stack, "key-a") as api:
+        # two sessions nobody streams to fill the worker's two slots; they are abandoned after 2 s idle
+        idle = [api.post("/v1/sessions", json={"name": "idle"}).json()["id"] for _ in range(2)]
+        sid = api.post("/v1/sessions", json={"name": "walk"}).json()["id"]
+        t0 = time.monotonic()
+        with stream(stack, sid, "key-a") as ws:
+            for seq in range(3):
+                ws.send(synthetic_frame(seq))
+            receive_until(ws, lambda m: m["type"] == "pose" and m["seq"] == 2, timeout_s=60)
+            waited = time.monotonic() - t0
+            assert all(status(api, s) == "abandoned" for s in idle)  # they made room for it
+            assert waited < 30
+            # now this one goes idle too, and is told so
+            abandoned = receive_until(ws, lambda m: m.get("code") == "abandoned", timeout_s=30)[-1]
+            assert "grace period" in abandoned["message"]
+        assert status(api, sid) == "abandoned"
+        with stream(stack, sid, "key-a") as ws:  # within the grace period: it resumes where it stopped
+            for seq in range(3, 6):
+                ws.send(synthetic_frame(seq))
+            ws.send(json.dumps({"type": "finish"}))
+            messages = receive_until(ws, lambda m: m["type"] == "finished", timeout_s=60)
+        assert [m["seq"] for m in messages if m["type"] == "pose"] == [3, 4, 5]
+        poses = api.get(f"/v1/sessions/{sid}/trajectory").json()["poses"]
+        assert [p["seq"] for p in poses] == list(range(6)) and all(p["pose"][3] == p["seq"] for p in poses)
+        # past the grace period an abandoned session stays closed, with the reason
+        wait_for(lambda: time.monotonic() - t0 > GRACE_S + 3, timeout_s=30, interval_s=0.2)
+        with stream(stack, idle[0], "key-a") as ws:
+            refusal = json.loads(ws.recv(timeout=10))
+        assert refusal["code"] == "not_accepting" and "can no longer be resumed" in refusal["message"]
+
+
+def test_each_key_has_a_quota_of_live_sessions(stack):
+    with client(stack, "key-b") as b, client(stack, "key-a") as a:
+        live = [b.post("/v1/sessions", json={}).json()["id"] for _ in range(3)]
+        refused = b.post("/v1/sessions", json={})
+        assert refused.status_code == 429 and "3 live sessions" in refused.json()["detail"]
+        assert a.post("/v1/sessions", json={}).status_code == 201  # another key's quota is its own
+        assert b.delete(f"/v1/sessions/{live[0]}").status_code == 204
+        assert b.post("/v1/sessions", json={}).status_code == 201  # a deleted one no longer counts
+        wait_for(lambda: status(b, live[1]) == "abandoned", timeout_s=30)  # nor do abandoned ones
+        assert b.post("/v1/sessions", json={}).status_code == 201
