@@ -34,7 +34,7 @@ class MultiViewDepthConfig(BaseModel):
     scale: float = Field(1.0, gt=0.1, le=1.0, description="Run the sweep on images resized by this factor.")
 
     # aggregation and refinement
-    sgm_paths: Literal[4, 8] = Field(8, description="Semi-global aggregation paths (4: axes; 8: also diagonals).")
+    sgm_paths: Literal[4, 8] = Field(4, description="Semi-global aggregation paths (4: axes; 8: also diagonals).")
     sgm_p1: float = Field(0.03, ge=0, description="SGM penalty (cost units) for a one-hypothesis step.")
     sgm_p2: float = Field(0.25, ge=0, description="SGM penalty (cost units) for a larger jump.")
 
