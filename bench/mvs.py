@@ -10,7 +10,7 @@ Sparse photos: a held-out synthetic room; each reference photo gets four neighbo
 by 20-30 degrees (left, right, up, down). SGBM: the keyframe and its chosen neighbour with the most sideways
 baseline, rectified (cv2.stereoRectify + remap), StereoSGBM, the disparities back-projected into the keyframe.
 
-Usage: python -m bench mvs [-- --every 6 --threads 2 --data PATH --seed 10003 --photos 6 --no-range --no-sgbm]
+Usage: python -m bench mvs [-- --every 6 --threads 1 --data PATH --seed 10003 --photos 6 --no-range --no-sgbm]
 """
 
 from __future__ import annotations
@@ -217,7 +217,7 @@ def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench mvs", description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=DATA, help="ICL living room folder (Open3D/ICL format)")
     parser.add_argument("--every", type=int, default=6, help="every n-th frame is a keyframe")
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--threads", type=int, default=None, help="kernel threads (default: the config's)")
     parser.add_argument("--views", type=int, default=None, help="neighbours per keyframe (config default)")
     parser.add_argument("--seed", type=int, default=10003, help="held-out synthetic scene for the sparse photos")
     parser.add_argument("--photos", type=int, default=6)
@@ -229,9 +229,10 @@ def main(argv: list[str]) -> int:
 
     from worker.depth import MultiViewDepthConfig, mvs_cpu
 
-    config = MultiViewDepthConfig(threads=args.threads, **({"num_views": args.views} if args.views else {}))
-    print(f"machine: {machine()}; compiled kernels: {mvs_cpu.available()}; cv2.setNumThreads({args.threads})")
-    cv2.setNumThreads(args.threads)
+    overrides = {"threads": args.threads, "num_views": args.views}
+    config = MultiViewDepthConfig(**{k: v for k, v in overrides.items() if v is not None})
+    print(f"machine: {machine()}; compiled kernels: {mvs_cpu.available()}; cv2.setNumThreads({config.threads})")
+    cv2.setNumThreads(config.threads)
     print(f"config: {config.model_dump()}")
     lines = []
     if args.data.exists():

@@ -66,7 +66,9 @@ class MultiViewDepthConfig(BaseModel):
     # execution
     backend: Literal["auto", "cpu", "reference"] = Field(
         "auto", description="auto: compiled kernels when they build, else the numpy reference.")
-    threads: int = Field(2, ge=1, le=64, description="Threads of the compiled kernels.")
+    threads: int = Field(
+        1, ge=1, le=64, description="Threads of the compiled kernels (1 leaves the other core to the frontend; on a "
+                                    "loaded 2-core machine 2 threads were not faster).")
     keep_buffers: bool = Field(
         True, description="Keep the large intermediate arrays between calls in each thread (about 100 MB at "
                           "320x240, 4 views, 48 planes): no page-zeroing on every keyframe.")
