@@ -8,10 +8,12 @@ import time
 
 import httpx
 import pytest
+import redis
 from runtime_helpers import WORKER_ENV, receive_until, synthetic_frame, wait_for
 from websockets.sync.client import connect
 
 from service.launcher import LocalStack
+from worker.runtime import keys
 
 KEYS = "key-a=stream,read;key-b=stream,read"
 GRACE_S = 6.0
@@ -81,3 +83,25 @@ def test_each_key_has_a_quota_of_live_sessions(stack):
         assert b.post("/v1/sessions", json={}).status_code == 201  # a deleted one no longer counts
         wait_for(lambda: status(b, live[1]) == "abandoned", timeout_s=30)  # nor do abandoned ones
         assert b.post("/v1/sessions", json={}).status_code == 201
+
+
+def test_ended_sessions_expire_live_data_then_everything_after_the_retention():
+    worker_env = {**WORKER_ENV, "FLASHMONO_TRANSIENT_TTL_S": "2", "FLASHMONO_RETENTION_S": "6"}
+    with LocalStack(workers=1, worker_env=worker_env) as local, \
+            httpx.Client(base_url=local.base_url, timeout=30) as api:
+        r = redis.Redis.from_url(local.redis_url)
+        sid = api.post("/v1/sessions", json={}).json()["id"]
+        with connect(f"{local.ws_url}/v1/sessions/{sid}/stream", open_timeout=20) as ws:
+            for seq in range(4):
+                ws.send(synthetic_frame(seq))
+            ws.send(json.dumps({"type": "finish"}))
+            receive_until(ws, lambda m: m["type"] == "finished", timeout_s=60)
+        live_only = [keys.inbox(sid), keys.outbox(sid)]
+        assert all(0 < r.pttl(k) <= 2000 for k in live_only)
+        wait_for(lambda: not any(r.exists(k) for k in live_only), timeout_s=10)
+        # the results stay until the retention ends
+        assert len(api.get(f"/v1/sessions/{sid}/trajectory").json()["poses"]) == 4
+        assert api.get(f"/v1/sessions/{sid}/map.ply").status_code == 200
+        wait_for(lambda: api.get(f"/v1/sessions/{sid}").status_code == 404, timeout_s=15, interval_s=0.2)
+        assert [k for k in r.scan_iter(match=f"*{sid}*") if not k.startswith(b"fm:lease:")] == []
+        assert api.get("/v1/sessions").json()["sessions"] == []  # the listing skips what expired

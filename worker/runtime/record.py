@@ -26,12 +26,19 @@ for i = 2, n, 2 do redis.call('HSET', KEYS[1], ARGV[i], ARGV[i + 1]) end
 for i = n + 2, #ARGV, 2 do redis.call('HSET', KEYS[2], ARGV[i], ARGV[i + 1]) end
 return 1
 """
-# The last step of a session (finished or failed): its fields, its final outbound message, the inbox entry acked
+# The last step of a session (finished or failed): its fields, its final outbound message, the inbox entry acked;
+# then what only served the live session (frames, messages, requests) expires after ARGV[4] s, and, with a
+# retention (ARGV[5] > 0), everything else after that many seconds.
 _CLOSE = """
 if redis.call('EXISTS', KEYS[1]) == 0 then return 0 end
-for i = 4, #ARGV, 2 do redis.call('HSET', KEYS[1], ARGV[i], ARGV[i + 1]) end
+for i = 6, #ARGV, 2 do redis.call('HSET', KEYS[1], ARGV[i], ARGV[i + 1]) end
 redis.call('XADD', KEYS[2], 'MAXLEN', '~', ARGV[2], '*', 'msg', ARGV[1])
 if ARGV[3] ~= '' then redis.call('XACK', KEYS[3], 'workers', ARGV[3]) end
+for i = 2, 5 do redis.call('PEXPIRE', KEYS[i], math.floor(tonumber(ARGV[4]) * 1000)) end
+if tonumber(ARGV[5]) > 0 then
+  for i = 6, 8 do redis.call('PEXPIRE', KEYS[i], math.floor(tonumber(ARGV[5]) * 1000)) end
+  redis.call('PEXPIRE', KEYS[1], math.floor(tonumber(ARGV[5]) * 1000))
+end
 return 1
 """
 
@@ -71,11 +78,15 @@ class SessionRecord:
                                            args=[len(session_args), *session_args, *_flat(poses)]))
 
     def close(self, fields: Mapping[str, object], message: bytes, outbox_maxlen: int,
-              inbox_entry: bytes | None = None) -> bool:
-        """Set the final `fields` (status...), publish `message` and ack `inbox_entry`, together."""
-        return bool(self._close(keys=[keys.session(self.session_id), keys.outbox(self.session_id),
-                                      keys.inbox(self.session_id)],
-                                args=[message, outbox_maxlen, inbox_entry or b"", *_flat(fields)]))
+              inbox_entry: bytes | None = None, transient_ttl_s: float = 3600.0, retention_s: float = 0.0) -> bool:
+        """Set the final `fields` (status...), publish `message` and ack `inbox_entry`, together. The live-only
+        keys (inbox, outbox, requests, in-flight mark) expire after `transient_ttl_s`; with `retention_s` > 0 the
+        record, trajectory, snapshot and rejections expire after it (0: kept)."""
+        sid = self.session_id
+        return bool(self._close(keys=[keys.session(sid), keys.outbox(sid), keys.inbox(sid), keys.session_requests(sid),
+                                      keys.inflight(sid), keys.poses(sid), keys.snapshot(sid), keys.rejected(sid)],
+                                args=[message, outbox_maxlen, inbox_entry or b"", transient_ttl_s, retention_s,
+                                      *_flat(fields)]))
 
     def abandon(self, message: bytes, outbox_maxlen: int, now_epoch_s: float, now_iso: str) -> bool:
         """Mark an idle session `abandoned` (publishing `message`) unless frames wait or it no longer takes any."""

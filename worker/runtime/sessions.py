@@ -90,6 +90,8 @@ class RuntimeConfig:
     max_frame_attempts: int = 2  # workers that may die on one frame before it is quarantined
     memory_budget_mb: int = 0  # no new session while the worker's resident memory is above it (0: no limit)
     idle_timeout_s: float = 600.0  # a session without frames this long is abandoned, its slot freed (0: never)
+    transient_ttl_s: float = 3600.0  # an ended session's frames, messages and requests expire after this
+    retention_s: float = 0.0  # an ended session's record, trajectory and map expire after this (0: kept)
 
 
 class SessionGone(Exception):
@@ -465,7 +467,8 @@ class SessionRunner(threading.Thread):
         frames = int(self.client.hget(keys.session(self.session_id), "frames_processed") or 0)
         message = json.dumps({"type": "finished", "frames": frames}).encode()
         if not self._record.close({"status": "finished", "updated_at": now_iso()}, message,
-                                  self.config.outbox_maxlen, entry_id):
+                                  self.config.outbox_maxlen, entry_id, self.config.transient_ttl_s,
+                                  self.config.retention_s):
             raise SessionGone
         failpoint("finish:marked")
         self.terminal = True
@@ -487,7 +490,8 @@ class SessionRunner(threading.Thread):
         try:
             message = json.dumps({"type": "error", "code": "engine_failed", "message": f"session failed: {err}"})
             self._record.close({"status": "failed", "error": str(err)[:500], "updated_at": now_iso()},
-                               message.encode(), self.config.outbox_maxlen)
+                               message.encode(), self.config.outbox_maxlen, None, self.config.transient_ttl_s,
+                               self.config.retention_s)
         except redis.RedisError:
             log.exception("could not record the failure of session %s", self.session_id)
 
