@@ -310,12 +310,13 @@ class AsyncFrameStream:
                 point = await self._resume_point(with_results=True)  # results up to the new socket's start
                 break
             except (ServerUnreachableError, ServerError) as err:  # down, or up without Redis yet (503)
-                if time.monotonic() + delay > deadline:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
                     self._fail(ServerUnreachableError(
                         f"lost the stream of session {self.session_id} and could not reconnect within "
                         f"{self.reconnect_s:g} s ({self.flow.unsettled} frames unsettled): {err}"))
                     return
-                await asyncio.sleep(delay)
+                await asyncio.sleep(min(delay, remaining))  # the last attempt comes at the deadline
                 delay = min(2.0, delay * 2)
             except FlashMonoError as err:
                 self._fail(err)

@@ -44,10 +44,18 @@ def restart_gateway(stack: LocalStack, down_s: float) -> threading.Thread:
     return thread
 
 
-@pytest.fixture
+@pytest.fixture(scope="module")
 def stack():
     with LocalStack(workers=1, worker_env=WORKER_ENV) as local:
         yield local
+
+
+@pytest.fixture(autouse=True)
+def _gateway_up(stack):
+    """Each test starts with a serving gateway (some kill it)."""
+    if stack.gateway.poll() is not None:
+        stack.gateway = start_gateway_process(stack.redis_url, stack.host, stack.port)
+    stack.wait_ready(60)
 
 
 def test_stream_survives_a_gateway_restart_without_loss_or_renumbering(stack):
@@ -113,4 +121,4 @@ def test_an_unreachable_server_ends_the_stream_within_seconds(stack):
                     await stream.finish()
                 return time.monotonic() - t0
 
-    assert asyncio.run(scenario()) < 15
+    assert 3 <= asyncio.run(scenario()) < 15
