@@ -94,6 +94,8 @@ class SlamSystem:
         self.depth_points: DepthKeyframePoints | None = None
         self.depth_source: str | None = None  # "sensor", "mvs" or "model": where keyframe surfels come from
         self.keyframe_depth: KeyframeDepth | None = None
+        self._loops_waiting: list[int] = []  # keyframes whose loop closure waits for their multi-view depth
+        self._depth_jobs: dict[int, KeyframeJob] = {}  # ... and their map jobs (the backend builds the depth)
         self._started: float | None = None
         self._pending_jobs: list[tuple[KeyframeJob, bool]] = []
         self._with_depth = False
@@ -143,6 +145,8 @@ class SlamSystem:
             self._queue_depth_jobs(force=True)
             self._flush_posed_jobs(force=True)
             self.backend.wait_idle()
+            if self._close_waiting_loops():
+                self.backend.wait_idle()
             if self.config.mapping.final_refine_passes:
                 self.backend.refine_all(self.config.mapping.final_refine_passes)
             self.backend.close()
@@ -239,11 +243,12 @@ class SlamSystem:
     def _push_frame(self, frame: Frame) -> FrameResult:
         """Pose source -> keyframe selection -> map job -> loop closure, the same for every source."""
         intrinsics = self.frame_intrinsics(frame)
+        events = self._close_waiting_loops()
         stage = "frontend_inference" if self.tracking == "model" else "frontend_tracking"
         with self.timings.measure(stage):
             tracking = self.pose_source.track(frame, intrinsics)
         pose = _checked_pose(frame, tracking)
-        events = [self._apply_tracking_event(event) for event in tracking.events]
+        events += [self._apply_tracking_event(event) for event in tracking.events]
         prediction = tracking.prediction
         if prediction is None and self._model is not None:  # the model predicts the surfels beside the source
             with self.timings.measure("frontend_inference"):
@@ -317,6 +322,8 @@ class SlamSystem:
             return
         for job in self.keyframe_depth.ready_jobs(self._traj.pose_at, force):
             self._pending_jobs.append((job, False))
+            if job.kf_id in self._loops_waiting:
+                self._depth_jobs[job.kf_id] = job
 
     def _is_keyframe(self, tracking: TrackingResult, pose: np.ndarray) -> bool:
         """The first frame always; then the source's hint when it gives one (False while lost), else the motion
@@ -329,7 +336,11 @@ class SlamSystem:
         return self.selector.is_keyframe(pose, force=bool(tracking.keyframe_hint))
 
     def _keyframe_loop(self, frame: Frame, prediction) -> list[dict[str, Any]]:
-        """Loop closure for a new keyframe: against keyframe depth (ORB + PnP + ICP) or the model's hidden states."""
+        """Loop closure for a new keyframe: against keyframe depth (ORB + PnP + ICP) or the model's hidden states.
+        With multi-view depth it waits until the backend has computed the keyframe's depth."""
+        if self.keyframe_depth is not None:
+            self._loops_waiting.append(frame.index)
+            return []
         if self.depth_points is not None:
             return self._posed_loop(frame)
         prep = prediction[0]
@@ -355,6 +366,21 @@ class SlamSystem:
         self.depth_points.add(frame.index, torch.from_numpy(np.asarray(frame.depth, np.float32)), intr.matrix())
         image = torch.from_numpy(frame.image).permute(2, 0, 1)[None].float() / 255.0
         return self._close_loop(frame.index, image, intr)
+
+    def _close_waiting_loops(self) -> list[dict[str, Any]]:
+        """Loop closure for the keyframes whose multi-view depth the backend has finished, in keyframe order."""
+        events: list[dict[str, Any]] = []
+        while self._loops_waiting:
+            job = self._depth_jobs.get(self._loops_waiting[0])
+            if job is None or job.build is not None:  # not yet queued, or not yet built
+                break
+            self._loops_waiting.pop(0)
+            del self._depth_jobs[job.kf_id]
+            h, w = job.image.shape[:2]
+            self.depth_points.add(job.kf_id, job.depth, job.K)
+            image = job.image.permute(2, 0, 1)[None]
+            events += self._close_loop(job.kf_id, image, Intrinsics.from_matrix(job.K, w, h))
+        return events
 
     def _accumulate_path(self, given: np.ndarray, tracked: np.ndarray) -> None:
         """Path lengths of the given and the tracked trajectories: their ratio converts model units to pose units."""
@@ -415,8 +441,8 @@ class SlamSystem:
         if not loops:
             return
         if tracking != "model":
-            if not with_depth:
-                log.warning("%s without depth: loop closure is off (no metric points to relocalize with)", tracking)
+            if not with_depth and self.keyframe_depth is None:
+                log.warning("%s without depth: loop closure is off (no points to relocalize with)", tracking)
                 return
             self.depth_points = DepthKeyframePoints()
             self.loop_closer = LoopCloser(cfg.loop, model=self.model, depth_points=self.depth_points,
@@ -591,6 +617,8 @@ class SlamSystem:
             for job, _ in self._pending_jobs:  # not in the map yet (waiting for their scale): they move here
                 if job.kf_id in changed:
                     job.pose = changed.pop(job.kf_id)
+            for waiting in [] if self.keyframe_depth is None else self.keyframe_depth.pending:
+                changed.pop(waiting.kf_id, None)  # their jobs are made later, at the then current pose
             if changed:
                 self.backend.submit(PoseUpdateJob(changed))
         self.counters["loops"] += 1
@@ -627,9 +655,29 @@ class SlamSystem:
             "loop": None if self.loop_closer is None else self.loop_closer.state_dict(),
             "depth_points": None if self.depth_points is None else self.depth_points.state_dict(),
             "keyframe_depth": None if self.keyframe_depth is None else self.keyframe_depth.state_dict(),
+            "loops_waiting": self._waiting_loops_state(),
             "map": None if self.backend is None else self.backend.state_dict(),
         }
         return pack(state)
+
+    def _waiting_loops_state(self) -> list[dict[str, Any]]:
+        """Keyframes waiting for loop closure; with their depth, image and K once the backend built them."""
+        out = []
+        for kf in self._loops_waiting:
+            job = self._depth_jobs.get(kf)
+            built = job is not None and job.build is None
+            out.append({"kf": kf, "depth": job.depth.numpy() if built else None,
+                        "K": job.K.numpy() if built else None,
+                        "image": (job.image * 255.0).round().to(torch.uint8).numpy() if built else None})
+        return out
+
+    def _load_waiting_loops(self, entries: list[dict[str, Any]]) -> None:
+        self._loops_waiting = [int(e["kf"]) for e in entries]
+        for e in entries:
+            if e["depth"] is not None:
+                image = torch.from_numpy(np.asarray(e["image"], np.uint8)).to(torch.float32) / 255.0
+                self._depth_jobs[int(e["kf"])] = KeyframeJob(int(e["kf"]), np.eye(4), torch.from_numpy(
+                    np.asarray(e["K"], np.float32)), image, {}, torch.from_numpy(np.asarray(e["depth"], np.float32)))
 
     @classmethod
     def restore(cls, data: bytes) -> SlamSystem:
@@ -673,6 +721,7 @@ class SlamSystem:
             system.depth_points.load_state_dict(state["depth_points"])
         if system.keyframe_depth is not None and state.get("keyframe_depth") is not None:
             system.keyframe_depth.load_state_dict(state["keyframe_depth"])
+        system._load_waiting_loops(state.get("loops_waiting") or [])
         if system.backend is not None and state["map"] is not None:
             system.backend.load_state_dict(state["map"])
         return system
