@@ -85,3 +85,15 @@ def test_downscaled_sweep_returns_full_size_maps():
     assert est.depth.shape == (H, W) and est.confidence.shape == (H, W)
     assert est.coverage > 0.8
     assert np.median(_relative_error(est, gt, est.mask)) < 0.02
+
+
+def test_concurrent_calls_match_a_single_call():
+    """Sessions' backend threads call estimate_depth at once; the reused buffers must not leak between calls."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    scenes = [Scene(plane_depth=2.0, boxes=[BOX]), Scene(plane_depth=3.0, seed=1)]
+    alone = [_run(scene, AROUND, (1.0, 4.0))[0].depth for scene in scenes]
+    with ThreadPoolExecutor(4) as pool:
+        together = list(pool.map(lambda i: _run(scenes[i % 2], AROUND, (1.0, 4.0))[0].depth, range(6)))
+    for i, depth in enumerate(together):
+        np.testing.assert_array_equal(depth, alone[i % 2])

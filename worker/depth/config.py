@@ -70,8 +70,8 @@ class MultiViewDepthConfig(BaseModel):
         1, ge=1, le=64, description="Threads of the compiled kernels (1 leaves the other core to the frontend; on a "
                                     "loaded 2-core machine 2 threads were not faster).")
     keep_buffers: bool = Field(
-        True, description="Keep the large intermediate arrays between calls in each thread (about 100 MB at "
-                          "320x240, 4 views, 48 planes): no page-zeroing on every keyframe.")
+        True, description="Keep the large intermediate arrays for later calls (at most two sets per process, about "
+                          "90 MB each at 320x240, 4 views, 48 planes): no page-zeroing on every keyframe.")
     warn_below_coverage: float = Field(
         0.01, ge=0, le=1, description="Log a warning when fewer pixels than this fraction are confident.")
 
