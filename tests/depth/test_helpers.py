@@ -78,3 +78,13 @@ def test_scale_to_confident_without_enough_pixels_leaves_depth_alone(caplog):
     assert "no scale" in caplog.text
     with pytest.raises(ValueError, match="shapes"):
         scale_to_confident(other, np.zeros((3, 3)), np.zeros((3, 3)))
+
+
+def test_config_rejects_bad_settings():
+    from pydantic import ValidationError
+
+    for bad in ({"num_hypotheses": 32}, {"min_views": 5, "num_views": 4}, {"sgm_p1": 0.5, "sgm_p2": 0.1},
+                {"target_parallax": 0.9}, {"not_a_field": 1}):
+        with pytest.raises(ValidationError):
+            MultiViewDepthConfig(**bad)
+    assert MultiViewDepthConfig.model_validate(MultiViewDepthConfig().model_dump()) == MultiViewDepthConfig()

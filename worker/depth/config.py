@@ -83,4 +83,6 @@ class MultiViewDepthConfig(BaseModel):
             raise ValueError("near_over_baseline must be below far_over_baseline")
         if self.sgm_p1 > self.sgm_p2:
             raise ValueError("sgm_p1 must not exceed sgm_p2")
+        if self.min_views > self.num_views:
+            raise ValueError(f"min_views ({self.min_views}) cannot exceed num_views ({self.num_views})")
         return self
