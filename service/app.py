@@ -18,6 +18,7 @@ from service.outbox_hub import OutboxHub
 from service.registry import Registry
 from service.settings import Settings
 from service.websocket_doc import WEBSOCKET_DOC
+from worker.runtime.archive import BlobStore
 
 log = logging.getLogger(__name__)
 VIEWER_DIR = Path(__file__).parent / "static" / "viewer"
@@ -43,7 +44,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                                                         timeout=10, health_check_interval=30,
                                                         client_name="flashmono-gateway")
         client = aioredis.Redis(connection_pool=pool)
-        app.state.registry = Registry(client)
+        app.state.registry = Registry(client, BlobStore(settings.blob_dir) if settings.blob_dir else None)
         app.state.outbox_hub = OutboxHub(client)
         app.state.outbox_hub.start()
         try:

@@ -5,6 +5,7 @@ The key layout is `worker.runtime.keys` (shared with the workers). All calls are
 
 from __future__ import annotations
 
+import asyncio
 import json
 import time
 import uuid
@@ -16,6 +17,7 @@ import msgpack
 import redis.asyncio as aioredis
 
 from worker.runtime import keys
+from worker.runtime.archive import BlobStore
 from worker.runtime.failpoints import failpoint
 from worker.runtime.similarity import similarity_scale
 
@@ -90,6 +92,10 @@ class IngestResult:
     frame_size: str = ""  # with SIZE_MISMATCH: the session's frame size, "WxH"
 
 
+class ArchiveUnavailable(Exception):
+    """An archived session's data is in a blob store this gateway cannot read."""
+
+
 class RequestTimeout(Exception):
     """No worker answered a render/export request in time."""
 
@@ -97,8 +103,9 @@ class RequestTimeout(Exception):
 class Registry:
     """Session records and streams in Redis, for one gateway process."""
 
-    def __init__(self, client: aioredis.Redis) -> None:
+    def __init__(self, client: aioredis.Redis, blobs: BlobStore | None = None) -> None:
         self.client = client
+        self.blobs = blobs
         self._ingest = client.register_script(_INGEST)
         self._finish = client.register_script(_FINISH)
         self._revive = client.register_script(_REVIVE)
@@ -183,6 +190,8 @@ class Registry:
         if record.get("owner"):
             pipe.zrem(keys.owner_live(record["owner"]), session_id)
         await pipe.execute()
+        if record.get("archived") == "1" and self.blobs is not None:  # after: a crash leaves files, not a record
+            await asyncio.to_thread(self.blobs.delete, session_id)
 
     # --- streaming ----------------------------------------------------------------------------------------------
     async def ingest_frame(self, session_id: str, seq: int, message: bytes, max_queue: int,
@@ -208,8 +217,15 @@ class Registry:
         return entries[0][0].decode() if entries else "0-0"
 
     # --- results ------------------------------------------------------------------------------------------------
-    async def trajectory(self, session_id: str, which: str) -> list[dict[str, Any]]:
-        raw = await self.client.hgetall(keys.poses(session_id))
+    async def trajectory(self, session_id: str, which: str, archived: bool = False) -> list[dict[str, Any]]:
+        """Poses by seq, from Redis, or from the blob store for an archived session."""
+        if archived:
+            if self.blobs is None:
+                raise ArchiveUnavailable("this session was moved to the blob store; the gateway needs "
+                                         "FLASHMONO_BLOB_DIR to serve its trajectory")
+            raw = await asyncio.to_thread(self.blobs.poses, session_id)
+        else:
+            raw = await self.client.hgetall(keys.poses(session_id))
         poses = []
         for seq, blob in raw.items():
             record = msgpack.unpackb(blob, raw=False)

@@ -12,7 +12,7 @@ from fastapi.responses import PlainTextResponse
 from service.auth import Principal, caller
 from service.deps import registry, session_for
 from service.pose_check import pose_problem
-from service.registry import Registry, RequestTimeout, parse_session
+from service.registry import ArchiveUnavailable, Registry, RequestTimeout, parse_session
 from service.schemas import ErrorBody, Trajectory
 from worker.runtime import keys
 
@@ -33,7 +33,10 @@ async def get_trajectory(
     """The current trajectory (camera-to-world poses by frame seq) at the session's current revision."""
     request.app.state.auth.require(principal, "read", "stream")
     record = await session_for(reg, principal, session_id, write=False)
-    poses = await reg.trajectory(session_id, which)
+    try:
+        poses = await reg.trajectory(session_id, which, archived=record.get("archived") == "1")
+    except ArchiveUnavailable as err:
+        raise HTTPException(503, str(err)) from err
     if format == "tum":
         # off the event loop: the conversion (and torch's first import) would stall every stream of this gateway
         return PlainTextResponse(await asyncio.to_thread(tum_text, poses), media_type="text/plain")

@@ -19,7 +19,8 @@ class Settings:
     browser may open the WebSocket from besides the gateway's own, "*" for any); FLASHMONO_MAX_STREAMS (open
     WebSockets per gateway process, 2000); FLASHMONO_REDIS_CONNECTIONS (the gateway's Redis connection pool, 64);
     FLASHMONO_MAX_LIVE_SESSIONS (live sessions per API key, 100; 0: no limit); FLASHMONO_ABANDONED_GRACE_S (how long
-    a session abandoned for want of frames can still be resumed by opening its stream, 3600)."""
+    a session abandoned for want of frames can still be resumed by opening its stream, 3600); FLASHMONO_BLOB_DIR (the
+    blob store finished sessions are archived to by the workers, read here for their trajectories)."""
 
     redis_url: str = "redis://127.0.0.1:6379/0"
     api_keys: dict[str, frozenset[str]] = field(default_factory=dict)
@@ -33,6 +34,7 @@ class Settings:
     redis_connections: int = 64
     max_live_sessions: int = 100
     abandoned_grace_s: float = 3600.0
+    blob_dir: str = ""
 
     @property
     def auth_enabled(self) -> bool:
@@ -56,6 +58,7 @@ class Settings:
             redis_connections=int(env.get("FLASHMONO_REDIS_CONNECTIONS", cls.redis_connections)),
             max_live_sessions=int(env.get("FLASHMONO_MAX_LIVE_SESSIONS", cls.max_live_sessions)),
             abandoned_grace_s=float(env.get("FLASHMONO_ABANDONED_GRACE_S", cls.abandoned_grace_s)),
+            blob_dir=env.get("FLASHMONO_BLOB_DIR", ""),
             allowed_origins=frozenset(o.strip().rstrip("/") for o in env.get("FLASHMONO_ALLOWED_ORIGINS", "").split(",")
                                       if o.strip()),
         )

@@ -70,6 +70,9 @@ def run(args: argparse.Namespace) -> int:
         logging.getLogger("flashmono.serve").info("embedded redis-server at %s (data: %s)", redis_url,
                                                   data_dir or "not persisted")
     os.environ["REDIS_URL"] = redis_url
+    store_root = args.data_dir or (None if args.ephemeral or args.redis_url else default_data_dir(args.port))
+    if store_root is not None:  # finished sessions are archived there (FLASHMONO_ARCHIVE_AFTER_S after finishing)
+        os.environ.setdefault("FLASHMONO_BLOB_DIR", str(Path(store_root) / "blobs"))
     worker_env = {"FLASHMONO_ENGINE": args.engine} if args.engine else {}
     supervisor = WorkerSupervisor(lambda: start_worker_process(redis_url, worker_env, nice=args.worker_nice),
                                   args.workers).start()

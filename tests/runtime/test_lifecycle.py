@@ -105,3 +105,27 @@ def test_ended_sessions_expire_live_data_then_everything_after_the_retention():
         wait_for(lambda: api.get(f"/v1/sessions/{sid}").status_code == 404, timeout_s=15, interval_s=0.2)
         assert [k for k in r.scan_iter(match=f"*{sid}*") if not k.startswith(b"fm:lease:")] == []
         assert api.get("/v1/sessions").json()["sessions"] == []  # the listing skips what expired
+
+
+def test_finished_sessions_move_to_the_blob_store_and_stay_downloadable(tmp_path):
+    blobs = {"FLASHMONO_BLOB_DIR": str(tmp_path / "blobs")}
+    worker_env = {**WORKER_ENV, **blobs, "FLASHMONO_ARCHIVE_AFTER_S": "1"}
+    with LocalStack(workers=1, worker_env=worker_env, gateway_env=blobs) as local, \
+            httpx.Client(base_url=local.base_url, timeout=30) as api:
+        r = redis.Redis.from_url(local.redis_url)
+        sid = api.post("/v1/sessions", json={}).json()["id"]
+        with connect(f"{local.ws_url}/v1/sessions/{sid}/stream", open_timeout=20) as ws:
+            for seq in range(4):
+                ws.send(synthetic_frame(seq))
+            ws.send(json.dumps({"type": "finish"}))
+            receive_until(ws, lambda m: m["type"] == "finished", timeout_s=60)
+        before = api.get(f"/v1/sessions/{sid}/trajectory").json()["poses"]
+        ply = api.get(f"/v1/sessions/{sid}/map.ply").content
+        wait_for(lambda: r.hget(keys.session(sid), "archived") == b"1", timeout_s=30)
+        assert not r.exists(keys.snapshot(sid)) and not r.exists(keys.poses(sid))
+        assert (tmp_path / "blobs" / sid / "snapshot.msgpack").is_file()
+        assert api.get(f"/v1/sessions/{sid}/trajectory").json()["poses"] == before
+        assert api.get(f"/v1/sessions/{sid}/map.ply").content == ply
+        assert api.get(f"/v1/sessions/{sid}").json()["status"] == "finished"
+        assert api.delete(f"/v1/sessions/{sid}").status_code == 204
+        assert not (tmp_path / "blobs" / sid).exists()

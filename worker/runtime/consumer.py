@@ -13,6 +13,7 @@ import time
 import redis
 
 from worker.runtime import keys
+from worker.runtime.archive import BlobStore, archive_finished
 from worker.runtime.engine import SessionEngine, close_engine, restore_engine
 from worker.runtime.leases import Leases
 from worker.runtime.memory import over_budget
@@ -37,6 +38,7 @@ class Worker:
         self._waiting: dict[str, str] = {}  # session id -> job id claimed while the old lease had not expired yet
         self._stopping = threading.Event()
         self._next_claim = 0.0
+        self.blobs = BlobStore(config.blob_dir) if config.blob_dir else None
         self._finished_engines: collections.OrderedDict[str, SessionEngine] = collections.OrderedDict()
 
     # --- lifecycle ----------------------------------------------------------------------------------------------
@@ -47,6 +49,8 @@ class Worker:
         self._heartbeat_once()
         threads = [threading.Thread(target=self._heartbeat_loop, name="heartbeat", daemon=True),
                    threading.Thread(target=self._requests_loop, name="requests", daemon=True)]
+        if self.blobs is not None and self.config.archive_after_s > 0:
+            threads.append(threading.Thread(target=self._archive_loop, name="archive", daemon=True))
         for thread in threads:
             thread.start()
         log.info("worker %s ready (engine %s)", self.worker_id, self.config.engine_kind)
@@ -192,6 +196,16 @@ class Worker:
             else:
                 runner.lease_lost()
 
+    # --- the blob store ------------------------------------------------------------------------------------------
+    def _archive_loop(self) -> None:
+        """Move finished sessions past FLASHMONO_ARCHIVE_AFTER_S to the blob store (any worker; one at a time)."""
+        interval = max(1.0, min(60.0, self.config.archive_after_s / 2))
+        while not self._stopping.wait(interval):
+            try:
+                archive_finished(self.client, self.blobs, self.config.archive_after_s)
+            except (redis.RedisError, OSError) as err:
+                log.warning("archiving failed (retried later): %s", err)
+
     # --- requests for finished sessions -------------------------------------------------------------------------
     def _requests_loop(self) -> None:
         backoff = Backoff()
@@ -219,6 +233,9 @@ class Worker:
     def _finished_engine(self, session_id: str) -> SessionEngine | None:
         """The engine of a finished session, restored from its snapshot (a small LRU cache)."""
         snap = self.client.hmget(keys.snapshot(session_id), ["stream_id", "engine", "data"])
+        if snap[2] is None and self.blobs is not None:  # archived: the snapshot lives in the blob store
+            archived = self.blobs.snapshot(session_id) or {}
+            snap = [archived.get(b"stream_id"), archived.get(b"engine"), archived.get(b"data")]
         if snap[2] is None:
             return None
         cache_key = f"{session_id}@{snap[0].decode()}"

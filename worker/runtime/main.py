@@ -4,7 +4,8 @@ Environment (flags override): REDIS_URL (required here), FLASHMONO_WORKER_ID, FL
 FLASHMONO_LEASE_TTL_MS (10000), FLASHMONO_SNAPSHOT_EVERY (keyframes between snapshots, 5),
 FLASHMONO_MAX_SESSIONS (sessions per worker, 16), FLASHMONO_TORCH_THREADS (torch intra-op threads),
 FLASHMONO_MAX_FRAME_SIDE (640), FLASHMONO_MAX_FRAME_ATTEMPTS (2), FLASHMONO_MEMORY_BUDGET_MB (0: none),
-FLASHMONO_IDLE_TIMEOUT_S (600; 0: never), FLASHMONO_TRANSIENT_TTL_S (3600), FLASHMONO_RETENTION_S (0: kept).
+FLASHMONO_IDLE_TIMEOUT_S (600; 0: never), FLASHMONO_TRANSIENT_TTL_S (3600), FLASHMONO_RETENTION_S (0: kept),
+FLASHMONO_BLOB_DIR (none), FLASHMONO_ARCHIVE_AFTER_S (3600).
 """
 
 from __future__ import annotations
@@ -47,6 +48,10 @@ def build_parser() -> argparse.ArgumentParser:
                         help="an ended session's frames, messages and requests expire after this")
     parser.add_argument("--retention-s", type=float, default=float(env("FLASHMONO_RETENTION_S", "0")),
                         help="an ended session's record, trajectory and map expire after this (0: kept)")
+    parser.add_argument("--blob-dir", default=env("FLASHMONO_BLOB_DIR", ""),
+                        help="blob store (a directory) finished sessions move to, map and trajectory included")
+    parser.add_argument("--archive-after-s", type=float, default=float(env("FLASHMONO_ARCHIVE_AFTER_S", "3600")),
+                        help="finished sessions move to --blob-dir this long after finishing (0: never)")
     parser.add_argument("--torch-threads", type=int, default=int(env("FLASHMONO_TORCH_THREADS", "0")))
     parser.add_argument("--log-level", default=env("FLASHMONO_LOG_LEVEL", "INFO"))
     return parser
@@ -76,7 +81,8 @@ def main(argv: list[str] | None = None) -> int:
                            snapshot_every_keyframes=args.snapshot_every, max_sessions=args.max_sessions,
                            max_frame_side=args.max_frame_side, max_frame_attempts=args.max_frame_attempts,
                            memory_budget_mb=args.memory_budget_mb, idle_timeout_s=args.idle_timeout_s,
-                           transient_ttl_s=args.transient_ttl_s, retention_s=args.retention_s)
+                           transient_ttl_s=args.transient_ttl_s, retention_s=args.retention_s,
+                           blob_dir=args.blob_dir, archive_after_s=args.archive_after_s)
     # No silent retries inside redis-py: a lost connection surfaces to the worker's loops, which wait the outage
     # out and resume each session from its snapshot (a retried XREADGROUP could lose the entries of its reply).
     client = redis.Redis.from_url(args.redis_url, health_check_interval=30, retry=Retry(NoBackoff(), 0))

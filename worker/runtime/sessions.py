@@ -92,6 +92,8 @@ class RuntimeConfig:
     idle_timeout_s: float = 600.0  # a session without frames this long is abandoned, its slot freed (0: never)
     transient_ttl_s: float = 3600.0  # an ended session's frames, messages and requests expire after this
     retention_s: float = 0.0  # an ended session's record, trajectory and map expire after this (0: kept)
+    blob_dir: str = ""  # the blob store of finished sessions ("" : none)
+    archive_after_s: float = 3600.0  # finished sessions move to the blob store this long after finishing
 
 
 class SessionGone(Exception):
