@@ -14,21 +14,27 @@ from .features import Features
 @dataclass
 class Keyframe:
     """A keyframe: its frame index, camera-to-world pose, features and, per keypoint, the point row it observes
-    (-1: none)."""
+    (-1: none) and the optical-flow track it belongs to (-1: none)."""
 
     index: int
     pose: np.ndarray
     features: Features
     point_ids: np.ndarray
+    track_ids: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.track_ids is None:
+            self.track_ids = np.full(len(self.point_ids), -1, np.int64)
 
     def to_state(self) -> dict:
         return {"index": self.index, "pose": self.pose, "features": self.features.to_state(),
-                "point_ids": self.point_ids}
+                "point_ids": self.point_ids, "track_ids": self.track_ids}
 
     @classmethod
     def from_state(cls, state: dict) -> Keyframe:
         return cls(int(state["index"]), np.asarray(state["pose"], np.float64).reshape(4, 4),
-                   Features.from_state(state["features"]), np.asarray(state["point_ids"], np.int64).reshape(-1))
+                   Features.from_state(state["features"]), np.asarray(state["point_ids"], np.int64).reshape(-1),
+                   np.asarray(state["track_ids"], np.int64).reshape(-1))
 
 
 class LocalMap:
@@ -73,8 +79,9 @@ class LocalMap:
             np.add.at(counts, kf.point_ids[kf.point_ids >= 0], 1)
         return counts
 
-    def forget(self, drop: np.ndarray) -> None:
-        """Remove the points whose mask `drop` [P] is set, renumbering the keyframes' references."""
+    def forget(self, drop: np.ndarray) -> np.ndarray:
+        """Remove the points whose mask `drop` [P] is set, renumbering the keyframes' references; returns the
+        renumbering [P + 1] (old row -> new row, -1 for removed; index -1 maps -1 to -1)."""
         keep = ~drop
         remap = np.full(len(self.positions) + 1, -1, np.int64)
         remap[np.flatnonzero(keep)] = np.arange(int(keep.sum()))
@@ -82,6 +89,7 @@ class LocalMap:
             kf.point_ids = remap[kf.point_ids]  # -1 indexes the trailing -1
         self.positions, self.descriptors = self.positions[keep], self.descriptors[keep]
         self.visible, self.found = self.visible[keep], self.found[keep]
+        return remap
 
     def slide(self, window: int) -> list[Keyframe]:
         """Keep the last `window` keyframes; returns those that left (their point rows still valid until
@@ -90,9 +98,9 @@ class LocalMap:
         self.keyframes = self.keyframes[len(gone):]
         return gone
 
-    def forget_unobserved(self) -> None:
-        """Drop the points no keyframe of the window observes."""
-        self.forget(self.observation_counts() == 0)
+    def forget_unobserved(self) -> np.ndarray:
+        """Drop the points no keyframe of the window observes; returns the renumbering (see `forget`)."""
+        return self.forget(self.observation_counts() == 0)
 
     def to_state(self) -> dict:
         return {"keyframes": [kf.to_state() for kf in self.keyframes], "positions": self.positions,

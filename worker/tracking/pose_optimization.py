@@ -10,7 +10,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from .projection import invert_pose, projection_jacobians
+from .projection import invert_pose, projection_jacobians, rigid
 
 
 def _residuals(R: np.ndarray, t: np.ndarray, points: np.ndarray, uv: np.ndarray, K: np.ndarray
@@ -47,7 +47,7 @@ def optimize_pose(pose_c2w: np.ndarray, points: np.ndarray, uv: np.ndarray, sigm
     """Refined camera-to-world pose and the inlier mask [N] of 2D-3D matches (points [N, 3], pixels uv [N, 2],
     pixel noise sigma [N]). The Huber width is sqrt(chi2) sigmas; a match is an inlier when its squared error in
     sigmas is below chi2 and its point lies in front of the camera."""
-    w2c = invert_pose(pose_c2w)
+    w2c = invert_pose(rigid(pose_c2w))
     R, t = w2c[:3, :3].copy(), w2c[:3, 3].copy()
     info = 1.0 / sigma.astype(np.float64) ** 2
     inlier = np.ones(len(points), bool)

@@ -21,6 +21,16 @@ def invert_pose(pose: np.ndarray) -> np.ndarray:
     return out
 
 
+def rigid(pose: np.ndarray) -> np.ndarray:
+    """The nearest rigid transform to a 4x4 pose: its rotation block projected onto SO(3) (products of many
+    poses drift off it)."""
+    U, _, Vt = np.linalg.svd(pose[:3, :3])
+    out = np.eye(4)
+    out[:3, :3] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    out[:3, 3] = pose[:3, 3]
+    return out
+
+
 def to_camera(points: np.ndarray, pose_c2w: np.ndarray) -> np.ndarray:
     """World points [N, 3] in the frame of a camera at `pose_c2w`."""
     R, t = pose_c2w[:3, :3], pose_c2w[:3, 3]

@@ -55,9 +55,14 @@ class FocalEstimator:
         if self.frozen or not self.config.self_calibrate:
             return
         ia, ib = ratio_matches(a.descriptors, b.descriptors, self.config.match_ratio, self.config.max_hamming)
-        if len(ia) < self.config.init_min_matches:
+        self.observe_matches(a.keypoints[ia], b.keypoints[ib], camera)
+
+    def observe_matches(self, pa: np.ndarray, pb: np.ndarray, camera: Intrinsics) -> None:
+        """Add the pair of matched pixels pa, pb [N, 2] when its epipolar geometry is well determined, and
+        re-estimate."""
+        if self.frozen or not self.config.self_calibrate or len(pa) < self.config.init_min_matches:
             return
-        pa, pb = a.keypoints[ia].astype(np.float64), b.keypoints[ib].astype(np.float64)
+        pa, pb = pa.astype(np.float64), pb.astype(np.float64)
         # Motion that a homography explains (rotation, a plane, too little baseline) fixes no focal length.
         if np.median(np.linalg.norm(pa - pb, axis=1)) < 0.02 * max(camera.width, camera.height):
             return

@@ -40,15 +40,24 @@ def initialise_two_view(a: Features, b: Features, K: np.ndarray, config: VisualO
                         sigma_a: np.ndarray, sigma_b: np.ndarray) -> TwoViewAttempt:
     """Try to build a two-view map from features of frames a and b (sigma_a/sigma_b: pixel noise per keypoint)."""
     ia, ib = ratio_matches(a.descriptors, b.descriptors, config.match_ratio, config.max_hamming)
-    attempt = _attempt(a, b, ia, ib, K, config, sigma_a, sigma_b)
-    return TwoViewAttempt(attempt, len(ia)) if isinstance(attempt, TwoViewMap) else TwoViewAttempt(None, len(ia),
-                                                                                                   attempt)
+    return two_view_from_matches(a.keypoints[ia], b.keypoints[ib], K, config, sigma_a[ia], sigma_b[ib], ia, ib)
 
 
-def _attempt(a, b, ia, ib, K, config, sigma_a, sigma_b) -> TwoViewMap | str:
+def two_view_from_matches(pa: np.ndarray, pb: np.ndarray, K: np.ndarray, config: VisualOdometryConfig,
+                          sigma_a: np.ndarray, sigma_b: np.ndarray, ia: np.ndarray | None = None,
+                          ib: np.ndarray | None = None) -> TwoViewAttempt:
+    """Try to build a two-view map from matched pixels pa, pb [N, 2] (pixel noise sigma_a, sigma_b [N]); the map's
+    ia, ib are `ia`, `ib` [N] (default: 0..N-1) at the matches it triangulated."""
+    n = len(pa)
+    ia = np.arange(n) if ia is None else ia
+    ib = np.arange(n) if ib is None else ib
+    attempt = _attempt(pa.astype(np.float64), pb.astype(np.float64), ia, ib, K, config, sigma_a, sigma_b)
+    return TwoViewAttempt(attempt, n) if isinstance(attempt, TwoViewMap) else TwoViewAttempt(None, n, attempt)
+
+
+def _attempt(pa, pb, ia, ib, K, config, sigma_a, sigma_b) -> TwoViewMap | str:
     if len(ia) < config.init_min_matches:
         return f"{len(ia)} matches < {config.init_min_matches}"
-    pa, pb = a.keypoints[ia].astype(np.float64), b.keypoints[ib].astype(np.float64)
     E, mask = cv2.findEssentialMat(pa, pb, K, cv2.RANSAC, 0.999, 1.0)
     if E is None or mask is None or E.shape[0] < 3:
         return "no essential matrix"
@@ -74,7 +83,7 @@ def _triangulate_candidate(E, pa, pb, ia, ib, inlier, K, config, sigma_a, sigma_
     pose_a, pose_b = np.eye(4), invert_pose(w2c_b)
     sel = np.flatnonzero(inlier)
     points = triangulate(pose_a, pose_b, pa[sel], pb[sel], K)
-    ok = good_points(points, pose_a, pose_b, pa[sel], pb[sel], sigma_a[ia[sel]], sigma_b[ib[sel]], K,
+    ok = good_points(points, pose_a, pose_b, pa[sel], pb[sel], sigma_a[sel], sigma_b[sel], K,
                      config.chi2_px, 0.0)
     if ok.sum() < config.init_min_points:
         return None

@@ -1,6 +1,12 @@
-"""Monocular visual odometry as a pose source: ORB features, two-view initialisation, PnP tracking against a local
-map with a constant-velocity prior, keyframes that triangulate new points, windowed bundle adjustment, and
-relocalisation by place recognition when tracking is lost.
+"""Monocular visual odometry as a pose source.
+
+Points are followed from frame to frame by sub-pixel optical flow (Lucas-Kanade, forward-backward checked). The map
+starts from a two-view reconstruction of the first tracks with enough parallax; each frame's pose then comes from
+the tracks that measure map points (robust refinement from the constant-velocity guess, PnP + RANSAC when that
+fails). Keyframes are taken when tracks drop or the baseline grows: they add new corners, triangulate the candidate
+tracks that gained enough parallax since the oldest keyframe that saw them, and run a windowed bundle adjustment in
+which the oldest keyframes stay fixed, so scale carries over without rescaling. ORB descriptors of the keyframes'
+points serve relocalisation by place recognition when tracking is lost.
 
 Poses are camera-to-world rigid 4x4 matrices (a Sim(3) with s = 1); the world is the camera of the frame the map
 was initialised from and the scale makes that map's median depth 1.
@@ -20,16 +26,24 @@ from .base import TrackingResult
 from .bundle_adjustment import bundle_adjust, reprojection_chi2
 from .features import Features, OrbExtractor
 from .local_map import Keyframe, LocalMap
-from .matching import match_by_projection, ratio_matches
+from .optical_flow import detect_corners, track_points
 from .pose_optimization import optimize_pose
-from .projection import camera_matrix, in_image, invert_pose, project, to_camera
+from .projection import camera_matrix, invert_pose, project, rigid, to_camera
 from .relocalization import Place, PlaceRecognizer
 from .self_calibration import FocalEstimator
-from .triangulation import good_points, triangulate
-from .two_view import initialise_two_view
+from .tracks import Tracks
+from .triangulation import good_points, parallax_cos, triangulate
+from .two_view import two_view_from_matches
 from .vo_config import VisualOdometryConfig
 
-STATE_VERSION = 1
+STATE_VERSION = 2
+
+
+def _lookup(sorted_ids: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Positions of `ids` in the sorted array `sorted_ids` and the mask of those present."""
+    at = np.clip(np.searchsorted(sorted_ids, ids), 0, max(len(sorted_ids) - 1, 0))
+    found = (sorted_ids[at] == ids) if len(sorted_ids) else np.zeros(len(ids), bool)
+    return at, found
 
 
 class VisualOdometry:
@@ -47,7 +61,11 @@ class VisualOdometry:
         self.status = "initializing"  # | "tracking" | "lost"
         self.map = LocalMap()
         self.retired: list[Place] = []  # keyframes that left the window, kept for relocalisation
-        self.pending: list[tuple[int, Features]] = []  # frames waiting for initialisation; [0] is the reference
+        self.tracks = Tracks.empty()
+        self.next_id = 0
+        self.previous_gray: np.ndarray | None = None  # the last frame tracked (flow starts from it)
+        self.reference_gray: np.ndarray | None = None  # the first frame waiting for initialisation
+        self.pending: list[tuple[int, np.ndarray, np.ndarray]] = []  # (index, track ids, uv) since the reference
         self.pose = np.eye(4)
         self.velocity = np.eye(4)  # camera motion of the last frame (previous^-1 @ current)
         self.frames_since_keyframe = 0
@@ -62,13 +80,12 @@ class VisualOdometry:
         """Track the next frame (see the module docstring); bad frames lose tracking, they never raise."""
         camera = self._camera(frame, intrinsics)
         gray = cv2.cvtColor(frame.image, cv2.COLOR_RGB2GRAY)
-        features = self.extractor.extract(gray)
         if self.status == "initializing":
-            result = self._initialise(frame.index, features, camera, intrinsics is None)
+            result = self._initialise(frame.index, gray, camera, intrinsics is None)
         elif self.status == "lost":
-            result = self._relocalise(frame.index, features, camera)
+            result = self._relocalise(frame.index, gray, camera)
         else:
-            result = self._track(frame.index, features, camera)
+            result = self._track(frame.index, gray, camera)
         if not np.all(np.isfinite(result.pose)):  # never hand out a NaN pose, whatever happened above
             result = self._lose(frame.index, "non-finite pose estimate")
         self.pose = result.pose
@@ -93,54 +110,99 @@ class VisualOdometry:
         self.estimated_intrinsics = self.focal.intrinsics(*size)
         return self.estimated_intrinsics
 
-    def _sigma(self, features: Features) -> np.ndarray:
-        return self.extractor.level_sigmas(features.octaves)
+    # ---- optical flow ----------------------------------------------------------------------------------------
+    def _flow(self, gray: np.ndarray, guess: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        c = self.config
+        return track_points(self.previous_gray, gray, self.tracks.uv, guess, window=c.flow_window,
+                            levels=c.flow_levels, max_fb_px=c.flow_fb_px)
+
+    def _replenish(self, gray: np.ndarray) -> None:
+        """New candidate tracks at corners away from the existing ones, up to `max_tracks`."""
+        c = self.config
+        corners = detect_corners(gray, self.tracks.uv, c.max_tracks - len(self.tracks),
+                                 c.corner_min_distance * max(gray.shape), c.corner_quality)
+        ids = np.arange(self.next_id, self.next_id + len(corners), dtype=np.int64)
+        self.next_id += len(corners)
+        self.tracks = self.tracks.extend(ids, corners)
+
+    def _predicted_flow(self, predicted: np.ndarray, K: np.ndarray) -> np.ndarray:
+        """Where each track should land at the predicted pose: map points by projection, candidates by the
+        rotation alone (a point at infinity)."""
+        t = self.tracks
+        guess = t.uv.astype(np.float64).copy()
+        rel = invert_pose(predicted) @ self.pose  # previous camera -> predicted camera
+        H = K @ rel[:3, :3] @ np.linalg.inv(K)
+        ray = np.concatenate([guess, np.ones((len(guess), 1))], axis=1) @ H.T
+        at_infinity = ray[:, 2] > 1e-6
+        guess[at_infinity] = ray[at_infinity, :2] / ray[at_infinity, 2:]
+        mapped = np.flatnonzero(t.mapped)
+        uv, z = project(self.map.positions[t.rows[mapped]], predicted, K)
+        front = z > 1e-6
+        guess[mapped[front]] = uv[front]
+        return guess
 
     # ---- initialisation --------------------------------------------------------------------------------------
-    def _initialise(self, index: int, features: Features, camera: Intrinsics, uncalibrated: bool
-                    ) -> TrackingResult:
+    def _restart_initialisation(self, index: int, gray: np.ndarray) -> None:
+        self.tracks = Tracks.empty()
+        self._replenish(gray)
+        self.reference_gray = gray
+        self.pending = [(index, self.tracks.ids.copy(), self.tracks.uv.copy())]
+
+    def _initialise(self, index: int, gray: np.ndarray, camera: Intrinsics, uncalibrated: bool) -> TrackingResult:
         c = self.config
         waiting = TrackingResult(np.eye(4), tracked=True, keyframe_hint=False)
-        if len(features) < c.min_features:
-            return waiting
         if not self.pending:
-            self.pending.append((index, features))
+            self._restart_initialisation(index, gray)
+            self.previous_gray = gray
             return waiting
-        ref_index, ref = self.pending[0]
+        uv, ok = self._flow(gray, None)
+        self.tracks = Tracks(self.tracks.ids[ok], uv[ok], self.tracks.rows[ok])
+        self.previous_gray = gray
+        if len(self.tracks) < c.init_min_matches:  # the view has moved on: start again from this frame
+            self._restart_initialisation(index, gray)
+            return waiting
+        self.pending.append((index, self.tracks.ids.copy(), self.tracks.uv.copy()))
+        if len(self.pending) > c.init_max_frames:  # the reference is too old: the next frame takes its place
+            self.pending.pop(0)
+            self.reference_gray = None
+        ref_index, ref_ids, ref_uv = self.pending[0]
+        at, _ = _lookup(ref_ids, self.tracks.ids)  # every live track was seen in the reference
         if uncalibrated and not self.focal.frozen:
-            self.focal.observe(ref, features, camera)
+            self.focal.observe_matches(ref_uv[at], self.tracks.uv, camera)
             camera = self.estimated_intrinsics = self.focal.intrinsics(camera.width, camera.height)
         K = camera_matrix(camera)
-        attempt = initialise_two_view(ref, features, K, c, self._sigma(ref), self._sigma(features))
+        ones = np.ones(len(at))
+        attempt = two_view_from_matches(ref_uv[at], self.tracks.uv, K, c, ones, ones)
         if attempt.map is None:
-            if attempt.matches < c.init_min_matches:  # the view has moved on: start again from this frame
-                self.pending = [(index, features)]
-            else:
-                self.pending.append((index, features))
-                if len(self.pending) > c.init_max_frames:
-                    self.pending.pop(0)
             return waiting
         self.focal.freeze()
-        two = attempt.map
+        return self._start_map(index, gray, attempt.map, at, camera, uncalibrated)
+
+    def _start_map(self, index: int, gray: np.ndarray, two, at: np.ndarray, camera: Intrinsics,
+                   uncalibrated: bool) -> TrackingResult:
+        """The map of a successful two-view attempt: two keyframes, adjusted and scaled; the frames between them
+        are posed against it."""
+        K = camera_matrix(camera)
+        ref_index, ref_ids, ref_uv = self.pending[0]
         m = self.map = LocalMap()
-        rows = m.add_points(two.points, features.descriptors[two.ib])
-        kf_a = Keyframe(ref_index, np.eye(4), ref, np.full(len(ref), -1, np.int64))
-        kf_b = Keyframe(index, two.pose_b, features, np.full(len(features), -1, np.int64))
-        kf_a.point_ids[two.ia], kf_b.point_ids[two.ib] = rows, rows
-        m.keyframes = [kf_a, kf_b]
-        self._adjust(K)
+        rows = m.add_points(two.points, np.zeros((len(two.points), 32), np.uint8))
+        self.tracks.rows[two.ib] = rows
+        ref_features = Features(ref_uv[at], self._describe(self.reference_gray, ref_uv[at]),
+                                np.zeros(len(at), np.int32))
+        kf_a = Keyframe(ref_index, np.eye(4), ref_features, self.tracks.rows.copy(), self.tracks.ids.copy())
+        m.keyframes = [kf_a]
+        kf_b = self._new_keyframe(index, two.pose_b, gray)
+        self._adjust(K, fixed_count=1)
         self._normalise_scale()
-        pose = m.keyframes[-1].pose
+        pose = kf_b.pose
         between = [[ref_index, np.eye(4).tolist()]]
         previous = np.eye(4)
-        for n, (i, f) in enumerate(self.pending[1:], start=1):
-            previous = self._pose_between(f, n / len(self.pending), pose, K)
+        for n, (i, ids, uv) in enumerate(self.pending[1:-1], start=1):
+            previous = self._pose_between(ids, uv, n / (len(self.pending) - 1), pose, K)
             between.append([i, previous.tolist()])
-        self.pending = []
+        self.pending, self.reference_gray = [], None
         self.velocity = invert_pose(previous) @ pose
         self.status = "tracking"
-        self.frames_since_keyframe = 0
-        self.tracked_at_keyframe = int((kf_b.point_ids >= 0).sum())
         event = {"type": "initialized", "frame": index, "frames": between, "points": len(m),
                  "parallax_deg": round(two.parallax_deg, 3)}
         if uncalibrated:
@@ -148,67 +210,75 @@ class VisualOdometry:
         return TrackingResult(pose, tracked=True, keyframe_hint=True, depth=self._sparse_depth(kf_b, camera),
                               events=[event])
 
-    def _pose_between(self, features: Features, fraction: float, pose_b: np.ndarray, K: np.ndarray) -> np.ndarray:
-        """Pose of a frame between the two initial views: tracked against the new map from the interpolated guess."""
+    def _pose_between(self, ids: np.ndarray, uv: np.ndarray, fraction: float, pose_b: np.ndarray, K: np.ndarray
+                      ) -> np.ndarray:
+        """Pose of a frame between the two initial views from its tracks of map points (guess: interpolated)."""
         rotvec = cv2.Rodrigues(pose_b[:3, :3])[0].ravel() * fraction
         guess = np.eye(4)
         guess[:3, :3], guess[:3, 3] = cv2.Rodrigues(rotvec)[0], pose_b[:3, 3] * fraction
-        tracked = self._track_local_map(features, guess, K, self.config.wide_search_radius)
-        return guess if tracked is None else tracked[0]
+        order = np.argsort(self.tracks.ids)
+        at, found = _lookup(self.tracks.ids[order], ids)
+        rows = np.where(found, self.tracks.rows[order][at], -1)
+        has = rows >= 0
+        if has.sum() < self.config.min_tracked:
+            return guess
+        pose, inlier = optimize_pose(guess, self.map.positions[rows[has]], uv[has].astype(np.float64),
+                                     np.ones(int(has.sum())), K, self.config.chi2_px)
+        return pose if inlier.sum() >= self.config.min_tracked and np.all(np.isfinite(pose)) else guess
 
     # ---- tracking --------------------------------------------------------------------------------------------
-    def _search(self, features: Features, pose: np.ndarray, K: np.ndarray, radius: float, count: bool = False
-                ) -> tuple[np.ndarray, np.ndarray]:
-        """Guided matches (point rows, keypoint indices) of the local map projected at `pose`."""
-        m = self.map
-        uv, z = project(m.positions, pose, K)
-        w, h = self.image_size
-        visible = np.flatnonzero(in_image(uv, z, w, h))
-        if count:
-            m.visible[visible] += 1
-        kp = match_by_projection(uv[visible], m.descriptors[visible], np.full(len(visible), radius), features,
-                                 self.config.max_hamming, self.config.match_ratio)
-        found = kp >= 0
-        return visible[found], kp[found]
-
-    def _track_local_map(self, features: Features, guess: np.ndarray, K: np.ndarray, radius: float
-                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-        """(pose, point rows, keypoint indices) of inliers after two rounds of search + pose refinement."""
+    def _track(self, index: int, gray: np.ndarray, camera: Intrinsics) -> TrackingResult:
         c = self.config
-        pose = guess
-        for n, r in enumerate((radius, max(4.0, 0.5 * c.search_radius))):
-            rows, kps = self._search(features, pose, K, r, count=n == 1)
-            if len(rows) < c.min_tracked:
+        K = camera_matrix(camera)
+        predicted = rigid(self.pose @ self.velocity)
+        mapped_before = int(self.tracks.mapped.sum())
+        uv, ok = self._flow(gray, self._predicted_flow(predicted, K))
+        if (ok & self.tracks.mapped).sum() < 0.5 * mapped_before:  # a wrong guess can mislead the flow: try none
+            uv_plain, ok_plain = self._flow(gray, None)
+            if (ok_plain & self.tracks.mapped).sum() > (ok & self.tracks.mapped).sum():
+                uv, ok = uv_plain, ok_plain
+        self.tracks = Tracks(self.tracks.ids[ok], uv[ok], self.tracks.rows[ok])
+        found = self._pose_from_tracks(predicted, K)
+        if found is None:
+            return self._lose(index, "too few map points tracked (sudden motion, occlusion or a new view)")
+        pose, inliers = found
+        if inliers < max(c.min_tracked, c.min_survival * mapped_before):
+            return self._lose(index, f"{inliers} of {mapped_before} tracked points found again (a sudden change)")
+        self.previous_gray = gray
+        self.velocity = rigid(invert_pose(self.pose) @ pose)
+        self.frames_since_keyframe += 1
+        if not self._needs_keyframe(pose, inliers):
+            return TrackingResult(pose, tracked=True, keyframe_hint=False)
+        kf = self._insert_keyframe(index, pose, gray, K)
+        self.velocity = rigid(self.velocity @ invert_pose(pose) @ kf.pose)
+        return TrackingResult(kf.pose, tracked=True, keyframe_hint=True, depth=self._sparse_depth(kf, camera))
+
+    def _pose_from_tracks(self, guess: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, int] | None:
+        """Pose from the tracks of map points (robust refinement, PnP + RANSAC when it fails); the outlier tracks
+        are dropped."""
+        c = self.config
+        mapped = np.flatnonzero(self.tracks.mapped)
+        if len(mapped) < c.min_tracked:
+            return None
+        points = self.map.positions[self.tracks.rows[mapped]]
+        uv = self.tracks.uv[mapped].astype(np.float64)
+        sigma = np.ones(len(mapped))
+        pose, inlier = optimize_pose(guess, points, uv, sigma, K, c.chi2_px)
+        if inlier.sum() < max(c.min_tracked, 0.5 * len(mapped)) or not np.all(np.isfinite(pose)):
+            ok, rvec, tvec, found = cv2.solvePnPRansac(points, uv, K, None, iterationsCount=100,
+                                                       reprojectionError=2.0 * np.sqrt(c.chi2_px),
+                                                       confidence=0.999, flags=cv2.SOLVEPNP_EPNP)
+            if not ok or found is None or len(found) < c.min_tracked:
                 return None
-            pose, inlier = optimize_pose(pose, self.map.positions[rows], features.keypoints[kps].astype(np.float64),
-                                         self._sigma(features)[kps], K, c.chi2_px)
+            w2c = np.eye(4)
+            w2c[:3, :3], w2c[:3, 3] = cv2.Rodrigues(rvec)[0], tvec.ravel()
+            pose, inlier = optimize_pose(invert_pose(w2c), points, uv, sigma, K, c.chi2_px)
             if inlier.sum() < c.min_tracked or not np.all(np.isfinite(pose)):
                 return None
-        return pose, rows[inlier], kps[inlier]
-
-    def _track(self, index: int, features: Features, camera: Intrinsics) -> TrackingResult:
-        c = self.config
-        if len(features) < c.min_features:
-            return self._lose(index, f"{len(features)} keypoints < {c.min_features} (dark, textureless or blurred)")
-        K = camera_matrix(camera)
-        predicted = self.pose @ self.velocity
-        tracked = None
-        for guess, radius in ((predicted, c.search_radius), (predicted, c.wide_search_radius),
-                              (self.pose, c.wide_search_radius)):
-            tracked = self._track_local_map(features, guess, K, radius)
-            if tracked is not None:
-                break
-        if tracked is None:
-            return self._lose(index, "too few map points matched (sudden motion, occlusion or a new view)")
-        pose, rows, kps = tracked
-        self.map.found[rows] += 1
-        self.velocity = invert_pose(self.pose) @ pose
-        self.frames_since_keyframe += 1
-        if not self._needs_keyframe(pose, len(rows)):
-            return TrackingResult(pose, tracked=True, keyframe_hint=False)
-        kf = self._insert_keyframe(index, pose, features, rows, kps, K)
-        self.velocity = invert_pose(self.pose) @ kf.pose
-        return TrackingResult(kf.pose, tracked=True, keyframe_hint=True, depth=self._sparse_depth(kf, camera))
+        keep = np.ones(len(self.tracks), bool)
+        keep[mapped[~inlier]] = False
+        self.tracks = self.tracks.subset(keep)
+        return pose, int(inlier.sum())
 
     def _median_depth(self, kf: Keyframe) -> float:
         rows = kf.point_ids[kf.point_ids >= 0]
@@ -227,86 +297,119 @@ class VisualOdometry:
         return weak or stale or baseline > c.keyframe_baseline
 
     # ---- keyframes and the map -------------------------------------------------------------------------------
-    def _insert_keyframe(self, index: int, pose: np.ndarray, features: Features, rows: np.ndarray, kps: np.ndarray,
-                         K: np.ndarray) -> Keyframe:
-        m = self.map
-        point_ids = np.full(len(features), -1, np.int64)
-        point_ids[kps] = rows
-        m.descriptors[rows] = features.descriptors[kps]  # the latest look of a point matches the next frames best
-        kf = Keyframe(index, pose.copy(), features, point_ids)
-        neighbours = m.keyframes[-self.config.triangulation_neighbours:][::-1]
-        m.keyframes.append(kf)
-        for other in neighbours:
-            self._triangulate(kf, other, K)
-        self._retire(m.slide(self.config.window + self.config.fixed_keyframes))
-        m.forget((m.observation_counts() == 0) | ((m.visible >= 6) & (m.found < 0.25 * m.visible)))
-        self._adjust(K)
+    def _describe(self, gray: np.ndarray | None, uv: np.ndarray) -> np.ndarray:
+        if gray is None:
+            return np.zeros((len(uv), 32), np.uint8)
+        return self.extractor.describe(gray, uv)
+
+    def _new_keyframe(self, index: int, pose: np.ndarray, gray: np.ndarray) -> Keyframe:
+        """A keyframe of every track (after new corners are added), appended to the map."""
+        self._replenish(gray)
+        t = self.tracks
+        features = Features(t.uv.copy(), self._describe(gray, t.uv), np.zeros(len(t), np.int32))
+        kf = Keyframe(index, pose.copy(), features, t.rows.copy(), t.ids.copy())
+        self.map.keyframes.append(kf)
         self.frames_since_keyframe = 0
-        self.tracked_at_keyframe = int((kf.point_ids >= 0).sum())
         return kf
 
-    def _triangulate(self, kf: Keyframe, other: Keyframe, K: np.ndarray) -> None:
+    def _insert_keyframe(self, index: int, pose: np.ndarray, gray: np.ndarray, K: np.ndarray) -> Keyframe:
+        kf = self._new_keyframe(index, pose, gray)
+        self._triangulate(kf, K)
         c = self.config
-        free_a = np.flatnonzero(kf.point_ids < 0)
-        free_b = np.flatnonzero(other.point_ids < 0)
-        ia, ib = ratio_matches(kf.features.descriptors[free_a], other.features.descriptors[free_b], c.match_ratio,
-                               c.max_hamming)
-        a, b = free_a[ia], free_b[ib]
-        uv_a, uv_b = kf.features.keypoints[a].astype(np.float64), other.features.keypoints[b].astype(np.float64)
-        points = triangulate(kf.pose, other.pose, uv_a, uv_b, K)
-        ok = good_points(points, kf.pose, other.pose, uv_a, uv_b, self._sigma(kf.features)[a],
-                         self._sigma(other.features)[b], K, c.chi2_px, c.min_parallax_deg)
-        rows = self.map.add_points(points[ok], kf.features.descriptors[a[ok]])
-        kf.point_ids[a[ok]] = rows
-        other.point_ids[b[ok]] = rows
+        gone = self.map.slide(c.window + c.fixed_keyframes)
+        self._retire(gone)
+        self._remap(self.map.forget_unobserved())
+        if len(self.map.keyframes) >= 3:
+            self._adjust(K, fixed_count=max(c.fixed_keyframes, len(self.map.keyframes) - c.window))
+        self.tracked_at_keyframe = int(self.tracks.mapped.sum())
+        return kf
 
-    def _adjust(self, K: np.ndarray) -> None:
-        """Windowed bundle adjustment; observations it finds wrong are dropped, and points nobody sees."""
+    def _triangulate(self, kf: Keyframe, K: np.ndarray) -> None:
+        """Map points from the candidate tracks of `kf` with enough parallax since the oldest keyframe that saw
+        them; candidates inconsistent with the poses are dropped."""
+        c = self.config
+        m, t = self.map, self.tracks
+        candidate = np.flatnonzero(t.rows < 0)
+        anchored = np.zeros(len(candidate), bool)
+        new_ids, new_points, drop = [], [], []
+        for other in m.keyframes[:-1]:
+            order = np.argsort(other.track_ids)
+            at, found = _lookup(other.track_ids[order], t.ids[candidate])
+            sel = found & ~anchored
+            if not sel.any():
+                continue
+            anchored |= sel
+            which = candidate[sel]
+            uv_a = other.features.keypoints[order[at[sel]]].astype(np.float64)
+            uv_b = t.uv[which].astype(np.float64)
+            points = triangulate(other.pose, kf.pose, uv_a, uv_b, K)
+            ones = np.ones(len(which))
+            consistent = good_points(points, other.pose, kf.pose, uv_a, uv_b, ones, ones, K, c.chi2_px, 0.0)
+            wide = parallax_cos(np.nan_to_num(points), other.pose, kf.pose) < np.cos(np.deg2rad(c.min_parallax_deg))
+            new_ids.append(t.ids[which[consistent & wide]])
+            new_points.append(points[consistent & wide])
+            drop.append(t.ids[which[~consistent & wide]])
+        if not new_ids:
+            return
+        ids = np.concatenate(new_ids)
+        order = np.argsort(ids)
+        ids, points = ids[order], np.concatenate(new_points)[order]
+        rows = m.add_points(points, np.zeros((len(points), 32), np.uint8))
+        for keyframe in m.keyframes:
+            at, found = _lookup(ids, keyframe.track_ids)
+            keyframe.point_ids[found] = rows[at[found]]
+        at, found = _lookup(ids, t.ids)
+        t.rows[found] = rows[at[found]]
+        dropped = np.concatenate(drop)
+        if len(dropped):
+            self.tracks = t.subset(~np.isin(t.ids, dropped))
+
+    def _remap(self, remap: np.ndarray) -> None:
+        """Follow the map's renumbering of points in the tracks (a track whose point went becomes a candidate)."""
+        self.tracks.rows = remap[self.tracks.rows]
+
+    def _adjust(self, K: np.ndarray, fixed_count: int) -> None:
+        """Windowed bundle adjustment with the first `fixed_count` keyframes held; observations it finds wrong are
+        dropped (and the tracks they came from when the newest keyframe made them), and points nobody sees."""
         m = self.map
         obs = m.observations(self.extractor.level_sigmas)
         if len(obs.point) == 0:
             return
         fixed = np.zeros(len(m.keyframes), bool)
-        # Keyframes older than the adjusted window stay fixed and anchor pose and scale. A young map fixes only its
-        # first camera; its scale is then free, so the map's spread about that camera is restored afterwards.
-        fixed[: max(1, len(m.keyframes) - self.config.window)] = True
-        origin = m.keyframes[0].pose[:3, 3].copy()
-        spread = float(np.median(np.linalg.norm(m.positions - origin, axis=1)))
+        fixed[: min(fixed_count, len(m.keyframes) - 1)] = True
         poses = np.stack([kf.pose for kf in m.keyframes])
         poses, m.positions, _ = bundle_adjust(poses, fixed, m.positions, obs, K, self.config.ba_iterations,
                                               self.config.huber_sigmas)
         for kf, pose in zip(m.keyframes, poses, strict=True):
             kf.pose = pose
-        if fixed.sum() == 1:
-            self._rescale(origin, spread / max(float(np.median(np.linalg.norm(m.positions - origin, axis=1))), 1e-12))
-            poses = np.stack([kf.pose for kf in m.keyframes])
         bad = reprojection_chi2(poses, m.positions, obs, K) > self.config.chi2_px
-        for slot, kp_rows in ((s, obs.point[bad & (obs.keyframe == s)]) for s in range(len(m.keyframes))):
-            if len(kp_rows):
-                kf = m.keyframes[slot]
-                kf.point_ids[np.isin(kf.point_ids, kp_rows)] = -1
-        m.forget_unobserved()
+        for slot, kf in enumerate(m.keyframes):
+            bad_rows = obs.point[bad & (obs.keyframe == slot)]
+            if len(bad_rows):
+                kf.point_ids[np.isin(kf.point_ids, bad_rows)] = -1
+        bad_newest = obs.point[bad & (obs.keyframe == len(m.keyframes) - 1)]
+        if len(bad_newest):
+            self.tracks = self.tracks.subset(~np.isin(self.tracks.rows, bad_newest))
+        self._remap(m.forget_unobserved())
 
     def _normalise_scale(self) -> None:
         """Scale the map about the first keyframe so that its median point depth is 1."""
         first = self.map.keyframes[0]
-        self._rescale(first.pose[:3, 3].copy(), 1.0 / max(self._median_depth(first), 1e-9))
-
-    def _rescale(self, origin: np.ndarray, s: float) -> None:
-        """Scale points and keyframe positions about `origin` by s."""
-        m = self.map
+        s = 1.0 / max(self._median_depth(first), 1e-9)
+        m, origin = self.map, first.pose[:3, 3].copy()
         m.positions = origin + s * (m.positions - origin)
         for kf in m.keyframes:
             kf.pose = kf.pose.copy()
             kf.pose[:3, 3] = origin + s * (kf.pose[:3, 3] - origin)
 
     def _place(self, kf: Keyframe) -> Place:
-        has = np.flatnonzero(kf.point_ids >= 0)
+        has = np.flatnonzero((kf.point_ids >= 0) & kf.features.descriptors.any(axis=1))
         return Place(kf.index, kf.pose.copy(), kf.features.keypoints[has], kf.features.descriptors[has],
                      self.map.positions[kf.point_ids[has]].copy())
 
     def _retire(self, keyframes: list[Keyframe]) -> None:
-        self.retired.extend(self._place(kf) for kf in keyframes if (kf.point_ids >= 0).sum() > 0)
+        places = (self._place(kf) for kf in keyframes)
+        self.retired.extend(p for p in places if len(p.points) >= self.config.reloc_min_inliers)
         del self.retired[: max(0, len(self.retired) - self.config.reloc_keyframes)]
 
     def _sparse_depth(self, kf: Keyframe, camera: Intrinsics) -> np.ndarray:
@@ -329,42 +432,40 @@ class VisualOdometry:
         return TrackingResult(self.pose.copy(), tracked=False, keyframe_hint=False,
                               events=[{"type": "tracking_lost", "reason": reason, "frame": index}])
 
-    def _relocalise(self, index: int, features: Features, camera: Intrinsics) -> TrackingResult:
+    def _relocalise(self, index: int, gray: np.ndarray, camera: Intrinsics) -> TrackingResult:
+        """Place recognition over the remembered keyframes; a hit starts a new local map from the place's points
+        seen in this frame (their positions, hence the scale, carry over)."""
         c = self.config
         still_lost = TrackingResult(self.pose.copy(), tracked=False, keyframe_hint=False)
+        features = self.extractor.extract(gray)
         if len(features) < c.min_features:
             return still_lost
         K = camera_matrix(camera)
         places = self.retired + [self._place(kf) for kf in self.map.keyframes]
-        hit = self.recognizer.relocalise(features, places, K, self._sigma(features))
+        hit = self.recognizer.relocalise(features, places, K, self.extractor.level_sigmas(features.octaves))
         if hit is None:
             return still_lost
-        tracked = self._track_local_map(features, hit.pose, K, c.search_radius)
-        keyframe_hint, depth = False, None
-        if tracked is not None:
-            pose, rows, _ = tracked
-            self.map.found[rows] += 1
-            inliers = len(rows)
-        else:  # the local map does not cover this place: start a new one from the place's points
-            self._retire(self.map.keyframes)
-            m = self.map = LocalMap()
-            pose = hit.pose
-            rows = m.add_points(hit.points, features.descriptors[hit.keypoints])
-            kf = Keyframe(index, pose.copy(), features, np.full(len(features), -1, np.int64))
-            kf.point_ids[hit.keypoints] = rows
-            m.keyframes = [kf]
-            inliers = len(rows)
-            self.frames_since_keyframe = 0
-            self.tracked_at_keyframe = inliers
-            keyframe_hint, depth = True, self._sparse_depth(kf, camera)
-        event = {"type": "relocalized", "frame": index, "place": hit.place, "inliers": inliers,
+        self._retire(self.map.keyframes)
+        m = self.map = LocalMap()
+        rows = m.add_points(hit.points, np.zeros((len(hit.points), 32), np.uint8))
+        ids = np.arange(self.next_id, self.next_id + len(rows), dtype=np.int64)
+        self.next_id += len(rows)
+        self.tracks = Tracks(ids, features.keypoints[hit.keypoints].astype(np.float32), rows)
+        kf = self._new_keyframe(index, hit.pose, gray)
+        self.tracked_at_keyframe = len(rows)
+        self.previous_gray = gray
+        event = {"type": "relocalized", "frame": index, "place": hit.place, "inliers": len(rows),
                  "lost_frames": index - (self.lost_since if self.lost_since is not None else index)}
         self.status, self.lost_since, self.velocity = "tracking", None, np.eye(4)
-        return TrackingResult(pose, tracked=True, keyframe_hint=keyframe_hint, depth=depth, events=[event])
+        return TrackingResult(hit.pose, tracked=True, keyframe_hint=True, depth=self._sparse_depth(kf, camera),
+                              events=[event])
 
     # ---- snapshots -------------------------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
         """Everything to continue after a restart (msgpack-able; bounded by the window and the place memory)."""
+        def image(gray: np.ndarray | None) -> np.ndarray:
+            return np.zeros((0, 0), np.uint8) if gray is None else gray
+
         return {
             "version": STATE_VERSION, "config": self.config.model_dump(), "status": self.status,
             "pose": self.pose, "velocity": self.velocity, "frames_since_keyframe": self.frames_since_keyframe,
@@ -373,7 +474,9 @@ class VisualOdometry:
             "image_size": [] if self.image_size is None else list(self.image_size),
             "focal": self.focal.state_dict(),
             "estimated_intrinsics": {} if self.estimated_intrinsics is None else self.estimated_intrinsics.to_dict(),
-            "pending": [{"index": i, "features": f.to_state()} for i, f in self.pending],
+            "pending": [{"index": i, "ids": ids, "uv": uv} for i, ids, uv in self.pending],
+            "previous_gray": image(self.previous_gray), "reference_gray": image(self.reference_gray),
+            "tracks": self.tracks.to_state(), "next_id": self.next_id,
             "map": self.map.to_state(), "retired": [p.to_state() for p in self.retired],
         }
 
@@ -392,6 +495,12 @@ class VisualOdometry:
         self.focal.load_state_dict(state["focal"])
         if state["estimated_intrinsics"]:
             self.estimated_intrinsics = Intrinsics.from_dict(state["estimated_intrinsics"])
-        self.pending = [(int(p["index"]), Features.from_state(p["features"])) for p in state["pending"]]
+        self.pending = [(int(p["index"]), np.asarray(p["ids"], np.int64).reshape(-1),
+                         np.asarray(p["uv"], np.float32).reshape(-1, 2)) for p in state["pending"]]
+        for name in ("previous_gray", "reference_gray"):
+            gray = np.asarray(state[name], np.uint8)
+            setattr(self, name, np.ascontiguousarray(gray) if gray.size else None)
+        self.tracks = Tracks.from_state(state["tracks"])
+        self.next_id = int(state["next_id"])
         self.map = LocalMap.from_state(state["map"])
         self.retired = [Place.from_state(p) for p in state["retired"]]

@@ -24,17 +24,27 @@ class VisualOdometryConfig(BaseModel):
     min_features: int = Field(60, ge=10, description="fewer keypoints than this: the frame is unusable")
 
     # two-view initialisation
-    init_min_matches: int = Field(80, ge=20, description="ratio-test matches needed to try initialising")
+    init_min_matches: int = Field(80, ge=20, description="matches (tracks) needed to try initialising")
     init_min_points: int = Field(60, ge=20, description="triangulated points needed to accept an initialisation")
     init_min_parallax_deg: float = Field(2.0, gt=0.0, description="median triangulation angle needed, degrees")
     init_max_frames: int = Field(30, ge=2, description="frames kept while waiting; older references are replaced")
     match_ratio: float = Field(0.8, gt=0.0, lt=1.0, description="Lowe ratio for descriptor matching")
     max_hamming: int = Field(64, ge=1, le=256, description="largest descriptor distance of an accepted match")
 
+    # optical-flow tracks
+    max_tracks: int = Field(500, ge=50, description="points followed by optical flow at the most")
+    corner_min_distance: float = Field(0.025, gt=0.0, lt=0.5, description="smallest distance between two tracks, "
+                                                                          "as a share of max(W, H)")
+    corner_quality: float = Field(0.01, gt=0.0, lt=1.0, description="Shi-Tomasi quality of a new corner (share of "
+                                                                      "the best corner's)")
+    flow_window: int = Field(21, ge=5, description="Lucas-Kanade window side, pixels")
+    flow_levels: int = Field(3, ge=0, le=6, description="Lucas-Kanade pyramid levels above the image")
+    flow_fb_px: float = Field(0.75, gt=0.0, description="largest forward-backward flow error of a kept track, px")
+
     # tracking
-    search_radius: float = Field(12.0, gt=0.0, description="guided matching radius around a projection, pixels")
-    wide_search_radius: float = Field(36.0, gt=0.0, description="radius of the retry when tracking is weak")
     min_tracked: int = Field(25, ge=6, description="pose inliers below this: tracking is lost")
+    min_survival: float = Field(0.25, ge=0.0, lt=1.0, description="share of the last frame's tracked points that "
+                                                                   "must be found again (less: a sudden change)")
     chi2_px: float = Field(5.991, gt=0.0, description="squared reprojection error (in sigmas) of an inlier")
 
     # keyframes and the local map
@@ -42,13 +52,12 @@ class VisualOdometryConfig(BaseModel):
                                           description="new keyframe when tracked points fall below this share "
                                                       "of the last keyframe's")
     keyframe_max_gap: int = Field(20, ge=1, description="frames between keyframes at the most (while moving)")
-    keyframe_min_gap: int = Field(2, ge=1, description="frames between keyframes at the least")
-    keyframe_baseline: float = Field(0.1, gt=0.0, description="new keyframe when the baseline to the last one "
-                                                               "exceeds this share of the median depth")
-    triangulation_neighbours: int = Field(3, ge=1, description="keyframes a new keyframe triangulates with")
-    min_parallax_deg: float = Field(0.8, gt=0.0, description="smallest triangulation angle of a new point")
-    window: int = Field(7, ge=2, description="keyframes the windowed bundle adjustment moves")
-    fixed_keyframes: int = Field(0, ge=0, description="older keyframes kept fixed in the adjustment (they anchor "
+    keyframe_min_gap: int = Field(1, ge=1, description="frames between keyframes at the least")
+    keyframe_baseline: float = Field(0.06, gt=0.0, description="new keyframe when the baseline to the last one "
+                                                                "exceeds this share of the median depth")
+    min_parallax_deg: float = Field(1.0, gt=0.0, description="smallest triangulation angle of a new point")
+    window: int = Field(8, ge=2, description="keyframes the windowed bundle adjustment moves")
+    fixed_keyframes: int = Field(2, ge=1, description="older keyframes kept fixed in the adjustment (they anchor "
                                                       "pose and scale) and in the local map")
     ba_iterations: int = Field(10, ge=1, description="Levenberg-Marquardt iterations of the windowed adjustment")
     huber_sigmas: float = Field(2.45, gt=0.0, description="Huber kernel width, in pixel sigmas")

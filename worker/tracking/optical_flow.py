@@ -1,0 +1,58 @@
+"""Sub-pixel point tracking between consecutive frames: pyramidal Lucas-Kanade optical flow with a forward-backward
+check, and corner detection that fills the image where no track is (project pixel convention: centres at +0.5).
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+_HALF = np.float32(0.5)  # OpenCV puts pixel centres at integers, this project at +0.5
+
+
+def track_points(previous: np.ndarray, current: np.ndarray, uv: np.ndarray, guess: np.ndarray | None = None, *,
+                 window: int = 21, levels: int = 3, max_fb_px: float = 0.75) -> tuple[np.ndarray, np.ndarray]:
+    """Positions [N, 2] in `current` of the pixels `uv` [N, 2] of `previous` (uint8 grey images) and the mask [N] of
+    those tracked both ways: forward from `guess` (or uv), then back to within `max_fb_px` of where they started."""
+    n = len(uv)
+    if n == 0:
+        return np.zeros((0, 2), np.float32), np.zeros(0, bool)
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
+    start = (uv.astype(np.float32) - _HALF).reshape(-1, 1, 2)
+    flags, forward = 0, None
+    if guess is not None:
+        forward, flags = (guess.astype(np.float32) - _HALF).reshape(-1, 1, 2).copy(), cv2.OPTFLOW_USE_INITIAL_FLOW
+    forward, ok_f, _ = cv2.calcOpticalFlowPyrLK(previous, current, start, forward, winSize=(window, window),
+                                                maxLevel=levels, criteria=criteria, flags=flags)
+    # The backward pass starts where the forward one ended (no guess): a track that went astray rarely finds its
+    # way back to where it started.
+    backward, ok_b, _ = cv2.calcOpticalFlowPyrLK(current, previous, forward, None, winSize=(window, window),
+                                                 maxLevel=levels, criteria=criteria)
+    forward, backward = forward.reshape(-1, 2), backward.reshape(-1, 2)
+    h, w = current.shape
+    fb = np.linalg.norm(backward - start.reshape(-1, 2), axis=1)
+    inside = (forward[:, 0] >= 0) & (forward[:, 0] <= w - 1) & (forward[:, 1] >= 0) & (forward[:, 1] <= h - 1)
+    ok = ok_f.ravel().astype(bool) & ok_b.ravel().astype(bool) & (fb < max_fb_px) & inside
+    ok &= np.isfinite(forward).all(axis=1)
+    return forward + _HALF, ok
+
+
+def detect_corners(gray: np.ndarray, existing: np.ndarray, count: int, min_distance: float,
+                   quality: float = 0.01, border: int = 8) -> np.ndarray:
+    """Up to `count` new Shi-Tomasi corners [n, 2] at least `min_distance` pixels from each other and from the
+    `existing` points [m, 2], away from the image border."""
+    if count <= 0:
+        return np.zeros((0, 2), np.float32)
+    h, w = gray.shape
+    mask = np.zeros((h, w), np.uint8)
+    mask[border:h - border, border:w - border] = 255
+    radius = max(1, int(round(min_distance)))
+    for x, y in (existing - _HALF).astype(np.int32):
+        cv2.circle(mask, (int(x), int(y)), radius, 0, -1)
+    corners = cv2.goodFeaturesToTrack(gray, maxCorners=count, qualityLevel=quality, minDistance=min_distance,
+                                      mask=mask, blockSize=5)
+    if corners is None:
+        return np.zeros((0, 2), np.float32)
+    corners = cv2.cornerSubPix(gray, corners.astype(np.float32), (3, 3), (-1, -1),
+                               (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 0.03))
+    return corners.reshape(-1, 2) + _HALF
