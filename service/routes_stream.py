@@ -40,30 +40,20 @@ async def stream_frames(websocket: WebSocket, session_id: str) -> None:
     reg: Registry = app.state.registry
     origin = websocket.headers.get("origin")
     if not origin_allowed(origin, websocket.headers.get("host"), app.state.settings.allowed_origins):
-        await websocket.accept()
-        await websocket.send_text(json.dumps({"type": "error", "code": "forbidden_origin",
-                                              "message": f"Origin {origin} may not open streams here (set "
-                                                         "FLASHMONO_ALLOWED_ORIGINS to allow it)"}))
-        await websocket.close(code=4403, reason="origin not allowed")
+        await _refuse(websocket, "forbidden_origin", f"Origin {origin} may not open streams here (set "
+                      "FLASHMONO_ALLOWED_ORIGINS to allow it)", 4403)
         return
     try:
         principal = app.state.auth.principal(request_key(websocket, allow_query=True))
         app.state.auth.require(principal, "stream")
         record = await session_for(reg, principal, session_id, write=True)
     except REDIS_DOWN as err:
-        await websocket.accept()
-        await websocket.send_text(json.dumps({"type": "error", "code": "unavailable",
-                                              "message": f"the session store (Redis) is unreachable: {err}; "
-                                                         "reconnect shortly"}))
-        await websocket.close(code=1013, reason="session store unreachable; try again later")
+        await _refuse(websocket, "unavailable", f"the session store (Redis) is unreachable: {err}; reconnect "
+                      "shortly", 1013)
         return
     except HTTPException as err:
-        await websocket.accept()
-        await websocket.send_text(json.dumps({"type": "error", "code": _AUTH_CODES.get(err.status_code, "error"),
-                                              "message": err.detail}))
-        await websocket.close(code=4000 + err.status_code, reason=str(err.detail)[:120])
+        await _refuse(websocket, _AUTH_CODES.get(err.status_code, "error"), str(err.detail), 4000 + err.status_code)
         return
-    await websocket.accept()
     if record["status"] == "abandoned":
         grace = app.state.settings.abandoned_grace_s
         if await reg.revive(session_id, grace) == 1:
@@ -72,19 +62,23 @@ async def stream_frames(websocket: WebSocket, session_id: str) -> None:
             record["error"] = f"it was abandoned (no frames) more than {grace:g} s ago and can no longer be resumed"
     if record["status"] not in ("created", "streaming"):
         why = f": {record['error']}" if record["status"] == "abandoned" else ""
-        await websocket.send_text(json.dumps({"type": "error", "code": "not_accepting",
-                                              "message": f"session is {record['status']}; it takes no frames{why}"}))
-        await websocket.close(code=4409)
+        await _refuse(websocket, "not_accepting", f"session is {record['status']}; it takes no frames{why}", 4409)
         return
     limit = app.state.settings.max_streams
     if app.state.outbox_hub.streams >= limit:
-        await websocket.send_text(json.dumps({"type": "error", "code": "too_many_streams",
-                                              "message": f"this gateway has {limit} open streams, its limit "
-                                                         "(FLASHMONO_MAX_STREAMS); retry shortly or on another one"}))
-        await websocket.close(code=1013, reason="too many open streams")
+        await _refuse(websocket, "too_many_streams", f"this gateway has {limit} open streams, its limit "
+                      "(FLASHMONO_MAX_STREAMS); retry shortly or on another one", 1013)
         return
+    await websocket.accept()
     stream = _Stream(websocket, reg, session_id, json.loads(record.get("intrinsics") or "null"))
     await stream.run()
+
+
+async def _refuse(websocket: WebSocket, code: str, message: str, close_code: int) -> None:
+    """Turn a stream away: accept, one error message saying why, then `close_code`."""
+    await websocket.accept()
+    await websocket.send_text(json.dumps({"type": "error", "code": code, "message": message}))
+    await websocket.close(code=close_code, reason=message.encode()[:120].decode(errors="ignore"))
 
 
 def _int_or_none(value) -> int | None:

@@ -37,6 +37,17 @@ def stream(stack, sid: str, key: str):
                    open_timeout=20)
 
 
+def finished_session(local: LocalStack, api: httpx.Client, frames: int) -> str:
+    """A new session that streamed `frames` frames and finished."""
+    sid = api.post("/v1/sessions", json={}).json()["id"]
+    with connect(f"{local.ws_url}/v1/sessions/{sid}/stream", open_timeout=20) as ws:
+        for seq in range(frames):
+            ws.send(synthetic_frame(seq))
+        ws.send(json.dumps({"type": "finish"}))
+        receive_until(ws, lambda m: m["type"] == "finished", timeout_s=60)
+    return sid
+
+
 def status(api: httpx.Client, sid: str) -> str:
     return api.get(f"/v1/sessions/{sid}").json()["status"]
 
@@ -90,12 +101,7 @@ def test_ended_sessions_expire_live_data_then_everything_after_the_retention():
     with LocalStack(workers=1, worker_env=worker_env) as local, \
             httpx.Client(base_url=local.base_url, timeout=30) as api:
         r = redis.Redis.from_url(local.redis_url)
-        sid = api.post("/v1/sessions", json={}).json()["id"]
-        with connect(f"{local.ws_url}/v1/sessions/{sid}/stream", open_timeout=20) as ws:
-            for seq in range(4):
-                ws.send(synthetic_frame(seq))
-            ws.send(json.dumps({"type": "finish"}))
-            receive_until(ws, lambda m: m["type"] == "finished", timeout_s=60)
+        sid = finished_session(local, api, frames=4)
         live_only = [keys.inbox(sid), keys.outbox(sid)]
         assert all(0 < r.pttl(k) <= 2000 for k in live_only)
         wait_for(lambda: not any(r.exists(k) for k in live_only), timeout_s=10)
@@ -113,12 +119,7 @@ def test_finished_sessions_move_to_the_blob_store_and_stay_downloadable(tmp_path
     with LocalStack(workers=1, worker_env=worker_env, gateway_env=blobs) as local, \
             httpx.Client(base_url=local.base_url, timeout=30) as api:
         r = redis.Redis.from_url(local.redis_url)
-        sid = api.post("/v1/sessions", json={}).json()["id"]
-        with connect(f"{local.ws_url}/v1/sessions/{sid}/stream", open_timeout=20) as ws:
-            for seq in range(4):
-                ws.send(synthetic_frame(seq))
-            ws.send(json.dumps({"type": "finish"}))
-            receive_until(ws, lambda m: m["type"] == "finished", timeout_s=60)
+        sid = finished_session(local, api, frames=4)
         before = api.get(f"/v1/sessions/{sid}/trajectory").json()["poses"]
         ply = api.get(f"/v1/sessions/{sid}/map.ply").content
         wait_for(lambda: r.hget(keys.session(sid), "archived") == b"1", timeout_s=30)
