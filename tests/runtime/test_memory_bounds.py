@@ -22,6 +22,7 @@ from websockets.sync.client import connect
 from service.launcher import LocalStack
 from worker.runtime import keys
 from worker.runtime.frames import decode_frame, working_size
+from worker.runtime.memory import over_budget, resident_mb
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
@@ -139,3 +140,8 @@ def test_a_frame_that_kills_its_workers_is_quarantined():
         assert session["frames_processed"] == 0
         assert r.get(keys.inflight(sid)) == b"0:3"  # the third worker refused it without processing it
         assert [w.poll() for w in workers.values()] == [None]  # and lives on
+
+
+def test_memory_budget():
+    assert 10 < resident_mb() < 100_000
+    assert over_budget(1) and not over_budget(0) and not over_budget(10**7)
