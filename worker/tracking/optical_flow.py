@@ -24,10 +24,12 @@ def track_points(previous: np.ndarray, current: np.ndarray, uv: np.ndarray, gues
         forward, flags = (guess.astype(np.float32) - _HALF).reshape(-1, 1, 2).copy(), cv2.OPTFLOW_USE_INITIAL_FLOW
     forward, ok_f, _ = cv2.calcOpticalFlowPyrLK(previous, current, start, forward, winSize=(window, window),
                                                 maxLevel=levels, criteria=criteria, flags=flags)
-    # The backward pass starts where the forward one ended (no guess): a track that went astray rarely finds its
-    # way back to where it started.
-    backward, ok_b, _ = cv2.calcOpticalFlowPyrLK(current, previous, forward, None, winSize=(window, window),
-                                                 maxLevel=levels, criteria=criteria)
+    # The backward pass starts from the original pixels, as the forward one from its guess: motions larger than the
+    # pyramid reaches (or a repeated texture) would fail an unguided return. Tracks it lets pass wrongly are
+    # outliers of the pose (map points) or of the triangulation (candidates).
+    backward, ok_b, _ = cv2.calcOpticalFlowPyrLK(current, previous, forward, start.copy(), winSize=(window, window),
+                                                 maxLevel=levels, criteria=criteria,
+                                                 flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
     forward, backward = forward.reshape(-1, 2), backward.reshape(-1, 2)
     h, w = current.shape
     fb = np.linalg.norm(backward - start.reshape(-1, 2), axis=1)

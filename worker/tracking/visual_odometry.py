@@ -33,7 +33,7 @@ from .relocalization import Place, PlaceRecognizer
 from .self_calibration import FocalEstimator
 from .tracks import Tracks
 from .triangulation import good_points, parallax_cos, triangulate
-from .two_view import two_view_from_matches
+from .two_view import TwoViewMap, two_view_from_matches
 from .vo_config import VisualOdometryConfig
 
 STATE_VERSION = 2
@@ -64,7 +64,6 @@ class VisualOdometry:
         self.tracks = Tracks.empty()
         self.next_id = 0
         self.previous_gray: np.ndarray | None = None  # the last frame tracked (flow starts from it)
-        self.reference_gray: np.ndarray | None = None  # the first frame waiting for initialisation
         self.pending: list[tuple[int, np.ndarray, np.ndarray]] = []  # (index, track ids, uv) since the reference
         self.pose = np.eye(4)
         self.velocity = np.eye(4)  # camera motion of the last frame (previous^-1 @ current)
@@ -142,54 +141,57 @@ class VisualOdometry:
         return guess
 
     # ---- initialisation --------------------------------------------------------------------------------------
-    def _restart_initialisation(self, index: int, gray: np.ndarray) -> None:
-        self.tracks = Tracks.empty()
-        self._replenish(gray)
-        self.reference_gray = gray
-        self.pending = [(index, self.tracks.ids.copy(), self.tracks.uv.copy())]
-
     def _initialise(self, index: int, gray: np.ndarray, camera: Intrinsics, uncalibrated: bool) -> TrackingResult:
+        """Follow corners until a waiting frame (the reference) and this one make a two-view map; new corners join
+        at every frame, and the reference is the oldest waiting frame that still shares enough tracks."""
         c = self.config
         waiting = TrackingResult(np.eye(4), tracked=True, keyframe_hint=False)
-        if not self.pending:
-            self._restart_initialisation(index, gray)
-            self.previous_gray = gray
-            return waiting
-        uv, ok = self._flow(gray, None)
-        self.tracks = Tracks(self.tracks.ids[ok], uv[ok], self.tracks.rows[ok])
+        if self.pending:
+            uv, ok = self._flow(gray, None)
+            self.tracks = Tracks(self.tracks.ids[ok], uv[ok], self.tracks.rows[ok])
         self.previous_gray = gray
-        if len(self.tracks) < c.init_min_matches:  # the view has moved on: start again from this frame
-            self._restart_initialisation(index, gray)
+        shared = [int(np.isin(self.tracks.ids, ids, assume_unique=True).sum()) for _, ids, _ in self.pending]
+        usable = [n for n, count in enumerate(shared) if count >= c.init_min_matches]
+        self.pending = self.pending[usable[0]:] if usable else []
+        self.pending = self.pending[-c.init_max_frames:]
+        if not self.pending:  # the view has moved on: wait from this frame
+            self._replenish(gray)
+            self.pending = [(index, self.tracks.ids.copy(), self.tracks.uv.copy())]
             return waiting
-        self.pending.append((index, self.tracks.ids.copy(), self.tracks.uv.copy()))
-        if len(self.pending) > c.init_max_frames:  # the reference is too old: the next frame takes its place
-            self.pending.pop(0)
-            self.reference_gray = None
         ref_index, ref_ids, ref_uv = self.pending[0]
-        at, _ = _lookup(ref_ids, self.tracks.ids)  # every live track was seen in the reference
+        at, found = _lookup(ref_ids, self.tracks.ids)
+        common = np.flatnonzero(found)
         if uncalibrated and not self.focal.frozen:
-            self.focal.observe_matches(ref_uv[at], self.tracks.uv, camera)
+            self.focal.observe_matches(ref_uv[at[common]], self.tracks.uv[common], camera)
             camera = self.estimated_intrinsics = self.focal.intrinsics(camera.width, camera.height)
         K = camera_matrix(camera)
-        ones = np.ones(len(at))
-        attempt = two_view_from_matches(ref_uv[at], self.tracks.uv, K, c, ones, ones)
+        ones = np.ones(len(common))
+        attempt = two_view_from_matches(ref_uv[at[common]], self.tracks.uv[common], K, c, ones, ones,
+                                        common, common)
         if attempt.map is None:
+            self._replenish(gray)
+            self.pending.append((index, self.tracks.ids.copy(), self.tracks.uv.copy()))
             return waiting
         self.focal.freeze()
-        return self._start_map(index, gray, attempt.map, at, camera, uncalibrated)
+        self.pending.append((index, self.tracks.ids.copy(), self.tracks.uv.copy()))
+        return self._start_map(index, gray, attempt.map, camera, uncalibrated)
 
-    def _start_map(self, index: int, gray: np.ndarray, two, at: np.ndarray, camera: Intrinsics,
-                   uncalibrated: bool) -> TrackingResult:
-        """The map of a successful two-view attempt: two keyframes, adjusted and scaled; the frames between them
-        are posed against it."""
+    def _start_map(self, index: int, gray: np.ndarray, two: TwoViewMap, camera: Intrinsics, uncalibrated: bool
+                   ) -> TrackingResult:
+        """The map of a successful two-view attempt (two.ia, two.ib: rows of the current tracks): two keyframes,
+        adjusted and scaled; the frames between them are posed against it."""
         K = camera_matrix(camera)
         ref_index, ref_ids, ref_uv = self.pending[0]
         m = self.map = LocalMap()
         rows = m.add_points(two.points, np.zeros((len(two.points), 32), np.uint8))
         self.tracks.rows[two.ib] = rows
-        ref_features = Features(ref_uv[at], self._describe(self.reference_gray, ref_uv[at]),
-                                np.zeros(len(at), np.int32))
-        kf_a = Keyframe(ref_index, np.eye(4), ref_features, self.tracks.rows.copy(), self.tracks.ids.copy())
+        # The reference keyframe keeps the tracks it shares with this frame; its image is gone, so it has no
+        # descriptors (it is no place to relocalise from).
+        at, found = _lookup(ref_ids, self.tracks.ids)
+        ref_features = Features(ref_uv[at[found]], np.zeros((int(found.sum()), 32), np.uint8),
+                                np.zeros(int(found.sum()), np.int32))
+        kf_a = Keyframe(ref_index, np.eye(4), ref_features, self.tracks.rows[found].copy(),
+                        self.tracks.ids[found].copy())
         m.keyframes = [kf_a]
         kf_b = self._new_keyframe(index, two.pose_b, gray)
         self._adjust(K, fixed_count=1)
@@ -200,7 +202,7 @@ class VisualOdometry:
         for n, (i, ids, uv) in enumerate(self.pending[1:-1], start=1):
             previous = self._pose_between(ids, uv, n / (len(self.pending) - 1), pose, K)
             between.append([i, previous.tolist()])
-        self.pending, self.reference_gray = [], None
+        self.pending = []
         self.velocity = invert_pose(previous) @ pose
         self.status = "tracking"
         event = {"type": "initialized", "frame": index, "frames": between, "points": len(m),
@@ -297,16 +299,11 @@ class VisualOdometry:
         return weak or stale or baseline > c.keyframe_baseline
 
     # ---- keyframes and the map -------------------------------------------------------------------------------
-    def _describe(self, gray: np.ndarray | None, uv: np.ndarray) -> np.ndarray:
-        if gray is None:
-            return np.zeros((len(uv), 32), np.uint8)
-        return self.extractor.describe(gray, uv)
-
     def _new_keyframe(self, index: int, pose: np.ndarray, gray: np.ndarray) -> Keyframe:
         """A keyframe of every track (after new corners are added), appended to the map."""
         self._replenish(gray)
         t = self.tracks
-        features = Features(t.uv.copy(), self._describe(gray, t.uv), np.zeros(len(t), np.int32))
+        features = Features(t.uv.copy(), self.extractor.describe(gray, t.uv), np.zeros(len(t), np.int32))
         kf = Keyframe(index, pose.copy(), features, t.rows.copy(), t.ids.copy())
         self.map.keyframes.append(kf)
         self.frames_since_keyframe = 0
@@ -475,7 +472,7 @@ class VisualOdometry:
             "focal": self.focal.state_dict(),
             "estimated_intrinsics": {} if self.estimated_intrinsics is None else self.estimated_intrinsics.to_dict(),
             "pending": [{"index": i, "ids": ids, "uv": uv} for i, ids, uv in self.pending],
-            "previous_gray": image(self.previous_gray), "reference_gray": image(self.reference_gray),
+            "previous_gray": image(self.previous_gray),
             "tracks": self.tracks.to_state(), "next_id": self.next_id,
             "map": self.map.to_state(), "retired": [p.to_state() for p in self.retired],
         }
@@ -497,9 +494,8 @@ class VisualOdometry:
             self.estimated_intrinsics = Intrinsics.from_dict(state["estimated_intrinsics"])
         self.pending = [(int(p["index"]), np.asarray(p["ids"], np.int64).reshape(-1),
                          np.asarray(p["uv"], np.float32).reshape(-1, 2)) for p in state["pending"]]
-        for name in ("previous_gray", "reference_gray"):
-            gray = np.asarray(state[name], np.uint8)
-            setattr(self, name, np.ascontiguousarray(gray) if gray.size else None)
+        gray = np.asarray(state["previous_gray"], np.uint8)
+        self.previous_gray = np.ascontiguousarray(gray) if gray.size else None
         self.tracks = Tracks.from_state(state["tracks"])
         self.next_id = int(state["next_id"])
         self.map = LocalMap.from_state(state["map"])
