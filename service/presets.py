@@ -13,21 +13,24 @@ PresetName = Literal["paper", "default", "fast", "rgbd", "test"]
 PRESET_INFO: dict[str, tuple[str, str]] = {
     "paper": ("the paper's settings: paper-size model, 512-pixel images, on a CUDA GPU; needs weights converted "
               "from CUT3R (`flashmono convert-cut3r`)", "RGB only (monocular), any input on a GPU"),
-    "default": ("the paper's settings with the shipped small model, on whatever device is there",
-                "RGB only (monocular) or any richer input"),
+    "default": ("the paper's mapping settings (20 refinement iterations over 5 keyframes) on whatever device is "
+                "there; the shipped small model only where no geometric pose source applies", "any input"),
     "fast": ("CPU-friendly: 224-pixel images, fewer refinement iterations; with depth, surfels come from the depth",
              "RGB-D frames (phones with LiDAR), with or without device poses"),
-    "rgbd": ("best maps on a CPU: surfels from the depth, a final refinement over every keyframe at finish (tens of "
-             "seconds; 28.9 dB PSNR on ICL)", "posed RGB-D frames (depth + device pose: ARKit/ARCore with LiDAR)"),
+    "rgbd": ("best maps on a CPU: surfels from the depth (the sensor's, or multi-view stereo on the tracked poses), "
+             "a final refinement over every keyframe at finish (tens of seconds; 28.9 dB PSNR on ICL)",
+             "every input on a CPU: RGB-D with or without device poses, posed RGB (ARKit/ARCore without LiDAR), RGB "
+             "only"),
     "test": ("unit tests only: tiny images, few iterations, single-threaded", "anything (not for real use)"),
 }
 
 INPUT_MODES = (
     "The input mode follows from the fields the session's first frame carries and holds for the whole session: "
-    "`pose` -> posed (device poses are the odometry; refined as priors, or kept as sent with pose_mode fixed); "
-    "`depth` without `pose` -> RGB-D (dense RGB-D odometry); neither -> monocular (the camera is tracked from the "
-    "images; the scale is arbitrary and the focal length is estimated unless intrinsics are given). Later frames "
-    "must carry the same fields and have the same size."
+    "`pose` -> posed (device poses are the odometry; refined as priors, or kept as sent with pose_mode fixed; "
+    "without `depth`, surfels come from multi-view stereo); `depth` without `pose` -> RGB-D (dense RGB-D "
+    "odometry); neither -> monocular (visual odometry: the scale is arbitrary, the focal length is estimated unless "
+    "intrinsics are given, surfels come from multi-view stereo). Tracking losses and recoveries arrive as "
+    "`tracking_lost` / `relocalized` messages. Later frames must carry the same fields and have the same size."
 )
 
 

@@ -16,8 +16,8 @@ def add_run_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--use-gt-depth", action="store_true", help="RGB-D mode: use the dataset's depth")
     parser.add_argument("--use-gt-poses", action="store_true", help="posed mode: use the dataset's poses")
     parser.add_argument("--preset", default=None,
-                        help="SlamConfig preset: paper, default, fast, rgbd, test (default: rgbd with "
-                        "--use-gt-depth, else default)")
+                        help="SlamConfig preset: paper, default, fast, rgbd, test (default: rgbd, the CPU mapping "
+                        "settings measured on ICL for every geometric input mode)")
     parser.add_argument("--max-frames", type=int, default=None, help="stop after N frames")
     parser.add_argument("--stride", type=int, default=1, help="keep every S-th frame")
     parser.add_argument("--resize", type=parse_size, default=None, help="resize frames to WxH, e.g. 320x240")
@@ -47,10 +47,9 @@ def load_config(args: argparse.Namespace):
 
 
 def default_preset(args: argparse.Namespace) -> str:
-    """--preset, else `rgbd` for RGB-D input (the CPU setting measured on ICL), else `default`."""
-    if args.preset:
-        return args.preset
-    return "rgbd" if args.use_gt_depth else "default"
+    """--preset, else `rgbd`: the CPU mapping settings measured on ICL, for depth from a sensor or from multi-view
+    stereo alike (the learned model's path has its own presets: default, paper)."""
+    return args.preset or "rgbd"
 
 
 def run_one(args: argparse.Namespace, source: str, out_dir: str) -> dict:

@@ -54,7 +54,7 @@ def test_run_reports_bad_sources_clearly(tmp_path: Path) -> None:
     assert proc.returncode == 2 and "unknown preset" in proc.stderr
 
 
-def test_rgbd_runs_default_to_the_rgbd_preset() -> None:
+def test_runs_default_to_the_rgbd_preset() -> None:
     import argparse
 
     from client.commands.run import add_run_options, default_preset
@@ -65,5 +65,5 @@ def test_rgbd_runs_default_to_the_rgbd_preset() -> None:
     choose = lambda *argv: default_preset(parser.parse_args(["seq", "--out", "o", *argv]))  # noqa: E731
     assert choose("--use-gt-depth", "--use-gt-poses") == "rgbd"
     assert choose("--use-gt-depth") == "rgbd"  # RGB-D odometry maps like the posed RGB-D mode
-    assert choose() == choose("--use-gt-poses") == "default"
+    assert choose() == choose("--use-gt-poses") == "rgbd"  # multi-view depth too
     assert choose("--use-gt-depth", "--use-gt-poses", "--preset", "paper") == "paper"

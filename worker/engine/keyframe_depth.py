@@ -35,15 +35,19 @@ class PendingKeyframe:
     scene_depth: float | None
 
 
-def depth_hint(sparse_depth: np.ndarray | None) -> tuple[tuple[float, float] | None, float | None]:
-    """(sweep range, typical depth) from a pose source's sparse depth (e.g. triangulated points), or (None, None)."""
-    if sparse_depth is None:
+DepthHint = tuple[tuple[float, float] | None, float | None]
+
+
+def depth_hint(depth: np.ndarray | None, margin: float = 2.0) -> DepthHint:
+    """(sweep range, typical depth) from a depth map (0 = unknown): a pose source's sparse depth (triangulated
+    points) or the previous keyframe's multi-view depth; the range is widened by `margin` on both sides."""
+    if depth is None:
         return None, None
-    values = sparse_depth[np.isfinite(sparse_depth) & (sparse_depth > 0)]
+    values = depth[np.isfinite(depth) & (depth > 0)]
     if values.size < 20:
         return None, None
     near, median, far = np.percentile(values, [2, 50, 98])
-    return (0.5 * float(near), 2.0 * float(far)), float(median)
+    return (float(near) / margin, margin * float(far)), float(median)
 
 
 class KeyframeDepth:
@@ -55,6 +59,8 @@ class KeyframeDepth:
         self.frames_after = frames_after
         self.images: OrderedDict[int, np.ndarray] = OrderedDict()
         self.pending: list[PendingKeyframe] = []
+        # From the last keyframe whose depth was estimated: the hint for keyframes whose source gave none.
+        self.recent_hint: DepthHint = (None, None)
 
     def add_frame(self, index: int, image: np.ndarray) -> None:
         self.images[int(index)] = image
@@ -81,11 +87,12 @@ class KeyframeDepth:
             raise RuntimeError(f"keyframe {kf.kf_id} left the frame ring before its depth was estimated")
         world_pose = pose_of(kf.kf_id)
         ref_pose = _rigid(world_pose)
+        depth_range, scene_depth = (kf.depth_range, kf.scene_depth) if kf.scene_depth else self.recent_hint
         candidates = [i for i in self.images if i != kf.kf_id]
         poses = [_rigid(pose_of(i)) for i in candidates]
-        chosen = select_neighbours(ref_pose, poses, self.config, scene_depth=kf.scene_depth)
+        chosen = select_neighbours(ref_pose, poses, self.config, scene_depth=scene_depth)
         neighbours = [(self.images[candidates[c]], poses[c]) for c in chosen]
-        config, depth_range, K = self.config, kf.depth_range, kf.K
+        config, K = self.config, kf.K
         image = torch.from_numpy(ref_image).to(torch.float32) / 255.0
         Kt = torch.from_numpy(K).to(torch.float32)
 
@@ -95,6 +102,8 @@ class KeyframeDepth:
             estimate = estimate_depth(ref_image, K, ref_pose, neighbours, depth_range=depth_range, config=config)
             log.debug("keyframe %d: multi-view depth from %d views covers %.0f%%", kf.kf_id, len(neighbours),
                       100 * estimate.coverage)
+            if estimate.coverage > 0.2:
+                self.recent_hint = depth_hint(estimate.depth, margin=3.0)
             depth = torch.from_numpy(estimate.depth / scale)  # world units -> the keyframe camera's (Sim(3) pose)
             return grid_from_depth(image, depth, Kt), depth
 
@@ -103,12 +112,15 @@ class KeyframeDepth:
     # ------------------------------------------------------------------------------------------ snapshot/restore
     def state_dict(self) -> dict[str, Any]:
         return {"indices": list(self.images), "images": list(self.images.values()),
+                "recent_hint": [self.recent_hint[0], self.recent_hint[1]],
                 "pending": [{"kf_id": p.kf_id, "K": p.K, "depth_range": p.depth_range, "scene_depth": p.scene_depth}
                             for p in self.pending]}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.images = OrderedDict((int(i), np.asarray(img, np.uint8)) for i, img in zip(state["indices"],
                                                                                           state["images"]))
+        hint_range, hint_depth = state.get("recent_hint") or (None, None)
+        self.recent_hint = (None if hint_range is None else tuple(hint_range), hint_depth)
         self.pending = [PendingKeyframe(int(p["kf_id"]), np.asarray(p["K"], np.float64),
                                         None if p["depth_range"] is None else tuple(p["depth_range"]),
                                         p["scene_depth"]) for p in state["pending"]]
