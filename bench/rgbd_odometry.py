@@ -1,9 +1,10 @@
 """RGB-D odometry alone, ours against Open3D's (`open3d.pipelines.odometry`, hybrid photometric + geometric term,
 frame to frame) on the same frames: ATE RMSE (SE(3)-aligned, no loop closure) and milliseconds per frame.
 
-`python -m bench rgbd_odometry [--frames N] [--size WxH] [--threads T]` on ICL living room (the full 211 frames when
-/work/shared has them, else tests/data/icl_mini). Open3D is a bench extra (`pip install open3d`; on Debian it needs
-libusb-1.0-0); without it the peer row says so.
+`python -m bench rgbd_odometry [--frames N] [--size WxH] [--threads T] [--source S]` on ICL living room (the full 211
+frames when /work/shared has them, else tests/data/icl_mini), or on any sequence with depth (e.g. the synthetic street,
+`--source "synthetic://seed=1?frames=120&scene=street&fps=10"`; its ATE is also given as a share of the path).
+Open3D is a bench extra (`pip install open3d`; on Debian it needs libusb-1.0-0); without it the peer row says so.
 """
 
 from __future__ import annotations
@@ -17,10 +18,12 @@ import numpy as np
 from bench.slam import _source
 
 
-def _frames(size: tuple[int, int], max_frames: int | None):
+def _frames(size: tuple[int, int], max_frames: int | None, source: str | None):
     from worker.data import open_source
 
-    source, stride = _source(1)
+    stride = 1
+    if source is None:
+        source, stride = _source(1)
     src = open_source(str(source), stride=stride, max_frames=max_frames, resize=size, use_gt_depth=True,
                       use_gt_poses=False)
     return list(src), src.intrinsics
@@ -82,22 +85,25 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--frames", type=int, default=None)
     parser.add_argument("--size", default="320x240")
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--source", default=None, help="a sequence with depth (default: ICL)")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
     size = tuple(int(v) for v in args.size.split("x"))
-    frames, intrinsics = _frames(size, args.frames)
+    frames, intrinsics = _frames(size, args.frames, args.source)
     gt = np.stack([f.gt_pose for f in frames])
-    print(f"{len(frames)} frames at {size[0]}x{size[1]}, load {os.getloadavg()[0]:.2f}")
-    print("| method | ATE RMSE (cm, SE(3)) | ms / frame | frames / s | frames lost |")
-    print("|---|---:|---:|---:|---:|")
+    path = float(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1).sum())
+    print(f"{len(frames)} frames at {size[0]}x{size[1]}, path {path:.2f} m, load {os.getloadavg()[0]:.2f}")
+    print("| method | ATE RMSE (cm, SE(3)) | % of path | ms / frame | frames / s | frames lost |")
+    print("|---|---:|---:|---:|---:|---:|")
     for name, runner in (("Flash-Mono RGB-D odometry", run_ours), ("Open3D RGB-D odometry (hybrid)", run_open3d)):
         try:
             poses, seconds, lost = runner(frames, intrinsics)
         except ImportError as err:
-            print(f"| {name} | not installed ({err}) | | | |")
+            print(f"| {name} | not installed ({err}) | | | | |")
             continue
         ate = absolute_trajectory_error(poses, gt, "se3").rmse
-        print(f"| {name} | {100 * ate:.2f} | {1000 * seconds:.1f} | {1 / seconds:.1f} | {lost} |", flush=True)
+        print(f"| {name} | {100 * ate:.2f} | {100 * ate / path:.3f} | {1000 * seconds:.1f} | {1 / seconds:.1f} | "
+              f"{lost} |", flush=True)
     print(f"load after: {os.getloadavg()[0]:.2f}")
     return 0

@@ -68,6 +68,10 @@ def main(argv: list[str]) -> int:
         # images and poses, no depth
         "posed_rgb": dict(config=SlamConfig.preset(args.preset or "rgbd", input={"pose_mode": "fixed"}),
                           use_gt_depth=False, use_gt_poses=True),
+        # the same with the learned model's depth instead of multi-view stereo (the comparison issue 15 asks for)
+        "posed_rgb_model": dict(config=SlamConfig.preset(args.preset or "rgbd", input={
+            "pose_mode": "fixed", "depth_source": "model", "surfel_init": "model"}), use_gt_depth=False,
+            use_gt_poses=True),
     }
     print(f"source {source} stride {stride} at {width}x{height}")
     print("| mode | frames | keyframes | loops | ATE (cm) | ATE drift only (cm) | PSNR | SSIM | depth L1 (cm) "
