@@ -79,21 +79,6 @@ class OrbExtractor:
         octaves = np.array([k.octave for k in keypoints], np.int32)
         return Features(xy, descriptors, octaves)
 
-    def describe(self, gray: np.ndarray, uv: np.ndarray) -> np.ndarray:
-        """ORB descriptors [N, 32] at the finest level of the pixels uv [N, 2] of a uint8 grey image; rows ORB
-        cannot describe (too near the border) are all zero."""
-        out = np.zeros((len(uv), 32), np.uint8)
-        if len(uv) == 0:
-            return out
-        orb = self._orb(*gray.shape)
-        if self._clahe is not None:
-            gray = self._clahe.apply(gray)
-        keypoints = [cv2.KeyPoint(float(x) - 0.5, float(y) - 0.5, 7.0, -1, 0, 0, n) for n, (x, y) in enumerate(uv)]
-        keypoints, descriptors = orb.compute(gray, keypoints)
-        if descriptors is not None and keypoints:
-            out[np.array([k.class_id for k in keypoints], np.int64)] = descriptors
-        return out
-
     def _spread(self, keypoints: list[cv2.KeyPoint], shape: tuple[int, int]) -> np.ndarray:
         """Indices of the keypoints kept: the strongest first in each cell, round-robin over cells."""
         cell = self.config.grid_cell

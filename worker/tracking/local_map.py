@@ -14,27 +14,31 @@ from .features import Features
 @dataclass
 class Keyframe:
     """A keyframe: its frame index, camera-to-world pose, features and, per keypoint, the point row it observes
-    (-1: none) and the optical-flow track it belongs to (-1: none)."""
+    (-1: none) and the optical-flow track it belongs to (-1: none); `orb`: the ORB features of its image, for
+    relocalisation (empty when the image was not kept)."""
 
     index: int
     pose: np.ndarray
     features: Features
     point_ids: np.ndarray
     track_ids: np.ndarray | None = None
+    orb: Features | None = None
 
     def __post_init__(self) -> None:
         if self.track_ids is None:
             self.track_ids = np.full(len(self.point_ids), -1, np.int64)
+        if self.orb is None:
+            self.orb = Features.empty()
 
     def to_state(self) -> dict:
         return {"index": self.index, "pose": self.pose, "features": self.features.to_state(),
-                "point_ids": self.point_ids, "track_ids": self.track_ids}
+                "point_ids": self.point_ids, "track_ids": self.track_ids, "orb": self.orb.to_state()}
 
     @classmethod
     def from_state(cls, state: dict) -> Keyframe:
         return cls(int(state["index"]), np.asarray(state["pose"], np.float64).reshape(4, 4),
                    Features.from_state(state["features"]), np.asarray(state["point_ids"], np.int64).reshape(-1),
-                   np.asarray(state["track_ids"], np.int64).reshape(-1))
+                   np.asarray(state["track_ids"], np.int64).reshape(-1), Features.from_state(state["orb"]))
 
 
 class LocalMap:

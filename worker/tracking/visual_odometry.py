@@ -234,19 +234,13 @@ class VisualOdometry:
         K = camera_matrix(camera)
         predicted = rigid(self.pose @ self.velocity)
         mapped_before = int(self.tracks.mapped.sum())
-        uv, ok = self._flow(gray, self._predicted_flow(predicted, K))
-        if (ok & self.tracks.mapped).sum() < 0.5 * mapped_before:  # a wrong guess can mislead the flow: try none
-            uv_plain, ok_plain = self._flow(gray, None)
-            if (ok_plain & self.tracks.mapped).sum() > (ok & self.tracks.mapped).sum():
-                uv, ok = uv_plain, ok_plain
-        self.tracks = Tracks(self.tracks.ids[ok], uv[ok], self.tracks.rows[ok])
-        found = self._pose_from_tracks(predicted, K)
+        found = self._follow(gray, predicted, K)
         if found is None:
             return self._lose(index, "too few map points tracked (sudden motion, occlusion or a new view)")
-        pose, inliers = found
+        pose, tracks, inliers = found
         if inliers < max(c.min_tracked, c.min_survival * mapped_before):
             return self._lose(index, f"{inliers} of {mapped_before} tracked points found again (a sudden change)")
-        self.previous_gray = gray
+        self.tracks, self.previous_gray = tracks, gray
         self.velocity = rigid(invert_pose(self.pose) @ pose)
         self.frames_since_keyframe += 1
         if not self._needs_keyframe(pose, inliers):
@@ -255,15 +249,35 @@ class VisualOdometry:
         self.velocity = rigid(self.velocity @ invert_pose(pose) @ kf.pose)
         return TrackingResult(kf.pose, tracked=True, keyframe_hint=True, depth=self._sparse_depth(kf, camera))
 
-    def _pose_from_tracks(self, guess: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, int] | None:
-        """Pose from the tracks of map points (robust refinement, PnP + RANSAC when it fails); the outlier tracks
-        are dropped."""
+    def _follow(self, gray: np.ndarray, predicted: np.ndarray, K: np.ndarray
+                ) -> tuple[np.ndarray, Tracks, int] | None:
+        """The tracks carried from the last tracked frame into `gray`, less the pose's outliers, the pose and its
+        inlier count (None: too few); nothing is changed."""
+        t = self.tracks
+        uv, ok = self._flow(gray, self._predicted_flow(predicted, K))
+        if (ok & t.mapped).sum() < 0.5 * t.mapped.sum():  # a wrong guess can mislead the flow: try none
+            uv_plain, ok_plain = self._flow(gray, None)
+            if (ok_plain & t.mapped).sum() > (ok & t.mapped).sum():
+                uv, ok = uv_plain, ok_plain
+        tracks = Tracks(t.ids[ok], uv[ok], t.rows[ok])
+        found = self._pose_from_tracks(tracks, predicted, K)
+        if found is None:
+            return None
+        pose, inlier = found
+        keep = np.ones(len(tracks), bool)
+        keep[np.flatnonzero(tracks.mapped)[~inlier]] = False
+        return pose, tracks.subset(keep), int(inlier.sum())
+
+    def _pose_from_tracks(self, tracks: Tracks, guess: np.ndarray, K: np.ndarray
+                          ) -> tuple[np.ndarray, np.ndarray] | None:
+        """Pose from the tracks of map points (robust refinement, PnP + RANSAC when it fails) and the inlier mask
+        over those tracks, or None."""
         c = self.config
-        mapped = np.flatnonzero(self.tracks.mapped)
+        mapped = np.flatnonzero(tracks.mapped)
         if len(mapped) < c.min_tracked:
             return None
-        points = self.map.positions[self.tracks.rows[mapped]]
-        uv = self.tracks.uv[mapped].astype(np.float64)
+        points = self.map.positions[tracks.rows[mapped]]
+        uv = tracks.uv[mapped].astype(np.float64)
         sigma = np.ones(len(mapped))
         pose, inlier = optimize_pose(guess, points, uv, sigma, K, c.chi2_px)
         if inlier.sum() < max(c.min_tracked, 0.5 * len(mapped)) or not np.all(np.isfinite(pose)):
@@ -277,10 +291,7 @@ class VisualOdometry:
             pose, inlier = optimize_pose(invert_pose(w2c), points, uv, sigma, K, c.chi2_px)
             if inlier.sum() < c.min_tracked or not np.all(np.isfinite(pose)):
                 return None
-        keep = np.ones(len(self.tracks), bool)
-        keep[mapped[~inlier]] = False
-        self.tracks = self.tracks.subset(keep)
-        return pose, int(inlier.sum())
+        return pose, inlier
 
     def _median_depth(self, kf: Keyframe) -> float:
         rows = kf.point_ids[kf.point_ids >= 0]
@@ -303,8 +314,8 @@ class VisualOdometry:
         """A keyframe of every track (after new corners are added), appended to the map."""
         self._replenish(gray)
         t = self.tracks
-        features = Features(t.uv.copy(), self.extractor.describe(gray, t.uv), np.zeros(len(t), np.int32))
-        kf = Keyframe(index, pose.copy(), features, t.rows.copy(), t.ids.copy())
+        features = Features(t.uv.copy(), np.zeros((len(t), 32), np.uint8), np.zeros(len(t), np.int32))
+        kf = Keyframe(index, pose.copy(), features, t.rows.copy(), t.ids.copy(), self.extractor.extract(gray))
         self.map.keyframes.append(kf)
         self.frames_since_keyframe = 0
         return kf
@@ -400,9 +411,18 @@ class VisualOdometry:
             kf.pose[:3, 3] = origin + s * (kf.pose[:3, 3] - origin)
 
     def _place(self, kf: Keyframe) -> Place:
-        has = np.flatnonzero((kf.point_ids >= 0) & kf.features.descriptors.any(axis=1))
-        return Place(kf.index, kf.pose.copy(), kf.features.keypoints[has], kf.features.descriptors[has],
-                     self.map.positions[kf.point_ids[has]].copy())
+        """The keyframe's ORB keypoints that lie on one of its map points' observations (within the relocalisation
+        tolerance), with those points."""
+        has = np.flatnonzero(kf.point_ids >= 0)
+        orb = kf.orb
+        if len(has) == 0 or len(orb) == 0:
+            return Place(kf.index, kf.pose.copy(), orb.keypoints[:0], orb.descriptors[:0], np.zeros((0, 3)))
+        d2 = ((orb.keypoints[:, None, :] - kf.features.keypoints[None, has, :]) ** 2).sum(-1)
+        nearest = d2.argmin(axis=1)
+        radius = self.config.place_radius_px * self.extractor.level_sigmas(orb.octaves)
+        near = np.flatnonzero(d2[np.arange(len(orb)), nearest] <= radius ** 2)
+        return Place(kf.index, kf.pose.copy(), orb.keypoints[near], orb.descriptors[near],
+                     self.map.positions[kf.point_ids[has[nearest[near]]]].copy())
 
     def _retire(self, keyframes: list[Keyframe]) -> None:
         places = (self._place(kf) for kf in keyframes)
@@ -430,14 +450,24 @@ class VisualOdometry:
                               events=[{"type": "tracking_lost", "reason": reason, "frame": index}])
 
     def _relocalise(self, index: int, gray: np.ndarray, camera: Intrinsics) -> TrackingResult:
-        """Place recognition over the remembered keyframes; a hit starts a new local map from the place's points
-        seen in this frame (their positions, hence the scale, carry over)."""
+        """Back on track when most tracks of the last tracked frame are found again in this one (a short loss:
+        bad frames, an occlusion); else place recognition over the remembered keyframes, where a hit starts a new
+        local map from the place's points seen in this frame (their positions, hence the scale, carry over)."""
         c = self.config
+        K = camera_matrix(camera)
+        found = self._follow(gray, self.pose, K)
+        if found is not None and found[2] >= c.recover_share * self.tracks.mapped.sum():
+            pose, self.tracks, inliers = found
+            self.previous_gray = gray
+            event = {"type": "relocalized", "frame": index, "place": self.map.keyframes[-1].index,
+                     "inliers": inliers, "lost_frames": index - (self.lost_since if self.lost_since is not None
+                                                                  else index)}
+            self.status, self.lost_since, self.velocity = "tracking", None, np.eye(4)
+            return TrackingResult(pose, tracked=True, keyframe_hint=False, events=[event])
         still_lost = TrackingResult(self.pose.copy(), tracked=False, keyframe_hint=False)
         features = self.extractor.extract(gray)
         if len(features) < c.min_features:
             return still_lost
-        K = camera_matrix(camera)
         places = self.retired + [self._place(kf) for kf in self.map.keyframes]
         hit = self.recognizer.relocalise(features, places, K, self.extractor.level_sigmas(features.octaves))
         if hit is None:

@@ -63,8 +63,12 @@ class VisualOdometryConfig(BaseModel):
     huber_sigmas: float = Field(2.45, gt=0.0, description="Huber kernel width, in pixel sigmas")
 
     # relocalisation
+    recover_share: float = Field(0.6, gt=0.0, le=1.0, description="share of the last tracked frame's map points "
+                                                                  "that a lost frame must show to take up its tracks")
     reloc_keyframes: int = Field(60, ge=1, description="keyframes remembered for place recognition")
     reloc_candidates: int = Field(5, ge=1, description="places verified geometrically per lost frame")
+    place_radius_px: float = Field(1.5, gt=0.0, description="an ORB keypoint of a keyframe stands for the map point "
+                                                             "observed this close to it, pixels")
     reloc_min_inliers: int = Field(30, ge=10, description="PnP inliers needed to relocalise")
 
     # unknown intrinsics
