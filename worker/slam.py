@@ -254,7 +254,7 @@ class SlamSystem:
             with self.timings.measure("frontend_inference"):
                 prediction = self._model.predict(frame, intrinsics)
             self._accumulate_path(pose, prediction[1].pose_world.numpy())
-        if self.keyframe_depth is not None:
+        if self.keyframe_depth is not None and tracking.tracked:  # a lost frame's held pose is not its own
             self.keyframe_depth.add_frame(frame.index, frame.image)
         is_kf = self._is_keyframe(tracking, pose)
         if is_kf:
