@@ -78,13 +78,16 @@ class KeyframeDepth:
         newest = next(reversed(self.images)) if self.images else -1
         while self.pending and (force or sum(i > self.pending[0].kf_id for i in self.images) >= self.frames_after
                                 or newest - self.pending[0].kf_id > self.buffer_frames):
-            jobs.append(self._job(self.pending.pop(0), pose_of))
+            job = self._job(self.pending.pop(0), pose_of)
+            if job is not None:
+                jobs.append(job)
         return jobs
 
-    def _job(self, kf: PendingKeyframe, pose_of: Callable[[int], np.ndarray]) -> KeyframeJob:
+    def _job(self, kf: PendingKeyframe, pose_of: Callable[[int], np.ndarray]) -> KeyframeJob | None:
         ref_image = self.images.get(kf.kf_id)
-        if ref_image is None:
-            raise RuntimeError(f"keyframe {kf.kf_id} left the frame ring before its depth was estimated")
+        if ref_image is None:  # a keyframe the engine had to make while tracking was lost (the first frame)
+            log.warning("keyframe %d: no tracked image kept, no multi-view depth", kf.kf_id)
+            return None
         world_pose = pose_of(kf.kf_id)
         ref_pose = _rigid(world_pose)
         depth_range, scene_depth = (kf.depth_range, kf.scene_depth) if kf.scene_depth else self.recent_hint
