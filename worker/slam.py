@@ -370,8 +370,12 @@ class SlamSystem:
     def _close_waiting_loops(self) -> list[dict[str, Any]]:
         """Loop closure for the keyframes whose multi-view depth the backend has finished, in keyframe order."""
         events: list[dict[str, Any]] = []
+        pending = {p.kf_id for p in self.keyframe_depth.pending} if self.keyframe_depth is not None else set()
         while self._loops_waiting:
             job = self._depth_jobs.get(self._loops_waiting[0])
+            if job is None and self._loops_waiting[0] not in pending:  # it got no depth job: no loop closure
+                self._loops_waiting.pop(0)
+                continue
             if job is None or job.build is not None:  # not yet queued, or not yet built
                 break
             self._loops_waiting.pop(0)
