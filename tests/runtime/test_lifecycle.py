@@ -63,7 +63,7 @@ def test_idle_sessions_free_their_slot_and_resume_within_the_grace_period(stack)
                 ws.send(synthetic_frame(seq))
             receive_until(ws, lambda m: m["type"] == "pose" and m["seq"] == 2, timeout_s=60)
             waited = time.monotonic() - t0
-            assert all(status(api, s) == "abandoned" for s in idle)  # they made room for it
+            assert "abandoned" in {status(api, s) for s in idle}  # an idle one made room for it
             assert waited < 30
             # now this one goes idle too, and is told so
             abandoned = receive_until(ws, lambda m: m.get("code") == "abandoned", timeout_s=30)[-1]
