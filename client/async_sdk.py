@@ -35,12 +35,14 @@ from client.errors import (
     stream_error_from_frame,
 )
 from client.models import (
+    TRACKING_EVENT_TYPES,
     LoopClosedEvent,
     PoseEvent,
     Session,
     SessionPage,
     StreamEvent,
     StreamSummary,
+    TrackingEvent,
     Trajectory,
     event_from_message,
 )
@@ -95,9 +97,9 @@ class AsyncFrameStream:
     """One WebSocket stream of frames into a session, with flow control and live events.
 
     Use as an async context manager (or call `connect()` / `close()`). `send(frame)` waits while the flow
-    control says the server has enough frames; `events()` yields PoseEvent / LoopClosedEvent as they arrive and
-    `on_event` is called for each (sync or async callable); `finish()` waits for every frame to be processed.
-    Per-frame errors (e.g. a corrupt image) are collected in `summary.errors` (raised with
+    control says the server has enough frames; `events()` yields PoseEvent / LoopClosedEvent / TrackingEvent as
+    they arrive and `on_event` is called for each (sync or async callable); `finish()` waits for every frame to
+    be processed. Per-frame errors (e.g. a corrupt image) are collected in `summary.errors` (raised with
     `raise_on_frame_error=True`); stream-level errors and a closed connection raise `StreamError`.
     """
 
@@ -376,13 +378,15 @@ class AsyncFrameStream:
             self.flow.on_ack(int(seq), depth)
             self.summary.frames_acked += 1
             self.summary.max_queue_depth = max(self.summary.max_queue_depth, int(depth or 0))
-        elif kind in ("pose", "loop_closed"):
+        elif kind in ("pose", "loop_closed", *TRACKING_EVENT_TYPES):
             event = event_from_message(message)
             if isinstance(event, PoseEvent):
                 self.flow.on_result(event.seq)
                 self.summary.poses.append(event)
             elif isinstance(event, LoopClosedEvent):
                 self.summary.loop_closures.append(event)
+            elif isinstance(event, TrackingEvent):
+                self.summary.tracking_events.append(event)
             await self._publish(event)
         elif kind == "error":
             self._handle_error(message)

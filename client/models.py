@@ -147,11 +147,23 @@ class LoopClosedEvent:
     data: dict[str, Any] = field(default_factory=dict)
 
 
-StreamEvent = PoseEvent | LoopClosedEvent
+@dataclass(frozen=True)
+class TrackingEvent:
+    """The server's pose source changed state at frame `seq`: kind "tracking_lost" (poses hold the last good one
+    until "relocalized"), "relocalized", or "initialized" (RGB-only: the first map; earlier frames' poses were
+    re-estimated, see `data["revision"]`)."""
+
+    kind: str
+    seq: int
+    data: dict[str, Any] = field(default_factory=dict)
+
+
+TRACKING_EVENT_TYPES = ("tracking_lost", "relocalized", "initialized")
+StreamEvent = PoseEvent | LoopClosedEvent | TrackingEvent
 
 
 def event_from_message(message: dict[str, Any]) -> StreamEvent | None:
-    """The SDK event for a server message of type "pose" or "loop_closed" (None for other types)."""
+    """The SDK event for a server message of type "pose", "loop_closed" or a tracking event (None for others)."""
     kind = message.get("type")
     if kind == "pose":
         return PoseEvent(seq=int(message["seq"]), timestamp=float(message.get("timestamp", 0.0)),
@@ -159,6 +171,8 @@ def event_from_message(message: dict[str, Any]) -> StreamEvent | None:
                          revision=int(message.get("revision") or 0), scale=float(message.get("scale", 1.0)))
     if kind == "loop_closed":
         return LoopClosedEvent(revision=int(message.get("revision") or 0), data=dict(message))
+    if kind in TRACKING_EVENT_TYPES:
+        return TrackingEvent(kind=str(kind), seq=int(message.get("seq", -1)), data=dict(message))
     return None
 
 
@@ -171,6 +185,7 @@ class StreamSummary:
     frames_acked: int = 0
     poses: list[PoseEvent] = field(default_factory=list)
     loop_closures: list[LoopClosedEvent] = field(default_factory=list)
+    tracking_events: list[TrackingEvent] = field(default_factory=list)
     backpressure_retries: int = 0
     frames_dropped: int = 0  # refused for backpressure after a later frame got in: re-sending would reorder
     errors: list[dict[str, Any]] = field(default_factory=list)

@@ -43,6 +43,7 @@ from client.models import (
     Session,
     SessionPage,
     StreamSummary,
+    TrackingEvent,
     Trajectory,
     TrajectoryPose,
 )
@@ -52,7 +53,7 @@ __all__ = [
     "AsyncFlashMonoClient", "AuthError", "BackpressureError", "BadRequestError", "ConflictError",
     "FlashMonoClient", "FlashMonoError", "LoopClosedEvent", "NotFoundError", "PermissionDeniedError", "PoseEvent",
     "RateLimitError", "ServerError", "ServerUnreachableError", "Session", "SessionPage", "StreamError",
-    "StreamSummary", "Trajectory", "TrajectoryPose", "WireOptions",
+    "StreamSummary", "TrackingEvent", "Trajectory", "TrajectoryPose", "WireOptions",
 ]
 
 
@@ -151,7 +152,8 @@ class FlashMonoClient:
                on_sent: Callable[[StreamSummary], Any] | None = None, **options: Any) -> StreamSummary:
         """Stream `source` (video, image folder, dataset path or URI, "webcam:N", or Frames) and finish.
 
-        Blocks until the server has processed every frame. on_event gets each PoseEvent / LoopClosedEvent live.
+        Blocks until the server has processed every frame. on_event gets each PoseEvent / LoopClosedEvent /
+        TrackingEvent live.
         Options: fps, stride, max_frames, resize, source_options, window, max_pending, max_retries, wire,
         idle_timeout_s, raise_on_frame_error (see AsyncFlashMonoClient.stream / open_stream).
         """

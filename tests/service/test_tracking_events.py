@@ -1,6 +1,7 @@
 """Tracking events reach the client: RGB-D frames without poses streamed to a real stack (gateway, worker with the
 real engine, Redis); a black frame with no depth gives a `tracking_lost` message at its seq and the pose of the
-frame before it, the next real frame a `relocalized` message, and every pose stays finite."""
+frame before it, the next real frame a `relocalized` message, and every pose stays finite; the SDK hands them to
+`on_event` and the stream summary as TrackingEvents."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import cv2
 import httpx
 import numpy as np
 import pytest
-from service_helpers import ICL_INTRINSICS, frame_message, icl_frames, of_type, receive_until
+from service_helpers import ICL_DIR, ICL_INTRINSICS, frame_message, icl_frames, of_type, receive_until
 from websockets.sync.client import connect
 
 from service.launcher import LocalStack
@@ -45,3 +46,20 @@ def test_lost_and_relocalized_messages_over_the_websocket(stack) -> None:
     poses = {m["seq"]: np.reshape(m["pose"], (4, 4)) for m in of_type(messages, "pose")}
     assert sorted(poses) == list(range(FRAMES)) and all(np.isfinite(p).all() for p in poses.values())
     np.testing.assert_allclose(poses[BLACK], poses[BLACK - 1])  # held, not a jump
+
+
+def test_the_sdk_reports_tracking_events(stack) -> None:
+    from client.sdk import FlashMonoClient, TrackingEvent
+    from client.streaming import WireOptions, open_frames
+
+    frames = list(open_frames(str(ICL_DIR), max_frames=FRAMES, use_gt_depth=True, use_gt_poses=False))
+    frames[BLACK].image = np.zeros_like(frames[BLACK].image)
+    frames[BLACK].depth = np.zeros_like(frames[BLACK].depth)
+    seen = []
+    with FlashMonoClient(stack.base_url) as client:
+        session = client.create_session(intrinsics=frames[0].intrinsics, preset="fast")
+        summary = client.stream(session.id, frames, wire=WireOptions(send_depth=True, send_pose=False),
+                                on_event=lambda e: seen.append(e) if isinstance(e, TrackingEvent) else None)
+    kinds = [(e.kind, e.seq) for e in summary.tracking_events]
+    assert kinds == [("tracking_lost", BLACK), ("relocalized", BLACK + 1)]
+    assert [(e.kind, e.seq) for e in seen] == kinds and summary.tracking_events[0].data["reason"]
