@@ -70,15 +70,20 @@ def _normals(points: np.ndarray, edge_ratio: float) -> np.ndarray:
     n = np.zeros_like(points)
     dx = points[1:-1, 2:] - points[1:-1, :-2]
     dy = points[2:, 1:-1] - points[:-2, 1:-1]
-    cross = np.cross(dx, dy)
-    norm = np.linalg.norm(cross, axis=-1, keepdims=True)
+    cross = np.empty_like(dx)  # dx x dy, written out: np.cross is several times slower on image-sized arrays
+    cross[..., 0] = dx[..., 1] * dy[..., 2] - dx[..., 2] * dy[..., 1]
+    cross[..., 1] = dx[..., 2] * dy[..., 0] - dx[..., 0] * dy[..., 2]
+    cross[..., 2] = dx[..., 0] * dy[..., 1] - dx[..., 1] * dy[..., 0]
+    norm = np.sqrt(np.einsum("...k,...k->...", cross, cross))
     z = points[1:-1, 1:-1, 2]
-    zs = np.stack([points[1:-1, 2:, 2], points[1:-1, :-2, 2], points[2:, 1:-1, 2], points[:-2, 1:-1, 2]], -1)
-    good = (z > 0) & (zs > 0).all(-1) & (np.abs(zs - z[..., None]).max(-1) <= edge_ratio * z) & (norm[..., 0] > 0)
-    inner = np.where(good[..., None], cross / np.maximum(norm, 1e-12), 0.0)
-    # Orient towards the camera (the point's own ray): n . p < 0.
-    flip = (inner * points[1:-1, 1:-1]).sum(-1, keepdims=True) > 0
-    n[1:-1, 1:-1] = np.where(flip, -inner, inner)
+    limit = edge_ratio * z
+    good = (z > 0) & (norm > 0)
+    for neighbour in (points[1:-1, 2:, 2], points[1:-1, :-2, 2], points[2:, 1:-1, 2], points[:-2, 1:-1, 2]):
+        good &= (neighbour > 0) & (np.abs(neighbour - z) <= limit)
+    # Unit length, oriented towards the camera (the point's own ray): n . p < 0.
+    facing = np.einsum("...k,...k->...", cross, points[1:-1, 1:-1])
+    scale = np.where(good, np.where(facing > 0, -1.0, 1.0) / np.maximum(norm, 1e-12), 0.0).astype(points.dtype)
+    n[1:-1, 1:-1] = cross * scale[..., None]
     return n
 
 

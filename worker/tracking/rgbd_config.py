@@ -32,3 +32,6 @@ class RgbdOdometryConfig(BaseModel):
     seed_difference: float = Field(
         0.03, gt=0, description="a second alignment from the feature-based guess when it differs from the motion "
         "model's by more than this fraction of the median depth (or 2 degrees)")
+    seed_residual_ratio: float = Field(
+        1.5, gt=1, description="the feature-based guess is tried when an alignment's photometric residual exceeds "
+        "this multiple of the recent ones (or it overlaps the reference poorly, or there is no motion history)")

@@ -107,6 +107,7 @@ class RgbdOdometry:
         self.previous_pose: np.ndarray | None = None
         self.lost = False
         self.last_overlap = 1.0
+        self.typical_residual = self.config.max_photometric_residual  # running mean of accepted alignments
         self.estimated_intrinsics: Intrinsics | None = None  # only when frames come without intrinsics
 
     @property
@@ -162,17 +163,25 @@ class RgbdOdometry:
         self._advance(pose)
         return TrackingResult(pose, depth=depth)
 
-    def _align_to(self, ref: _Reference, current: _Current, guess: np.ndarray, K: np.ndarray
-                  ) -> tuple[np.ndarray | None, str]:
-        """The current pose aligned to `ref` from `guess` (c2w) and from the feature seed where that differs, or
-        (None, why not)."""
+    def _doubtful(self, result: AlignmentResult) -> bool:
+        """Whether an alignment from the motion model may have settled in the wrong place: no velocity history yet,
+        or it fits clearly worse than the recent ones (the feature seed is then tried too)."""
+        c = self.config
+        return (self.previous_pose is None or not result.ok or result.overlap < c.new_reference_overlap
+                or result.photometric_rms > c.seed_residual_ratio * self.typical_residual)
+
+    def _align_to(self, ref: _Reference, current: _Current, guess: np.ndarray, K: np.ndarray,
+                  force_seed: bool = False) -> tuple[np.ndarray | None, str]:
+        """The current pose aligned to `ref` from `guess` (c2w), and from the feature seed where that alignment is
+        doubtful (always with `force_seed`) and the seed differs, or (None, why not)."""
         c = self.config
         T_init = np.linalg.inv(guess) @ ref.pose  # T_cur_ref
-        seeds = [T_init]
-        seed = pnp_seed(ref.keypoints(K, c.pyramid_levels), current.keypoints(), K)
-        if seed is not None and _differs(seed, T_init, c.seed_difference * ref.median_depth):
-            seeds.append(seed)
-        result = _best([align(ref.pyramid(K, c.pyramid_levels), current.pyramid, T, self.settings) for T in seeds])
+        reference = ref.pyramid(K, c.pyramid_levels)
+        result = align(reference, current.pyramid, T_init, self.settings)
+        if force_seed or self._doubtful(result):
+            seed = pnp_seed(ref.keypoints(K, c.pyramid_levels), current.keypoints(), K)
+            if seed is not None and _differs(seed, T_init, c.seed_difference * ref.median_depth):
+                result = _best([result, align(reference, current.pyramid, seed, self.settings)])
         self.last_overlap = result.overlap
         if not result.ok:
             return None, "too little depth or texture to align"
@@ -184,12 +193,13 @@ class RgbdOdometry:
         jump = float(np.linalg.norm(pose[:3, 3] - guess[:3, 3]))
         if jump > c.max_jump * ref.median_depth:
             return None, f"the alignment jumped {jump:.2f} from the motion model"
+        self.typical_residual = 0.8 * self.typical_residual + 0.2 * result.photometric_rms
         return pose, ""
 
     def _relocalize(self, frame: Frame, grey: np.ndarray, depth: np.ndarray, current: _Current,
                     K: np.ndarray) -> TrackingResult:
         for ref in reversed(self.references):
-            pose, _ = self._align_to(ref, current, self.last_pose, K)
+            pose, _ = self._align_to(ref, current, self.last_pose, K, force_seed=True)
             if pose is not None and self.last_overlap >= self.config.new_reference_overlap * 0.8:
                 self.lost = False
                 self.previous_pose = None  # no velocity across the gap
@@ -215,7 +225,7 @@ class RgbdOdometry:
     # ------------------------------------------------------------------------------------------ snapshot/restore
     def state_dict(self) -> dict[str, Any]:
         return {"references": [r.to_dict() for r in self.references], "last_pose": self.last_pose,
-                "previous_pose": self.previous_pose, "lost": self.lost,
+                "previous_pose": self.previous_pose, "lost": self.lost, "typical_residual": self.typical_residual,
                 "estimated_intrinsics": None if self.estimated_intrinsics is None else
                 self.estimated_intrinsics.to_dict()}
 
@@ -226,5 +236,6 @@ class RgbdOdometry:
         self.previous_pose = None if state["previous_pose"] is None else np.asarray(state["previous_pose"],
                                                                                     np.float64)
         self.lost = bool(state["lost"])
+        self.typical_residual = float(state.get("typical_residual", self.config.max_photometric_residual))
         if state.get("estimated_intrinsics"):
             self.estimated_intrinsics = Intrinsics.from_dict(state["estimated_intrinsics"])
