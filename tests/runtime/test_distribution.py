@@ -24,13 +24,15 @@ def test_sessions_spread_over_workers_each_owned_by_one():
     with LocalStack(workers=2, worker_env=env) as stack, httpx.Client(base_url=stack.base_url) as api:
         r = redis.Redis.from_url(stack.redis_url)
         sids = [api.post("/v1/sessions", json={"device_id": f"d{i}"}).json()["id"] for i in range(4)]
-        owners = wait_for(lambda: [lease_holder(r, sid) for sid in sids] if all(
-            lease_holder(r, sid) for sid in sids) else None)
-        assert sorted(collections.Counter(owners).values()) == [2, 2]  # 2 workers x 2 sessions each
         with contextlib.ExitStack() as opened:
             sockets = [opened.enter_context(connect(f"{stack.ws_url}/v1/sessions/{sid}/stream", open_timeout=20))
                        for sid in sids]
-            for seq in range(10):  # interleaved: all four sessions stream at once
+            for ws in sockets:  # a session takes a worker slot once its first frame is in
+                ws.send(synthetic_frame(0))
+            owners = wait_for(lambda: [lease_holder(r, sid) for sid in sids] if all(
+                lease_holder(r, sid) for sid in sids) else None)
+            assert sorted(collections.Counter(owners).values()) == [2, 2]  # 2 workers x 2 sessions each
+            for seq in range(1, 10):  # interleaved: all four sessions stream at once
                 for ws in sockets:
                     ws.send(synthetic_frame(seq))
             for ws in sockets:

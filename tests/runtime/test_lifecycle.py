@@ -15,7 +15,7 @@ from websockets.sync.client import connect
 from service.launcher import LocalStack
 from worker.runtime import keys
 
-KEYS = "key-a=stream,read;key-b=stream,read"
+KEYS = "key-a=stream,read;key-b=stream,read;key-c=stream,read"
 GRACE_S = 6.0
 
 
@@ -54,8 +54,12 @@ def status(api: httpx.Client, sid: str) -> str:
 
 def test_idle_sessions_free_their_slot_and_resume_within_the_grace_period(stack):
     with client(stack, "key-a") as api:
-        # two sessions nobody streams to fill the worker's two slots; they are abandoned after 2 s idle
+        # two sessions that streamed a frame and went silent hold the worker's two slots until abandoned (2 s idle)
         idle = [api.post("/v1/sessions", json={"name": "idle"}).json()["id"] for _ in range(2)]
+        for sid in idle:
+            with stream(stack, sid, "key-a") as ws:
+                ws.send(synthetic_frame(0))
+                receive_until(ws, lambda m: m["type"] == "pose", timeout_s=60)
         sid = api.post("/v1/sessions", json={"name": "walk"}).json()["id"]
         t0 = time.monotonic()
         with stream(stack, sid, "key-a") as ws:
@@ -78,10 +82,24 @@ def test_idle_sessions_free_their_slot_and_resume_within_the_grace_period(stack)
         poses = api.get(f"/v1/sessions/{sid}/trajectory").json()["poses"]
         assert [p["seq"] for p in poses] == list(range(6)) and all(p["pose"][3] == p["seq"] for p in poses)
         # past the grace period an abandoned session stays closed, with the reason
-        wait_for(lambda: time.monotonic() - t0 > GRACE_S + 5, timeout_s=30, interval_s=0.2)  # idle ~2-4 s, then grace
+        wait_for(lambda: time.monotonic() - t0 > GRACE_S + 3, timeout_s=30, interval_s=0.2)  # idle ~2 s, then grace
         with stream(stack, idle[0], "key-a") as ws:
             refusal = json.loads(ws.recv(timeout=10))
         assert refusal["code"] == "not_accepting" and "can no longer be resumed" in refusal["message"]
+
+
+def test_sessions_nobody_streams_to_hold_no_worker_slot(stack):
+    with client(stack, "key-c") as api:
+        flood = [api.post("/v1/sessions", json={"name": "flood"}).json()["id"] for _ in range(3)]  # the key's quota
+        wait_for(lambda: all(status(api, s) == "abandoned" for s in flood), timeout_s=30)  # no frame within 2 s
+        flood = [api.post("/v1/sessions", json={"name": "flood"}).json()["id"] for _ in range(2)]
+        sid = api.post("/v1/sessions", json={"name": "real"}).json()["id"]
+        t0 = time.monotonic()
+        with stream(stack, sid, "key-c") as ws:  # both slots are free: the flood took none
+            ws.send(synthetic_frame(0))
+            receive_until(ws, lambda m: m["type"] == "pose", timeout_s=60)
+        assert time.monotonic() - t0 < 1.9  # before any idle session could have been abandoned to make room
+        assert {status(api, s) for s in flood} <= {"created", "abandoned"}
 
 
 def test_each_key_has_a_quota_of_live_sessions(stack):

@@ -9,6 +9,7 @@ import collections
 import logging
 import threading
 import time
+from datetime import datetime
 
 import redis
 
@@ -18,6 +19,7 @@ from worker.runtime.engine import SessionEngine, close_engine, restore_engine
 from worker.runtime.leases import Leases
 from worker.runtime.memory import over_budget
 from worker.runtime.outage import REDIS_DOWN, Backoff, OutageLog, wait_for_redis
+from worker.runtime.record import abandon_unstarted
 from worker.runtime.requests import handle_request
 from worker.runtime.sessions import RuntimeConfig, SessionRunner, ensure_group
 from worker.runtime.stats import StageStats
@@ -38,6 +40,8 @@ class Worker:
         self._waiting: dict[str, str] = {}  # session id -> job id claimed while the old lease had not expired yet
         self._stopping = threading.Event()
         self._next_claim = 0.0
+        self._deferred: dict[str, str] = {}  # session id -> job id of sessions created but not streamed yet
+        self._next_deferred_check = 0.0
         self.blobs = BlobStore(config.blob_dir) if config.blob_dir else None
         self._finished_engines: collections.OrderedDict[str, SessionEngine] = collections.OrderedDict()
 
@@ -104,6 +108,9 @@ class Worker:
             self._next_claim = time.monotonic() + self.config.lease_ttl_ms / 2000
         for session_id, job_id in list(self._waiting.items()):
             self._take(session_id, job_id)
+        if self._deferred and time.monotonic() >= self._next_deferred_check:
+            self._check_deferred()
+            self._next_deferred_check = time.monotonic() + 0.5
         if len(self.runners) >= self.config.max_sessions or over_budget(self.config.memory_budget_mb):
             time.sleep(0.05)
             return
@@ -144,6 +151,10 @@ class Worker:
             self.client.xack(keys.JOBS, keys.GROUP, job_id)
             self._waiting.pop(session_id, None)
             return
+        if status == b"created":  # no frame yet: it takes no slot until one comes (see _check_deferred)
+            self._deferred[session_id] = job_id
+            self._waiting.pop(session_id, None)
+            return
         if (len(self.runners) >= self.config.max_sessions or over_budget(self.config.memory_budget_mb)
                 or not self.leases.acquire(session_id)):
             self._waiting[session_id] = job_id  # retried until the old owner's lease expires
@@ -156,6 +167,34 @@ class Worker:
         self.runners[session_id] = runner
         runner.start()
         log.info("session %s started on %s", session_id, self.worker_id)
+
+    def _check_deferred(self) -> None:
+        """Sessions waiting for their first frame: taken once it came, dropped once they ended, abandoned when
+        none came within the idle timeout. A flood of sessions nobody streams to holds no worker slot."""
+        pipe = self.client.pipeline(transaction=False)
+        deferred = list(self._deferred.items())
+        for session_id, _ in deferred:
+            pipe.hmget(keys.session(session_id), ["status", "created_at"])
+        now = time.time()
+        for (session_id, job_id), (status, created) in zip(deferred, pipe.execute()):
+            if status == b"created":
+                idle = self.config.idle_timeout_s
+                age = now - datetime.fromisoformat(created.decode()).timestamp() if created else 0.0
+                if not idle or age < idle or not abandon_unstarted(self.client, session_id, idle,
+                                                                   self.config.outbox_maxlen):
+                    continue
+            del self._deferred[session_id]
+            if status == b"streaming" and len(self.runners) >= self.config.max_sessions:
+                self._hand_back(session_id, job_id)  # full here: a worker with room reads it at once
+            else:
+                self._take(session_id, job_id)  # streaming: run it; ended (or just abandoned): ack its job
+
+    def _hand_back(self, session_id: str, job_id: str) -> None:
+        """Put a session's job back in the queue as a new entry, for any worker (and ack this one)."""
+        pipe = self.client.pipeline(transaction=True)
+        pipe.xadd(keys.JOBS, {"session_id": session_id})
+        pipe.xack(keys.JOBS, keys.GROUP, job_id)
+        pipe.execute()
 
     def _reap_runners(self) -> None:
         for session_id, runner in list(self.runners.items()):

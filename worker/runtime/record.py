@@ -7,7 +7,9 @@ the record exists in the same Lua call, and reports False when it does not (the 
 
 from __future__ import annotations
 
+import json
 from collections.abc import Mapping
+from datetime import UTC, datetime
 
 import redis
 
@@ -92,3 +94,13 @@ class SessionRecord:
         """Mark an idle session `abandoned` (publishing `message`) unless frames wait or it no longer takes any."""
         return bool(self._abandon(keys=[keys.session(self.session_id), keys.outbox(self.session_id)],
                                   args=[message, outbox_maxlen, f"{now_epoch_s:.3f}", now_iso]))
+
+
+def abandon_unstarted(client: redis.Redis, session_id: str, idle_s: float, outbox_maxlen: int) -> bool:
+    """Abandon a session that got no frame within `idle_s` of its creation (no worker ever ran it)."""
+    message = json.dumps({"type": "error", "code": "abandoned",
+                          "message": f"no frame within {idle_s:g} s of its creation: the session was abandoned; "
+                                     "open a stream within the grace period to resume it"}).encode()
+    stamp = datetime.now(UTC)
+    return SessionRecord(client, session_id).abandon(message, outbox_maxlen, stamp.timestamp(),
+                                                     stamp.isoformat(timespec="milliseconds"))
