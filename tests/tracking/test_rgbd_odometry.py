@@ -107,3 +107,18 @@ def test_snapshot_and_restore_continue_exactly(sequence) -> None:
     continued = [restored.track(f, intr).pose for f in frames[7:12]]
     for got, want in zip(continued, expected[7:]):
         assert np.allclose(got, want, atol=2e-3)
+
+
+def test_relocalization_after_a_jump_back_to_a_seen_view(sequence) -> None:
+    frames, intr = sequence
+    odometry = RgbdOdometry()
+    for f in frames[:30]:  # well along the path: several reference keyframes
+        odometry.track(f, intr)
+    lost = odometry.track(_copy(frames[30], image=np.zeros_like(frames[30].image),
+                                depth=np.zeros_like(frames[30].depth)), intr)
+    assert not lost.tracked
+    back = odometry.track(frames[8], intr)  # the camera is back where it was at frame 8, far from the last pose
+    truth = np.linalg.inv(frames[0].gt_pose) @ frames[8].gt_pose
+    assert np.linalg.norm(lost.pose[:3, 3] - truth[:3, 3]) > 0.5
+    assert back.tracked and back.events[0]["type"] == "relocalized"
+    assert np.linalg.norm(back.pose[:3, 3] - truth[:3, 3]) < 0.03

@@ -171,14 +171,15 @@ class RgbdOdometry:
                 or result.photometric_rms > c.seed_residual_ratio * self.typical_residual)
 
     def _align_to(self, ref: _Reference, current: _Current, guess: np.ndarray, K: np.ndarray,
-                  force_seed: bool = False) -> tuple[np.ndarray | None, str]:
+                  relocalizing: bool = False) -> tuple[np.ndarray | None, str]:
         """The current pose aligned to `ref` from `guess` (c2w), and from the feature seed where that alignment is
-        doubtful (always with `force_seed`) and the seed differs, or (None, why not)."""
+        doubtful (always when relocalizing) and the seed differs, or (None, why not). Outside relocalization a pose
+        far from the motion model's guess is refused (a jump); relocalization may land anywhere near `ref`."""
         c = self.config
         T_init = np.linalg.inv(guess) @ ref.pose  # T_cur_ref
         reference = ref.pyramid(K, c.pyramid_levels)
         result = align(reference, current.pyramid, T_init, self.settings)
-        if force_seed or self._doubtful(result):
+        if relocalizing or self._doubtful(result):
             seed = pnp_seed(ref.keypoints(K, c.pyramid_levels), current.keypoints(), K)
             if seed is not None and _differs(seed, T_init, c.seed_difference * ref.median_depth):
                 result = _best([result, align(reference, current.pyramid, seed, self.settings)])
@@ -191,7 +192,7 @@ class RgbdOdometry:
             return None, f"large photometric residual ({result.photometric_rms:.3f})"
         pose = ref.pose @ np.linalg.inv(result.T)
         jump = float(np.linalg.norm(pose[:3, 3] - guess[:3, 3]))
-        if jump > c.max_jump * ref.median_depth:
+        if jump > c.max_jump * ref.median_depth and not relocalizing:
             return None, f"the alignment jumped {jump:.2f} from the motion model"
         self.typical_residual = 0.8 * self.typical_residual + 0.2 * result.photometric_rms
         return pose, ""
@@ -199,7 +200,7 @@ class RgbdOdometry:
     def _relocalize(self, frame: Frame, grey: np.ndarray, depth: np.ndarray, current: _Current,
                     K: np.ndarray) -> TrackingResult:
         for ref in reversed(self.references):
-            pose, _ = self._align_to(ref, current, self.last_pose, K, force_seed=True)
+            pose, _ = self._align_to(ref, current, self.last_pose, K, relocalizing=True)
             if pose is not None and self.last_overlap >= self.config.new_reference_overlap * 0.8:
                 self.lost = False
                 self.previous_pose = None  # no velocity across the gap
