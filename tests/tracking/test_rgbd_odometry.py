@@ -112,13 +112,13 @@ def test_snapshot_and_restore_continue_exactly(sequence) -> None:
 def test_relocalization_after_a_jump_back_to_a_seen_view(sequence) -> None:
     frames, intr = sequence
     odometry = RgbdOdometry()
-    for f in frames[:30]:  # well along the path: several reference keyframes
+    for f in frames[:30]:  # well along the path (a metre): several reference keyframes
         odometry.track(f, intr)
     lost = odometry.track(_copy(frames[30], image=np.zeros_like(frames[30].image),
                                 depth=np.zeros_like(frames[30].depth)), intr)
     assert not lost.tracked
-    back = odometry.track(frames[8], intr)  # the camera is back where it was at frame 8, far from the last pose
+    back = odometry.track(frames[8], intr)  # back where it was at frame 8, 30 cm from the last pose
     truth = np.linalg.inv(frames[0].gt_pose) @ frames[8].gt_pose
-    assert np.linalg.norm(lost.pose[:3, 3] - truth[:3, 3]) > 0.5
+    assert np.linalg.norm(lost.pose[:3, 3] - truth[:3, 3]) > 0.25
     assert back.tracked and back.events[0]["type"] == "relocalized"
     assert np.linalg.norm(back.pose[:3, 3] - truth[:3, 3]) < 0.03
