@@ -39,6 +39,24 @@ def track_points(previous: np.ndarray, current: np.ndarray, uv: np.ndarray, gues
     return forward + _HALF, ok
 
 
+def refine_points(template: np.ndarray, current: np.ndarray, uv: np.ndarray, guess: np.ndarray, *,
+                  window: int = 21, max_shift_px: float = 1.0) -> np.ndarray:
+    """`guess` [N, 2] moved to where the pixels `uv` [N, 2] of `template` (an older frame) match `current` best,
+    where that is found within `max_shift_px` of the guess (elsewhere the guess stays). Following a point from one
+    template rather than from frame to frame keeps its small errors from adding up."""
+    if len(uv) == 0:
+        return guess.astype(np.float32)
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
+    start = (uv.astype(np.float32) - _HALF).reshape(-1, 1, 2)
+    refined = (guess.astype(np.float32) - _HALF).reshape(-1, 1, 2).copy()
+    refined, ok, _ = cv2.calcOpticalFlowPyrLK(template, current, start, refined, winSize=(window, window), maxLevel=1,
+                                              criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    refined = refined.reshape(-1, 2) + _HALF
+    near = ok.ravel().astype(bool) & (np.linalg.norm(refined - guess, axis=1) <= max_shift_px)
+    near &= np.isfinite(refined).all(axis=1)
+    return np.where(near[:, None], refined, guess).astype(np.float32)
+
+
 def detect_corners(gray: np.ndarray, existing: np.ndarray, count: int, min_distance: float,
                    quality: float = 0.01, border: int = 8) -> np.ndarray:
     """Up to `count` new Shi-Tomasi corners [n, 2] at least `min_distance` pixels from each other and from the
@@ -49,12 +67,13 @@ def detect_corners(gray: np.ndarray, existing: np.ndarray, count: int, min_dista
     mask = np.zeros((h, w), np.uint8)
     mask[border:h - border, border:w - border] = 255
     radius = max(1, int(round(min_distance)))
-    for x, y in (existing - _HALF).astype(np.int32):
+    for x, y in np.rint(existing - _HALF).astype(np.int32):
         cv2.circle(mask, (int(x), int(y)), radius, 0, -1)
     corners = cv2.goodFeaturesToTrack(gray, maxCorners=count, qualityLevel=quality, minDistance=min_distance,
                                       mask=mask, blockSize=5)
     if corners is None:
         return np.zeros((0, 2), np.float32)
+    # Sub-pixel corners start the flow where the image is best conditioned (they may move by a pixel or two).
     corners = cv2.cornerSubPix(gray, corners.astype(np.float32), (3, 3), (-1, -1),
                                (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 0.03))
     return corners.reshape(-1, 2) + _HALF

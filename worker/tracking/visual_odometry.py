@@ -26,7 +26,7 @@ from .base import TrackingResult
 from .bundle_adjustment import bundle_adjust, reprojection_chi2
 from .features import Features, OrbExtractor
 from .local_map import Keyframe, LocalMap
-from .optical_flow import detect_corners, track_points
+from .optical_flow import detect_corners, refine_points, track_points
 from .pose_optimization import optimize_pose
 from .projection import camera_matrix, invert_pose, project, rigid, to_camera
 from .relocalization import Place, PlaceRecognizer
@@ -64,6 +64,7 @@ class VisualOdometry:
         self.tracks = Tracks.empty()
         self.next_id = 0
         self.previous_gray: np.ndarray | None = None  # the last frame tracked (flow starts from it)
+        self.keyframe_gray: np.ndarray | None = None  # the last keyframe's image (tracks are refined against it)
         self.pending: list[tuple[int, np.ndarray, np.ndarray]] = []  # (index, track ids, uv) since the reference
         self.pose = np.eye(4)
         self.velocity = np.eye(4)  # camera motion of the last frame (previous^-1 @ current)
@@ -143,7 +144,8 @@ class VisualOdometry:
     # ---- initialisation --------------------------------------------------------------------------------------
     def _initialise(self, index: int, gray: np.ndarray, camera: Intrinsics, uncalibrated: bool) -> TrackingResult:
         """Follow corners until a waiting frame (the reference) and this one make a two-view map; new corners join
-        at every frame, and the reference is the oldest waiting frame that still shares enough tracks."""
+        at every frame, and the reference is the oldest waiting frame that still shares enough tracks (the waiting
+        frames before it are posed too when the map is made)."""
         c = self.config
         waiting = TrackingResult(np.eye(4), tracked=True, keyframe_hint=False)
         if self.pending:
@@ -152,13 +154,12 @@ class VisualOdometry:
         self.previous_gray = gray
         shared = [int(np.isin(self.tracks.ids, ids, assume_unique=True).sum()) for _, ids, _ in self.pending]
         usable = [n for n, count in enumerate(shared) if count >= c.init_min_matches]
-        self.pending = self.pending[usable[0]:] if usable else []
-        self.pending = self.pending[-c.init_max_frames:]
-        if not self.pending:  # the view has moved on: wait from this frame
+        if not usable:  # the view has moved on: wait from this frame
             self._replenish(gray)
             self.pending = [(index, self.tracks.ids.copy(), self.tracks.uv.copy())]
             return waiting
-        ref_index, ref_ids, ref_uv = self.pending[0]
+        reference = usable[0]
+        _, ref_ids, ref_uv = self.pending[reference]
         at, found = _lookup(ref_ids, self.tracks.ids)
         common = np.flatnonzero(found)
         if uncalibrated and not self.focal.frozen:
@@ -170,18 +171,20 @@ class VisualOdometry:
                                         common, common)
         if attempt.map is None:
             self._replenish(gray)
-            self.pending.append((index, self.tracks.ids.copy(), self.tracks.uv.copy()))
+            self.pending = (self.pending + [(index, self.tracks.ids.copy(), self.tracks.uv.copy())]
+                            )[-c.init_max_frames:]
             return waiting
         self.focal.freeze()
         self.pending.append((index, self.tracks.ids.copy(), self.tracks.uv.copy()))
-        return self._start_map(index, gray, attempt.map, camera, uncalibrated)
+        return self._start_map(index, gray, attempt.map, reference, camera, uncalibrated)
 
-    def _start_map(self, index: int, gray: np.ndarray, two: TwoViewMap, camera: Intrinsics, uncalibrated: bool
-                   ) -> TrackingResult:
-        """The map of a successful two-view attempt (two.ia, two.ib: rows of the current tracks): two keyframes,
-        adjusted and scaled; the frames between them are posed against it."""
+    def _start_map(self, index: int, gray: np.ndarray, two: TwoViewMap, reference: int, camera: Intrinsics,
+                   uncalibrated: bool) -> TrackingResult:
+        """The map of a successful two-view attempt (two.ia, two.ib: rows of the current tracks) between the
+        waiting frame `reference` and this one: two keyframes, adjusted and scaled; the other waiting frames are
+        posed against it."""
         K = camera_matrix(camera)
-        ref_index, ref_ids, ref_uv = self.pending[0]
+        ref_index, ref_ids, ref_uv = self.pending[reference]
         m = self.map = LocalMap()
         rows = m.add_points(two.points, np.zeros((len(two.points), 32), np.uint8))
         self.tracks.rows[two.ib] = rows
@@ -197,10 +200,10 @@ class VisualOdometry:
         self._adjust(K, fixed_count=1)
         self._normalise_scale()
         pose = kf_b.pose
-        between = [[ref_index, np.eye(4).tolist()]]
-        previous = np.eye(4)
-        for n, (i, ids, uv) in enumerate(self.pending[1:-1], start=1):
-            previous = self._pose_between(ids, uv, n / (len(self.pending) - 1), pose, K)
+        between, previous = [], np.eye(4)
+        for n, (i, ids, uv) in enumerate(self.pending[:-1]):
+            fraction = (n - reference) / (len(self.pending) - 1 - reference)
+            previous = np.eye(4) if n == reference else self._pose_between(ids, uv, fraction, pose, K)
             between.append([i, previous.tolist()])
         self.pending = []
         self.velocity = invert_pose(previous) @ pose
@@ -259,7 +262,7 @@ class VisualOdometry:
             uv_plain, ok_plain = self._flow(gray, None)
             if (ok_plain & t.mapped).sum() > (ok & t.mapped).sum():
                 uv, ok = uv_plain, ok_plain
-        tracks = Tracks(t.ids[ok], uv[ok], t.rows[ok])
+        tracks = self._refine(Tracks(t.ids[ok], uv[ok], t.rows[ok]), gray)
         found = self._pose_from_tracks(tracks, predicted, K)
         if found is None:
             return None
@@ -267,6 +270,18 @@ class VisualOdometry:
         keep = np.ones(len(tracks), bool)
         keep[np.flatnonzero(tracks.mapped)[~inlier]] = False
         return pose, tracks.subset(keep), int(inlier.sum())
+
+    def _refine(self, tracks: Tracks, gray: np.ndarray) -> Tracks:
+        """The tracks that began at or before the last keyframe, matched against that keyframe's image."""
+        if self.keyframe_gray is None or not self.config.flow_refine_px or not self.map.keyframes:
+            return tracks
+        kf = self.map.keyframes[-1]
+        order = np.argsort(kf.track_ids)
+        at, found = _lookup(kf.track_ids[order], tracks.ids)
+        uv = tracks.uv.copy()
+        uv[found] = refine_points(self.keyframe_gray, gray, kf.features.keypoints[order[at[found]]], uv[found],
+                                  window=self.config.flow_window, max_shift_px=self.config.flow_refine_px)
+        return Tracks(tracks.ids, uv, tracks.rows)
 
     def _pose_from_tracks(self, tracks: Tracks, guess: np.ndarray, K: np.ndarray
                           ) -> tuple[np.ndarray, np.ndarray] | None:
@@ -317,6 +332,7 @@ class VisualOdometry:
         features = Features(t.uv.copy(), np.zeros((len(t), 32), np.uint8), np.zeros(len(t), np.int32))
         kf = Keyframe(index, pose.copy(), features, t.rows.copy(), t.ids.copy(), self.extractor.extract(gray))
         self.map.keyframes.append(kf)
+        self.keyframe_gray = gray
         self.frames_since_keyframe = 0
         return kf
 
@@ -502,7 +518,7 @@ class VisualOdometry:
             "focal": self.focal.state_dict(),
             "estimated_intrinsics": {} if self.estimated_intrinsics is None else self.estimated_intrinsics.to_dict(),
             "pending": [{"index": i, "ids": ids, "uv": uv} for i, ids, uv in self.pending],
-            "previous_gray": image(self.previous_gray),
+            "previous_gray": image(self.previous_gray), "keyframe_gray": image(self.keyframe_gray),
             "tracks": self.tracks.to_state(), "next_id": self.next_id,
             "map": self.map.to_state(), "retired": [p.to_state() for p in self.retired],
         }
@@ -524,8 +540,9 @@ class VisualOdometry:
             self.estimated_intrinsics = Intrinsics.from_dict(state["estimated_intrinsics"])
         self.pending = [(int(p["index"]), np.asarray(p["ids"], np.int64).reshape(-1),
                          np.asarray(p["uv"], np.float32).reshape(-1, 2)) for p in state["pending"]]
-        gray = np.asarray(state["previous_gray"], np.uint8)
-        self.previous_gray = np.ascontiguousarray(gray) if gray.size else None
+        for name in ("previous_gray", "keyframe_gray"):
+            gray = np.asarray(state[name], np.uint8)
+            setattr(self, name, np.ascontiguousarray(gray) if gray.size else None)
         self.tracks = Tracks.from_state(state["tracks"])
         self.next_id = int(state["next_id"])
         self.map = LocalMap.from_state(state["map"])

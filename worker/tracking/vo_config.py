@@ -39,6 +39,8 @@ class VisualOdometryConfig(BaseModel):
                                                                       "the best corner's)")
     flow_window: int = Field(21, ge=5, description="Lucas-Kanade window side, pixels")
     flow_levels: int = Field(3, ge=0, le=6, description="Lucas-Kanade pyramid levels above the image")
+    flow_refine_px: float = Field(1.0, ge=0.0, description="a track is re-matched against the last keyframe's image "
+                                                            "when that moves it at most this far (0: off), px")
     flow_fb_px: float = Field(0.75, gt=0.0, description="largest forward-backward flow error of a kept track, px")
 
     # tracking
