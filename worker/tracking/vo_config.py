@@ -35,7 +35,7 @@ class VisualOdometryConfig(BaseModel):
     max_tracks: int = Field(500, ge=50, description="points followed by optical flow at the most")
     corner_min_distance: float = Field(0.025, gt=0.0, lt=0.5, description="smallest distance between two tracks, "
                                                                           "as a share of max(W, H)")
-    corner_quality: float = Field(0.01, gt=0.0, lt=1.0, description="Shi-Tomasi quality of a new corner (share of "
+    corner_quality: float = Field(0.001, gt=0.0, lt=1.0, description="Shi-Tomasi quality of a new corner (share of "
                                                                       "the best corner's)")
     flow_window: int = Field(21, ge=5, description="Lucas-Kanade window side, pixels")
     flow_levels: int = Field(3, ge=0, le=6, description="Lucas-Kanade pyramid levels above the image")
