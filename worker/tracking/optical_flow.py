@@ -39,6 +39,25 @@ def track_points(previous: np.ndarray, current: np.ndarray, uv: np.ndarray, gues
     return forward + _HALF, ok
 
 
+def predicted_pixels(uv: np.ndarray, points: np.ndarray, mapped: np.ndarray, previous: np.ndarray,
+                     predicted: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Where pixels uv [N, 2] of a camera at `previous` should land at `predicted` (c2w poses): those with a world
+    point (mask `mapped` [N]; points [n, 3] in that order) by projection, the others as points at infinity (the
+    rotation alone)."""
+    guess = uv.astype(np.float64).copy()
+    rel = np.linalg.inv(predicted) @ previous  # previous camera -> predicted camera
+    H = K @ rel[:3, :3] @ np.linalg.inv(K)
+    ray = np.concatenate([guess, np.ones((len(guess), 1))], axis=1) @ H.T
+    ahead = ray[:, 2] > 1e-6
+    guess[ahead] = ray[ahead, :2] / ray[ahead, 2:]
+    pc = (points - predicted[:3, 3]) @ predicted[:3, :3]
+    front = pc[:, 2] > 1e-6
+    rows = np.flatnonzero(mapped)[front]
+    guess[rows, 0] = K[0, 0] * pc[front, 0] / pc[front, 2] + K[0, 2]
+    guess[rows, 1] = K[1, 1] * pc[front, 1] / pc[front, 2] + K[1, 2]
+    return guess
+
+
 def refine_points(template: np.ndarray, current: np.ndarray, uv: np.ndarray, guess: np.ndarray, *,
                   window: int = 21, max_shift_px: float = 1.0) -> np.ndarray:
     """`guess` [N, 2] moved to where the pixels `uv` [N, 2] of `template` (an older frame) match `current` best,

@@ -8,6 +8,14 @@ from dataclasses import dataclass
 import numpy as np
 
 
+def lookup_sorted(sorted_ids: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Positions of `ids` in the ascending array `sorted_ids`, and the mask of those present."""
+    if len(sorted_ids) == 0:
+        return np.zeros(len(ids), np.int64), np.zeros(len(ids), bool)
+    at = np.clip(np.searchsorted(sorted_ids, ids), 0, len(sorted_ids) - 1)
+    return at, sorted_ids[at] == ids
+
+
 @dataclass
 class Tracks:
     """Track ids [N] int64, pixels uv [N, 2] float32 in the latest frame, map point rows [N] int64 (-1: none)."""

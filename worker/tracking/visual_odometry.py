@@ -26,24 +26,17 @@ from .base import TrackingResult
 from .bundle_adjustment import bundle_adjust, reprojection_chi2
 from .features import Features, OrbExtractor
 from .local_map import Keyframe, LocalMap
-from .optical_flow import detect_corners, refine_points, track_points
+from .optical_flow import detect_corners, predicted_pixels, refine_points, track_points
 from .pose_optimization import optimize_pose
-from .projection import camera_matrix, invert_pose, project, rigid, to_camera
+from .projection import camera_matrix, invert_pose, rigid, to_camera
 from .relocalization import Place, PlaceRecognizer
 from .self_calibration import FocalEstimator
-from .tracks import Tracks
-from .triangulation import good_points, parallax_cos, triangulate
+from .track_triangulation import triangulate_tracks
+from .tracks import Tracks, lookup_sorted
 from .two_view import TwoViewMap, two_view_from_matches
 from .vo_config import VisualOdometryConfig
 
 STATE_VERSION = 2
-
-
-def _lookup(sorted_ids: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Positions of `ids` in the sorted array `sorted_ids` and the mask of those present."""
-    at = np.clip(np.searchsorted(sorted_ids, ids), 0, max(len(sorted_ids) - 1, 0))
-    found = (sorted_ids[at] == ids) if len(sorted_ids) else np.zeros(len(ids), bool)
-    return at, found
 
 
 class VisualOdometry:
@@ -125,22 +118,6 @@ class VisualOdometry:
         self.next_id += len(corners)
         self.tracks = self.tracks.extend(ids, corners)
 
-    def _predicted_flow(self, predicted: np.ndarray, K: np.ndarray) -> np.ndarray:
-        """Where each track should land at the predicted pose: map points by projection, candidates by the
-        rotation alone (a point at infinity)."""
-        t = self.tracks
-        guess = t.uv.astype(np.float64).copy()
-        rel = invert_pose(predicted) @ self.pose  # previous camera -> predicted camera
-        H = K @ rel[:3, :3] @ np.linalg.inv(K)
-        ray = np.concatenate([guess, np.ones((len(guess), 1))], axis=1) @ H.T
-        at_infinity = ray[:, 2] > 1e-6
-        guess[at_infinity] = ray[at_infinity, :2] / ray[at_infinity, 2:]
-        mapped = np.flatnonzero(t.mapped)
-        uv, z = project(self.map.positions[t.rows[mapped]], predicted, K)
-        front = z > 1e-6
-        guess[mapped[front]] = uv[front]
-        return guess
-
     # ---- initialisation --------------------------------------------------------------------------------------
     def _initialise(self, index: int, gray: np.ndarray, camera: Intrinsics, uncalibrated: bool) -> TrackingResult:
         """Follow corners until a waiting frame (the reference) and this one make a two-view map; new corners join
@@ -160,7 +137,7 @@ class VisualOdometry:
             return waiting
         reference = usable[0]
         _, ref_ids, ref_uv = self.pending[reference]
-        at, found = _lookup(ref_ids, self.tracks.ids)
+        at, found = lookup_sorted(ref_ids, self.tracks.ids)
         common = np.flatnonzero(found)
         if uncalibrated and not self.focal.frozen:
             self.focal.observe_matches(ref_uv[at[common]], self.tracks.uv[common], camera)
@@ -190,7 +167,7 @@ class VisualOdometry:
         self.tracks.rows[two.ib] = rows
         # The reference keyframe keeps the tracks it shares with this frame; its image is gone, so it has no
         # descriptors (it is no place to relocalise from).
-        at, found = _lookup(ref_ids, self.tracks.ids)
+        at, found = lookup_sorted(ref_ids, self.tracks.ids)
         ref_features = Features(ref_uv[at[found]], np.zeros((int(found.sum()), 32), np.uint8),
                                 np.zeros(int(found.sum()), np.int32))
         kf_a = Keyframe(ref_index, np.eye(4), ref_features, self.tracks.rows[found].copy(),
@@ -222,7 +199,7 @@ class VisualOdometry:
         guess = np.eye(4)
         guess[:3, :3], guess[:3, 3] = cv2.Rodrigues(rotvec)[0], pose_b[:3, 3] * fraction
         order = np.argsort(self.tracks.ids)
-        at, found = _lookup(self.tracks.ids[order], ids)
+        at, found = lookup_sorted(self.tracks.ids[order], ids)
         rows = np.where(found, self.tracks.rows[order][at], -1)
         has = rows >= 0
         if has.sum() < self.config.min_tracked:
@@ -257,7 +234,8 @@ class VisualOdometry:
         """The tracks carried from the last tracked frame into `gray`, less the pose's outliers, the pose and its
         inlier count (None: too few); nothing is changed."""
         t = self.tracks
-        uv, ok = self._flow(gray, self._predicted_flow(predicted, K))
+        guess = predicted_pixels(t.uv, self.map.positions[t.rows[t.mapped]], t.mapped, self.pose, predicted, K)
+        uv, ok = self._flow(gray, guess)
         if (ok & t.mapped).sum() < 0.5 * t.mapped.sum():  # a wrong guess can mislead the flow: try none
             uv_plain, ok_plain = self._flow(gray, None)
             if (ok_plain & t.mapped).sum() > (ok & t.mapped).sum():
@@ -277,7 +255,7 @@ class VisualOdometry:
             return tracks
         kf = self.map.keyframes[-1]
         order = np.argsort(kf.track_ids)
-        at, found = _lookup(kf.track_ids[order], tracks.ids)
+        at, found = lookup_sorted(kf.track_ids[order], tracks.ids)
         uv = tracks.uv.copy()
         uv[found] = refine_points(self.keyframe_gray, gray, kf.features.keypoints[order[at[found]]], uv[found],
                                   window=self.config.flow_window, max_shift_px=self.config.flow_refine_px)
@@ -338,7 +316,7 @@ class VisualOdometry:
 
     def _insert_keyframe(self, index: int, pose: np.ndarray, gray: np.ndarray, K: np.ndarray) -> Keyframe:
         kf = self._new_keyframe(index, pose, gray)
-        self._triangulate(kf, K)
+        self._triangulate(K)
         c = self.config
         gone = self.map.slide(c.window + c.fixed_keyframes)
         self._retire(gone)
@@ -348,45 +326,20 @@ class VisualOdometry:
         self.tracked_at_keyframe = int(self.tracks.mapped.sum())
         return kf
 
-    def _triangulate(self, kf: Keyframe, K: np.ndarray) -> None:
-        """Map points from the candidate tracks of `kf` with enough parallax since the oldest keyframe that saw
-        them; candidates inconsistent with the poses are dropped."""
-        c = self.config
+    def _triangulate(self, K: np.ndarray) -> None:
+        """Map points from the candidate tracks of the newest keyframe (see `triangulate_tracks`)."""
         m, t = self.map, self.tracks
-        candidate = np.flatnonzero(t.rows < 0)
-        anchored = np.zeros(len(candidate), bool)
-        new_ids, new_points, drop = [], [], []
-        for other in m.keyframes[:-1]:
-            order = np.argsort(other.track_ids)
-            at, found = _lookup(other.track_ids[order], t.ids[candidate])
-            sel = found & ~anchored
-            if not sel.any():
-                continue
-            anchored |= sel
-            which = candidate[sel]
-            uv_a = other.features.keypoints[order[at[sel]]].astype(np.float64)
-            uv_b = t.uv[which].astype(np.float64)
-            points = triangulate(other.pose, kf.pose, uv_a, uv_b, K)
-            ones = np.ones(len(which))
-            consistent = good_points(points, other.pose, kf.pose, uv_a, uv_b, ones, ones, K, c.chi2_px, 0.0)
-            wide = parallax_cos(np.nan_to_num(points), other.pose, kf.pose) < np.cos(np.deg2rad(c.min_parallax_deg))
-            new_ids.append(t.ids[which[consistent & wide]])
-            new_points.append(points[consistent & wide])
-            drop.append(t.ids[which[~consistent & wide]])
-        if not new_ids:
-            return
-        ids = np.concatenate(new_ids)
-        order = np.argsort(ids)
-        ids, points = ids[order], np.concatenate(new_points)[order]
-        rows = m.add_points(points, np.zeros((len(points), 32), np.uint8))
+        candidate = t.rows < 0
+        new = triangulate_tracks(m.keyframes, t.ids[candidate], t.uv[candidate], K, self.config.chi2_px,
+                                 self.config.min_parallax_deg)
+        rows = m.add_points(new.points, np.zeros((len(new.points), 32), np.uint8))
         for keyframe in m.keyframes:
-            at, found = _lookup(ids, keyframe.track_ids)
+            at, found = lookup_sorted(new.ids, keyframe.track_ids)
             keyframe.point_ids[found] = rows[at[found]]
-        at, found = _lookup(ids, t.ids)
+        at, found = lookup_sorted(new.ids, t.ids)
         t.rows[found] = rows[at[found]]
-        dropped = np.concatenate(drop)
-        if len(dropped):
-            self.tracks = t.subset(~np.isin(t.ids, dropped))
+        if len(new.inconsistent):
+            self.tracks = t.subset(~np.isin(t.ids, new.inconsistent))
 
     def _remap(self, remap: np.ndarray) -> None:
         """Follow the map's renumbering of points in the tracks (a track whose point went becomes a candidate)."""
