@@ -13,12 +13,22 @@ import pytest
 from worker.data import open_source
 from worker.data.frame import Frame
 from worker.eval import absolute_trajectory_error
-from worker.tracking.optical_flow import detect_corners, track_points
-from worker.tracking.projection import rigid
+from worker.tracking.features import Features
+from worker.tracking.local_map import Keyframe
+from worker.tracking.optical_flow import detect_corners, predicted_pixels, refine_points, track_points
+from worker.tracking.projection import project, rigid
+from worker.tracking.track_triangulation import triangulate_tracks
 from worker.tracking.tracks import Tracks
 from worker.tracking.visual_odometry import VisualOdometry
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "icl_mini"
+K = np.array([[262.5, 0.0, 160.0], [0.0, 262.5, 120.0], [0.0, 0.0, 1.0]])
+
+
+def _pose(rotvec, t) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = cv2.Rodrigues(np.asarray(rotvec, float))[0], t
+    return T
 
 
 @pytest.fixture(scope="module")
@@ -60,6 +70,56 @@ def test_klt_follows_a_subpixel_warp_and_the_check_rejects_what_is_gone(frames):
     assert np.median(error) < 0.1 and np.percentile(error, 90) < 0.3  # sub-pixel, not keypoint-grid accuracy
     _, none_ok = track_points(gray, np.zeros_like(gray), corners)  # the view is gone (lens covered)
     assert not none_ok.any()
+
+
+def test_refinement_against_an_older_image_snaps_to_it_within_its_reach(frames):
+    gray = _gray(frames[10])
+    shift = np.array([2.3, -1.7])
+    moved = cv2.warpAffine(gray, np.array([[1.0, 0.0, shift[0]], [0.0, 1.0, shift[1]]]), (320, 240),
+                           flags=cv2.INTER_CUBIC)
+    corners = detect_corners(gray, np.zeros((0, 2), np.float32), 200, 8.0)
+    corners = corners[(corners[:, 0] > 20) & (corners[:, 0] < 300) & (corners[:, 1] > 20) & (corners[:, 1] < 220)]
+    truth = corners + shift
+    rng = np.random.default_rng(4)
+    near = truth + rng.uniform(-0.5, 0.5, truth.shape)  # a drifted track
+    far = truth + 4.0  # another point's place: out of reach, left alone
+    refined = refine_points(gray, moved, corners, near, max_shift_px=1.0)
+    assert np.median(np.linalg.norm(refined - truth, axis=1)) < 0.1
+    np.testing.assert_array_equal(refine_points(gray, moved, corners, far, max_shift_px=1.0), far.astype(np.float32))
+
+
+def test_predicted_pixels_project_map_points_and_turn_the_rest_with_the_camera():
+    rng = np.random.default_rng(5)
+    previous, predicted = _pose([0.0, 0.1, 0.0], [0.2, 0.0, 0.0]), _pose([0.02, 0.15, 0.0], [0.3, 0.0, 0.05])
+    points = rng.uniform([-1, -1, 3], [1, 1, 6], (50, 3))
+    uv, _ = project(points, previous, K)
+    mapped = np.arange(50) < 30
+    guess = predicted_pixels(uv, points[mapped], mapped, previous, predicted, K)
+    np.testing.assert_allclose(guess[mapped], project(points[mapped], predicted, K)[0], atol=1e-9)
+    far = previous[:3, 3] + 1e6 * (points[~mapped] - previous[:3, 3])  # the same pixels, infinitely far
+    np.testing.assert_allclose(guess[~mapped], project(far, predicted, K)[0], atol=1e-3)
+
+
+def test_candidate_tracks_become_points_once_their_rays_are_wide_apart():
+    rng = np.random.default_rng(6)
+    points = rng.uniform([-1.5, -1, 3], [1.5, 1, 5], (60, 3))
+    poses = [_pose([0, 0, 0], [0, 0, 0]), _pose([0, 0.018, 0], [0.29, 0, 0]), _pose([0, 0.02, 0], [0.3, 0, 0])]
+    ids = np.arange(100, 160)
+
+    def keyframe(n: int, pose: np.ndarray, seen: np.ndarray) -> Keyframe:
+        uv = project(points[seen], pose, K)[0].astype(np.float32)
+        return Keyframe(n, pose, Features(uv, np.zeros((len(uv), 32), np.uint8), np.zeros(len(uv), np.int32)),
+                        np.full(len(uv), -1, np.int64), ids[seen])
+
+    older = np.arange(60) >= 20  # tracks 100-119 began at the middle keyframe only
+    kfs = [keyframe(0, poses[0], np.flatnonzero(older)), keyframe(1, poses[1], np.arange(60)),
+           keyframe(2, poses[2], np.arange(60))]
+    uv = kfs[2].features.keypoints.copy()
+    uv[50:] += np.array([0.0, 6.0], np.float32)  # drifted tracks: the rays miss each other
+    new = triangulate_tracks(kfs, ids, uv, K, chi2=5.991, min_parallax_deg=1.0)
+    assert new.ids.tolist() == list(range(120, 150))  # wide since keyframe 0; 100-119 too narrow since keyframe 1
+    np.testing.assert_allclose(new.points, points[20:50], atol=1e-4)  # float32 pixels
+    assert sorted(new.inconsistent.tolist()) == list(range(150, 160))
 
 
 def test_new_corners_keep_their_distance_from_each_other_and_from_tracks(frames):
