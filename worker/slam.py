@@ -282,6 +282,8 @@ class SlamSystem:
             return dict(event)
         poses = {int(i): np.asarray(p, np.float64) for i, p in event["frames"]}
         revised = {i: p for i, p in poses.items() if np.all(np.isfinite(p))}
+        if event.get("intrinsics") and self.depth_points is not None:  # keyframe points made with the old camera
+            self.depth_points.reproject(Intrinsics.from_dict(event["intrinsics"]).matrix())
         out = {k: v for k, v in event.items() if k != "frames"}
         out["revision"] = self._traj.revise_frames(revised)
         out["frames_revised"] = len(revised)
@@ -299,14 +301,10 @@ class SlamSystem:
         if not tracked or (sensor and (frame.depth is None or self.config.input.surfel_init != "depth")):
             return
         pose = self._traj.pose_at(frame.index)
-        K = self.camera(frame).matrix()
         if self.keyframe_depth is not None:
-            self.keyframe_depth.add_keyframe(frame.index, K.numpy(), None)
+            self.keyframe_depth.add_keyframe(frame.index, self.camera(frame).matrix().numpy(), None)
         else:
-            image = torch.from_numpy(frame.image).to(torch.float32) / 255.0
-            depth = torch.from_numpy(np.asarray(frame.depth, np.float32))
-            self._pending_jobs.append((KeyframeJob(frame.index, pose, K, image, grid_from_depth(image, depth, K),
-                                                   depth), False))
+            self._pending_jobs.append((self._depth_job(frame, pose), False))
         self.last_frame_mapped = frame.index
 
     def camera(self, frame: Frame) -> Intrinsics:
@@ -395,7 +393,10 @@ class SlamSystem:
         self._previous_poses = (given.copy(), tracked.copy())
 
     def _flush_posed_jobs(self, force: bool = False) -> None:
-        """Submit keyframe jobs; model-unit surfels wait until the path gives their scale (or `force`)."""
+        """Submit keyframe jobs; model-unit surfels wait until the path gives their scale, and every job while the
+        pose source is still estimating the camera (unless `force`)."""
+        if getattr(self.pose_source, "calibrating", False) and not force:
+            return
         while self._pending_jobs:
             job, needs_scale = self._pending_jobs[0]
             if needs_scale:
@@ -407,16 +408,24 @@ class SlamSystem:
             self._pending_jobs.pop(0)
             self.backend.submit(job)
 
+    def _depth_job(self, frame: Frame, pose: np.ndarray) -> KeyframeJob:
+        """A map job with surfels from the frame's own depth; built in the backend with the camera known then (a
+        session without intrinsics holds its jobs until the focal length is estimated)."""
+        image = torch.from_numpy(frame.image).to(torch.float32) / 255.0
+        depth = torch.from_numpy(np.asarray(frame.depth, np.float32))
+
+        def build() -> tuple[torch.Tensor, dict[str, torch.Tensor], torch.Tensor]:
+            K = self.camera(frame).matrix()
+            return K, grid_from_depth(image, depth, K), depth
+
+        return KeyframeJob(frame.index, pose, None, image, {}, depth, build=build)
+
     def _keyframe_job(self, frame: Frame, prediction) -> tuple[KeyframeJob, bool]:
         """(the keyframe's map job, whether its surfels are still in model units): surfels from the frame's depth,
         else from the model's prediction."""
         world_pose = self._traj.keyframe_poses[frame.index]
         if self._uses_depth(frame) and self.config.input.surfel_init == "depth" and self._metric_poses():
-            intr = self.camera(frame)
-            image = torch.from_numpy(frame.image).to(torch.float32) / 255.0
-            depth = torch.from_numpy(np.asarray(frame.depth, np.float32))
-            return KeyframeJob(frame.index, world_pose, intr.matrix(), image, grid_from_depth(image, depth,
-                                                                                           intr.matrix()), depth), False
+            return self._depth_job(frame, world_pose), False
         prep, tracked = prediction
         grid, depth = self._prediction_grid(frame, prep, tracked.surfels)
         image = prep.tensor[0].permute(1, 2, 0).contiguous()

@@ -39,8 +39,9 @@ class KeyframeJob:
     image: torch.Tensor
     grid: dict[str, torch.Tensor]
     depth: torch.Tensor | None = None
-    # Builds (grid, depth) in the backend thread when they are costly to compute (multi-view depth).
-    build: Callable[[], tuple[dict[str, torch.Tensor], torch.Tensor | None]] | None = None
+    # Builds (K, grid, depth) in the backend thread: costly ones (multi-view depth), or ones that need what is
+    # known only later (the camera of a session whose focal length is being estimated).
+    build: Callable[[], tuple[torch.Tensor, dict[str, torch.Tensor], torch.Tensor | None]] | None = None
 
 
 @dataclass
@@ -139,7 +140,7 @@ class MapBackend:
         start = time.perf_counter()
         if isinstance(job, KeyframeJob) and job.build is not None:  # outside the lock: renders go on meanwhile
             with self.timings.measure("map_depth"):
-                job.grid, job.depth = job.build()
+                job.K, job.grid, job.depth = job.build()
             job.build = None
         with self.lock:
             if isinstance(job, KeyframeJob):

@@ -101,14 +101,14 @@ class KeyframeDepth:
 
         scale = float(np.cbrt(np.linalg.det(world_pose[:3, :3])))
 
-        def build() -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+        def build() -> tuple[torch.Tensor, dict[str, torch.Tensor], torch.Tensor]:
             estimate = estimate_depth(ref_image, K, ref_pose, neighbours, depth_range=depth_range, config=config)
             log.debug("keyframe %d: multi-view depth from %d views covers %.0f%%", kf.kf_id, len(neighbours),
                       100 * estimate.coverage)
             if estimate.coverage > 0.2:
                 self.recent_hint = depth_hint(estimate.depth, margin=3.0)
             depth = torch.from_numpy(estimate.depth / scale)  # world units -> the keyframe camera's (Sim(3) pose)
-            return grid_from_depth(image, depth, Kt), depth
+            return Kt, grid_from_depth(image, depth, Kt), depth
 
         return KeyframeJob(kf.kf_id, world_pose, Kt, image, grid={}, depth=None, build=build)
 

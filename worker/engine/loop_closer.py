@@ -33,6 +33,11 @@ class DepthKeyframePoints:
     def add(self, index: int, depth: torch.Tensor, K: torch.Tensor) -> None:
         self.points[int(index)] = unproject_depth(depth.to(torch.float32), K.to(torch.float32)).to(torch.float16)
 
+    def reproject(self, K: torch.Tensor) -> None:
+        """Every keyframe's points again from their depth, with camera K (the session's camera was re-estimated)."""
+        for index, points in self.points.items():
+            self.add(index, points[..., 2].to(torch.float32), K)
+
     def keyframe_points(self, index: int) -> tuple[torch.Tensor, torch.Tensor]:
         if index not in self.points:
             raise ValueError(f"frame {index} is not a keyframe with depth")

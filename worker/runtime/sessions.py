@@ -360,7 +360,8 @@ class SessionRunner(threading.Thread):
         for event in result.events:
             if event.get("type") in TRACKING_EVENTS:
                 self._publish_tracking_event(seq, event)
-        if not self._session.get("estimated_intrinsics"):
+        if not self._session.get("estimated_intrinsics") or any(
+                e.get("type") == "initialized" and e.get("intrinsics") for e in result.events):  # (re-)estimated
             self._publish_estimated_intrinsics()
         if result.is_keyframe:
             self._keyframes_since_snapshot += 1

@@ -35,3 +35,9 @@ class RgbdOdometryConfig(BaseModel):
     seed_residual_ratio: float = Field(
         1.5, gt=1, description="the feature-based guess is tried when an alignment's photometric residual exceeds "
         "this multiple of the recent ones (or it overlaps the reference poorly, or there is no motion history)")
+    self_calibrate: bool = Field(True, description="frames without intrinsics: estimate the focal length from the "
+                                 "first frames (else keep focal_guess)")
+    calibration_motion: float = Field(
+        0.06, gt=0, description="self-calibration runs once the camera moved this fraction of the first frame's "
+        "median depth (or turned 10x this many degrees), over a third of calibration_frames at least")
+    calibration_frames: int = Field(24, ge=3, le=120, description="... or after this many frames at the latest")

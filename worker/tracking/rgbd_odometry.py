@@ -3,6 +3,10 @@ dense_alignment), seeded by constant velocity and, where it disagrees, also by a
 (worker.tracking.feature_seed; the better-fitting alignment wins); the reference moves on when the view has changed
 enough.
 
+Frames without intrinsics: tracking starts with a typical focal length; once the camera has moved enough (or after
+`calibration_frames` frames) the focal length is estimated from those frames (worker.tracking.focal_calibration),
+they are tracked again with it, and an `initialized` event carries their new poses and the camera found.
+
 Tracking is declared lost when an alignment is ill-posed (too little depth or texture), overlaps the reference too
 little, or leaves large residuals; the pose then stays at the last good one (never a jump) and every following frame
 is tried against the reference keyframes kept in a small ring, from the last good pose, until one fits again
@@ -23,6 +27,7 @@ from worker.geometry import Intrinsics
 from worker.tracking.base import TrackingResult
 from worker.tracking.dense_alignment import AlignmentResult, AlignmentSettings, PyramidLevel, align, build_pyramid
 from worker.tracking.feature_seed import KeypointSet, detect, pnp_seed
+from worker.tracking.focal_calibration import estimate_focal
 from worker.tracking.motion import motion_model_pose, relative_motion
 from worker.tracking.rgbd_config import RgbdOdometryConfig
 
@@ -109,6 +114,8 @@ class RgbdOdometry:
         self.last_overlap = 1.0
         self.typical_residual = self.config.max_photometric_residual  # running mean of accepted alignments
         self.estimated_intrinsics: Intrinsics | None = None  # only when frames come without intrinsics
+        self.calibrating = False  # tracking with a guessed focal length until it is estimated
+        self._calibration: list[tuple[int, np.ndarray, np.ndarray]] = []  # (index, grey, depth) since the start
 
     @property
     def reference(self) -> _Reference | None:
@@ -117,26 +124,66 @@ class RgbdOdometry:
     def track(self, frame: Frame, intrinsics: Intrinsics | None) -> TrackingResult:
         if frame.depth is None:
             raise ValueError(f"frame {frame.index} has no depth: RGB-D odometry needs depth on every frame")
+        if intrinsics is None and self.estimated_intrinsics is None:
+            self.calibrating = self.config.self_calibrate
         intrinsics = intrinsics or self._guess_intrinsics(frame)
         K = intrinsics.matrix().numpy().astype(np.float64)
         grey = grey_of(frame.image)
         depth = np.nan_to_num(np.asarray(frame.depth, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
         depth[depth < 0] = 0.0
+        result = self._track(frame.index, grey, depth, K)
+        if self.calibrating and result.tracked:
+            return self._calibration_step(frame, grey, depth, result)
+        return result
+
+    def _track(self, index: int, grey: np.ndarray, depth: np.ndarray, K: np.ndarray) -> TrackingResult:
         if self.reference is None:
-            return self._first(frame, grey, depth)
+            return self._first(index, grey, depth)
         current = _Current(build_pyramid(grey, depth, K, self.config.pyramid_levels), grey)
         if self.lost:
-            return self._relocalize(frame, grey, depth, current, K)
+            return self._relocalize(index, grey, depth, current, K)
         guess = motion_model_pose(self.previous_pose, self.last_pose)
         pose, reason = self._align_to(self.reference, current, guess, K)
         if pose is None:
             self.lost = True
-            log.warning("frame %d: RGB-D tracking lost (%s)", frame.index, reason)
+            log.warning("frame %d: RGB-D tracking lost (%s)", index, reason)
             return TrackingResult(self.last_pose.copy(), tracked=False, keyframe_hint=False,
                                   events=[{"type": "tracking_lost", "reason": reason}])
         self._advance(pose)
-        self._maybe_new_reference(frame, grey, depth, pose)
+        self._maybe_new_reference(index, grey, depth, pose)
         return TrackingResult(pose, depth=depth)
+
+    def _calibration_step(self, frame: Frame, grey: np.ndarray, depth: np.ndarray, result: TrackingResult
+                          ) -> TrackingResult:
+        """Collect the frame; once the camera moved enough, estimate the focal length, re-track the collected
+        frames with it and report them (`initialized`). No keyframes are asked for meanwhile."""
+        c = self.config
+        self._calibration.append((frame.index, grey, depth))
+        first = self.references[0]
+        moved, turned = relative_motion(first.pose, result.pose)
+        enough = moved > c.calibration_motion * first.median_depth or turned > 10 * c.calibration_motion
+        collected = len(self._calibration)
+        if collected < c.calibration_frames and not (enough and collected >= c.calibration_frames // 3):
+            result.keyframe_hint = False
+            return result
+        frames = self._calibration
+        others = [frames[-1]] + ([frames[len(frames) // 2]] if len(frames) > 2 else [])
+        guess = self.estimated_intrinsics
+        estimate = estimate_focal([((frames[0][1], frames[0][2]), (g, d)) for _, g, d in others], guess.fx,
+                                  (guess.cx, guess.cy), c.pyramid_levels)
+        self.estimated_intrinsics = Intrinsics(estimate.focal, estimate.focal, guess.cx, guess.cy, guess.width,
+                                               guess.height)
+        self.calibrating = False
+        self._calibration = []
+        K = self.estimated_intrinsics.matrix().numpy().astype(np.float64)
+        self.references.clear()
+        self.last_pose = self.previous_pose = None
+        poses = [[frames[0][0], self._first(*frames[0]).pose]]
+        for index, g, d in frames[1:]:
+            poses.append([index, self._track(index, g, d, K).pose])
+        event = {"type": "initialized", "frames": [[i, p.tolist()] for i, p in poses[:-1]],
+                 "intrinsics": self.estimated_intrinsics.to_dict(), "focal_trusted": estimate.trusted}
+        return TrackingResult(poses[-1][1], tracked=not self.lost, depth=depth, events=[event])
 
     def _guess_intrinsics(self, frame: Frame) -> Intrinsics:
         """A camera for frames without one: centred principal point, focal `focal_guess` x the long side (a
@@ -153,13 +200,14 @@ class RgbdOdometry:
         """Engine keyframes are independent of the odometry's references."""
 
     # ------------------------------------------------------------------------------------------------ internals
-    def _first(self, frame: Frame, grey: np.ndarray, depth: np.ndarray) -> TrackingResult:
+    def _first(self, index: int, grey: np.ndarray, depth: np.ndarray) -> TrackingResult:
+        """The first frame with depth anchors the world at its camera."""
         pose = np.eye(4)
         if not np.any(depth > 0):
             # Nothing to anchor the map to yet: wait at the origin for a frame with depth.
             return TrackingResult(pose, tracked=False, keyframe_hint=False,
                                   events=[{"type": "tracking_lost", "reason": "no depth in the first frame"}])
-        self.references.append(_Reference(frame.index, pose, grey, depth))
+        self.references.append(_Reference(index, pose, grey, depth))
         self._advance(pose)
         return TrackingResult(pose, depth=depth)
 
@@ -197,7 +245,7 @@ class RgbdOdometry:
         self.typical_residual = 0.8 * self.typical_residual + 0.2 * result.photometric_rms
         return pose, ""
 
-    def _relocalize(self, frame: Frame, grey: np.ndarray, depth: np.ndarray, current: _Current,
+    def _relocalize(self, index: int, grey: np.ndarray, depth: np.ndarray, current: _Current,
                     K: np.ndarray) -> TrackingResult:
         for ref in reversed(self.references):
             pose, _ = self._align_to(ref, current, self.last_pose, K, relocalizing=True)
@@ -205,8 +253,8 @@ class RgbdOdometry:
                 self.lost = False
                 self.previous_pose = None  # no velocity across the gap
                 self.last_pose = pose
-                log.info("frame %d: RGB-D tracking relocalized against keyframe %d", frame.index, ref.index)
-                self._maybe_new_reference(frame, grey, depth, pose)
+                log.info("frame %d: RGB-D tracking relocalized against keyframe %d", index, ref.index)
+                self._maybe_new_reference(index, grey, depth, pose)
                 return TrackingResult(pose, depth=depth,
                                       events=[{"type": "relocalized", "keyframe": int(ref.index)}])
         return TrackingResult(self.last_pose.copy(), tracked=False, keyframe_hint=False)
@@ -214,21 +262,22 @@ class RgbdOdometry:
     def _advance(self, pose: np.ndarray) -> None:
         self.previous_pose, self.last_pose = self.last_pose, pose
 
-    def _maybe_new_reference(self, frame: Frame, grey: np.ndarray, depth: np.ndarray, pose: np.ndarray) -> None:
+    def _maybe_new_reference(self, index: int, grey: np.ndarray, depth: np.ndarray, pose: np.ndarray) -> None:
         c = self.config
         ref = self.reference
         translation, rotation_deg = relative_motion(ref.pose, pose)
         if (self.last_overlap < c.new_reference_overlap or translation > c.new_reference_translation *
                 ref.median_depth or rotation_deg > c.new_reference_rotation_deg):
             if np.count_nonzero(depth) > 0.2 * depth.size:
-                self.references.append(_Reference(frame.index, pose, grey, depth))
+                self.references.append(_Reference(index, pose, grey, depth))
 
     # ------------------------------------------------------------------------------------------ snapshot/restore
     def state_dict(self) -> dict[str, Any]:
         return {"references": [r.to_dict() for r in self.references], "last_pose": self.last_pose,
                 "previous_pose": self.previous_pose, "lost": self.lost, "typical_residual": self.typical_residual,
                 "estimated_intrinsics": None if self.estimated_intrinsics is None else
-                self.estimated_intrinsics.to_dict()}
+                self.estimated_intrinsics.to_dict(), "calibrating": self.calibrating,
+                "calibration": [[i, _u8(g), d.astype(np.float16)] for i, g, d in self._calibration]}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.references = deque((_Reference.from_dict(r) for r in state["references"]),
@@ -240,3 +289,6 @@ class RgbdOdometry:
         self.typical_residual = float(state.get("typical_residual", self.config.max_photometric_residual))
         if state.get("estimated_intrinsics"):
             self.estimated_intrinsics = Intrinsics.from_dict(state["estimated_intrinsics"])
+        self.calibrating = bool(state.get("calibrating", False))
+        self._calibration = [(int(i), np.asarray(g, np.uint8).astype(np.float32) / 255.0, np.asarray(d, np.float32))
+                             for i, g, d in state.get("calibration", [])]
