@@ -1,12 +1,14 @@
 """Monocular visual odometry as a pose source.
 
-Points are followed from frame to frame by sub-pixel optical flow (Lucas-Kanade, forward-backward checked). The map
-starts from a two-view reconstruction of the first tracks with enough parallax; each frame's pose then comes from
-the tracks that measure map points (robust refinement from the constant-velocity guess, PnP + RANSAC when that
-fails). Keyframes are taken when tracks drop or the baseline grows: they add new corners, triangulate the candidate
-tracks that gained enough parallax since the oldest keyframe that saw them, and run a windowed bundle adjustment in
-which the oldest keyframes stay fixed, so scale carries over without rescaling. ORB descriptors of the keyframes'
-points serve relocalisation by place recognition when tracking is lost.
+Points are followed from frame to frame by sub-pixel optical flow (Lucas-Kanade, forward-backward checked, guided
+by the motion model) and re-matched against the last keyframe's image, so that small errors do not add up from frame
+to frame. The map starts from a two-view reconstruction of the first tracks with enough parallax; each frame's pose
+then comes from the tracks that measure map points (robust refinement from the constant-velocity guess, PnP + RANSAC
+when that fails). Keyframes are taken when tracks drop or the baseline grows: they add new corners, triangulate the
+candidate tracks that gained enough parallax since the oldest keyframe that saw them, and run a windowed bundle
+adjustment in which the oldest keyframes stay fixed, so scale carries over without rescaling. A lost frame first
+tries to take up the last tracked frame's tracks (a short loss), then place recognition with the ORB features the
+keyframes keep.
 
 Poses are camera-to-world rigid 4x4 matrices (a Sim(3) with s = 1); the world is the camera of the frame the map
 was initialised from and the scale makes that map's median depth 1.
@@ -58,7 +60,7 @@ class VisualOdometry:
         self.next_id = 0
         self.previous_gray: np.ndarray | None = None  # the last frame tracked (flow starts from it)
         self.keyframe_gray: np.ndarray | None = None  # the last keyframe's image (tracks are refined against it)
-        self.pending: list[tuple[int, np.ndarray, np.ndarray]] = []  # (index, track ids, uv) since the reference
+        self.pending: list[tuple[int, np.ndarray, np.ndarray]] = []  # (index, track ids, uv) of waiting frames
         self.pose = np.eye(4)
         self.velocity = np.eye(4)  # camera motion of the last frame (previous^-1 @ current)
         self.frames_since_keyframe = 0

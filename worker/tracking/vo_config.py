@@ -1,7 +1,9 @@
 """Settings of monocular visual odometry (`worker.tracking.visual_odometry.VisualOdometry`).
 
-Thresholds in pixels are for the finest pyramid level and grow with each keypoint's octave. Nothing here is tuned
-to one sequence: the defaults are the usual values of feature-based monocular SLAM for images of 320 to 640 pixels.
+Frames are tracked by optical flow (pixel noise of one pixel); ORB features serve relocalisation, where thresholds
+in pixels are for the finest pyramid level and grow with each keypoint's octave. Nothing here is tuned to one
+sequence: the defaults are the usual values of monocular SLAM front ends for images of 320 to 640 pixels, and the
+bench (`python -m bench visual_odometry`) shows their neighbourhood on real and synthetic sequences.
 """
 
 from __future__ import annotations
@@ -14,14 +16,14 @@ class VisualOdometryConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    # features
-    n_features: int = Field(1000, ge=50, description="ORB keypoints per frame (spread over a grid)")
+    # ORB features (keyframes and relocalisation)
+    n_features: int = Field(1000, ge=50, description="ORB keypoints per image (spread over a grid)")
     n_levels: int = Field(6, ge=1, le=12, description="pyramid levels")
     scale_factor: float = Field(1.2, gt=1.0, le=2.0, description="pyramid scale step")
     fast_threshold: int = Field(7, ge=1, description="FAST corner threshold")
     clahe_clip: float = Field(3.0, ge=0.0, description="contrast equalisation (CLAHE) clip limit; 0: off")
     grid_cell: int = Field(32, ge=8, description="side of the grid cells that spread keypoints, pixels")
-    min_features: int = Field(60, ge=10, description="fewer keypoints than this: the frame is unusable")
+    min_features: int = Field(60, ge=10, description="fewer keypoints than this: a lost frame is not searched")
 
     # two-view initialisation
     init_min_matches: int = Field(80, ge=20, description="matches (tracks) needed to try initialising")
