@@ -442,12 +442,15 @@ class SlamSystem:
         cfg = self.config
         self.pose_graph = self._new_pose_graph(metric=self._metric_loops())
         self.depth_source = self._choose_depth_source(tracking, with_depth)
+        mvs = self.depth_source == "mvs" and cfg.mapping.enabled
         needs_model = tracking == "model" or self.depth_source == "model" or (
             with_depth and cfg.input.surfel_init == "model")
         if needs_model:
             self._build_frontend()
-        if self.depth_source == "mvs" and cfg.mapping.enabled:
-            self.keyframe_depth = KeyframeDepth(cfg.depth, cfg.input.mvs_buffer_frames, cfg.input.mvs_frames_after)
+        if mvs:
+            fill = self._model_depth_filler() if cfg.input.mvs_fill == "model" else None
+            self.keyframe_depth = KeyframeDepth(cfg.depth, cfg.input.mvs_buffer_frames, cfg.input.mvs_frames_after,
+                                                fill)
         self.pose_source = self._build_pose_source(tracking)
         log.info("session tracking: %s (mode %s), surfels from %s", tracking, self.mode, self.depth_source)
         loops = cfg.loop.enabled and not (tracking == "device" and cfg.input.pose_mode == "fixed")
@@ -464,24 +467,30 @@ class SlamSystem:
             self.loop_closer = LoopCloser(cfg.loop, model=self.model, tracker=self.tracker, bag=self.bag,
                                           timings=self.timings)
 
-    def _build_frontend(self) -> None:
+    def _load_model(self):
+        """The configured checkpoint, else a seeded random model (with a warning); sets `model_id`."""
         from worker.frontend import build_model
         from worker.frontend.checkpoint import load_checkpoint
-        from worker.frontend.tracker import SubmapTracker, TrackerConfig
-        from worker.loop.bag import HiddenStateBag
 
         fc = self.config.frontend
         path = self.config.checkpoint_path()
         if path is not None:
-            self.model = load_checkpoint(path, device=self.config.device)
             self.model_id = f"checkpoint:{path.name}"
-        else:
-            log.warning("no checkpoint for model %r: using a randomly initialised model (seed %d); poses and maps "
-                        "will be meaningless until trained weights are given", fc.model, fc.seed)
-            with torch.random.fork_rng():
-                torch.manual_seed(fc.seed)
-                self.model = build_model(fc.model, device=self.config.device)
-            self.model_id = f"random:{fc.model}:seed={fc.seed}"
+            return load_checkpoint(path, device=self.config.device)
+        log.warning("no checkpoint for model %r: using a randomly initialised model (seed %d); poses and maps "
+                    "will be meaningless until trained weights are given", fc.model, fc.seed)
+        with torch.random.fork_rng():
+            torch.manual_seed(fc.seed)
+            model = build_model(fc.model, device=self.config.device)
+        self.model_id = f"random:{fc.model}:seed={fc.seed}"
+        return model
+
+    def _build_frontend(self) -> None:
+        from worker.frontend.tracker import SubmapTracker, TrackerConfig
+        from worker.loop.bag import HiddenStateBag
+
+        fc = self.config.frontend
+        self.model = self._load_model()
         self.tracker = SubmapTracker(self.model, TrackerConfig(
             submap_length=fc.submap_size, keyframe_translation=fc.keyframe_depth_ratio,
             keyframe_rotation_deg=fc.keyframe_rotation_deg))
@@ -497,6 +506,14 @@ class SlamSystem:
         if requested == "auto":
             return "model" if tracking == "model" else "mvs"
         return requested
+
+    def _model_depth_filler(self):
+        """The learned model's single-view depth (worker.engine.model_depth), loaded like the tracker's model."""
+        from worker.engine.model_depth import ModelDepth
+
+        if self.model is None:
+            self.model = self._load_model()
+        return ModelDepth(self.model, self.config.frontend.long_side).depth
 
     def _build_pose_source(self, tracking: str):
         if tracking == "device":

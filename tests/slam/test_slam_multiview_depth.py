@@ -66,3 +66,19 @@ def test_snapshot_keeps_keyframes_waiting_for_neighbours(posed_rgb) -> None:
     assert mapped == len(restored.trajectory("keyframes")) + (restored.last_frame_mapped is not None)
     restored.close()
     first.close()
+
+
+def test_the_model_can_fill_what_stereo_leaves_empty(posed_rgb) -> None:
+    frames, _, intr = posed_rgb
+    counts = {}
+    for fill in ("none", "model"):
+        config = SlamConfig.preset("rgbd", threaded=False, input={"pose_mode": "fixed", "mvs_fill": fill},
+                                   mapping={"refine_iterations": 0, "final_refine_passes": 0})
+        system = SlamSystem(config, intr)
+        for f in frames:
+            system.push(f)
+        system.finish()
+        counts[fill] = system.num_gaussians
+        assert (system.model is not None) == (fill == "model") and system.tracker is None
+        system.close()
+    assert counts["model"] > 1.2 * counts["none"]  # the pixels stereo could not match get surfels too

@@ -4,7 +4,7 @@ The engine keeps the last frames' images here; each keyframe waits until `frames
 (neighbours on both sides see around different occluders), then its neighbours are chosen by baseline and view
 angle among the kept frames (worker.depth.select_neighbours) at their current poses, and a `KeyframeJob` is made
 whose surfel grid the backend thread builds from the plane-sweep depth (worker.depth.estimate_depth): confident
-pixels become surfels, the others none.
+pixels become surfels, the others none (or, with a `fill`, the learned model's depth brought to their scale).
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from worker.depth import MultiViewDepthConfig, estimate_depth, select_neighbours
+from worker.depth import MultiViewDepthConfig, estimate_depth, scale_to_confident, select_neighbours
 from worker.engine.backend import KeyframeJob
 from worker.engine.surfel_init import grid_from_depth
 
@@ -53,8 +53,12 @@ def depth_hint(depth: np.ndarray | None, margin: float = 2.0) -> DepthHint:
 class KeyframeDepth:
     """The frame ring and the keyframes waiting for their multi-view depth (see the module docstring)."""
 
-    def __init__(self, config: MultiViewDepthConfig, buffer_frames: int, frames_after: int) -> None:
+    def __init__(self, config: MultiViewDepthConfig, buffer_frames: int, frames_after: int,
+                 fill: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
+        """`fill(image) -> depth`: another depth (the model's) for the pixels stereo leaves without one, brought to
+        the stereo depth's scale; None leaves them without surfels."""
         self.config = config
+        self.fill = fill
         self.buffer_frames = buffer_frames
         self.frames_after = frames_after
         self.images: OrderedDict[int, np.ndarray] = OrderedDict()
@@ -107,8 +111,14 @@ class KeyframeDepth:
                       100 * estimate.coverage)
             if estimate.coverage > 0.2:
                 self.recent_hint = depth_hint(estimate.depth, margin=3.0)
-            depth = torch.from_numpy(estimate.depth / scale)  # world units -> the keyframe camera's (Sim(3) pose)
-            return Kt, grid_from_depth(image, depth, Kt), depth
+            confident = estimate.depth / scale  # world units -> the keyframe camera's (Sim(3) pose)
+            surfel_depth = confident
+            if self.fill is not None and estimate.coverage > 0.05:
+                filled = scale_to_confident(self.fill(ref_image), confident, estimate.confidence)
+                surfel_depth = np.where(confident > 0, confident, filled).astype(np.float32)
+            # The refinement's depth term sees the confident depth only.
+            grid = grid_from_depth(image, torch.from_numpy(surfel_depth), Kt, fill_holes=False)
+            return Kt, grid, torch.from_numpy(confident)
 
         return KeyframeJob(kf.kf_id, world_pose, Kt, image, grid={}, depth=None, build=build)
 

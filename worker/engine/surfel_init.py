@@ -59,10 +59,15 @@ def normals_to_quats(normals: torch.Tensor) -> torch.Tensor:
     return rotmat_to_quat(torch.stack([u, v, normals], dim=-1))
 
 
-def grid_from_depth(image: torch.Tensor, depth: torch.Tensor, K: torch.Tensor) -> dict[str, torch.Tensor]:
+def grid_from_depth(image: torch.Tensor, depth: torch.Tensor, K: torch.Tensor, fill_holes: bool = True
+                    ) -> dict[str, torch.Tensor]:
     """Surfels from an RGB image float [H,W,3] in [0,1] and metric depth [H,W] (0 = invalid): one per pixel at
-    the unprojected depth, oriented along the depth's surface normal, coloured by the pixel, ~1 pixel wide."""
-    depth = fill_invalid_depth(depth.to(torch.float32))
+    the unprojected depth, oriented along the depth's surface normal, coloured by the pixel, ~1 pixel wide.
+    `fill_holes`: invalid pixels get a surfel at the farthest depth (a sensor's holes are far or glassy surfaces);
+    otherwise none (a stereo hole says nothing about the depth there)."""
+    depth = depth.to(torch.float32)
+    if fill_holes:
+        depth = fill_invalid_depth(depth)
     means = unproject_depth(depth, K.to(torch.float32))
     normals = depth_normals(means)
     footprint = depth / float(K[0, 0])
