@@ -242,7 +242,7 @@ class VisualOdometry:
             uv_plain, ok_plain = self._flow(gray, None)
             if (ok_plain & t.mapped).sum() > (ok & t.mapped).sum():
                 uv, ok = uv_plain, ok_plain
-        tracks = self._refine(Tracks(t.ids[ok], uv[ok], t.rows[ok]), gray)
+        tracks = self._refine(Tracks(t.ids[ok], uv[ok], t.rows[ok]), gray, predicted)
         found = self._pose_from_tracks(tracks, predicted, K)
         if found is None:
             return None
@@ -251,16 +251,26 @@ class VisualOdometry:
         keep[np.flatnonzero(tracks.mapped)[~inlier]] = False
         return pose, tracks.subset(keep), int(inlier.sum())
 
-    def _refine(self, tracks: Tracks, gray: np.ndarray) -> Tracks:
-        """The tracks that began at or before the last keyframe, matched against that keyframe's image."""
-        if self.keyframe_gray is None or not self.config.flow_refine_px or not self.map.keyframes:
+    def _refine(self, tracks: Tracks, gray: np.ndarray, predicted: np.ndarray) -> Tracks:
+        """The tracks that began at or before the last keyframe, matched against that keyframe's image where their
+        image scale has not changed much since (the match is a shift, not a zoom; moving forward zooms)."""
+        c = self.config
+        if self.keyframe_gray is None or not c.flow_refine_px or not self.map.keyframes:
             return tracks
         kf = self.map.keyframes[-1]
         order = np.argsort(kf.track_ids)
         at, found = lookup_sorted(kf.track_ids[order], tracks.ids)
+        zoom = np.ones(len(tracks))
+        mapped = tracks.mapped
+        if mapped.any():
+            points = self.map.positions[tracks.rows[mapped]]
+            then, now = to_camera(points, kf.pose)[:, 2], to_camera(points, predicted)[:, 2]
+            zoom[mapped] = then / np.maximum(now, 1e-9)
+            zoom[~mapped] = np.median(zoom[mapped])
+        found &= np.abs(zoom - 1.0) <= c.flow_refine_zoom
         uv = tracks.uv.copy()
         uv[found] = refine_points(self.keyframe_gray, gray, kf.features.keypoints[order[at[found]]], uv[found],
-                                  window=self.config.flow_window, max_shift_px=self.config.flow_refine_px)
+                                  window=c.flow_window, max_shift_px=c.flow_refine_px)
         return Tracks(tracks.ids, uv, tracks.rows)
 
     def _pose_from_tracks(self, tracks: Tracks, guess: np.ndarray, K: np.ndarray

@@ -43,6 +43,8 @@ class VisualOdometryConfig(BaseModel):
     flow_levels: int = Field(3, ge=0, le=6, description="Lucas-Kanade pyramid levels above the image")
     flow_refine_px: float = Field(1.0, ge=0.0, description="a track is re-matched against the last keyframe's image "
                                                             "when that moves it at most this far (0: off), px")
+    flow_refine_zoom: float = Field(0.05, ge=0.0, description="... and when its image scale differs from the "
+                                                              "keyframe's by at most this share")
     flow_fb_px: float = Field(0.75, gt=0.0, description="largest forward-backward flow error of a kept track, px")
 
     # tracking
@@ -52,7 +54,7 @@ class VisualOdometryConfig(BaseModel):
     chi2_px: float = Field(5.991, gt=0.0, description="squared reprojection error (in sigmas) of an inlier")
 
     # keyframes and the local map
-    keyframe_tracked_ratio: float = Field(0.7, gt=0.0, lt=1.0,
+    keyframe_tracked_ratio: float = Field(0.8, gt=0.0, lt=1.0,
                                           description="new keyframe when tracked points fall below this share "
                                                       "of the last keyframe's")
     keyframe_max_gap: int = Field(20, ge=1, description="frames between keyframes at the most (while moving)")
