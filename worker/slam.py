@@ -143,7 +143,7 @@ class SlamSystem:
         if self.backend is not None:
             self._map_last_frame()
             self._queue_depth_jobs(force=True)
-            self._flush_posed_jobs(force=True)
+            self._flush_map_jobs(force=True)
             self.backend.wait_idle()
             if self._close_waiting_loops():
                 self.backend.wait_idle()
@@ -264,7 +264,7 @@ class SlamSystem:
                 self.keyframe_depth.add_keyframe(frame.index, self.camera(frame).matrix().numpy(), tracking.depth)
             elif self.backend is not None:  # the keyframe enters the map before a loop closure can move it
                 self._pending_jobs.append(self._keyframe_job(frame, prediction))
-                self._flush_posed_jobs()
+                self._flush_map_jobs()
             if self.loop_closer is not None:
                 events += self._keyframe_loop(frame, prediction)
         world = self._traj.add_frame(frame.index, frame.timestamp, self._last_keyframe, pose, is_kf,
@@ -272,7 +272,7 @@ class SlamSystem:
         self._last_frame = None if is_kf else (frame, tracking.tracked)
         if self.backend is not None:
             self._queue_depth_jobs()
-            self._flush_posed_jobs()
+            self._flush_map_jobs()
         return FrameResult(frame.index, frame.timestamp, world, is_kf, tracking.submap_id, self.revision, events)
 
     def _apply_tracking_event(self, event: dict[str, Any]) -> dict[str, Any]:
@@ -340,7 +340,7 @@ class SlamSystem:
             self._loops_waiting.append(frame.index)
             return []
         if self.depth_points is not None:
-            return self._posed_loop(frame)
+            return self._depth_loop(frame)
         prep = prediction[0]
         return self._close_loop(frame.index, prep.tensor, self.model_intrinsics)
 
@@ -359,7 +359,8 @@ class SlamSystem:
         self.counters["keyframes"] += 1
         return world
 
-    def _posed_loop(self, frame: Frame) -> list[dict[str, Any]]:
+    def _depth_loop(self, frame: Frame) -> list[dict[str, Any]]:
+        """Loop closure for a keyframe that carries depth: its points join the PnP database first."""
         intr = self.camera(frame)
         self.depth_points.add(frame.index, torch.from_numpy(np.asarray(frame.depth, np.float32)), intr.matrix())
         image = torch.from_numpy(frame.image).permute(2, 0, 1)[None].float() / 255.0
@@ -392,7 +393,7 @@ class SlamSystem:
             self.counters["path_tracked"] += float(np.linalg.norm(tracked[:3, 3] - t0[:3, 3]))
         self._previous_poses = (given.copy(), tracked.copy())
 
-    def _flush_posed_jobs(self, force: bool = False) -> None:
+    def _flush_map_jobs(self, force: bool = False) -> None:
         """Submit keyframe jobs; model-unit surfels wait until the path gives their scale, and every job while the
         pose source is still estimating the camera (unless `force`)."""
         if getattr(self.pose_source, "calibrating", False) and not force:
@@ -660,7 +661,7 @@ class SlamSystem:
     def snapshot(self) -> bytes:
         """Everything needed to continue this session, as msgpack bytes (waits for the backend to be idle)."""
         if self.backend is not None:
-            self._flush_posed_jobs(force=True)
+            self._flush_map_jobs(force=True)
             self.backend.wait_idle()
         state = {
             "format": SNAPSHOT_FORMAT,
