@@ -11,12 +11,15 @@ chosen once per session from `frontend.tracking` and the first frame (see `choos
 - rgbd_odometry (depth, no poses): dense photometric + geometric alignment to a reference keyframe;
 - visual_odometry (RGB only): features, PnP against a local map, windowed bundle adjustment;
 - model (mode "monocular"): the feed-forward model tracks submaps (worker.frontend.tracker), the paper's path.
-Surfels come from what the frames carry, whichever source ran: the frame's depth (`input.use_depth`; means from the
-unprojected depth, other attributes from the model or, with `input.surfel_init="depth"`, from image and depth
-alone), else the model's prediction. Keyframes follow the source's hint, else the motion-based selector.
+Surfels come from what the frames carry, whichever source ran (`depth_source`): the frame's depth ("sensor",
+`input.use_depth`; means from the unprojected depth, other attributes from the model or, with
+`input.surfel_init="depth"`, from image and depth alone), else multi-view stereo on the tracked poses ("mvs",
+worker.engine.keyframe_depth, built in the backend thread), or the model's prediction ("model"). Keyframes follow
+the source's hint, else the motion-based selector.
 
-`snapshot()` writes everything needed to continue (config, model id, tracker, bag of hidden states, pose graph,
-trajectory, map, counters) as msgpack; `SlamSystem.restore(data)` continues from it in any process.
+`snapshot()` writes everything needed to continue (config, model id, pose source, tracker, bag of hidden states,
+pose graph, trajectory, keyframes waiting for depth, map, counters) as msgpack; `SlamSystem.restore(data)`
+continues from it in any process.
 """
 
 from __future__ import annotations
