@@ -40,7 +40,7 @@ from worker.engine.loop_closer import DepthKeyframePoints, LoopCloser
 from worker.engine.stage_times import StageTimes
 from worker.engine.surfel_init import grid_from_depth, grid_from_prediction
 from worker.engine.trajectory import Trajectory
-from worker.geometry import Intrinsics, make_sim3, sim3_decompose, sim3_inverse
+from worker.geometry import Intrinsics, se3_part, sim3_inverse
 from worker.loop.pose_graph import DEFAULT_SIGMAS, EdgeSigmas, Sim3PoseGraph
 from worker.serialization import pack, unpack
 from worker.tracking.base import TrackingResult
@@ -598,7 +598,7 @@ class SlamSystem:
         for constraint in constraints:
             relative = constraint.relative
             if self._metric_loops():  # given metric poses and depth: a loop measures no scale change
-                relative = self._align_depth(constraint.i, constraint.j, _rigid(relative), intrinsics)
+                relative = self._align_depth(constraint.i, constraint.j, se3_part(relative), intrinsics)
                 if relative is None:
                     continue
             self.pose_graph.add_edge(constraint.i, constraint.j, relative, kind="loop",
@@ -766,12 +766,6 @@ def _checked_pose(frame: Frame, tracking: TrackingResult) -> np.ndarray:
     if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
         raise RuntimeError(f"frame {frame.index}: the pose source returned a non-finite pose")
     return pose
-
-
-def _rigid(pose: np.ndarray) -> np.ndarray:
-    """The SE(3) part of a Sim(3) matrix (scale removed, translation kept)."""
-    s, R, t = sim3_decompose(torch.as_tensor(np.asarray(pose, np.float64)))
-    return make_sim3(R, t).numpy()
 
 
 def _uncrop_intrinsics(intr: Intrinsics, geometry: tuple[float, tuple[int, int, int, int]], width: int,

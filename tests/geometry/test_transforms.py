@@ -120,3 +120,12 @@ def test_camera_unproject_project_round_trip():
     assert half.fx == 262.5 and half.cx == 159.75
     with pytest.raises(ValueError):
         Intrinsics(0.0, 1.0, 0.0, 0.0, 10, 10)
+
+
+def test_se3_part_removes_the_scale_and_keeps_the_translation() -> None:
+    from worker.geometry import make_sim3, se3_part, so3_exp
+
+    R = so3_exp(torch.tensor([0.1, -0.2, 0.3], dtype=torch.float64))
+    t = torch.tensor([1.0, 2.0, -3.0], dtype=torch.float64)
+    rigid = se3_part(make_sim3(R, t, 2.5).numpy())
+    np.testing.assert_allclose(rigid, make_sim3(R, t).numpy(), atol=1e-12)

@@ -35,7 +35,7 @@ class KeyframeJob:
 
     kf_id: int
     pose: np.ndarray
-    K: torch.Tensor
+    K: torch.Tensor | None  # None until `build` has run
     image: torch.Tensor
     grid: dict[str, torch.Tensor]
     depth: torch.Tensor | None = None

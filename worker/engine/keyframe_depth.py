@@ -21,6 +21,7 @@ import torch
 from worker.depth import MultiViewDepthConfig, estimate_depth, scale_to_confident, select_neighbours
 from worker.engine.backend import KeyframeJob
 from worker.engine.surfel_init import grid_from_depth
+from worker.geometry import se3_part
 
 log = logging.getLogger(__name__)
 
@@ -93,10 +94,10 @@ class KeyframeDepth:
             log.warning("keyframe %d: no tracked image kept, no multi-view depth", kf.kf_id)
             return None
         world_pose = pose_of(kf.kf_id)
-        ref_pose = _rigid(world_pose)
+        ref_pose = se3_part(world_pose)
         depth_range, scene_depth = (kf.depth_range, kf.scene_depth) if kf.scene_depth else self.recent_hint
         candidates = [i for i in self.images if i != kf.kf_id]
-        poses = [_rigid(pose_of(i)) for i in candidates]
+        poses = [se3_part(pose_of(i)) for i in candidates]
         chosen = select_neighbours(ref_pose, poses, self.config, scene_depth=scene_depth)
         neighbours = [(self.images[candidates[c]], poses[c]) for c in chosen]
         config, K = self.config, kf.K
@@ -137,10 +138,3 @@ class KeyframeDepth:
         self.pending = [PendingKeyframe(int(p["kf_id"]), np.asarray(p["K"], np.float64),
                                         None if p["depth_range"] is None else tuple(p["depth_range"]),
                                         p["scene_depth"]) for p in state["pending"]]
-
-
-def _rigid(pose: np.ndarray) -> np.ndarray:
-    """The rigid part of a c2w Sim(3) (the scale divided out of the rotation block)."""
-    out = np.array(pose, np.float64)
-    out[:3, :3] /= np.cbrt(np.linalg.det(out[:3, :3]))
-    return out

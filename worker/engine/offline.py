@@ -19,23 +19,16 @@ import numpy as np
 from worker.config import SlamConfig
 from worker.data.frame import Frame
 from worker.engine.drift import PoseDrift
+from worker.geometry import se3_part
 
 MAX_SAVED_RENDERS = 12
-
-
-def _se3_part(pose: np.ndarray) -> np.ndarray:
-    """The rigid part of a Sim(3) c2w pose (rotation without scale), for TUM files and rendering."""
-    out = np.array(pose, np.float64)
-    s = np.cbrt(np.linalg.det(out[:3, :3]))
-    out[:3, :3] /= s
-    return out
 
 
 def _write_trajectory(path: Path, entries: list[tuple[int, float, np.ndarray]]) -> None:
     from worker.eval import Trajectory, write_tum
 
     if entries:
-        write_tum(path, Trajectory(np.array([t for _, t, _ in entries]), np.stack([_se3_part(p)
+        write_tum(path, Trajectory(np.array([t for _, t, _ in entries]), np.stack([se3_part(p)
                                                                                     for _, _, p in entries])))
     else:
         path.write_text("# timestamp tx ty tz qx qy qz qw\n")
@@ -161,7 +154,7 @@ def _render_metrics(system, frames: list[Frame], results, poses, intrinsics, out
         return system.render_view(pose, K, intrinsics.width, intrinsics.height)
 
     eval_frames = [frames[i] for i in chosen]
-    eval_poses = [_se3_part(poses[i][2]) for i in chosen]
+    eval_poses = [se3_part(poses[i][2]) for i in chosen]
     for i, frame, pose in zip(chosen, eval_frames, eval_poses):
         if i in saved:
             rgb, _ = render(pose, None)

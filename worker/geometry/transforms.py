@@ -6,6 +6,7 @@ both. Poses are camera-to-world unless a name says otherwise.
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from .quaternion import quat_to_rotmat, rotmat_to_quat
@@ -30,6 +31,13 @@ def sim3_scale(T: torch.Tensor) -> torch.Tensor:
     """The scale s of [..., 4, 4] similarities (cube root of det(sR))."""
     det = torch.linalg.det(T[..., :3, :3])
     return det.sign() * det.abs().pow(1.0 / 3.0)
+
+
+def se3_part(T: np.ndarray) -> np.ndarray:
+    """The rigid part of a 4x4 Sim(3) matrix (numpy): the scale divided out of the rotation, translation kept."""
+    out = np.array(T, np.float64)
+    out[:3, :3] /= np.cbrt(np.linalg.det(out[:3, :3]))
+    return out
 
 
 def sim3_decompose(T: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
