@@ -269,8 +269,12 @@ class SessionRunner(threading.Thread):
             entries = self.client.xrange(keys.inbox(self.session_id), min=f"({after.decode()}", count=64)
             if not entries:
                 break
+            newest_frame = _newest_frame_id(entries)
             for entry_id, fields in entries:
-                self._handle_entry(entry_id, fields)
+                if self._should_skip(entry_id, fields, newest_frame):  # caught up live: old frames are skipped
+                    self._skip(entry_id, int(fields[b"seq"]))
+                else:
+                    self._handle_entry(entry_id, fields)
                 after = entry_id
         self._cursor = stream_id_tuple(after)
         self._resume_interrupted_finish()
