@@ -1,7 +1,8 @@
 """The SLAM system: one object per session, frame in -> pose out, with a 2DGS map behind it.
 
 Three stages, each with its own input queue and thread (the Tracking / LocalMapping / LoopClosing split of
-ORB-SLAM3): the caller's thread tracks (pose source, keyframe selection) and publishes each frame's pose at once;
+ORB-SLAM3): the tracking stage (worker.engine.tracking_stage, in the caller's thread: pose source, keyframe
+decision, trajectory) publishes each frame's pose at once;
 the mapping stage (worker.engine.mapping_stage) builds keyframe depth and maps keyframes (voxelize, prune, fuse,
 refine, loop correction), shedding work when it falls behind; the loop-closing stage (worker.engine.loop_stage)
 keeps the pose graph, detects and verifies loops and hands optimised keyframe poses back, which tracking applies as
@@ -42,16 +43,15 @@ from worker.engine.backend import KeyframeJob, PoseUpdateJob
 from worker.engine.keyframe_depth import KeyframeDepth
 from worker.engine.keyframes import MotionKeyframeSelector
 from worker.engine.loop_closer import DepthKeyframePoints, LoopCloser
-from worker.engine.loop_stage import CameraUpdate, GraphKeyframe, LoopClosingStage, LoopCorrection, LoopQuery
+from worker.engine.loop_stage import CameraUpdate, LoopClosingStage, LoopCorrection, LoopQuery
 from worker.engine.mapping_stage import MappingStage
 from worker.engine.snapshot_future import SnapshotFuture
 from worker.engine.stage_times import StageTimes
 from worker.engine.surfel_init import grid_from_depth, grid_from_prediction
-from worker.engine.trajectory import Trajectory
+from worker.engine.tracking_stage import TrackingStage
 from worker.geometry import Intrinsics, sim3_inverse
 from worker.loop.pose_graph import DEFAULT_SIGMAS, EdgeSigmas, Sim3PoseGraph
 from worker.serialization import pack, unpack
-from worker.tracking.base import TrackingResult
 from worker.tracking.sources import DevicePoses, ModelTracking, choose_tracking
 
 log = logging.getLogger(__name__)
@@ -83,23 +83,21 @@ class SlamSystem:
         self.intrinsics = intrinsics
         self.mode: str | None = None  # MODE_OF_TRACKING[self.tracking], set by the first frame
         self.tracking: str | None = None  # the pose source's name
-        self.pose_source = None
         self._model: ModelTracking | None = None  # the learned model, as pose source or surfel predictor
-        self._traj = Trajectory()
-        self.selector = MotionKeyframeSelector(self.config.frontend.keyframe_every,
-                                               self.config.frontend.keyframe_translation,
-                                               self.config.frontend.keyframe_rotation_deg)
         self.timings = StageTimes()  # the runtime breakdown of paper appendix E
         self._with_depth = False
         self.loop_stage = self._new_loop_stage(self._new_pose_graph(), closer=None, depth_points=None)
+        fc = self.config.frontend
+        self.tracking_stage = TrackingStage(
+            MotionKeyframeSelector(fc.keyframe_every, fc.keyframe_translation, fc.keyframe_rotation_deg),
+            publish_keyframe=lambda node: self.loop_stage.submit(node), timings=self.timings)
+        self._traj = self.tracking_stage.trajectory
         self.backend = (MappingStage(self.config.mapping, self.config.threaded, self.config.queue_size,
                                      self.config.device, self.timings) if self.config.mapping.enabled else None)
         if self.backend is not None:
             self.backend.on_keyframe_built = self._keyframe_depth_built
         self.counters: dict[str, float] = {"frames": 0, "keyframes": 0, "loops": 0, "frontend_seconds": 0.0,
                                            "wall_seconds": 0.0, "path_given": 0.0, "path_tracked": 0.0}
-        self._last_keyframe: int | None = None
-        self._submap_of: dict[int, int] = {}
         self._frame_size: tuple[int, int] | None = None
         self._keyframe_images: dict[int, np.ndarray] = {}
         self._finished = False
@@ -134,6 +132,15 @@ class SlamSystem:
     @property
     def num_gaussians(self) -> int:
         return 0 if self.backend is None else self.backend.num_gaussians()
+
+    @property
+    def pose_source(self):
+        """The session's pose source (the tracking stage's)."""
+        return self.tracking_stage.pose_source
+
+    @property
+    def selector(self) -> MotionKeyframeSelector:
+        return self.tracking_stage.selector
 
     @property
     def pose_graph(self) -> Sim3PoseGraph:
@@ -288,10 +295,7 @@ class SlamSystem:
         """Pose source -> keyframe selection -> map job -> loop closure, the same for every source."""
         intrinsics = self.frame_intrinsics(frame)
         events = self._apply_corrections()
-        stage = "frontend_inference" if self.tracking == "model" else "frontend_tracking"
-        with self.timings.measure(stage):
-            tracking = self.pose_source.track(frame, intrinsics)
-        pose = _checked_pose(frame, tracking)
+        tracking, pose = self.tracking_stage.track(frame, intrinsics)
         events += [self._apply_tracking_event(event) for event in tracking.events]
         prediction = tracking.prediction
         if prediction is None and self._model is not None:  # the model predicts the surfels beside the source
@@ -300,10 +304,10 @@ class SlamSystem:
             self._accumulate_path(pose, prediction[1].pose_world.numpy())
         if self.keyframe_depth is not None and tracking.tracked:  # a lost frame's held pose is not its own
             self.keyframe_depth.add_frame(frame.index, frame.image)
-        is_kf = self._is_keyframe(tracking, pose)
+        is_kf = self.tracking_stage.is_keyframe(tracking, pose)
         if is_kf:
-            self._add_keyframe(frame.index, pose, submap_id=tracking.submap_id)
-            self.pose_source.keyframe_added(frame, pose)
+            self.tracking_stage.add_keyframe(frame, pose, submap_id=tracking.submap_id)
+            self.counters["keyframes"] += 1
             if self.keyframe_depth is not None:  # mapped once later frames give it neighbours
                 self.keyframe_depth.add_keyframe(frame.index, self.camera(frame).matrix().numpy(), tracking.depth)
             elif self.backend is not None:  # the keyframe enters the map before a loop closure can move it
@@ -311,8 +315,7 @@ class SlamSystem:
                 self._flush_map_jobs()
             if self.loop_closer is not None:
                 events += self._keyframe_loop(frame, prediction)
-        world = self._traj.add_frame(frame.index, frame.timestamp, self._last_keyframe, pose, is_kf,
-                                     tracking.submap_id)
+        world = self.tracking_stage.add_frame(frame, pose, is_kf, tracking.submap_id)
         self._last_frame = None if is_kf else (frame, tracking.tracked)
         if self.backend is not None:
             self._queue_depth_jobs()
@@ -365,16 +368,6 @@ class SlamSystem:
         for job in self.keyframe_depth.ready_jobs(self._traj.pose_at, force):
             self._pending_jobs.append((job, False))
 
-    def _is_keyframe(self, tracking: TrackingResult, pose: np.ndarray) -> bool:
-        """The first frame always; then the source's hint when it gives one (False while lost), else the motion
-        selector."""
-        if self._last_keyframe is None:
-            self.selector.is_keyframe(pose)
-            return True
-        if tracking.keyframe_hint is False:
-            return False
-        return self.selector.is_keyframe(pose, force=bool(tracking.keyframe_hint))
-
     def _keyframe_loop(self, frame: Frame, prediction) -> list[dict[str, Any]]:
         """Queue loop closure for a new keyframe: against keyframe depth (ORB + PnP + ICP) or the model's hidden
         states. With multi-view depth the mapping stage queues it once it has built the keyframe's depth."""
@@ -397,23 +390,6 @@ class SlamSystem:
         h, w = job.image.shape[:2]
         self.loop_stage.submit(LoopQuery(job.kf_id, job.image.permute(2, 0, 1)[None],
                                          Intrinsics.from_matrix(job.K, w, h), job.depth, job.K))
-
-    def _add_keyframe(self, kf_id: int, tracked_pose: np.ndarray, submap_id: int) -> np.ndarray:
-        """Insert a keyframe in the trajectory and, through the loop-closing stage, in the pose graph (odometry
-        edge from the previous keyframe)."""
-        previous = self._last_keyframe
-        world = self._traj.add_keyframe(kf_id, tracked_pose, reference=previous)
-        node = GraphKeyframe(kf_id, world.copy())
-        if previous is not None:
-            node.previous = previous
-            node.relative = (sim3_inverse(torch.from_numpy(self._traj.tracked_keyframe_poses[previous]))
-                             @ torch.from_numpy(np.asarray(tracked_pose, np.float64))).numpy()
-            node.kind = "sequential" if self._submap_of.get(previous, submap_id) == submap_id else "inter_submap"
-        self.loop_stage.submit(node)
-        self._submap_of[kf_id] = submap_id
-        self._last_keyframe = kf_id
-        self.counters["keyframes"] += 1
-        return world
 
     def _accumulate_path(self, given: np.ndarray, tracked: np.ndarray) -> None:
         """Path lengths of the given and the tracked trajectories: their ratio converts model units to pose units."""
@@ -481,7 +457,8 @@ class SlamSystem:
             fill = self._model_depth_filler() if cfg.input.mvs_fill == "model" else None
             self.keyframe_depth = KeyframeDepth(cfg.depth, cfg.input.mvs_buffer_frames, cfg.input.mvs_frames_after,
                                                 fill)
-        self.pose_source = self._build_pose_source(tracking)
+        self.tracking_stage.pose_source = self._build_pose_source(tracking)
+        self.tracking_stage.timing_stage = "frontend_inference" if tracking == "model" else "frontend_tracking"
         log.info("session tracking: %s (mode %s), surfels from %s", tracking, self.mode, self.depth_source)
         self._build_loop_closer(tracking, with_depth)
         self.loop_stage.close()
@@ -638,11 +615,8 @@ class SlamSystem:
     def _apply_correction(self, correction: LoopCorrection) -> dict[str, Any]:
         """Move the trajectory and the map to the optimised keyframe poses. Keyframes made after the optimisation
         follow the newest optimised keyframe before them, so nothing jumps. Returns the loop event."""
-        old = {k: v.copy() for k, v in self._traj.keyframe_poses.items()}
-        poses = _follow_corrections(old, {k: p for k, p in correction.poses.items() if k in old})
-        revision = self._traj.update_keyframes(poses)
+        revision, changed = self.tracking_stage.apply_correction(correction.poses)
         if self.backend is not None:
-            changed = {k: p for k, p in poses.items() if not np.allclose(p, old[k], atol=1e-9)}
             for job, _ in self._pending_jobs:  # not in the map yet (waiting for their scale): they move here
                 if job.kf_id in changed:
                     job.pose = changed.pop(job.kf_id)
@@ -684,15 +658,11 @@ class SlamSystem:
             "model_intrinsics": None if self.model_intrinsics is None else self.model_intrinsics.to_dict(),
             "mode": self.mode,
             "tracking": self.tracking,
-            "pose_source": None if self.pose_source is None else self.pose_source.state_dict(),
             "with_depth": self._with_depth,
             "frame_size": None if self._frame_size is None else list(self._frame_size),
-            "last_keyframe": self._last_keyframe,
-            "submap_of": [[k, v] for k, v in self._submap_of.items()],
             "previous_poses": None if self._previous_poses is None else list(self._previous_poses),
             "counters": dict(self.counters),
-            "trajectory": self._traj.state_dict(),
-            "selector": self.selector.state_dict(),
+            **self.tracking_stage.state_dict(),
             "tracker": None if self.tracker is None else self.tracker.state_dict(),
             "bag": None if self.bag is None else self.bag.to_bytes(torch.float32),
             "keyframe_depth": None if self.keyframe_depth is None else self.keyframe_depth.state_dict(),
@@ -725,49 +695,29 @@ class SlamSystem:
         if state["mode"] is not None:
             system._with_depth = bool(state["with_depth"])
             system._setup(state.get("tracking") or TRACKING_OF_MODE[state["mode"]], with_depth=system._with_depth)
-            if state.get("pose_source"):
-                system.pose_source.load_state_dict(state["pose_source"])
         if system.model_id != state["model_id"]:
             raise ValueError(f"the snapshot was made with model {state['model_id']!r}, this machine has "
                              f"{system.model_id!r}")
         if state["model_intrinsics"] is not None and system._model is not None:
             system._model.model_intrinsics = Intrinsics.from_dict(state["model_intrinsics"])
         system._frame_size = None if state["frame_size"] is None else tuple(state["frame_size"])
-        system._last_keyframe = state["last_keyframe"]
-        system._submap_of = {int(k): int(v) for k, v in state["submap_of"]}
         if state["previous_poses"] is not None:
             system._previous_poses = tuple(np.asarray(p, np.float64) for p in state["previous_poses"])
         system.counters.update(state["counters"])
         system._wall_offset = float(system.counters["wall_seconds"])
-        system._traj.load_state_dict(state["trajectory"])
-        system.pose_graph.load_state_dict(state["pose_graph"])
-        system.selector.load_state_dict(state["selector"])
+        system.tracking_stage.load_state_dict(state)
         if system.tracker is not None:
             system.tracker.load_state_dict(state["tracker"])
             system.bag = HiddenStateBag.from_bytes(state["bag"])
             if system.loop_closer is not None and system.loop_closer.pnp is None:
                 system.loop_closer.relocalizer.bag = system.bag
-        if system.loop_closer is not None:
-            system.loop_closer.load_state_dict(state["loop"])
-        if system.depth_points is not None:
-            system.depth_points.load_state_dict(state["depth_points"])
+        system.loop_stage.load_state_dict(state)
         if system.keyframe_depth is not None and state.get("keyframe_depth") is not None:
             system.keyframe_depth.load_state_dict(state["keyframe_depth"])
         system._load_waiting_loops(state)
         if system.backend is not None and state["map"] is not None:
             system.backend.load_state_dict(state["map"])
         return system
-
-def _follow_corrections(current: dict[int, np.ndarray], corrected: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
-    """`corrected` plus every keyframe of `current` it lacks, moved as the newest corrected keyframe before it."""
-    out = dict(corrected)
-    anchor: int | None = None
-    for kf in sorted(current):
-        if kf in corrected:
-            anchor = kf
-        elif anchor is not None:
-            out[kf] = corrected[anchor] @ sim3_inverse(torch.from_numpy(current[anchor])).numpy() @ current[kf]
-    return out
 
 
 def _flat_snapshot(state: Any) -> dict[str, Any]:
@@ -779,14 +729,6 @@ def _flat_snapshot(state: Any) -> dict[str, Any]:
     flat = {**unpack(state["tracking"]), **unpack(state["loop"])}
     flat["map"] = None if state["map"] is None else unpack(state["map"])
     return flat
-
-
-def _checked_pose(frame: Frame, tracking: TrackingResult) -> np.ndarray:
-    """The source's pose as float64 4x4; a non-finite one is a bug in the source, never passed on."""
-    pose = np.asarray(tracking.pose, np.float64)
-    if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
-        raise RuntimeError(f"frame {frame.index}: the pose source returned a non-finite pose")
-    return pose
 
 
 def _uncrop_intrinsics(intr: Intrinsics, geometry: tuple[float, tuple[int, int, int, int]], width: int,

@@ -11,7 +11,8 @@ import pytest
 
 from worker.config import SlamConfig
 from worker.data import Frame, open_source
-from worker.slam import SlamSystem, _follow_corrections
+from worker.engine.tracking_stage import follow_corrections
+from worker.slam import SlamSystem
 
 SIZE = (80, 60)
 
@@ -109,7 +110,7 @@ def test_keyframes_made_after_an_optimisation_follow_the_newest_corrected_one() 
 
     current = {0: at(0.0), 2: at(1.0), 4: at(2.0), 6: at(3.0)}
     corrected = {0: at(0.0), 2: at(1.5)}  # the loop stage optimised keyframes 0 and 2 only
-    moved = _follow_corrections(current, corrected)
+    moved = follow_corrections(current, corrected)
     np.testing.assert_allclose(moved[2], at(1.5))
     np.testing.assert_allclose(moved[4], at(2.5))  # rigidly with keyframe 2: no jump between 2 and 4
     np.testing.assert_allclose(moved[6], at(3.5))

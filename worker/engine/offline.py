@@ -77,6 +77,8 @@ def run_sequence(
         frames.append(frame)
         if progress is not None:
             progress(k + 1, total)
+    tracked_s = time.perf_counter() - start
+    lag_at_last_pose = system.live_stats()
     system.finish()
     runtime = time.perf_counter() - start
     if not frames:
@@ -93,8 +95,13 @@ def run_sequence(
         "mode": system.mode, "preset": config.name, "num_frames": len(frames),
         "num_keyframes": sum(r.is_keyframe for r in results), "loops": int(system.counters["loops"]),
         "revision": system.revision, "runtime_s": runtime, "fps": len(frames) / runtime,
-        # the same without the end-of-run refinement: the rate a live stream is tracked and mapped at
-        "fps_streaming": len(frames) / max(1e-9, runtime - system.timings.seconds["map_final_refine"]),
+        # the rate poses come out while the frames stream (mapping runs behind, shedding work when it must: what it
+        # shed and how far it lagged at the last pose are below; finish() then drains it and refines)
+        "fps_streaming": len(frames) / max(1e-9, tracked_s),
+        "finish_s": runtime - tracked_s,
+        "mapping_lag_at_last_pose": {"keyframes": lag_at_last_pose["mapping_lag_keyframes"],
+                                     "seconds": lag_at_last_pose["mapping_lag_s"]},
+        "keyframes_shed": system.live_stats()["keyframes_shed"],
         "use_gt_depth": use_gt_depth, "use_gt_poses": use_gt_poses, "tracking": system.tracking,
         "depth_source": system.depth_source,
         "intrinsics": intrinsics.to_dict() if intrinsics else None, "intrinsics_estimated": given_intrinsics is None,
