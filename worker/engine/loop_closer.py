@@ -21,6 +21,7 @@ from worker.loop.descriptors import EncoderGeMDescriptor, OrbDescriptor, OrbFeat
 from worker.loop.detector import LoopDetector
 from worker.loop.pnp import PnPRelocalizer
 from worker.loop.relocalize import LoopConstraint
+from worker.loop.vocabulary import SparseBag
 
 
 class DepthKeyframePoints:
@@ -53,16 +54,27 @@ class DepthKeyframePoints:
 
 def _entry_to_dict(entry: Any) -> dict:
     if isinstance(entry, OrbFeatures):
-        return {"kind": "orb", "keypoints": entry.keypoints, "descriptors": entry.descriptors,
-                "width": entry.width, "height": entry.height}
+        d = {"kind": "orb", "keypoints": entry.keypoints, "descriptors": entry.descriptors,
+             "width": entry.width, "height": entry.height}
+        if entry.words is not None:  # kept so that a restore rebuilds the inverted index without quantizing
+            d["words"] = entry.words.words.astype(np.uint16 if entry.words.words.max(initial=0) < 2**16
+                                                  else np.int32)
+            d["weights"] = entry.words.weights
+        return d
     return {"kind": "vector", "value": entry.detach().cpu().numpy()}
 
 
 def _entry_from_dict(d: dict) -> Any:
     if d["kind"] == "orb":
+        words = None
+        if "words" in d:
+            words = SparseBag(np.asarray(d["words"]).astype(np.int32), np.asarray(d["weights"], np.float32))
         return OrbFeatures(np.asarray(d["keypoints"], np.float32), np.asarray(d["descriptors"], np.uint8),
-                           int(d["width"]), int(d["height"]))
+                           int(d["width"]), int(d["height"]), words)
     return torch.from_numpy(np.asarray(d["value"]))
+
+
+_SAME_AS_DETECTOR = {"kind": "detector"}  # a PnP entry that is the detector's own entry for the keyframe
 
 
 class LoopCloser:
@@ -80,7 +92,8 @@ class LoopCloser:
         else:
             descriptor = orb
         self.detector = LoopDetector(descriptor, exclusion_window=cfg.exclusion_frames, top_k=cfg.top_k,
-                                     min_score=cfg.min_score)
+                                     min_score=cfg.min_score, shortlist=cfg.shortlist,
+                                     recent=min(cfg.recent_candidates, cfg.shortlist))
         self.pnp: PnPRelocalizer | None = None
         if depth_points is not None:
             self.relocalizer = self.pnp = PnPRelocalizer(depth_points, orb, min_inliers=cfg.min_inliers)
@@ -124,21 +137,29 @@ class LoopCloser:
         return accepted
 
     def state_dict(self) -> dict:
+        """The keyframe database (descriptors with their bags of words; the PnP features that are the detector's
+        own entries only by reference) and the counters."""
+        detector = self.detector
+        pnp_features = []
+        for key, features in ({} if self.pnp is None else self.pnp.features).items():
+            shared = key in detector and detector.descriptor_of(key) is features
+            pnp_features.append(_SAME_AS_DETECTOR if shared else _entry_to_dict(features))
         return {
-            "indices": list(self.detector.indices),
-            "entries": [_entry_to_dict(e) for e in self.detector.entries],
+            "indices": list(detector.indices),
+            "entries": [_entry_to_dict(e) for e in detector.entries],
             "pnp_keys": [] if self.pnp is None else list(self.pnp.features),
-            "pnp_features": [] if self.pnp is None else [_entry_to_dict(f) for f in self.pnp.features.values()],
+            "pnp_features": pnp_features,
             "last_loop_keyframe_count": self.last_loop_keyframe_count,
             "keyframes_seen": self.keyframes_seen,
             "rejected": self.rejected,
         }
 
     def load_state_dict(self, d: dict) -> None:
-        self.detector.indices = [int(i) for i in d["indices"]]
-        self.detector.entries = [_entry_from_dict(e) for e in d["entries"]]
+        self.detector.load([int(i) for i in d["indices"]], [_entry_from_dict(e) for e in d["entries"]])
         if self.pnp is not None:
-            self.pnp.features = {int(k): _entry_from_dict(f) for k, f in zip(d["pnp_keys"], d["pnp_features"])}
+            self.pnp.features = {
+                int(k): self.detector.descriptor_of(int(k)) if f.get("kind") == "detector" else _entry_from_dict(f)
+                for k, f in zip(d["pnp_keys"], d["pnp_features"])}
         self.last_loop_keyframe_count = int(d["last_loop_keyframe_count"])
         self.keyframes_seen = int(d["keyframes_seen"])
         self.rejected = int(d["rejected"])
