@@ -25,31 +25,65 @@ from worker.loop.vocabulary import SparseBag
 
 
 class DepthKeyframePoints:
-    """Keyframe camera-frame points from given depth, stored in float16 (snapshots reproduce them exactly); offers
-    the tracker's `keyframe_points(index) -> (points [H,W,3], conf [H,W])` so the PnP relocalizer can use them."""
+    """Keyframe depth in float16 and the camera it was taken with; offers the tracker's
+    `keyframe_points(index) -> (points [H,W,3], conf [H,W])`, unprojected when asked, so that the PnP relocalizer
+    can use them. A third of the memory of stored points, and snapshots reproduce the points exactly."""
 
     def __init__(self) -> None:
-        self.points: dict[int, torch.Tensor] = {}
+        self.depths: dict[int, torch.Tensor] = {}
+        self.cameras: dict[int, torch.Tensor] = {}
+
+    def __contains__(self, index: int) -> bool:
+        return int(index) in self.depths
 
     def add(self, index: int, depth: torch.Tensor, K: torch.Tensor) -> None:
-        self.points[int(index)] = unproject_depth(depth.to(torch.float32), K.to(torch.float32)).to(torch.float16)
+        self.depths[int(index)] = depth.detach().to(torch.float16).clone()
+        self.cameras[int(index)] = K.detach().to(torch.float32).clone()
 
     def reproject(self, K: torch.Tensor) -> None:
-        """Every keyframe's points again from their depth, with camera K (the session's camera was re-estimated)."""
-        for index, points in self.points.items():
-            self.add(index, points[..., 2].to(torch.float32), K)
+        """Every keyframe's points from now on with camera K (the session's camera was re-estimated)."""
+        for index in self.cameras:
+            self.cameras[index] = K.detach().to(torch.float32).clone()
 
     def keyframe_points(self, index: int) -> tuple[torch.Tensor, torch.Tensor]:
-        if index not in self.points:
+        if index not in self.depths:
             raise ValueError(f"frame {index} is not a keyframe with depth")
-        p = self.points[index].float()
+        p = unproject_depth(self.depths[index].float(), self.cameras[index])
         return p, (p[..., 2] > 0).float() + 1.0
 
     def state_dict(self) -> dict:
-        return {"keys": list(self.points), "points": [p.numpy() for p in self.points.values()]}
+        keys = list(self.depths)
+        return {"keys": keys, "depths": [self.depths[k].numpy() for k in keys],
+                "cameras": [self.cameras[k].numpy() for k in keys]}
 
     def load_state_dict(self, d: dict) -> None:
-        self.points = {int(k): torch.from_numpy(np.asarray(p)) for k, p in zip(d["keys"], d["points"])}
+        keys = [int(k) for k in d["keys"]]
+        if "points" in d:  # snapshots before depth-only storage: the depth and the camera are in the points
+            self.depths, self.cameras = {}, {}
+            for k, points in zip(keys, d["points"]):
+                points = torch.from_numpy(np.asarray(points)).float()
+                self.add(k, points[..., 2], _camera_of_points(points))
+            return
+        self.depths = {k: torch.from_numpy(np.asarray(v, np.float16)) for k, v in zip(keys, d["depths"])}
+        self.cameras = {k: torch.from_numpy(np.asarray(v, np.float32)) for k, v in zip(keys, d["cameras"])}
+
+
+def _camera_of_points(points: torch.Tensor) -> torch.Tensor:
+    """K of a camera-frame point map [H,W,3] (pixel centres at +0.5): least squares on u = fx x/z + cx."""
+    H, W = points.shape[:2]
+    z = points[..., 2]
+    valid = z > 0
+    if int(valid.sum()) < 2:
+        raise ValueError("keyframe points hold too little depth to recover their camera")
+    pixels = (torch.arange(W, dtype=torch.float64) + 0.5)[None, :].expand(H, W), \
+        (torch.arange(H, dtype=torch.float64) + 0.5)[:, None].expand(H, W)
+    K = torch.eye(3)
+    for axis in (0, 1):
+        ratio = (points[..., axis][valid] / z[valid]).double()
+        A = torch.stack([ratio, torch.ones_like(ratio)], dim=-1)
+        f, c = torch.linalg.lstsq(A, pixels[axis][valid][:, None]).solution.ravel().tolist()
+        K[axis, axis], K[axis, 2] = f, c
+    return K
 
 
 def _entry_to_dict(entry: Any) -> dict:
