@@ -66,6 +66,11 @@ class LoopConfig(_Section):
     relocalization: Literal["hidden_state", "pnp"] = Field(
         "hidden_state", description="hidden_state = f(I_j, M_a) (paper); pnp needs depth (given or predicted)")
     top_k: int = Field(5, ge=1, description="candidates verified per keyframe")
+    shortlist: int = Field(
+        10, ge=1, description="ORB: keyframes scored geometrically per query, the inverted index's best (bounds the "
+        "cost per keyframe whatever the map size)")
+    recent_candidates: int = Field(
+        2, ge=0, description="ORB: of the shortlist, the newest keyframes outside the exclusion window, always scored")
     max_loops_per_keyframe: int = Field(
         1, ge=1, description="verified candidates of one keyframe that become loop edges (best first)")
     min_score: float = Field(0.03, ge=0.0, le=1.0, description="descriptor similarity needed to verify a candidate")
