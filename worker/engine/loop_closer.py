@@ -24,31 +24,40 @@ from worker.loop.relocalize import LoopConstraint
 
 
 class DepthKeyframePoints:
-    """Keyframe camera-frame points from given depth, stored in float16 (snapshots reproduce them exactly); offers
-    the tracker's `keyframe_points(index) -> (points [H,W,3], conf [H,W])` so the PnP relocalizer can use them."""
+    """Keyframe depth (float16) and camera, unprojected to camera-frame points on demand; offers the tracker's
+    `keyframe_points(index) -> (points [H,W,3], conf [H,W])` so the PnP relocalizer can use them. Holding the depth
+    rather than the points costs a third of the memory (0.15 instead of 0.46 MB per 320x240 keyframe)."""
 
     def __init__(self) -> None:
-        self.points: dict[int, torch.Tensor] = {}
+        self.depth: dict[int, torch.Tensor] = {}
+        self.K: dict[int, torch.Tensor] = {}
 
     def add(self, index: int, depth: torch.Tensor, K: torch.Tensor) -> None:
-        self.points[int(index)] = unproject_depth(depth.to(torch.float32), K.to(torch.float32)).to(torch.float16)
+        self.depth[int(index)] = depth.to(torch.float16)
+        self.K[int(index)] = K.to(torch.float32).clone()
 
     def reproject(self, K: torch.Tensor) -> None:
-        """Every keyframe's points again from their depth, with camera K (the session's camera was re-estimated)."""
-        for index, points in self.points.items():
-            self.add(index, points[..., 2].to(torch.float32), K)
+        """Every keyframe's points with camera K from now on (the session's camera was re-estimated)."""
+        for index in self.K:
+            self.K[index] = K.to(torch.float32).clone()
 
     def keyframe_points(self, index: int) -> tuple[torch.Tensor, torch.Tensor]:
-        if index not in self.points:
+        if index not in self.depth:
             raise ValueError(f"frame {index} is not a keyframe with depth")
-        p = self.points[index].float()
+        p = unproject_depth(self.depth[index].float(), self.K[index])
         return p, (p[..., 2] > 0).float() + 1.0
 
+    def __len__(self) -> int:
+        return len(self.depth)
+
     def state_dict(self) -> dict:
-        return {"keys": list(self.points), "points": [p.numpy() for p in self.points.values()]}
+        return {"keys": list(self.depth), "depth": [d.numpy() for d in self.depth.values()],
+                "K": [k.numpy() for k in self.K.values()]}
 
     def load_state_dict(self, d: dict) -> None:
-        self.points = {int(k): torch.from_numpy(np.asarray(p)) for k, p in zip(d["keys"], d["points"])}
+        keys = [int(k) for k in d["keys"]]
+        self.depth = {k: torch.from_numpy(np.asarray(v, np.float16)) for k, v in zip(keys, d["depth"], strict=True)}
+        self.K = {k: torch.from_numpy(np.asarray(v, np.float32)) for k, v in zip(keys, d["K"], strict=True)}
 
 
 def _entry_to_dict(entry: Any) -> dict:

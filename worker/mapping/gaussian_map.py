@@ -49,7 +49,7 @@ class MapConfig:
     voxel_pixels: float = 8.0
     voxel_finer: float = 1.5
     # refine_global stops after this many seconds whatever its iteration count (None = no bound).
-    final_refine_budget_s: float | None = 20.0
+    final_refine_budget_s: float | None = 25.0
     device: str = "cpu"
 
     def to_dict(self) -> dict:
