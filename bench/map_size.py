@@ -37,6 +37,8 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--every", type=int, default=6, help="a keyframe every N frames (the rgbd preset's rule)")
     parser.add_argument("--cap", type=int, default=None, help="mapping voxel cap (default: the map's; 0 = off)")
     parser.add_argument("--seed", type=int, default=3)
+    parser.add_argument("--frames", type=int, default=None,
+                        help="length of the synthetic camera path (default keyframes x every; longer: stop early)")
     parser.add_argument("--report-every", type=int, default=25)
     parser.add_argument("--final-refine", action="store_true", help="also time the final refinement at the end")
     args = parser.parse_args(argv)
@@ -47,7 +49,7 @@ def main(argv: list[str]) -> int:
     backend = MapBackend(config.mapping, threaded=False, queue_size=1, timings=timings)
     if args.cap is not None:
         backend.map.config.voxel_cap = args.cap
-    source = open_source(f"synthetic://seed={args.seed}?frames={args.keyframes * args.every}")
+    source = open_source(f"synthetic://seed={args.seed}?frames={args.frames or args.keyframes * args.every}")
     K = source.intrinsics.matrix()
     rows, merge, refine = [], [], []
     keyframes = 0
@@ -68,6 +70,8 @@ def main(argv: list[str]) -> int:
                    "refine_ms": round(sum(refine[recent]) / len(refine[recent]), 1), "rss_mb": round(_rss_mb())}
             rows.append(row)
             print(json.dumps(row), flush=True)
+        if keyframes == args.keyframes:
+            break
     result = {"cap": backend.map.config.voxel_cap, "rows": rows,
               "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)}
     if args.final_refine:
