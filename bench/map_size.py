@@ -41,9 +41,10 @@ def main(argv: list[str]) -> int:
                         help="length of the synthetic camera path (default keyframes x every; longer: stop early)")
     parser.add_argument("--report-every", type=int, default=25)
     parser.add_argument("--final-refine", action="store_true", help="also time the final refinement at the end")
+    parser.add_argument("--no-refine", action="store_true", help="fusion only (no refinement per keyframe)")
     args = parser.parse_args(argv)
 
-    config = SlamConfig.preset("rgbd")
+    config = SlamConfig.preset("rgbd", mapping={"refine_iterations": 0} if args.no_refine else {})
     torch.set_num_threads(config.num_threads)
     timings = StageTimes()
     backend = MapBackend(config.mapping, threaded=False, queue_size=1, timings=timings)
