@@ -122,6 +122,7 @@ class LoopClosingStage:
             self.pose_graph.add_node(item.kf_id, item.world_pose)
             if item.previous is not None:
                 self.pose_graph.add_edge(item.previous, item.kf_id, item.relative, kind=item.kind)
+            self.pose_graph.flush()  # iSAM2 takes the keyframe now: a later loop's solve has less to do
             return
         if self.closer is None:
             return
