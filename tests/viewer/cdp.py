@@ -62,8 +62,11 @@ def ensure_chromium() -> str:
 class Browser:
     """`async with Browser(binary) as page:` - one headless page driven through CDP."""
 
-    def __init__(self, binary: str) -> None:
+    def __init__(self, binary: str, extra_flags: list[str] | None = None) -> None:
+        """`extra_flags` are added to CHROMIUM_FLAGS; with any, --disable-gpu is dropped (e.g. to ask for
+        software WebGL through --use-angle=swiftshader, or a fake camera)."""
         self.binary = binary
+        self.flags = [f for f in CHROMIUM_FLAGS if not (extra_flags and f == "--disable-gpu")] + list(extra_flags or [])
         self.profile = tempfile.mkdtemp(prefix="flashmono-chromium-")
         self.process: subprocess.Popen | None = None
         self.ws: Any = None
@@ -74,7 +77,7 @@ class Browser:
         self.reader: asyncio.Task | None = None
 
     async def __aenter__(self) -> Browser:
-        self.process = subprocess.Popen([self.binary, *CHROMIUM_FLAGS, f"--user-data-dir={self.profile}",
+        self.process = subprocess.Popen([self.binary, *self.flags, f"--user-data-dir={self.profile}",
                                          "about:blank"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         port_file = Path(self.profile) / "DevToolsActivePort"
         deadline = time.monotonic() + 60

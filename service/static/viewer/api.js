@@ -50,7 +50,8 @@ export class Api {
     return (await this.request(`/v1/sessions/${encodeURIComponent(id)}/render`, params)).blob();
   }
 
-  async map(id) {
-    return (await this.request(`/v1/sessions/${encodeURIComponent(id)}/map.ply`)).blob();
+  // The map file in `format` (ply, spz or splat): the Response, for .blob() or .arrayBuffer().
+  async map(id, format = "ply") {
+    return this.request(`/v1/sessions/${encodeURIComponent(id)}/map`, { format });
   }
 }

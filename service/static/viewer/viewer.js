@@ -7,6 +7,7 @@ import { Api } from "./api.js";
 import { OrbitView, VirtualCamera, drawTopDown, position } from "./scene.js";
 
 const POLL_TRAJECTORY_MS = 1000;
+const MAP_REFRESH_MIN_MS = 2000; // a streaming session's map is fetched again at most this often
 const POLL_SESSIONS_MS = 4000;
 const RENDER_MAX_WIDTH = 320;
 
@@ -37,9 +38,16 @@ const state = {
   renderQueued: false,
   renderTimer: null,
   renderUrl: null,
+  splats: null, // the SplatView, once WebGL and the renderer loaded
+  mapFormat: "spz",
+  mapKey: null, // what the shown map reflects: revision, keyframes and status of the session
+  mapLoading: false,
+  mapFetchedAt: 0,
+  splatPosePlaced: false,
 };
 // What tests and curious users can read: how much has been drawn and rendered.
-window.viewerState = { posesDrawn: 0, renders: 0, lastError: null, loopClosures: 0, mapDownloads: 0, lastMap: null };
+window.viewerState = { posesDrawn: 0, renders: 0, lastError: null, loopClosures: 0, mapDownloads: 0, lastMap: null,
+  splat: { ready: false, error: null, fps: 0, frames: 0, firstSplatFrameMs: null, maps: 0, map: null } };
 
 const orbit = new OrbitView($("view3d"));
 
@@ -78,7 +86,7 @@ async function refreshSessions() {
 
 function selectSession(id) {
   Object.assign(state, { sessionId: id, session: null, poses: [], keyframes: [], loops: [], revision: null,
-    cameraPlaced: false });
+    cameraPlaced: false, mapKey: null, splatPosePlaced: false });
   const url = new URL(window.location.href);
   url.searchParams.set("session", id);
   window.history.replaceState(null, "", url);
@@ -111,6 +119,7 @@ async function pollSession() {
     $("session-stats").textContent = `${session.status} · ${session.frames_processed}/${session.frames_received} `
       + `frames · ${session.keyframes} keyframes · revision ${all.revision}`;
     drawTrajectory();
+    updateSplats(session);
     if (!state.cameraPlaced && poses.length) {
       state.camera.setFromPose(poses[poses.length - 1]);
       state.cameraPlaced = true;
@@ -127,6 +136,91 @@ function drawTrajectory() {
   orbit.update(state.poses, state.keyframes, state.loops);
   window.viewerState.posesDrawn = drawn;
   document.body.dataset.posesDrawn = String(drawn);
+}
+
+// ------------------------------------------------------------------------------------------- splat view
+
+async function startSplatView() {
+  const info = $("splat-info");
+  try {
+    const { SplatView } = await import("./splats.js");
+    state.splats = new SplatView($("splats"), {
+      onFrame: (view) => {
+        const s = window.viewerState.splat;
+        s.frames = view.frames;
+        s.fps = view.fps;
+        if (view.firstSplatFrameAt !== null && s.firstSplatFrameMs === null) s.firstSplatFrameMs = view.firstSplatFrameAt;
+      },
+    });
+    window.splatView = state.splats; // for tests and the curious: pose(), setPose(), readSplats()
+    window.viewerState.splat.ready = true;
+    info.textContent = "renderer ready";
+    setInterval(showSplatInfo, 1000);
+  } catch (err) {
+    window.viewerState.splat.error = String(err && err.message ? err.message : err);
+    info.textContent = `splat view unavailable (WebGL2 needed): ${window.viewerState.splat.error}`;
+  }
+}
+
+function showSplatInfo() {
+  const s = window.viewerState.splat;
+  if (s.mapError) return;
+  const m = s.map;
+  $("splat-info").textContent = m
+    ? `${m.splats ?? "?"} splats · ${m.format} ${(m.bytes / 1e6).toFixed(2)} MB · ${s.fps.toFixed(1)} frames/s`
+    : `no map yet · ${s.fps.toFixed(1)} frames/s`;
+  document.body.dataset.splatFps = s.fps.toFixed(1);
+}
+
+// Called on every poll: trajectory and frustums in the 3D scene, and the map again when the session's map changed
+// (a new keyframe, a loop closure's revision, the final refinement once finished).
+function updateSplats(session) {
+  const view = state.splats;
+  if (!view) return;
+  const k = session.estimated_intrinsics || session.intrinsics;
+  if (k) view.setIntrinsics(k);
+  view.setTrajectory(state.poses, state.keyframes, state.loops);
+  if (!state.splatPosePlaced && state.poses.length) {
+    view.setPose(state.poses[state.poses.length - 1]);
+    state.splatPosePlaced = true;
+  }
+  const key = `${session.revision}|${session.keyframes}|${session.status}|${state.mapFormat}`;
+  const due = performance.now() - state.mapFetchedAt >= MAP_REFRESH_MIN_MS;
+  if (session.keyframes > 0 && key !== state.mapKey && due && !state.mapLoading) loadSplatMap(session.id, key);
+}
+
+async function loadSplatMap(id, key) {
+  state.mapLoading = true;
+  state.mapFetchedAt = performance.now();
+  const format = state.mapFormat;
+  try {
+    const t0 = performance.now();
+    const bytes = new Uint8Array(await (await state.api.map(id, format)).arrayBuffer());
+    const fetchMs = performance.now() - t0;
+    if (id !== state.sessionId) return;
+    const loaded = await state.splats.loadMap(bytes, format, key);
+    state.mapKey = key;
+    window.viewerState.splat.maps += 1;
+    window.viewerState.splat.map = { ...loaded, fetchMs, key, loadedAt: performance.now() };
+    window.viewerState.splat.mapError = null;
+    showSplatInfo();
+  } catch (err) {
+    // shown beside the view, not as a page error: a session may have no Gaussian map (yet, or at all)
+    state.mapKey = key; // not again until the session changes
+    window.viewerState.splat.mapError = `map (${format}): ${err.message}`;
+    $("splat-info").textContent = window.viewerState.splat.mapError;
+  } finally {
+    state.mapLoading = false;
+  }
+}
+
+// The exact reference: the server renders the splat view's camera (pose and pinhole) as a PNG.
+function exactServerView() {
+  if (!state.splats || !state.sessionId) return;
+  state.camera.setFromPose(state.splats.pose());
+  state.cameraPlaced = true;
+  renderNow();
+  $("render").scrollIntoView({ block: "nearest" });
 }
 
 // ------------------------------------------------------------------------------------------ rendered view
@@ -209,8 +303,9 @@ async function downloadMap() {
   mapStatus.classList.remove("error");
   mapStatus.textContent = "downloading…";
   try {
-    const blob = await state.api.map(id);
-    const name = `${id}.ply`;
+    const format = $("download-format").value;
+    const blob = await (await state.api.map(id, format)).blob();
+    const name = `${id}.${format}`;
     const link = document.createElement("a");
     link.href = URL.createObjectURL(blob);
     link.download = name;
@@ -256,13 +351,24 @@ function init() {
     button.addEventListener("click", () => move(button.dataset.move));
   }
   window.addEventListener("keydown", (e) => {
-    if (e.target instanceof HTMLInputElement) return;
+    if (e.target instanceof HTMLInputElement || e.target === $("splats")) return; // the splat view's own keys
     const name = KEYS[e.key] || KEYS[e.key.toLowerCase()];
     if (name) {
       e.preventDefault();
       move(name);
     }
   });
+  $("splat-mode").addEventListener("change", (e) => state.splats && state.splats.setMode(e.target.value));
+  $("splat-format").addEventListener("change", (e) => {
+    state.mapFormat = e.target.value;
+    if (state.session) updateSplats(state.session);
+  });
+  $("splat-overlay").addEventListener("change", (e) => state.splats && state.splats.showOverlay(e.target.checked));
+  $("splat-to-pose").addEventListener("click", () => {
+    if (state.splats && state.poses.length) state.splats.setPose(state.poses[state.poses.length - 1]);
+  });
+  $("splat-exact").addEventListener("click", exactServerView);
+  startSplatView().then(() => state.session && updateSplats(state.session));
   refreshSessions();
   if (state.sessionId) selectSession(state.sessionId);
   setInterval(refreshSessions, POLL_SESSIONS_MS);
