@@ -11,7 +11,15 @@ import redis.asyncio as aioredis
 from fastapi import FastAPI
 from fastapi.staticfiles import StaticFiles
 
-from service import hardening, routes_health, routes_presets, routes_results, routes_sessions, routes_stream
+from service import (
+    hardening,
+    routes_events,
+    routes_health,
+    routes_presets,
+    routes_results,
+    routes_sessions,
+    routes_stream,
+)
 from service.auth import Authenticator
 from service.metrics import GatewayMetrics
 from service.outbox_hub import OutboxHub
@@ -62,7 +70,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.metrics = GatewayMetrics()
     app.state.validate_preset = _validate_preset
     hardening.install(app, settings.max_body_bytes)
-    for module in (routes_sessions, routes_presets, routes_results, routes_stream, routes_health):
+    for module in (routes_sessions, routes_presets, routes_results, routes_stream, routes_events, routes_health):
         app.include_router(module.router)
     if VIEWER_DIR.is_dir():
         app.mount("/viewer/static", StaticFiles(directory=VIEWER_DIR), name="viewer-static")

@@ -43,19 +43,27 @@ def chromium() -> str:
         pytest.skip(f"headless Chromium unavailable: {err}")
 
 
+def icl_frames(count: int = 12) -> list:
+    return list(open_frames(REPO / "tests" / "data" / "icl_mini", max_frames=count, stride=3, use_gt_poses=True))
+
+
 @pytest.fixture(scope="module")
-def mapped_session():
-    """A finished session of the real engine on 12 ICL frames (posed RGB-D: the quickest real map)."""
+def stack():
     with LiveStack(workers=1, api_keys=f"{KEY}=read,stream", engine="slam",
-                   extra_env={"FLASHMONO_LOG_LEVEL": "WARNING"}) as stack:
-        data = REPO / "tests" / "data" / "icl_mini"
-        frames = list(open_frames(data, max_frames=12, stride=3, use_gt_poses=True))
-        with FlashMonoClient(stack.url, api_key=KEY) as client:
-            session = client.create_session(intrinsics=frames[0].intrinsics, preset="rgbd", name="splat-walk")
-            client.stream(session.id, frames, wire=WireOptions(send_depth=True, send_pose=True), max_pending=4)
-            session = client.get_session(session.id)
-            ply = client.download_map(session.id)
-        yield stack, session, ply
+                   extra_env={"FLASHMONO_LOG_LEVEL": "WARNING"}) as live:
+        yield live
+
+
+@pytest.fixture(scope="module")
+def mapped_session(stack):
+    """A finished session of the real engine on 12 ICL frames (posed RGB-D: the quickest real map)."""
+    frames = icl_frames()
+    with FlashMonoClient(stack.url, api_key=KEY) as client:
+        session = client.create_session(intrinsics=frames[0].intrinsics, preset="rgbd", name="splat-walk")
+        client.stream(session.id, frames, wire=WireOptions(send_depth=True, send_pose=True), max_pending=4)
+        session = client.get_session(session.id)
+        ply = client.download_map(session.id)
+    return stack, session, ply
 
 
 def _psnr(a: np.ndarray, b: np.ndarray) -> float:
@@ -160,3 +168,43 @@ def test_splats_render_in_the_page_like_the_server_and_spark_reads_every_format(
         scales = got["scales"].reshape(n, 3)
         assert np.abs(np.log(scales[:, :2] / reference.scales[:, :2])).max() < 0.1, fmt
         assert scales[:, 2].max() < 1e-3, (fmt, scales[:, 2].max())  # flat: 2D surfels stay 2D
+
+
+def test_the_page_follows_a_streaming_session_live(chromium, stack):
+    """Opened before the frames come: the map grows in the page (fetched again as keyframes arrive, the old one
+    shown meanwhile), the live feed brings poses and the end, and the final map is the server's."""
+    frames = icl_frames(10)
+    with FlashMonoClient(stack.url, api_key=KEY) as client:
+        session = client.create_session(intrinsics=frames[0].intrinsics, preset="rgbd", name="splat-live")
+
+    def stream() -> None:
+        with FlashMonoClient(stack.url, api_key=KEY) as client:
+            client.stream(session.id, frames, wire=WireOptions(send_depth=True, send_pose=True), max_pending=2,
+                          fps=2.0)
+
+    async def scenario() -> dict:
+        async with Browser(chromium, extra_flags=WEBGL_FLAGS) as page:
+            await page.navigate(f"{stack.url}/viewer?session={session.id}&api_key={KEY}")
+            await page.wait_for("window.viewerState && window.viewerState.splat.ready", 60)
+            streaming = asyncio.create_task(asyncio.to_thread(stream))
+            await page.wait_for("window.viewerState.livePoses >= 1", 120)
+            await streaming
+            await page.wait_for("window.viewerState.events.some((e) => e.type === 'finished')", 120)
+            await page.wait_for("window.viewerState.splat.map && window.viewerState.splat.map.key.includes('finished')",
+                                120)
+            return {"history": await page.evaluate("window.viewerState.splat.history"),
+                    "live_poses": await page.evaluate("window.viewerState.livePoses"),
+                    "tracking": await page.evaluate("document.getElementById('tracking-state').textContent"),
+                    "events": await page.evaluate("document.getElementById('events').textContent"),
+                    "drawn": await page.evaluate("window.viewerState.posesDrawn"),
+                    "errors": list(page.console_errors)}
+
+    result = asyncio.run(scenario())
+    assert result["errors"] == [], result["errors"]
+    with FlashMonoClient(stack.url, api_key=KEY) as client:
+        final = splat_arrays_from_ply(client.download_map(session.id))
+    history = result["history"]
+    assert len(history) >= 2, history  # the map came again as the session went on, not once at the end
+    assert history[0]["splats"] < history[-1]["splats"] == len(final), history
+    assert result["live_poses"] >= 1 and result["drawn"] == len(frames)
+    assert result["tracking"] == "tracking: finished" and "finished" in result["events"]

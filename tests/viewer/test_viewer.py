@@ -147,3 +147,22 @@ def test_viewer_without_a_key_reports_the_auth_error_in_the_page(chromium, live_
     assert "key" in text.lower() or "401" in text
     # The browser itself logs the failed (401) requests; nothing else may fail.
     assert all("401" in e for e in errors), errors
+
+
+def test_events_feed_refuses_bad_keys_and_reports_a_finished_session(live_session) -> None:
+    import json
+
+    from websockets.exceptions import ConnectionClosed
+    from websockets.sync.client import connect
+
+    stack, session_id, frame_count = live_session
+    ws_url = stack.url.replace("http", "ws", 1) + f"/v1/sessions/{session_id}/events"
+    with connect(f"{ws_url}?api_key=wrong", open_timeout=10) as ws:
+        refusal = json.loads(ws.recv(timeout=10))
+        with pytest.raises(ConnectionClosed):
+            ws.recv(timeout=10)
+    assert refusal["type"] == "error" and refusal["code"] == "unauthorized"
+    assert ws.close_code == 4401
+    with connect(f"{ws_url}?api_key=viewer", open_timeout=10) as ws:
+        first = json.loads(ws.recv(timeout=10))
+    assert first == {"type": "finished", "frames": frame_count}

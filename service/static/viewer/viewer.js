@@ -44,10 +44,13 @@ const state = {
   mapLoading: false,
   mapFetchedAt: 0,
   splatPosePlaced: false,
+  events: null, // the WebSocket of the session's live events
 };
 // What tests and curious users can read: how much has been drawn and rendered.
 window.viewerState = { posesDrawn: 0, renders: 0, lastError: null, loopClosures: 0, mapDownloads: 0, lastMap: null,
-  splat: { ready: false, error: null, fps: 0, frames: 0, firstSplatFrameMs: null, maps: 0, map: null } };
+  splat: { ready: false, error: null, fps: 0, frames: 0, firstSplatFrameMs: null, maps: 0, map: null,
+    history: [] },
+  events: [], livePoses: 0 };
 
 const orbit = new OrbitView($("view3d"));
 
@@ -92,6 +95,10 @@ function selectSession(id) {
   window.history.replaceState(null, "", url);
   for (const li of $("sessions").children) li.classList.toggle("selected", li.dataset.id === id);
   $("download-map").disabled = false;
+  window.viewerState.events = [];
+  $("tracking-state").textContent = "tracking: –";
+  $("tracking-state").className = "";
+  watchEvents(id);
   pollSession();
 }
 
@@ -136,6 +143,50 @@ function drawTrajectory() {
   orbit.update(state.poses, state.keyframes, state.loops);
   window.viewerState.posesDrawn = drawn;
   document.body.dataset.posesDrawn = String(drawn);
+}
+
+// --------------------------------------------------------------------------------------- live events
+
+const EVENT_TYPES = new Set(["tracking_lost", "relocalized", "initialized", "loop_closed", "finished", "error"]);
+const MAX_EVENTS_SHOWN = 12;
+
+// The session's live feed (WS /v1/sessions/{id}/events): tracking events and loop closures as they happen.
+function watchEvents(id) {
+  if (state.events) state.events.close();
+  state.events = null;
+  $("events").replaceChildren();
+  const scheme = window.location.protocol === "https:" ? "wss" : "ws";
+  const query = state.api.apiKey ? `?api_key=${encodeURIComponent(state.api.apiKey)}` : "";
+  const ws = new WebSocket(`${scheme}://${window.location.host}/v1/sessions/${encodeURIComponent(id)}/events${query}`);
+  state.events = ws;
+  ws.addEventListener("message", (e) => {
+    if (id !== state.sessionId) return;
+    let message;
+    try { message = JSON.parse(e.data); } catch (_) { return; }
+    if (message.type === "pose") {
+      window.viewerState.livePoses += 1;
+      return;
+    }
+    if (!EVENT_TYPES.has(message.type)) return;
+    showEvent(message);
+    if (message.type === "loop_closed") state.mapFetchedAt = 0; // the corrected map as soon as the revision shows
+  });
+}
+
+function showEvent(message) {
+  window.viewerState.events.push(message);
+  const li = document.createElement("li");
+  li.className = message.type;
+  const at = message.seq !== undefined ? ` @${message.seq}` : "";
+  li.textContent = `${message.type.replace("_", " ")}${at}`;
+  $("events").prepend(li);
+  while ($("events").children.length > MAX_EVENTS_SHOWN) $("events").lastChild.remove();
+  const tracking = { tracking_lost: ["lost", "lost"], relocalized: ["tracking", "ok"], initialized: ["tracking", "ok"],
+    finished: ["finished", ""] }[message.type];
+  if (tracking) {
+    $("tracking-state").textContent = `tracking: ${tracking[0]}`;
+    $("tracking-state").className = tracking[1];
+  }
 }
 
 // ------------------------------------------------------------------------------------------- splat view
@@ -202,6 +253,7 @@ async function loadSplatMap(id, key) {
     state.mapKey = key;
     window.viewerState.splat.maps += 1;
     window.viewerState.splat.map = { ...loaded, fetchMs, key, loadedAt: performance.now() };
+    window.viewerState.splat.history.push({ splats: loaded.splats, key, bytes: loaded.bytes });
     window.viewerState.splat.mapError = null;
     showSplatInfo();
   } catch (err) {
