@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import cv2
+import httpx
 import numpy as np
 import pytest
 from live_stack import LiveStack
@@ -166,3 +167,79 @@ def test_events_feed_refuses_bad_keys_and_reports_a_finished_session(live_sessio
     with connect(f"{ws_url}?api_key=viewer", open_timeout=10) as ws:
         first = json.loads(ws.recv(timeout=10))
     assert first == {"type": "finished", "frames": frame_count}
+
+
+def test_fleet_list_shows_state_filters_and_links_to_live_views(chromium, live_session) -> None:
+    stack, finished_id, frame_count = live_session
+    with FlashMonoClient(stack.url, api_key="viewer") as client:
+        waiting = client.create_session(name="fleet-waiting", device_id="phone-9")
+    raw = httpx.get(f"{stack.url}/v1/sessions", headers={"X-API-Key": "viewer"}).json()["sessions"]
+    by_id = {s["id"]: s for s in raw}
+    assert by_id[waiting.id]["tracking"] == "waiting" and by_id[finished_id]["tracking"] is None
+    keyframes = by_id[finished_id]["keyframes"]
+    assert keyframes >= 1
+
+    async def scenario() -> dict:
+        async with Browser(chromium) as page:
+            await page.navigate(f"{stack.url}/viewer?api_key=viewer")
+            await page.wait_for(f"document.querySelector('#sessions li[data-id=\"{waiting.id}\"]') !== null", 30)
+            texts = await page.evaluate("Object.fromEntries([...document.querySelectorAll('#sessions li')]"
+                                        ".map((li) => [li.dataset.id, li.textContent]))")
+            link = await page.evaluate(f"document.querySelector('#sessions li[data-id=\"{finished_id}\"] a')"
+                                       ".getAttribute('href')")
+            await page.evaluate("(() => { const f = document.getElementById('session-filter'); f.value = 'phone-9';"
+                                " f.dispatchEvent(new Event('input')); })()")
+            by_text = await page.evaluate("[...document.querySelectorAll('#sessions li')].map((li) => li.dataset.id)")
+            await page.evaluate("(() => { document.getElementById('session-filter').value = '';"
+                                " const s = document.getElementById('status-filter'); s.value = 'finished';"
+                                " s.dispatchEvent(new Event('change')); })()")
+            by_status = await page.evaluate("[...document.querySelectorAll('#sessions li')]"
+                                            ".map((li) => li.dataset.status)")
+            await page.evaluate(f"document.querySelector('#sessions li[data-id=\"{finished_id}\"] a').click()")
+            selected = await page.wait_for("new URLSearchParams(location.search).get('session')", 10)
+            return {"texts": texts, "link": link, "by_text": by_text, "by_status": by_status, "selected": selected,
+                    "errors": list(page.console_errors)}
+
+    result = asyncio.run(scenario())
+    assert result["errors"] == [], result["errors"]
+    assert f"finished · {frame_count} frames · {keyframes} keyframes · last pose" in result["texts"][finished_id]
+    assert "tracking: waiting" in result["texts"][waiting.id] and "created · 0 frames" in result["texts"][waiting.id]
+    assert result["link"] == f"/viewer?session={finished_id}" and result["selected"] == finished_id
+    assert result["by_text"] == [waiting.id]
+    assert result["by_status"] and set(result["by_status"]) == {"finished"}
+
+
+def test_tracking_state_comes_from_the_newest_tracking_event_of_the_stream() -> None:
+    import json
+
+    import redis as redis_lib
+
+    from service.redis_embedded import EmbeddedRedis
+    from service.tracking_state import tracking_states
+    from worker.runtime import keys
+
+    def session(sid: str, status: str = "streaming", frames: int = 5) -> dict:
+        return {"id": sid, "status": status, "frames_processed": frames}
+
+    with EmbeddedRedis() as server:
+        sync = redis_lib.Redis.from_url(server.url)
+        for sid, messages in {"lost": [{"type": "pose", "seq": 1}, {"type": "tracking_lost", "seq": 2,
+                                                                    "reason": "black"}, {"type": "pose", "seq": 2}],
+                              "back": [{"type": "tracking_lost", "seq": 2}, {"type": "relocalized", "seq": 4},
+                                       {"type": "pose", "seq": 4}],
+                              "plain": [{"type": "pose", "seq": 0}]}.items():
+            for message in messages:
+                sync.xadd(keys.outbox(sid), {"msg": json.dumps(message)})
+
+        async def read() -> dict:
+            import redis.asyncio as aioredis
+
+            client = aioredis.Redis.from_url(server.url)
+            try:
+                return await tracking_states(client, [session("lost"), session("back"), session("plain"),
+                                                      session("new", "created", 0), session("done", "finished")])
+            finally:
+                await client.aclose()
+
+        states = asyncio.run(read())
+    assert states == {"lost": "lost", "back": "tracking", "plain": "tracking", "new": "waiting"}

@@ -45,6 +45,7 @@ const state = {
   mapFetchedAt: 0,
   splatPosePlaced: false,
   events: null, // the WebSocket of the session's live events
+  sessionList: [],
 };
 // What tests and curious users can read: how much has been drawn and rendered.
 window.viewerState = { posesDrawn: 0, renders: 0, lastError: null, loopClosures: 0, mapDownloads: 0, lastMap: null,
@@ -63,24 +64,53 @@ function setStatus(text, isError = false) {
 
 // ----------------------------------------------------------------------------------------------- sessions
 
+function ago(iso) {
+  const s = Math.max(0, (Date.now() - Date.parse(iso)) / 1000);
+  return s < 90 ? `${Math.round(s)} s ago` : s < 5400 ? `${Math.round(s / 60)} min ago` : `${Math.round(s / 3600)} h ago`;
+}
+
+function sessionMatches(s) {
+  const text = $("session-filter").value.trim().toLowerCase();
+  const status = $("status-filter").value;
+  if (status && s.status !== status) return false;
+  return !text || [s.name, s.id, s.device_id].some((v) => v && v.toLowerCase().includes(text));
+}
+
+// The fleet: each session's status, frames, keyframes, last pose time, tracking state, and a link to its live view.
+function drawSessions() {
+  const list = $("sessions");
+  list.replaceChildren();
+  const shown = state.sessionList.filter(sessionMatches);
+  for (const s of shown) {
+    const li = document.createElement("li");
+    li.dataset.id = s.id;
+    li.dataset.status = s.status;
+    li.classList.toggle("selected", s.id === state.sessionId);
+    const title = document.createElement("span");
+    title.textContent = s.name || s.id;
+    const link = document.createElement("a");
+    link.href = `/viewer?session=${encodeURIComponent(s.id)}`;
+    link.textContent = "live view";
+    link.addEventListener("click", (e) => { e.preventDefault(); e.stopPropagation(); selectSession(s.id); });
+    const meta = document.createElement("span");
+    meta.className = "meta";
+    meta.textContent = `${s.status} · ${s.frames_processed} frames · ${s.keyframes} keyframes · last pose `
+      + `${s.frames_processed ? ago(s.updated_at) : "–"} · ${s.device_id || "no device"}`;
+    const tracking = document.createElement("span");
+    tracking.className = `meta tracking-${s.tracking || "none"}`;
+    tracking.textContent = s.tracking ? `tracking: ${s.tracking}` : "";
+    li.append(title, link, meta, tracking);
+    li.addEventListener("click", () => selectSession(s.id));
+    list.append(li);
+  }
+  window.viewerState.sessionsShown = shown.length;
+}
+
 async function refreshSessions() {
   try {
-    const { sessions } = await state.api.sessions();
-    const list = $("sessions");
-    list.replaceChildren();
-    for (const s of sessions) {
-      const li = document.createElement("li");
-      li.dataset.id = s.id;
-      li.classList.toggle("selected", s.id === state.sessionId);
-      const title = document.createElement("span");
-      title.textContent = s.name || s.id;
-      const meta = document.createElement("span");
-      meta.className = "meta";
-      meta.textContent = `${s.status} · ${s.frames_processed} frames · ${s.device_id || "no device"}`;
-      li.append(title, meta);
-      li.addEventListener("click", () => selectSession(s.id));
-      list.append(li);
-    }
+    const { sessions } = await state.api.sessions(200);
+    state.sessionList = sessions;
+    drawSessions();
     if (!state.sessionId) setStatus(sessions.length ? "pick a session" : "no sessions yet");
   } catch (err) {
     setStatus(`sessions: ${err.message}`, true);
@@ -388,6 +418,8 @@ function init() {
     refreshSessions();
   });
   $("refresh-sessions").addEventListener("click", refreshSessions);
+  $("session-filter").addEventListener("input", drawSessions);
+  $("status-filter").addEventListener("change", drawSessions);
   $("download-map").addEventListener("click", downloadMap);
   $("snap-camera").addEventListener("click", () => {
     if (!state.poses.length) return;
