@@ -16,12 +16,12 @@ export class Api {
     return this.apiKey ? { "X-API-Key": this.apiKey } : {};
   }
 
-  async request(path, params = {}) {
+  async request(path, params = {}, init = {}) {
     const url = new URL(path, window.location.origin);
     for (const [key, value] of Object.entries(params)) {
       if (value !== undefined && value !== null) url.searchParams.set(key, String(value));
     }
-    const response = await fetch(url, { headers: this.headers() });
+    const response = await fetch(url, { ...init, headers: { ...this.headers(), ...(init.headers || {}) } });
     if (!response.ok) {
       let message = `${response.status} ${response.statusText}`;
       try {
@@ -35,6 +35,11 @@ export class Api {
 
   async sessions(limit = 50) {
     return (await this.request("/v1/sessions", { limit })).json();
+  }
+
+  async createSession(body) {
+    const init = { method: "POST", body: JSON.stringify(body), headers: { "Content-Type": "application/json" } };
+    return (await this.request("/v1/sessions", {}, init)).json();
   }
 
   async session(id) {
