@@ -75,6 +75,7 @@ class Browser:
         self.replies: dict[int, asyncio.Future] = {}
         self.console_errors: list[str] = []
         self.reader: asyncio.Task | None = None
+        self.handlers: dict[str, Any] = {}  # CDP event name -> async callback(params), e.g. Fetch.requestPaused
 
     async def __aenter__(self) -> Browser:
         self.process = subprocess.Popen([self.binary, *self.flags, f"--user-data-dir={self.profile}",
@@ -130,6 +131,9 @@ class Browser:
                 self.replies.pop(message["id"]).set_result(message)
                 continue
             method, params = message.get("method"), message.get("params", {})
+            if method in self.handlers:
+                asyncio.get_running_loop().create_task(self.handlers[method](params))
+                continue
             if method == "Runtime.consoleAPICalled" and params.get("type") in ("error", "assert"):
                 text = " ".join(str(a.get("value", a.get("description", ""))) for a in params.get("args", []))
                 self.console_errors.append(f"console.{params['type']}: {text}")
@@ -140,6 +144,24 @@ class Browser:
             elif method == "Log.entryAdded" and params.get("entry", {}).get("level") == "error":
                 entry = params["entry"]
                 self.console_errors.append(f"log: {entry.get('text')} {entry.get('url', '')}")
+
+    async def fulfil(self, url_pattern: str, body_for: Any) -> None:
+        """Answer the page's requests matching `url_pattern` (CDP wildcards) with `body_for(url)` bytes (200), or
+        let them through when it returns None: for benchmarks that feed the page data no session holds."""
+
+        async def paused(params: dict) -> None:
+            body = body_for(params["request"]["url"])
+            if body is None:
+                await self.send("Fetch.continueRequest", {"requestId": params["requestId"]})
+                return
+            await self.send("Fetch.fulfillRequest", {
+                "requestId": params["requestId"], "responseCode": 200,
+                "responseHeaders": [{"name": "Content-Type", "value": "application/octet-stream"},
+                                    {"name": "Content-Length", "value": str(len(body))}],
+                "body": base64.b64encode(body).decode()})
+
+        self.handlers["Fetch.requestPaused"] = paused
+        await self.send("Fetch.enable", {"patterns": [{"urlPattern": url_pattern}]})
 
     async def navigate(self, url: str) -> None:
         await self.send("Page.navigate", {"url": url})
