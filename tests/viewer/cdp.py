@@ -75,6 +75,7 @@ class Browser:
         self.replies: dict[int, asyncio.Future] = {}
         self.console_errors: list[str] = []
         self.reader: asyncio.Task | None = None
+        self.reply_timeout_s = 60.0  # a page busy drawing (software WebGL, big maps) answers late
         self.handlers: dict[str, Any] = {}  # CDP event name -> async callback(params), e.g. Fetch.requestPaused
 
     async def __aenter__(self) -> Browser:
@@ -119,7 +120,7 @@ class Browser:
         future = asyncio.get_running_loop().create_future()
         self.replies[message_id] = future
         await self.ws.send(json.dumps(message))
-        reply = await asyncio.wait_for(future, timeout=60)
+        reply = await asyncio.wait_for(future, timeout=self.reply_timeout_s)
         if "error" in reply:
             raise RuntimeError(f"{method}: {reply['error']}")
         return reply.get("result", {})
@@ -145,20 +146,14 @@ class Browser:
                 entry = params["entry"]
                 self.console_errors.append(f"log: {entry.get('text')} {entry.get('url', '')}")
 
-    async def fulfil(self, url_pattern: str, body_for: Any) -> None:
-        """Answer the page's requests matching `url_pattern` (CDP wildcards) with `body_for(url)` bytes (200), or
-        let them through when it returns None: for benchmarks that feed the page data no session holds."""
+    async def redirect(self, url_pattern: str, target_for: Any) -> None:
+        """Send the page's requests matching `url_pattern` to `target_for(url)` instead (transparently for the page;
+        None lets one through): for benchmarks that serve data no session holds at network speed."""
 
         async def paused(params: dict) -> None:
-            body = body_for(params["request"]["url"])
-            if body is None:
-                await self.send("Fetch.continueRequest", {"requestId": params["requestId"]})
-                return
-            await self.send("Fetch.fulfillRequest", {
-                "requestId": params["requestId"], "responseCode": 200,
-                "responseHeaders": [{"name": "Content-Type", "value": "application/octet-stream"},
-                                    {"name": "Content-Length", "value": str(len(body))}],
-                "body": base64.b64encode(body).decode()})
+            target = target_for(params["request"]["url"])
+            args = {"requestId": params["requestId"], **({"url": target} if target else {})}
+            await self.send("Fetch.continueRequest", args)
 
         self.handlers["Fetch.requestPaused"] = paused
         await self.send("Fetch.enable", {"patterns": [{"urlPattern": url_pattern}]})

@@ -10,9 +10,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .ply import SH_C0, read_vertex_records
+from .ply import FLAT_LOG_SCALE, SH_C0, read_vertex_records
 
-FLAT_SCALE = 0.0  # the third scale of a 2D surfel: a flat Gaussian
+FLAT_SCALE = 0.0  # the third scale of a 2D surfel: a flat Gaussian (the PLY's stand-in, exp(-10) m, reads as this)
 
 
 @dataclass(frozen=True)
@@ -63,6 +63,8 @@ def splat_arrays_from_ply(data: bytes) -> SplatArrays:
     scales = np.exp(stack("scale_0", "scale_1", *(["scale_2"] if "scale_2" in names else [])))
     if scales.shape[1] == 2:
         scales = np.concatenate([scales, np.full((len(scales), 1), FLAT_SCALE)], axis=1)
+    else:  # a 2D surfel written for 3DGS readers: exactly flat again (renderers such as Spark draw zero as 2D)
+        scales[np.asarray(v["scale_2"]) <= FLAT_LOG_SCALE + 1e-4, 2] = FLAT_SCALE
     return SplatArrays(
         means=stack("x", "y", "z").astype(np.float32),
         scales=scales.astype(np.float32),
