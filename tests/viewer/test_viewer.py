@@ -243,3 +243,18 @@ def test_tracking_state_comes_from_the_newest_tracking_event_of_the_stream() -> 
 
         states = asyncio.run(read())
     assert states == {"lost": "lost", "back": "tracking", "plain": "tracking", "new": "waiting"}
+
+
+def test_map_formats_route_validates_and_explains(live_session) -> None:
+    stack, session_id, _ = live_session
+    headers = {"X-API-Key": "viewer"}
+    bad = httpx.get(f"{stack.url}/v1/sessions/{session_id}/map", params={"format": "ksplat"}, headers=headers)
+    assert bad.status_code == 422 and "ply" in bad.text
+    # the passthrough engine's map is a point list, no Gaussians: a clear 409, not a broken file
+    refused = httpx.get(f"{stack.url}/v1/sessions/{session_id}/map", params={"format": "splat"}, headers=headers)
+    assert refused.status_code == 409 and "cannot be written as splat" in refused.json()["detail"]
+    ply = httpx.get(f"{stack.url}/v1/sessions/{session_id}/map", params={"format": "ply"}, headers=headers)
+    assert ply.status_code == 200 and ply.headers["x-map-format"] == "ply"
+    assert ply.headers["content-disposition"] == f'attachment; filename="{session_id}.ply"'
+    assert ply.content == httpx.get(f"{stack.url}/v1/sessions/{session_id}/map.ply", headers=headers).content
+    assert httpx.get(f"{stack.url}/v1/sessions/nope/map", headers=headers).status_code == 404
