@@ -50,7 +50,7 @@ def icl_frames(count: int = 12) -> list:
 @pytest.fixture(scope="module")
 def stack():
     with LiveStack(workers=1, api_keys=f"{KEY}=read,stream", engine="slam",
-                   extra_env={"FLASHMONO_LOG_LEVEL": "WARNING"}) as live:
+                   extra_env={"FLASHMONO_LOG_LEVEL": "WARNING", "FLASHMONO_REQUEST_TIMEOUT_S": "120"}) as live:
         yield live
 
 
@@ -184,6 +184,7 @@ def test_the_page_follows_a_streaming_session_live(chromium, stack):
     """Opened before the frames come: the map grows in the page (fetched again as keyframes arrive, the old one
     shown meanwhile), the live feed brings poses and the end, and the final map is the server's."""
     frames = icl_frames(10)
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
     with FlashMonoClient(stack.url, api_key=KEY) as client:
         session = client.create_session(intrinsics=frames[0].intrinsics, preset="rgbd", name="splat-live")
 
@@ -202,6 +203,8 @@ def test_the_page_follows_a_streaming_session_live(chromium, stack):
             await page.wait_for("window.viewerState.events.some((e) => e.type === 'finished')", 120)
             await page.wait_for("window.viewerState.splat.map && window.viewerState.splat.map.key.includes('finished')",
                                 120)
+            await asyncio.sleep(2)
+            (ARTIFACTS / "viewer_live_page.png").write_bytes(await page.screenshot())
             return {"history": await page.evaluate("window.viewerState.splat.history"),
                     "live_poses": await page.evaluate("window.viewerState.livePoses"),
                     "tracking": await page.evaluate("document.getElementById('tracking-state').textContent"),
@@ -210,7 +213,11 @@ def test_the_page_follows_a_streaming_session_live(chromium, stack):
                     "errors": list(page.console_errors)}
 
     result = asyncio.run(scenario())
-    assert result["errors"] == [], result["errors"]
+    # A worker busy mapping may answer a map request late (504/503; the page tries again at its next poll); nothing
+    # else may fail.
+    transient = ("503 (Service Unavailable)", "504 (Gateway Timeout)")
+    assert [e for e in result["errors"] if not (any(t in e for t in transient) and "/map?format=" in e)] == [], \
+        result["errors"]
     with FlashMonoClient(stack.url, api_key=KEY) as client:
         final = splat_arrays_from_ply(client.download_map(session.id))
     history = result["history"]

@@ -56,6 +56,7 @@ export class SplatView {
     this.renderer.setClearColor(0x000000, 1);
     this.scene = new THREE.Scene();
     this.camera = new THREE.PerspectiveCamera(60, canvas.width / canvas.height, NEAR, FAR);
+    this.camera.up.set(0, -1, 0); // orbit about the world's vertical: -y, the first camera's up (OpenCV world)
     this.spark = new SparkRenderer({ renderer: this.renderer, enable2DGS: true });
     this.scene.add(this.spark);
     this.intrinsics = null; // pinhole of the session's camera (scaled to the canvas), else a 60-degree view

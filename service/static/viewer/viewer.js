@@ -287,8 +287,9 @@ async function loadSplatMap(id, key) {
     window.viewerState.splat.mapError = null;
     showSplatInfo();
   } catch (err) {
-    // shown beside the view, not as a page error: a session may have no Gaussian map (yet, or at all)
-    state.mapKey = key; // not again until the session changes
+    // shown beside the view, not as a page error: a session may have no Gaussian map (409: not again until the
+    // session changes), or its worker may be busy (503/504: tried again at the next poll)
+    if (err.status === 409) state.mapKey = key;
     window.viewerState.splat.mapError = `map (${format}): ${err.message}`;
     $("splat-info").textContent = window.viewerState.splat.mapError;
   } finally {
