@@ -388,6 +388,9 @@ class AsyncFrameStream:
             elif isinstance(event, TrackingEvent):
                 self.summary.tracking_events.append(event)
             await self._publish(event)
+        elif kind == "skipped" and seq is not None:  # the tracker dropped it for a newer frame: its result
+            self.flow.on_result(int(seq))
+            self.summary.skipped.append(int(seq))
         elif kind == "error":
             self._handle_error(message)
         elif kind == "finished":
@@ -471,9 +474,10 @@ class AsyncFlashMonoClient:
 
     async def create_session(self, *, intrinsics: Any = None, preset: str | None = None, name: str | None = None,
                              device_id: str | None = None, metadata: dict[str, Any] | None = None,
-                             pose_mode: str | None = None) -> Session:
+                             pose_mode: str | None = None, skip_frames: bool | None = None) -> Session:
         """A new session (see FlashMonoClient.create_session)."""
-        return await self._call(rest.create_session(intrinsics, preset, name, device_id, metadata, pose_mode))
+        return await self._call(rest.create_session(intrinsics, preset, name, device_id, metadata, pose_mode,
+                                                        skip_frames))
 
     async def presets(self) -> dict[str, Any]:
         """GET /v1/presets: {presets: [{name, purpose, input}], input_modes}."""

@@ -97,11 +97,13 @@ class FlashMonoClient:
 
     def create_session(self, *, intrinsics: Any = None, preset: str | None = None, name: str | None = None,
                        device_id: str | None = None, metadata: dict[str, Any] | None = None,
-                       pose_mode: str | None = None) -> Session:
+                       pose_mode: str | None = None, skip_frames: bool | None = None) -> Session:
         """A new session; intrinsics as {fx, fy, cx, cy, width, height}, an Intrinsics or [fx, fy, cx, cy].
         pose_mode: "fixed" keeps the device poses frames carry exactly as sent ("prior", the default, refines them;
-        "ignore" tracks without them)."""
-        return self._call(rest.create_session(intrinsics, preset, name, device_id, metadata, pose_mode))
+        "ignore" tracks without them). skip_frames: False tracks every frame however late (recorded data); the
+        default (True) lets the tracker skip frames that fell behind a newer one, with a `skipped` message."""
+        return self._call(rest.create_session(intrinsics, preset, name, device_id, metadata, pose_mode,
+                                                        skip_frames))
 
     def presets(self) -> dict[str, Any]:
         """GET /v1/presets: {presets: [{name, purpose, input}], input_modes}."""

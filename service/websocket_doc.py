@@ -129,6 +129,13 @@ WEBSOCKET_DOC = {
                 "type": {"const": "pose"}, "seq": {"type": "integer"}, "timestamp": {"type": "number"},
                 "pose": _POSE, "scale": _SCALE, "is_keyframe": {"type": "boolean"}, "revision": {"type": "integer"}},
                 "description": "the tracked pose of a frame: its result, sent once per seq"},
+            "skipped": {"type": "object", "properties": {
+                "type": {"const": "skipped"}, "seq": {"type": "integer"},
+                "reason": {"type": "string", "enum": ["overload"]}},
+                "description": "the result of a frame the tracker skipped: it waited longer than the worker's skip "
+                               "limit (FLASHMONO_SKIP_AFTER_MS, 100 ms) while a newer frame was waiting, so the newer "
+                               "one was tracked instead (newest first wins, a few in a row at most); no pose comes "
+                               "for this seq"},
             "loop_closed": {"type": "object", "properties": {
                 "type": {"const": "loop_closed"}, "revision": {"type": "integer"}},
                 "additionalProperties": True,
