@@ -37,7 +37,8 @@ def engine_map(frames: int = 24) -> bytes:
                             use_gt_poses=True))
     with LiveStack(workers=1, engine="slam", extra_env={"FLASHMONO_LOG_LEVEL": "WARNING"}) as stack:
         with FlashMonoClient(stack.url) as client:
-            session = client.create_session(intrinsics=data[0].intrinsics, preset="rgbd", name="bench-map")
+            session = client.create_session(intrinsics=data[0].intrinsics, preset="rgbd", name="bench-map",
+                                            skip_frames=False)
             client.stream(session.id, data, wire=WireOptions(send_depth=True, send_pose=True), max_pending=4)
             return client.download_map(session.id)
 
@@ -198,7 +199,7 @@ def main(argv: list[str]) -> int:
     frames = list(open_frames(REPO / "tests" / "data" / "icl_mini", max_frames=8, stride=8, use_gt_poses=True))
     with LiveStack(workers=1, engine="passthrough") as stack:
         with FlashMonoClient(stack.url) as client:  # a session for the page: its poses, keyframes, status
-            session = client.create_session(intrinsics=frames[0].intrinsics, name="bench-page")
+            session = client.create_session(intrinsics=frames[0].intrinsics, name="bench-page", skip_frames=False)
             client.stream(session.id, frames, wire=WireOptions(send_pose=True))
         print("surfels  format  MB over the wire  fetch ms  decode ms  load->first splat frame ms  frames/s (orbiting)")
         files = MapFiles()

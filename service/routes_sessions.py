@@ -11,7 +11,6 @@ from service.auth import Principal, caller
 from service.deps import registry, session_for
 from service.registry import Registry, parse_session
 from service.schemas import ErrorBody, Session, SessionCreate, SessionList, SessionStatus
-from service.tracking_state import tracking_states
 
 router = APIRouter(prefix="/v1/sessions", tags=["sessions"],
                    responses={401: {"model": ErrorBody}, 403: {"model": ErrorBody}})
@@ -56,9 +55,6 @@ async def list_sessions(
     owner = None if principal.can_read_any() else principal.key_id
     sessions, next_cursor = await reg.list_sessions(status=status, device_id=device_id, name=name, limit=limit,
                                                     cursor=cursor, owner=owner)
-    states = await tracking_states(reg.client, sessions)
-    for session in sessions:
-        session["tracking"] = states.get(session["id"])
     return {"sessions": sessions, "next_cursor": next_cursor}
 
 
@@ -66,9 +62,7 @@ async def list_sessions(
 async def get_session(session_id: str, request: Request, principal: Principal = Depends(caller),
                       reg: Registry = Depends(registry)) -> dict:
     request.app.state.auth.require(principal, "read", "stream")
-    session = parse_session(await session_for(reg, principal, session_id, write=False))
-    session["tracking"] = (await tracking_states(reg.client, [session])).get(session_id)
-    return session
+    return parse_session(await session_for(reg, principal, session_id, write=False))
 
 
 @router.delete("/{session_id}", status_code=204, responses={404: {"model": ErrorBody}})

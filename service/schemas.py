@@ -87,9 +87,6 @@ class Session(BaseModel):
         "user's camera")
     metadata: dict[str, Any] = Field(default_factory=dict)
     error: str | None = Field(None, description="why the session failed")
-    tracking: Literal["waiting", "tracking", "lost"] | None = Field(
-        None, description="live sessions: whether the camera is tracked, from the newest tracking event among the "
-        "stream's last 256 messages (waiting: no frame processed yet); null once finished or failed")
 
 
 class SessionList(BaseModel):

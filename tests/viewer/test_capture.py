@@ -79,7 +79,9 @@ def test_capture_page_streams_the_camera_and_the_session_tracks_it(chromium, tmp
             trajectory = client.trajectory(state["sessionId"])
     assert session.status == "finished" and session.device_id == "browser"
     assert session.intrinsics["fx"] == 262.5 and session.intrinsics["width"] == 320
-    assert session.frames_processed == state["acked"] >= 20
+    # every acked frame was tracked, or skipped by a tracker behind the camera (it took a newer one; each says so)
+    assert session.frames_processed + session.frames_skipped == state["acked"] and session.frames_processed >= 20
+    assert state.get("skipped", 0) == session.frames_skipped
     assert state["sent"] == state["acked"] + state["refused"]
     centres = np.array([np.reshape(p.pose, (4, 4))[:3, 3] for p in trajectory.poses])
     assert len(centres) == session.frames_processed and np.isfinite(centres).all()

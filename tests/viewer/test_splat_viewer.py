@@ -59,7 +59,8 @@ def mapped_session(stack):
     """A finished session of the real engine on 12 ICL frames (posed RGB-D: the quickest real map)."""
     frames = icl_frames()
     with FlashMonoClient(stack.url, api_key=KEY) as client:
-        session = client.create_session(intrinsics=frames[0].intrinsics, preset="rgbd", name="splat-walk")
+        session = client.create_session(intrinsics=frames[0].intrinsics, preset="rgbd", name="splat-walk",
+                                        skip_frames=False)
         client.stream(session.id, frames, wire=WireOptions(send_depth=True, send_pose=True), max_pending=4)
         session = client.get_session(session.id)
         ply = client.download_map(session.id)
@@ -186,7 +187,8 @@ def test_the_page_follows_a_streaming_session_live(chromium, stack):
     frames = icl_frames(10)
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     with FlashMonoClient(stack.url, api_key=KEY) as client:
-        session = client.create_session(intrinsics=frames[0].intrinsics, preset="rgbd", name="splat-live")
+        session = client.create_session(intrinsics=frames[0].intrinsics, preset="rgbd", name="splat-live",
+                                        skip_frames=False)
 
     def stream() -> None:
         with FlashMonoClient(stack.url, api_key=KEY) as client:

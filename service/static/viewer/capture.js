@@ -42,7 +42,7 @@ function setStatus(text, isError = false) {
 
 function showCounters() {
   const c = counters;
-  $("counters").textContent = `sent ${c.sent} · acked ${c.acked} · poses ${c.poses} · on the wire `
+  $("counters").textContent = `sent ${c.sent} · acked ${c.acked} · poses ${c.poses} · skipped ${c.skipped || 0} · on the wire `
     + `${capture.awaitingAnswer.size} · at the server ${capture.awaitingResult.size} · dropped at the camera `
     + `${c.dropped} · backpressure ${c.backpressure}`;
 }
@@ -140,6 +140,10 @@ function onMessage(m) {
     counters.results += 1;
     counters.poses += 1;
     counters.lastPose = m.pose;
+  } else if (m.type === "skipped") { // the tracker, behind, took a newer frame instead: a result all the same
+    capture.awaitingResult.delete(m.seq);
+    counters.results += 1;
+    counters.skipped = (counters.skipped || 0) + 1;
   } else if (m.type === "error" && m.seq !== undefined && capture.awaitingAnswer.has(m.seq)) {
     capture.awaitingAnswer.delete(m.seq);
     counters.refused += 1;

@@ -69,6 +69,8 @@ function ago(iso) {
   return s < 90 ? `${Math.round(s)} s ago` : s < 5400 ? `${Math.round(s / 60)} min ago` : `${Math.round(s / 3600)} h ago`;
 }
 
+const LIVE = new Set(["created", "streaming", "finishing", "abandoned"]);
+
 function sessionMatches(s) {
   const text = $("session-filter").value.trim().toLowerCase();
   const status = $("status-filter").value;
@@ -96,9 +98,10 @@ function drawSessions() {
     meta.className = "meta";
     meta.textContent = `${s.status} · ${s.frames_processed} frames · ${s.keyframes} keyframes · last pose `
       + `${s.frames_processed ? ago(s.updated_at) : "–"} · ${s.device_id || "no device"}`;
+    const trackingState = s.tracking_state || (LIVE.has(s.status) && !s.frames_processed ? "waiting" : null);
     const tracking = document.createElement("span");
-    tracking.className = `meta tracking-${s.tracking || "none"}`;
-    tracking.textContent = s.tracking ? `tracking: ${s.tracking}` : "";
+    tracking.className = `meta tracking-${trackingState || "none"}`;
+    tracking.textContent = trackingState ? `tracking: ${trackingState}` : "";
     li.append(title, link, meta, tracking);
     li.addEventListener("click", () => selectSession(s.id));
     list.append(li);
