@@ -227,3 +227,22 @@ def test_the_page_follows_a_streaming_session_live(chromium, stack):
     assert history[0]["splats"] < history[-1]["splats"] == len(final), history
     assert result["live_poses"] >= 1 and result["drawn"] == len(frames)
     assert result["tracking"] == "tracking: finished" and "finished" in result["events"]
+
+
+def test_flashmono_export_writes_each_format_of_a_real_map(mapped_session, tmp_path: Path) -> None:
+    import subprocess
+
+    from worker.mapping.splat_file import decode_splat
+    from worker.mapping.spz import decode_spz
+
+    stack, session, ply = mapped_session
+    reference = splat_arrays_from_ply(ply)
+    env = {**os.environ, "FLASHMONO_SERVER": stack.url, "FLASHMONO_API_KEY": KEY, "PYTHONPATH": str(REPO)}
+    for args, name in ((["--format", "spz"], "map.spz"), (["--out", str(tmp_path / "room.splat")], "room.splat")):
+        run = subprocess.run([sys.executable, "-m", "client.cli", "export", session.id, *args], cwd=tmp_path, env=env,
+                             capture_output=True, text=True, timeout=120)
+        assert run.returncode == 0, run.stderr
+        data = (tmp_path / name).read_bytes()
+        decoded = decode_spz(data) if name.endswith(".spz") else decode_splat(data)
+        assert len(decoded) == len(reference) and np.abs(decoded.means - reference.means).max() < 1e-3
+        assert f"wrote {len(data)} bytes ({name.rsplit('.', 1)[1]})" in run.stderr
