@@ -520,9 +520,10 @@ class AsyncFlashMonoClient:
         """Like `render`, decoded: RGB uint8 [H, W, 3] or depth in metres float32 [H, W]."""
         return decode_png(await self.render(session_id, pose, kind=kind, **camera), kind)
 
-    async def download_map(self, session_id: str, sh_degree: int = 0) -> bytes:
-        """The session's surfel map as PLY bytes (sh_degree 3: with the 45 zero f_rest coefficients)."""
-        return await self._call(rest.map_ply(session_id, sh_degree))
+    async def download_map(self, session_id: str, sh_degree: int = 0, format: str = "ply") -> bytes:
+        """The session's surfel map as PLY bytes (sh_degree 3: with the 45 zero f_rest coefficients); format "spz"
+        or "splat" for web viewers."""
+        return await self._call(rest.map_ply(session_id, sh_degree, format))
 
     # ------------------------------------------------------------------------------------------- streaming
     def open_stream(self, session_id: str, *, window: int = 4, max_pending: int = 8, max_retries: int = 20,

@@ -144,10 +144,11 @@ class FlashMonoClient:
         """Like `render`, decoded: RGB uint8 [H, W, 3] or depth in metres float32 [H, W]."""
         return decode_png(self.render(session_id, pose, kind=kind, **camera), kind)
 
-    def download_map(self, session_id: str, sh_degree: int = 0) -> bytes:
+    def download_map(self, session_id: str, sh_degree: int = 0, format: str = "ply") -> bytes:
         """The session's surfel map as PLY bytes: f_dc colour only (68 bytes a surfel); sh_degree=3 adds the 45 zero
-        f_rest coefficients fixed-record 3DGS readers expect (248 bytes a surfel)."""
-        return self._call(rest.map_ply(session_id, sh_degree))
+        f_rest coefficients fixed-record 3DGS readers expect (248 bytes a surfel). format="spz" (Niantic SPZ v3)
+        or "splat" (antimatter15, 32 bytes a surfel) give what web splat viewers read."""
+        return self._call(rest.map_ply(session_id, sh_degree, format))
 
     # ------------------------------------------------------------------------------------------- streaming
     def stream(self, session_id: str, source: Any, *, on_event: EventCallback | None = None,

@@ -178,5 +178,16 @@ WEBSOCKET_DOC = {
         },
         "limits": "frame messages up to FLASHMONO_MAX_FRAME_BYTES (8 MiB); at most FLASHMONO_MAX_QUEUE (64) frames "
                   "queued per session",
-    }
+    },
+    "/v1/sessions/{session_id}/events": {
+        "description": "A read-only feed for viewers that do not send the frames (the web viewer): the messages the "
+                       "session's stream gets (pose, loop_closed, tracking_lost, relocalized, initialized, error, "
+                       "finishing, finished) from the moment of connection; the trajectory endpoint has the earlier "
+                       "ones. A session already finished or failed answers one `finished`/`failed` message. Same "
+                       "authentication as the stream (read or stream scope; ?api_key= allowed).",
+        "client_messages": {},
+        "server_messages": "as the stream's server_messages, without ack",
+        "close_codes": {"1000": "after finished", "4401": "unknown or missing API key", "4403": "not allowed",
+                        "4404": "no such session, or it was deleted"},
+    },
 }
