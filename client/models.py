@@ -52,7 +52,7 @@ class Session:
     pose_mode: str | None = None
     estimated_intrinsics: dict[str, Any] | None = None  # the camera the engine uses: given, or estimated
     frames_skipped: int = 0  # skipped by the tracker under overload (newest first wins)
-    skip_frames: bool = True  # whether the tracker may skip late frames (a live camera)
+    skip_frames: bool = False  # whether the tracker may skip late frames (a live camera asks for it)
     tracking_state: str | None = None  # "tracking" or "lost" at the newest processed frame
     mapping_lag_keyframes: int | None = None  # keyframes tracked but not yet mapped
     mapping_lag_s: float | None = None  # how long the oldest of them has waited
@@ -82,7 +82,7 @@ class Session:
             pose_mode=data.get("pose_mode"),
             estimated_intrinsics=data.get("estimated_intrinsics"),
             frames_skipped=int(data.get("frames_skipped") or 0),
-            skip_frames=bool(data.get("skip_frames", True)),
+            skip_frames=bool(data.get("skip_frames", False)),
             tracking_state=data.get("tracking_state"),
             mapping_lag_keyframes=data.get("mapping_lag_keyframes"),
             mapping_lag_s=data.get("mapping_lag_s"),

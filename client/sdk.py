@@ -100,8 +100,9 @@ class FlashMonoClient:
                        pose_mode: str | None = None, skip_frames: bool | None = None) -> Session:
         """A new session; intrinsics as {fx, fy, cx, cy, width, height}, an Intrinsics or [fx, fy, cx, cy].
         pose_mode: "fixed" keeps the device poses frames carry exactly as sent ("prior", the default, refines them;
-        "ignore" tracks without them). skip_frames: False tracks every frame however late (recorded data); the
-        default (True) lets the tracker skip frames that fell behind a newer one, with a `skipped` message."""
+        "ignore" tracks without them). skip_frames: True for a live camera: the tracker
+        skips frames that fell behind a newer one, with a `skipped` message; False (the server's default) tracks every
+        frame however late."""
         return self._call(rest.create_session(intrinsics, preset, name, device_id, metadata, pose_mode,
                                                         skip_frames))
 

@@ -122,7 +122,7 @@ class Registry:
             "status": "created", "created_at": created, "updated_at": created, "frames_received": 0,
             "frames_processed": 0, "frames_rejected": 0, "frames_skipped": 0, "keyframes": 0, "revision": 0,
             "worker": "", "preset": body.get("preset") or "", "pose_mode": body.get("pose_mode") or "",
-            "skip_frames": "" if body.get("skip_frames") is None else int(bool(body["skip_frames"])),
+            "skip_frames": int(bool(body.get("skip_frames"))),
             "intrinsics": json.dumps(body.get("intrinsics")),
             "metadata": json.dumps(body.get("metadata") or {}), "owner": owner, "last_seq": -1,
         }
@@ -297,6 +297,6 @@ def parse_session(record: dict[str, Any]) -> dict[str, Any]:
     for name in _FLOAT_FIELDS:
         out[name] = float(record[name]) if record.get(name) else None
     out["tracking_state"] = record.get("tracking_state") or None
-    out["skip_frames"] = record.get("skip_frames") != "0"
+    out["skip_frames"] = record.get("skip_frames") == "1"
     out["last_seq"] = int(record.get("last_seq") or -1)
     return out

@@ -38,9 +38,10 @@ class IntrinsicsIn(BaseModel):
 
 
 SKIP_FRAMES_DOC = (
-    "live camera (true, the default): when tracking falls behind, a frame that waited longer than the worker's limit "
-    "(100 ms) while a newer one is waiting gets a `skipped` message instead of a pose (newest first wins, a few in a "
-    "row at most), so poses keep up with the camera; false: every frame is tracked however late (recorded data)")
+    "true for a live camera: when tracking falls behind, a frame that waited longer than the worker's limit (100 ms) "
+    "while a newer one is waiting gets a `skipped` message instead of a pose (newest first wins, a few in a row at "
+    "most), so poses keep up with the camera; false (the default): every frame is tracked however late (recorded "
+    "data, and clients that need every pose)")
 
 
 class SessionCreate(BaseModel):
@@ -48,7 +49,7 @@ class SessionCreate(BaseModel):
     intrinsics: IntrinsicsIn | None = None
     preset: PresetName | None = Field(default=None, description=preset_field_description())
     pose_mode: PoseMode | None = Field(default=None, description=POSE_MODE_DOC)
-    skip_frames: bool | None = Field(default=None, description=SKIP_FRAMES_DOC)
+    skip_frames: bool = Field(default=False, description=SKIP_FRAMES_DOC)
     name: str | None = Field(default=None, max_length=200)
     device_id: str | None = Field(default=None, max_length=200)
     metadata: dict[str, Any] = Field(default_factory=dict)
@@ -79,7 +80,7 @@ class Session(BaseModel):
     worker: str | None = Field(None, description="id of the worker that owns (or last owned) the session")
     preset: str | None = None
     pose_mode: PoseMode | None = Field(None, description="as created (null: the engine's default, prior)")
-    skip_frames: bool = Field(True, description=SKIP_FRAMES_DOC)
+    skip_frames: bool = Field(False, description=SKIP_FRAMES_DOC)
     intrinsics: IntrinsicsIn | None = None
     estimated_intrinsics: IntrinsicsIn | None = Field(
         None, description="the camera the engine uses at the frames' resolution: the given intrinsics, or the ones it "

@@ -49,7 +49,7 @@ def _stream_burst(stack: LocalStack, body: dict) -> tuple[str, dict[int, str]]:
 
 
 def test_a_stream_the_worker_cannot_keep_up_with_skips_old_frames_with_a_message(stack):
-    sid, results = _stream_burst(stack, {"name": "live"})
+    sid, results = _stream_burst(stack, {"name": "live", "skip_frames": True})
     skipped = sorted(s for s, kind in results.items() if kind == "skipped")
     assert skipped, "the worker fell behind, yet no frame was skipped"
     assert results[0] == "pose" and results[FRAMES - 1] == "pose"  # the first frame and the newest are tracked
@@ -65,8 +65,8 @@ def test_a_stream_the_worker_cannot_keep_up_with_skips_old_frames_with_a_message
     assert session["skip_frames"] is True and session["tracking_state"] == "tracking"
 
 
-def test_a_session_that_asks_for_every_frame_gets_a_pose_for_each(stack):
-    sid, results = _stream_burst(stack, {"name": "recorded", "skip_frames": False})
+def test_a_session_by_default_gets_a_pose_for_every_frame(stack):
+    sid, results = _stream_burst(stack, {"name": "recorded"})
     assert set(results.values()) == {"pose"}
     with httpx.Client(base_url=stack.base_url, timeout=30) as api:
         session = api.get(f"/v1/sessions/{sid}").json()

@@ -7,7 +7,7 @@ FLASHMONO_MAX_SESSIONS (sessions per worker, 16), FLASHMONO_TORCH_THREADS (torch
 FLASHMONO_MAX_FRAME_SIDE (640), FLASHMONO_MAX_FRAME_ATTEMPTS (2), FLASHMONO_MEMORY_BUDGET_MB (0: none),
 FLASHMONO_IDLE_TIMEOUT_S (600; 0: never), FLASHMONO_TRANSIENT_TTL_S (3600), FLASHMONO_RETENTION_S (0: kept),
 FLASHMONO_BLOB_DIR (none), FLASHMONO_ARCHIVE_AFTER_S (3600), FLASHMONO_SKIP_AFTER_MS (100: a frame that waited
-longer while a newer one is waiting is skipped, newest first wins; 0: never), FLASHMONO_MAX_CONSECUTIVE_SKIPS (3).
+longer while a newer one is waiting is skipped, newest first wins; 0: never), FLASHMONO_MAX_CONSECUTIVE_SKIPS (5).
 """
 
 from __future__ import annotations
@@ -58,7 +58,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="live tracking: a frame that waited longer than this while a newer frame is waiting is "
                              "skipped with a `skipped` message (newest first wins; 0: never skip)")
     parser.add_argument("--max-consecutive-skips", type=int,
-                        default=int(env("FLASHMONO_MAX_CONSECUTIVE_SKIPS", "3")),
+                        default=int(env("FLASHMONO_MAX_CONSECUTIVE_SKIPS", "5")),
                         help="frames skipped in a row at most (tracking keeps its continuity)")
     parser.add_argument("--torch-threads", type=int, default=int(env("FLASHMONO_TORCH_THREADS", "0")))
     parser.add_argument("--log-level", default=env("FLASHMONO_LOG_LEVEL", "INFO"))

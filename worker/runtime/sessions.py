@@ -98,7 +98,7 @@ class RuntimeConfig:
     # Live tracking: a frame older than this (since the gateway queued it) is skipped when a newer one is waiting,
     # newest first wins (0: never skip); at most `max_consecutive_skips` in a row, so tracking keeps its continuity.
     skip_after_ms: float = 100.0
-    max_consecutive_skips: int = 3
+    max_consecutive_skips: int = 5
     live_stats_every_s: float = 0.5  # how often the session record gets the engine's live figures
 
 
@@ -276,6 +276,8 @@ class SessionRunner(threading.Thread):
                 else:
                     self._handle_entry(entry_id, fields)
                 after = entry_id
+                self._store_finished_snapshot()
+            self._publish_live_stats()  # a stream that keeps coming is caught up on here
         self._cursor = stream_id_tuple(after)
         self._resume_interrupted_finish()
 
@@ -328,7 +330,7 @@ class SessionRunner(threading.Thread):
     def _should_skip(self, entry_id: bytes, fields: dict[bytes, bytes], newest_frame: bytes | None) -> bool:
         """Newest first wins: a frame that waited longer than `skip_after_ms` while a newer frame is waiting is
         skipped (never the session's first frame, a frame already counted, or more than a few in a row)."""
-        limit = self.config.skip_after_ms if self._session.get("skip_frames") != "0" else 0
+        limit = self.config.skip_after_ms if self._session.get("skip_frames") == "1" else 0
         if (limit <= 0 or newest_frame is None or entry_id == newest_frame or fields.get(b"kind", b"frame") != b"frame"
                 or not self._done_seqs or self._consecutive_skips >= self.config.max_consecutive_skips
                 or int(fields[b"seq"]) in self._done_seqs):
@@ -556,6 +558,7 @@ class SessionRunner(threading.Thread):
         failpoint("finish:engine")
         self._revision = int(getattr(self.engine, "revision", self._revision))
         self._store_trajectory()
+        self._publish_live_stats(force=True)  # drained: the lag reads 0 from now on
         failpoint("finish:trajectory")
         last_seq = max(self._done_seqs) if self._done_seqs else -1
         self._write_snapshot(last_seq, entry_id, wait=True)

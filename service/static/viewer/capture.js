@@ -70,7 +70,9 @@ async function start() {
     capture.canvas.width = width;
     capture.canvas.height = height;
     const focal = Number($("focal").value);
-    const body = { name: $("name").value || "phone capture", preset: $("preset").value, device_id: "browser" };
+    // a live camera: the tracker may skip frames that fell behind a newer one (each gets a `skipped` result)
+    const body = { name: $("name").value || "phone capture", preset: $("preset").value, device_id: "browser",
+      skip_frames: true };
     if (focal > 0) body.intrinsics = { width, height, fx: focal, fy: focal, cx: width / 2, cy: height / 2 };
     const session = await api.createSession(body);
     counters.sessionId = session.id;
