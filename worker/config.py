@@ -112,6 +112,12 @@ class MappingConfig(_Section):
     final_refine_passes: int = Field(
         0, ge=0, le=1000, description="refinement at finish(): passes over every keyframe whose image is held "
         "(window + archive), one iteration per keyframe per pass, in a seeded random order")
+    shed_backlog: int = Field(
+        2, ge=0, description="load shedding: with more keyframes than this waiting, each keyframe's refinement "
+        "shrinks in proportion (iterations x shed_backlog / backlog) and trains no archived views; 0 = never shed")
+    merge_only_backlog: int = Field(
+        6, ge=1, description="load shedding: with more keyframes than this waiting, keyframes are merged into the "
+        "map without refinement (finish() refines them)")
 
 
 class InputConfig(_Section):
@@ -151,8 +157,11 @@ class SlamConfig(_Section):
     input: InputConfig = Field(default_factory=InputConfig)
     tracking: TrackingConfig = Field(default_factory=TrackingConfig)
     depth: MultiViewDepthConfig = Field(default_factory=MultiViewDepthConfig)
-    threaded: bool = Field(True, description="frontend and backend in two threads; False = deterministic, inline")
-    queue_size: int = Field(8, ge=1, le=1024, description="bound of the frontend->backend keyframe queue")
+    threaded: bool = Field(
+        True, description="tracking, mapping and loop closing in their own threads; False = inline, deterministic")
+    queue_size: int = Field(
+        24, ge=1, le=1024, description="the mapping stage's keyframe backlog: keyframes waiting beyond it are "
+        "dropped from the map, oldest first (tracking never waits for mapping)")
     device: str = Field("cpu", pattern=r"^(cpu|cuda(:\d+)?)$")
     num_threads: int = Field(2, ge=1, le=256, description="torch intra-op threads")
 

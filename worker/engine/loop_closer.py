@@ -51,6 +51,9 @@ class DepthKeyframePoints:
         p = unproject_depth(self.depths[index].float(), self.cameras[index])
         return p, (p[..., 2] > 0).float() + 1.0
 
+    def __len__(self) -> int:
+        return len(self.depths)
+
     def state_dict(self) -> dict:
         keys = list(self.depths)
         return {"keys": keys, "depths": [self.depths[k].numpy() for k in keys],
