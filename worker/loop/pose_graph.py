@@ -227,7 +227,8 @@ class Sim3PoseGraph:
         without any edge (yet) are left out."""
         anchor = self._anchor_of(fixed)
         graph = gtsam.NonlinearFactorGraph()
-        values = self._values([k for k in self.nodes if k not in self._isolated(anchor)])
+        isolated = self._isolated(anchor)
+        values = self._values([k for k in self.nodes if k not in isolated])
         prior = gtsam.noiseModel.Isotropic.Sigma(7, self.prior_sigma)
         graph.add(gtsam.PriorFactorSimilarity3(anchor, values.atSimilarity3(anchor), prior))
         self._add_edge_factors(graph, self.edges)
