@@ -18,6 +18,7 @@ import redis.asyncio as aioredis
 
 from worker.runtime import keys
 from worker.runtime.archive import BlobStore
+from worker.runtime.connection import is_cluster
 from worker.runtime.failpoints import failpoint
 from worker.runtime.similarity import similarity_scale
 
@@ -65,15 +66,14 @@ return 1
 """
 
 _BLPOP_SLICE_S = 2.0
-# A stream opened on an abandoned session within the grace period revives it: streaming again, and a new job so
-# that a worker resumes it from its snapshot. 1 revived, 0 past the grace period, -1 not abandoned.
+# A stream opened on an abandoned session within the grace period revives it: streaming again (then a new job,
+# see `revive`, so that a worker resumes it from its snapshot). 1 revived, 0 past the grace period, -1 not abandoned.
 _REVIVE = """
 local f = redis.call('HMGET', KEYS[1], 'status', 'abandoned_at')
 if f[1] ~= 'abandoned' then return -1 end
 if tonumber(ARGV[1]) - tonumber(f[2] or '0') > tonumber(ARGV[2]) then return 0 end
 redis.call('HSET', KEYS[1], 'status', 'streaming', 'updated_at', ARGV[3])
 redis.call('HDEL', KEYS[1], 'abandoned_at')
-redis.call('XADD', KEYS[2], '*', 'session_id', ARGV[4])
 return 1
 """
 INGEST_ACCEPTED, NO_SESSION, NOT_ACCEPTING, SEQ_NOT_INCREASING, QUEUE_FULL, SIZE_MISMATCH = 0, -1, -2, -3, -4, -5
@@ -106,6 +106,7 @@ class Registry:
     def __init__(self, client: aioredis.Redis, blobs: BlobStore | None = None) -> None:
         self.client = client
         self.blobs = blobs
+        self.cluster = is_cluster(client)
         self._ingest = client.register_script(_INGEST)
         self._finish = client.register_script(_FINISH)
         self._revive = client.register_script(_REVIVE)
@@ -123,12 +124,13 @@ class Registry:
             "metadata": json.dumps(body.get("metadata") or {}), "owner": owner, "last_seq": -1,
         }
         member = f"{datetime.now(UTC).timestamp() * 1e6:020.0f}:{session_id}"
-        pipe = self.client.pipeline(transaction=True)
-        pipe.hset(keys.session(session_id), mapping=record)
-        pipe.hset(keys.session(session_id), "index_member", member)
+        # atomic on a single instance; on a cluster these keys sit on several shards, so it is one round trip per
+        # shard in this order: the record first, its job last (a record without a job is a session never started)
+        pipe = self.client.pipeline(transaction=not self.cluster)
+        pipe.hset(keys.session(session_id), mapping={**record, "index_member": member})
         pipe.zadd(keys.SESSIONS_INDEX, {member: 0})
         pipe.zadd(keys.owner_live(owner), {session_id: 0})
-        pipe.xadd(keys.JOBS, {"session_id": session_id})
+        pipe.xadd(keys.jobs(session_id), {"session_id": session_id})
         await pipe.execute()
         return parse_session(record)
 
@@ -183,8 +185,8 @@ class Registry:
 
     async def delete_session(self, session_id: str, record: dict[str, str]) -> None:
         failpoint("delete:gateway")
-        pipe = self.client.pipeline(transaction=True)
-        pipe.delete(*keys.all_session_keys(session_id))
+        pipe = self.client.pipeline(transaction=not self.cluster)
+        pipe.execute_command("DEL", *keys.all_session_keys(session_id))  # one hash slot: one command on a cluster
         if record.get("index_member"):
             pipe.zrem(keys.SESSIONS_INDEX, record["index_member"])
         if record.get("owner"):
@@ -208,9 +210,13 @@ class Registry:
 
     async def revive(self, session_id: str, grace_s: float) -> int:
         """1: the abandoned session streams again (a worker resumes it); 0: abandoned too long ago; -1: not
-        abandoned."""
-        return int(await self._revive(keys=[keys.session(session_id), keys.JOBS],
-                                      args=[f"{time.time():.3f}", grace_s, now_iso(), session_id]))
+        abandoned. The job goes to its partition after the status changed (another shard on a cluster): a worker
+        that reads it sees the session streaming."""
+        revived = int(await self._revive(keys=[keys.session(session_id)],
+                                         args=[f"{time.time():.3f}", grace_s, now_iso()]))
+        if revived == 1:
+            await self.client.xadd(keys.jobs(session_id), {"session_id": session_id})
+        return revived
 
     async def last_outbox_id(self, session_id: str) -> str:
         entries = await self.client.xrevrange(keys.outbox(session_id), count=1)
@@ -241,7 +247,7 @@ class Registry:
         """Ask the owning worker (live) or any worker (finished) to render/export; its reply dict."""
         request_id = uuid.uuid4().hex
         fields = {"id": request_id, "kind": kind, "params": json.dumps(params), "session_id": session_id}
-        stream = keys.session_requests(session_id) if live else keys.REQUESTS
+        stream = keys.session_requests(session_id) if live else keys.requests(session_id)
         await self.client.xadd(stream, fields, maxlen=1000, approximate=True)
         # BLPOP in slices shorter than the client's socket timeout (5 s by default in redis-py), which would
         # otherwise end a longer wait early, whatever `timeout_s` says

@@ -11,10 +11,13 @@ import random
 import threading
 
 import redis
+from redis.exceptions import ClusterError, SlotNotCoveredError, TryAgainError
 
 # What redis-py raises while the server is down, restarting (LOADING is a BusyLoadingError, a ConnectionError)
-# or unreachable; the asyncio client raises the same classes.
-REDIS_DOWN: tuple[type[Exception], ...] = (redis.ConnectionError, redis.TimeoutError)
+# or unreachable; the asyncio client raises the same classes. On a Redis Cluster also while a shard fails over
+# (CLUSTERDOWN, a slot no node serves yet, too many redirections) or a slot migrates (TRYAGAIN).
+REDIS_DOWN: tuple[type[Exception], ...] = (redis.ConnectionError, redis.TimeoutError, ClusterError, TryAgainError,
+                                           SlotNotCoveredError)
 
 
 class Backoff:
