@@ -46,7 +46,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             connections += settings.max_streams
         client = connect_async(settings.redis_url, connections, health_check_interval=30,
                                client_name="flashmono-gateway")
-        app.state.registry = Registry(client, BlobStore(settings.blob_dir) if settings.blob_dir else None)
+        app.state.registry = Registry(client, BlobStore(settings.blob_dir) if settings.blob_dir else None,
+                                      wait_replicas=settings.redis_wait_replicas,
+                                      wait_timeout_ms=settings.redis_wait_ms)
         app.state.outbox_hub = OutboxHub(client)
         app.state.outbox_hub.start()
         try:

@@ -120,8 +120,11 @@ class Worker:
         if len(self.runners) >= self.config.max_sessions or over_budget(self.config.memory_budget_mb):
             time.sleep(0.05)
             return
-        for _stream, job_id, fields in self._jobs.read(self.client, self.worker_id):
-            self._take(fields[b"session_id"].decode(), job_id.decode())
+        for index, (_stream, job_id, fields) in enumerate(self._jobs.read(self.client, self.worker_id)):
+            if index == 0:
+                self._take(fields[b"session_id"].decode(), job_id.decode())
+            else:  # one job per read, as from a single queue: the others go back for any worker
+                self._hand_back(fields[b"session_id"].decode(), job_id.decode())
 
     def _claim_stale_jobs(self) -> None:
         """Jobs whose owner stopped renewing them (dead worker) for longer than a lease lasts."""

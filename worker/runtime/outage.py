@@ -11,13 +11,16 @@ import random
 import threading
 
 import redis
-from redis.exceptions import ClusterError, SlotNotCoveredError, TryAgainError
+from redis.exceptions import ClusterError, RedisClusterException, TryAgainError
 
 # What redis-py raises while the server is down, restarting (LOADING is a BusyLoadingError, a ConnectionError)
 # or unreachable; the asyncio client raises the same classes. On a Redis Cluster also while a shard fails over
-# (CLUSTERDOWN, a slot no node serves yet, too many redirections) or a slot migrates (TRYAGAIN).
+# (CLUSTERDOWN, too many redirections, nodes that disagree on the slot map or none reachable while the client
+# refreshes it: RedisClusterException) or a slot migrates (TRYAGAIN). RedisClusterException also stands for a
+# command over keys of several slots, which this code never sends (every multi-key call stays in one session's
+# slot, checked against a real cluster by tests/runtime/test_cluster.py).
 REDIS_DOWN: tuple[type[Exception], ...] = (redis.ConnectionError, redis.TimeoutError, ClusterError, TryAgainError,
-                                           SlotNotCoveredError)
+                                           RedisClusterException)
 
 
 class Backoff:
