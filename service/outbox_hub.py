@@ -111,7 +111,7 @@ class OutboxHub:
                 await self._read_once(session_ids)
                 outage.recovered()
                 backoff.reset()
-            except REDIS_DOWN as err:
+            except (*REDIS_DOWN, RuntimeError) as err:  # RuntimeError: see outage.closed_transport
                 outage.failed(err)
                 await asyncio.sleep(backoff.next_delay())
 

@@ -22,6 +22,7 @@ from worker.runtime import keys
 from worker.runtime.archive import BlobStore
 from worker.runtime.connection import is_cluster
 from worker.runtime.failpoints import failpoint
+from worker.runtime.outage import closed_transport
 from worker.runtime.similarity import similarity_scale
 
 # Atomically: check the session accepts frames, seq increases, the queue has room; enqueue; count.
@@ -212,10 +213,13 @@ class Registry:
         `wait_replicas`, the frame is answered only once that many replicas hold it (or the wait timed out)."""
         script_keys = [keys.session(session_id), keys.inbox(session_id)]
         args = [seq, max_queue, now_iso(), message, frame_size]
-        if self.wait_replicas:
-            reply = await self._ingest_replicated(script_keys, args)
-        else:
-            reply = await self._ingest(keys=script_keys, args=args)
+        try:
+            if self.wait_replicas:
+                reply = await self._ingest_replicated(script_keys, args)
+            else:
+                reply = await self._ingest(keys=script_keys, args=args)
+        except RuntimeError as err:  # the stream takes a RuntimeError for a client gone: not this one
+            raise closed_transport(err) from err
         code, value, resend_from, *extra = reply
         return IngestResult(int(code), int(value), int(resend_from), extra[0].decode() if extra else "",
                             int(extra[1]) if len(extra) > 1 else -1)

@@ -23,6 +23,12 @@ REDIS_DOWN: tuple[type[Exception], ...] = (redis.ConnectionError, redis.TimeoutE
                                            RedisClusterException)
 
 
+def closed_transport(err: RuntimeError) -> redis.ConnectionError:
+    """The ConnectionError for a RuntimeError that uvloop raises on a write to a connection the server closed (a
+    killed cluster primary): redis-py's asyncio cluster pipeline lets it through instead of its own error."""
+    return redis.ConnectionError(f"connection closed by the server: {err}")
+
+
 class Backoff:
     """Delays of `first_s`, doubling up to `max_s`, with +-20 % jitter so a fleet does not reconnect in lockstep."""
 
