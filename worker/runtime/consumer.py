@@ -1,7 +1,8 @@
-"""The worker: takes sessions from the jobs streams (`keys.JOB_STREAMS`, consumer group "workers", read in
-turn), runs each in a `SessionRunner` thread under a lease, renews its leases by heartbeats, takes over sessions of
-dead workers (XAUTOCLAIM of jobs idle longer than the lease TTL) and serves render/export requests for finished
-sessions. A session's job always sits in the partition of its id, `keys.jobs(session_id)`.
+"""The worker: takes sessions from the jobs streams (`keys.JOB_STREAMS`, consumer group "workers", read as
+`worker.runtime.partitions` says), runs each in a `SessionRunner` thread under a lease, renews its leases by
+heartbeats, takes over sessions of dead workers (XAUTOCLAIM of jobs idle longer than the lease TTL) and serves
+render/export requests for finished sessions. A session's job always sits in the partition of its id,
+`keys.jobs(session_id)`.
 """
 
 from __future__ import annotations
