@@ -2,13 +2,15 @@
 
 Streams RGB-D frames (the bundled ICL 320x240 JPEG + 16-bit depth PNG) from S sessions at 30 FPS through one
 gateway and the workers (passthrough engine: the figures are the service's, not the SLAM engine's), first against
-one redis-server, then against a cluster of 3 primaries + 3 replicas (all from the bundled binary, loopback TCP).
-From every Redis server's INFO before and after it reports, per acked frame: Redis commands (as the servers count
-them, Lua calls inside scripts included), bytes into and out of the servers (replication included), and the CPU
-time the servers spent. Redis is single-threaded, so one instance saturates at one core: the sessions at 30 FPS one
-instance carries are 1 s / (its CPU per frame x 30), and a cluster's are that per shard over the share of sessions
-its busiest shard holds. On a small machine the gateway and workers (Python) saturate long before Redis does, so the
-measured ingest says where this machine stops and the CPU per frame says where Redis would.
+one redis-server, then against a cluster of 3 primaries, then 3 primaries + 3 replicas with the gateway waiting for
+a replica per frame (all from the bundled binary, loopback TCP).
+From every Redis server's INFO before and after it reports, per acked frame: commands the primaries ran (Lua calls
+inside scripts included), bytes into and out of the primaries (replication included), and the CPU time of every
+server and of the busiest primary. Redis is single-threaded, so one instance saturates at one core: the sessions at
+30 FPS one instance carries are 1 s / (its CPU per frame x 30), and a cluster's are the same for its busiest primary
+(its CPU over all the frames: the share of sessions it holds counts). On a small machine the gateway and workers
+(Python) saturate long before Redis does, so the measured ingest says where this machine stops and the CPU per frame
+says where Redis would.
 
 `python -m bench cluster [--sessions 4,16] [--seconds 8] [--workers 2] [--wait-replicas 1] [--write-results]`
 """
@@ -71,18 +73,21 @@ async def stream_session(ws_url: str, frames: int, fps: float, rgb: bytes, depth
 
 
 def server_counters(clients: list[redis.Redis]) -> dict[str, float]:
-    """Summed over `clients`: commands, bytes in/out, CPU seconds; and per server CPU seconds (`cpu.<port>`)."""
+    """Commands (those run by scripts included) and bytes in/out summed over the primaries (a primary's output
+    includes what it streams to its replicas), CPU seconds over every server, and each server's CPU (`cpu.<port>`)
+    and role (`role.<port>`, 1 for a primary)."""
     total = {"calls": 0.0, "bytes_in": 0.0, "bytes_out": 0.0, "cpu_s": 0.0}
     for client in clients:
         info = client.info("all")
-        calls = sum(v["calls"] for k, v in info.items() if k.startswith("cmdstat_") and k != "cmdstat_info")
         cpu = float(info["used_cpu_sys"]) + float(info["used_cpu_user"])
-        total["calls"] += calls
-        total["bytes_in"] += float(info["total_net_input_bytes"])
-        total["bytes_out"] += float(info["total_net_output_bytes"])
         total["cpu_s"] += cpu
         total[f"cpu.{info['tcp_port']}"] = cpu
         total[f"role.{info['tcp_port']}"] = 1.0 if info["role"] == "master" else 0.0
+        if info["role"] == "master":
+            total["calls"] += sum(v["calls"] for k, v in info.items() if k.startswith("cmdstat_")
+                                  and k != "cmdstat_info")
+            total["bytes_in"] += float(info["total_net_input_bytes"])
+            total["bytes_out"] += float(info["total_net_output_bytes"])
     return total
 
 
@@ -126,7 +131,8 @@ def capacity(row: dict) -> float:
 
 def format_table(rows: list[dict]) -> str:
     lines = ["| Redis | sessions x 30 FPS | frames acked / offered | ingest frames/s | ack p50 / p99 ms | "
-             "Redis commands / frame | kB in / out per frame | Redis CPU us / frame: all servers / busiest primary | "
+             "commands / frame (primaries) | kB in / out per frame (primaries) | Redis CPU us / frame: all servers / "
+             "busiest primary | "
              "sessions at 30 FPS the busiest primary carries |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for row in rows:
         lines.append(f"| {row['redis']} | {row['sessions']} | {row['acked']} / {row['offered']} | "
@@ -137,11 +143,11 @@ def format_table(rows: list[dict]) -> str:
 
 
 def measure(name: str, url: str, servers: list[redis.Redis], args: argparse.Namespace, rgb: bytes,
-            depth: bytes) -> list[dict]:
+            depth: bytes, wait_replicas: int = 0) -> list[dict]:
     env = {"FLASHMONO_ENGINE": "passthrough", "FLASHMONO_LOG_LEVEL": "WARNING", "FLASHMONO_MAX_SESSIONS": "64",
            "FLASHMONO_SNAPSHOT_EVERY": "5"}
     gateway_env = {"FLASHMONO_MAX_QUEUE": "1000", "FLASHMONO_API_KEYS": "",
-                   "FLASHMONO_REDIS_WAIT_REPLICAS": str(args.wait_replicas if "cluster" in name else 0)}
+                   "FLASHMONO_REDIS_WAIT_REPLICAS": str(wait_replicas)}
     rows = []
     with LocalStack(workers=args.workers, redis_url=url, worker_env=env, gateway_env=gateway_env,
                     worker_nice=args.worker_nice) as stack:
@@ -158,7 +164,8 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--seconds", type=float, default=8.0)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--worker-nice", type=int, default=10)
-    parser.add_argument("--wait-replicas", type=int, default=1, help="FLASHMONO_REDIS_WAIT_REPLICAS on the cluster")
+    parser.add_argument("--wait-replicas", type=int, default=1,
+                        help="FLASHMONO_REDIS_WAIT_REPLICAS on the cluster with replicas")
     parser.add_argument("--write-results", action="store_true")
     args = parser.parse_args(argv)
     args.sessions = [int(s) for s in args.sessions.split(",")]
@@ -166,9 +173,11 @@ def main(argv: list[str]) -> int:
     rows = []
     with EmbeddedRedis(tcp=True) as single:
         rows += measure("1 instance", single.url, [redis.Redis.from_url(single.url)], args, rgb, depth)
+    with EmbeddedRedisCluster(masters=3, replicas=0) as cluster:
+        rows += measure("cluster, 3 primaries", cluster.url, [n.client() for n in cluster.nodes], args, rgb, depth)
     with EmbeddedRedisCluster(masters=3, replicas=1) as cluster:
-        servers = [node.client() for node in cluster.nodes]
-        rows += measure("cluster 3+3", cluster.url, servers, args, rgb, depth)
+        rows += measure(f"cluster, 3 primaries + 3 replicas, WAIT {args.wait_replicas}", cluster.url,
+                        [n.client() for n in cluster.nodes], args, rgb, depth, args.wait_replicas)
     table = format_table(rows)
     print(table)
     print(f"load average {os.getloadavg()[0]:.1f}; frame {len(frame_message(0, rgb, depth))} bytes; "
