@@ -94,7 +94,9 @@ def server_counters(clients: list[redis.Redis]) -> dict[str, float]:
 def run_case(stack: LocalStack, servers: list[redis.Redis], sessions: int, seconds: float, rgb: bytes,
              depth: bytes) -> dict:
     with httpx.Client(base_url=stack.base_url, timeout=60) as api:
-        sids = [api.post("/v1/sessions", json={"name": f"bench-{sessions}"}).json()["id"] for _ in range(sessions)]
+        # every frame processed (no live skipping), so that each costs Redis the same
+        sids = [api.post("/v1/sessions", json={"name": f"bench-{sessions}", "skip_frames": False}).json()["id"]
+                for _ in range(sessions)]
     latencies: list[float] = []
     counts = {"acked": 0, "poses": 0}
     frames = int(seconds * 30)

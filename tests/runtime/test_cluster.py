@@ -27,6 +27,7 @@ from worker.runtime import keys
 from worker.runtime.connection import cluster_seeds, is_cluster_url
 
 REPLICATED = {"FLASHMONO_REDIS_WAIT_REPLICAS": "1", "FLASHMONO_REDIS_WAIT_MS": "200"}
+RECORDED = {"skip_frames": False}  # every frame processed, even when a loaded machine makes them wait
 
 
 @pytest.fixture
@@ -73,7 +74,7 @@ def test_cluster_urls_name_seed_nodes_and_credentials():
 def test_gateway_and_workers_serve_sessions_on_every_shard(cluster):
     with LocalStack(workers=2, redis_url=cluster.url, worker_env=WORKER_ENV) as stack, \
             httpx.Client(base_url=stack.base_url, timeout=30) as api:
-        sids = [api.post("/v1/sessions", json={"name": f"c{i}"}).json()["id"] for i in range(6)]
+        sids = [api.post("/v1/sessions", json={**RECORDED, "name": f"c{i}"}).json()["id"] for i in range(6)]
         nodes = {sid: cluster.node_for(keys.session(sid)) for sid in sids}
         assert len({node.port for node in nodes.values()}) >= 2  # the sessions landed on several shards
         with connect(f"{stack.ws_url}/v1/sessions/{sids[0]}/stream", open_timeout=20) as first, \
@@ -114,7 +115,7 @@ def test_a_primary_killed_mid_stream_fails_over_and_loses_no_acked_frame(cluster
     env = {**WORKER_ENV, "FLASHMONO_PASSTHROUGH_DELAY_MS": "20"}
     with LocalStack(workers=1, redis_url=cluster.url, worker_env=env, gateway_env=REPLICATED) as stack, \
             httpx.Client(base_url=stack.base_url, timeout=30) as api:
-        sid = api.post("/v1/sessions", json={"name": "failover"}).json()["id"]
+        sid = api.post("/v1/sessions", json={**RECORDED, "name": "failover"}).json()["id"]
         primary = cluster.node_for(keys.session(sid))
         acked: set[int] = set()
         messages: list[dict] = []
@@ -172,8 +173,8 @@ def test_migration_moves_a_single_instance_from_the_old_layout(tmp_path):
         client = redis.Redis.from_url(server.url)
         with LocalStack(workers=1, redis_url=server.url, worker_env=WORKER_ENV) as stack, \
                 httpx.Client(base_url=stack.base_url, timeout=30) as api:
-            done = api.post("/v1/sessions", json={"name": "done"}).json()["id"]
-            live = api.post("/v1/sessions", json={"name": "live"}).json()["id"]
+            done = api.post("/v1/sessions", json={**RECORDED, "name": "done"}).json()["id"]
+            live = api.post("/v1/sessions", json={**RECORDED, "name": "live"}).json()["id"]
             with connect(f"{stack.ws_url}/v1/sessions/{done}/stream", open_timeout=20) as ws:
                 stream_frames(ws, range(4))
                 ws.send(json.dumps({"type": "finish"}))
