@@ -9,6 +9,8 @@ from typing import Any
 
 from fastapi import FastAPI
 from fastapi.staticfiles import StaticFiles
+from redis.asyncio.retry import Retry
+from redis.backoff import NoBackoff
 
 from service import (
     hardening,
@@ -49,11 +51,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def lifespan(app: FastAPI):
         # a bounded pool: a burst of requests waits for a connection instead of opening hundreds; on a cluster the
         # outbox hub holds one more connection per streaming session (see OutboxHub)
-        connections = settings.redis_connections
+        connections, options = settings.redis_connections, {}
         if is_cluster_url(settings.redis_url):
             connections += settings.max_streams
+            # no silent retry across a failover: a frame whose ingest broke in flight is refused as `unavailable`
+            # and, re-sent, acked if it had been queued (a retry inside redis-py would answer it bad_seq)
+            options["retry"] = Retry(NoBackoff(), 0)
         client = connect_async(settings.redis_url, connections, health_check_interval=30,
-                               client_name="flashmono-gateway")
+                               client_name="flashmono-gateway", **options)
         app.state.registry = Registry(client, BlobStore(settings.blob_dir) if settings.blob_dir else None,
                                       wait_replicas=settings.redis_wait_replicas,
                                       wait_timeout_ms=settings.redis_wait_ms)
