@@ -217,13 +217,13 @@ class Registry:
         `wait_replicas`, the frame is answered only once that many replicas hold it (or the wait timed out)."""
         script_keys = [keys.session(session_id), keys.inbox(session_id)]
         args = [seq, max_queue, now_iso(), message, frame_size]
-        try:
-            if self.wait_replicas:
-                reply = await self._ingest_replicated(script_keys, args)
-            else:
+        if self.wait_replicas:
+            reply = await self._ingest_replicated(script_keys, args)
+        else:
+            try:
                 reply = await self._ingest(keys=script_keys, args=args)
-        except RuntimeError as err:  # the stream takes a RuntimeError for a client gone: not this one
-            raise closed_transport(err) from err
+            except RuntimeError as err:  # the stream takes a RuntimeError for a client gone: not this one
+                raise closed_transport(err) from err
         code, value, resend_from, *extra = reply
         return IngestResult(int(code), int(value), int(resend_from), extra[0].decode() if extra else "",
                             int(extra[1]) if len(extra) > 1 else -1)
@@ -253,7 +253,12 @@ class Registry:
         pipe.execute_command("EVALSHA", self._ingest.sha, len(script_keys), *script_keys, *args)
         route = {"target_nodes": self.client.get_node_from_key(script_keys[0])} if self.cluster else {}
         pipe.execute_command("WAIT", self.wait_replicas, self.wait_timeout_ms, **route)
-        return await pipe.execute(raise_on_error=False)
+        try:
+            return await pipe.execute(raise_on_error=False)
+        except (RuntimeError, AttributeError) as err:
+            # redis-py's asyncio cluster pipeline lets raw transport errors through on a connection the server
+            # closed (uvloop's RuntimeError, or its writer already torn down): a Redis outage, not a bug here
+            raise closed_transport(err) from err
 
     async def request_finish(self, session_id: str) -> int:
         """1 finishing now, 0 already finishing/finished, -1 no such session."""

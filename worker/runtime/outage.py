@@ -23,9 +23,9 @@ REDIS_DOWN: tuple[type[Exception], ...] = (redis.ConnectionError, redis.TimeoutE
                                            RedisClusterException)
 
 
-def closed_transport(err: RuntimeError) -> redis.ConnectionError:
-    """The ConnectionError for a RuntimeError that uvloop raises on a write to a connection the server closed (a
-    killed cluster primary): redis-py's asyncio cluster pipeline lets it through instead of its own error."""
+def closed_transport(err: Exception) -> redis.ConnectionError:
+    """The ConnectionError for a raw transport error on a connection the server closed (a killed cluster primary):
+    uvloop's RuntimeError on a write, which redis-py's asyncio client lets through instead of its own error."""
     return redis.ConnectionError(f"connection closed by the server: {err}")
 
 
