@@ -7,9 +7,10 @@ from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Any
 
-import redis.asyncio as aioredis
 from fastapi import FastAPI
 from fastapi.staticfiles import StaticFiles
+from redis.asyncio.retry import Retry
+from redis.backoff import NoBackoff
 
 from service import (
     hardening,
@@ -27,6 +28,7 @@ from service.registry import Registry
 from service.settings import Settings
 from service.websocket_doc import WEBSOCKET_DOC
 from worker.runtime.archive import BlobStore
+from worker.runtime.connection import close_async, connect_async, is_cluster_url
 
 log = logging.getLogger(__name__)
 VIEWER_DIR = Path(__file__).parent / "static" / "viewer"
@@ -47,20 +49,26 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
-        # a bounded pool: a burst of requests waits for a connection instead of opening hundreds
-        pool = aioredis.BlockingConnectionPool.from_url(settings.redis_url, max_connections=settings.redis_connections,
-                                                        timeout=10, health_check_interval=30,
-                                                        client_name="flashmono-gateway")
-        client = aioredis.Redis(connection_pool=pool)
-        app.state.registry = Registry(client, BlobStore(settings.blob_dir) if settings.blob_dir else None)
+        # a bounded pool: a burst of requests waits for a connection instead of opening hundreds; on a cluster the
+        # outbox hub holds one more connection per streaming session (see OutboxHub)
+        connections, options = settings.redis_connections, {}
+        if is_cluster_url(settings.redis_url):
+            connections += settings.max_streams
+            # no silent retry across a failover: a frame whose ingest broke in flight is refused as `unavailable`
+            # and, re-sent, acked if it had been queued (a retry inside redis-py would answer it bad_seq)
+            options["retry"] = Retry(NoBackoff(), 0)
+        client = connect_async(settings.redis_url, connections, health_check_interval=30,
+                               client_name="flashmono-gateway", **options)
+        app.state.registry = Registry(client, BlobStore(settings.blob_dir) if settings.blob_dir else None,
+                                      wait_replicas=settings.redis_wait_replicas,
+                                      wait_timeout_ms=settings.redis_wait_ms)
         app.state.outbox_hub = OutboxHub(client)
         app.state.outbox_hub.start()
         try:
             yield
         finally:
             await app.state.outbox_hub.stop()
-            await client.aclose()
-            await pool.aclose()
+            await close_async(client)
 
     app = FastAPI(title="Flash-Mono", version=API_VERSION, lifespan=lifespan,
                   description="Real-time monocular 2D Gaussian-splatting SLAM as a service. Authenticate with "

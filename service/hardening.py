@@ -52,8 +52,8 @@ _SECRET_QUERY = re.compile(r"(?i)((?:api_key|apikey|token|access_token)=)[^&\s\"
 
 def install(app: FastAPI, max_body_bytes: int) -> None:
     """JSON error handlers and the header/body-limit middleware; the access-log redaction (idempotent)."""
-    app.add_exception_handler(REDIS_DOWN[0], _storage_unavailable)
-    app.add_exception_handler(REDIS_DOWN[1], _storage_unavailable)
+    for error in REDIS_DOWN:
+        app.add_exception_handler(error, _storage_unavailable)
     app.add_exception_handler(Exception, _internal_error)
     app.add_middleware(BodyLimitMiddleware, max_body_bytes=max_body_bytes)
     app.add_middleware(SecurityHeadersMiddleware)

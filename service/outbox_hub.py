@@ -11,12 +11,13 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import time
 from dataclasses import dataclass, field
 
 import redis.asyncio as aioredis
+from redis.crc import key_slot
 
 from worker.runtime import keys
+from worker.runtime.connection import is_cluster
 from worker.runtime.outage import REDIS_DOWN, Backoff, OutageLog
 
 log = logging.getLogger(__name__)
@@ -33,7 +34,12 @@ class Subscription:
 
 
 class OutboxHub:
-    """Start with `start()`, stop with `stop()`; `subscribe()` / `unsubscribe()` as streams open and close."""
+    """Start with `start()`, stop with `stop()`; `subscribe()` / `unsubscribe()` as streams open and close.
+
+    On a single instance one reader task serves every subscribed session with one XREAD. A Redis Cluster refuses
+    an XREAD over keys of several hash slots, and each session's outbox has its own slot (its id is the hash tag):
+    there the hub runs one reader per slot in use, each on its own connection, so a gateway holds about one Redis
+    connection per streaming session (bounded by FLASHMONO_MAX_STREAMS)."""
 
     def __init__(self, client: aioredis.Redis, block_ms: int = 200, count: int = 256,
                  deleted_check_s: float = 3.0) -> None:
@@ -42,30 +48,40 @@ class OutboxHub:
         self.count = count
         self.deleted_check_s = deleted_check_s
         self._subs: dict[str, list[Subscription]] = {}
-        self._wake = asyncio.Event()
-        self._task: asyncio.Task | None = None
-        self._next_check = 0.0
+        self._groups: dict[int, set[str]] = {}  # reader group -> its subscribed session ids
+        self._readers: dict[int, asyncio.Task] = {}
+        self._checker: asyncio.Task | None = None
+        self._cluster = is_cluster(client)
 
     @property
     def streams(self) -> int:
         return sum(len(subs) for subs in self._subs.values())
 
+    def _group_of(self, session_id: str) -> int:
+        return key_slot(keys.outbox(session_id).encode()) if self._cluster else 0
+
     def start(self) -> None:
-        self._task = asyncio.create_task(self._run(), name="outbox-hub")
+        self._checker = asyncio.create_task(self._check_deleted_loop(), name="outbox-hub-deleted")
 
     async def stop(self) -> None:
-        if self._task is not None:
-            self._task.cancel()
+        tasks = [t for t in (self._checker, *self._readers.values()) if t is not None]
+        for task in tasks:
+            task.cancel()
+        for task in tasks:
             try:
-                await self._task
+                await task
             except asyncio.CancelledError:
                 pass
+        self._readers.clear()
 
     def subscribe(self, session_id: str, last_id: str) -> Subscription:
         """Entries of the session's outbox after `last_id`, in order."""
         sub = Subscription(session_id, last_id)
         self._subs.setdefault(session_id, []).append(sub)
-        self._wake.set()
+        group = self._group_of(session_id)
+        self._groups.setdefault(group, set()).add(session_id)
+        if group not in self._readers:
+            self._readers[group] = asyncio.create_task(self._read_group(group), name=f"outbox-hub-{group}")
         return sub
 
     def unsubscribe(self, sub: Subscription) -> None:
@@ -73,30 +89,38 @@ class OutboxHub:
         if sub in subs:
             subs.remove(sub)
         if not subs:
-            self._subs.pop(sub.session_id, None)
+            self._forget(sub.session_id)
 
-    async def _run(self) -> None:
+    def _forget(self, session_id: str) -> None:
+        self._subs.pop(session_id, None)
+        group = self._groups.get(self._group_of(session_id))
+        if group is not None:
+            group.discard(session_id)
+
+    async def _read_group(self, group: int) -> None:
+        """Read the outboxes of one group's sessions until none is subscribed (then the task ends)."""
         backoff = Backoff()
         outage = OutageLog(log, "outbox hub")
         while True:
-            if not self._subs:
-                self._wake.clear()
-                await self._wake.wait()
-                continue
+            session_ids = self._groups.get(group)
+            if not session_ids:  # no await between this check and the removal: subscribe() sees a consistent map
+                self._groups.pop(group, None)
+                del self._readers[group]
+                return
             try:
-                await self._read_once()
-                if time.monotonic() >= self._next_check:
-                    await self._drop_deleted()
-                    self._next_check = time.monotonic() + self.deleted_check_s
+                await self._read_once(session_ids)
                 outage.recovered()
                 backoff.reset()
-            except REDIS_DOWN as err:
+            except (*REDIS_DOWN, RuntimeError) as err:  # RuntimeError: see outage.closed_transport
                 outage.failed(err)
                 await asyncio.sleep(backoff.next_delay())
 
-    async def _read_once(self) -> None:
+    async def _read_once(self, session_ids: set[str]) -> None:
         # each session is read from the oldest position any of its subscribers still needs
-        positions = {sid: min((s.last_id for s in subs), key=_id_tuple) for sid, subs in self._subs.items()}
+        positions = {sid: min((s.last_id for s in self._subs[sid]), key=_id_tuple) for sid in session_ids
+                     if self._subs.get(sid)}
+        if not positions:
+            return
         session_of = {keys.outbox(sid): sid for sid in positions}
         reply = await self.client.xread({keys.outbox(sid): pos for sid, pos in positions.items()},
                                         count=self.count, block=self.block_ms)
@@ -108,6 +132,16 @@ class OutboxHub:
                         sub.last_id = entry
                         sub.queue.put_nowait(fields[b"msg"].decode())
 
+    async def _check_deleted_loop(self) -> None:
+        while True:
+            await asyncio.sleep(self.deleted_check_s)
+            if not self._subs:
+                continue
+            try:
+                await self._drop_deleted()
+            except REDIS_DOWN:
+                pass  # the readers log the outage; checked again next time
+
     async def _drop_deleted(self) -> None:
         session_ids = list(self._subs)
         pipe = self.client.pipeline(transaction=False)
@@ -115,8 +149,9 @@ class OutboxHub:
             pipe.exists(keys.session(session_id))
         for session_id, exists in zip(session_ids, await pipe.execute()):
             if not exists:
-                for sub in self._subs.pop(session_id, []):
+                for sub in self._subs.get(session_id, []):
                     sub.queue.put_nowait(SESSION_DELETED)
+                self._forget(session_id)
 
 
 def _id_tuple(stream_id: str) -> tuple[int, int]:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import logging
 import time
 import uuid
 from dataclasses import dataclass
@@ -15,16 +16,20 @@ from typing import Any
 
 import msgpack
 import redis.asyncio as aioredis
+from redis.exceptions import NoScriptError
 
 from worker.runtime import keys
 from worker.runtime.archive import BlobStore
+from worker.runtime.connection import is_cluster
 from worker.runtime.failpoints import failpoint
+from worker.runtime.outage import closed_transport
 from worker.runtime.similarity import similarity_scale
 
 # Atomically: check the session accepts frames, seq increases, the queue has room; enqueue; count.
 # Returns {code, value, resend_from}: 0 accepted (value = queue depth), -1 no session, -2 not accepting (status),
-# -3 seq not increasing (value = last seq), -4 backpressure (value = queue depth), -5 frame size differs from the
-# session's (the first accepted frame's; 4th item "WxH"): the engine takes one frame size per session.
+# -3 seq not increasing (value = last seq; 5th item: the queue depth), -4 backpressure (value = queue depth),
+# -5 frame size differs from the session's (the first accepted frame's; 4th item "WxH"): the engine takes one frame
+# size per session.
 # Backpressure keeps the order: once frame N is refused for a full queue, every frame with a higher seq is refused
 # too ("resend_from" = N) until a frame with seq <= N is accepted, so a pipelining sender can always re-send N.
 _INGEST = """
@@ -35,10 +40,10 @@ if not fields[1] then return {-1, 0, -1} end
 if fields[1] ~= 'created' and fields[1] ~= 'streaming' then return {-2, 0, -1} end
 local seq = tonumber(ARGV[1])
 local last = tonumber(fields[2] or '-1')
-if seq <= last then return {-3, last, -1} end
-if fields[7] and ARGV[5] ~= '' and fields[7] ~= ARGV[5] then return {-5, 0, -1, fields[7]} end
 local depth = tonumber(fields[3] or '0') - tonumber(fields[4] or '0') - tonumber(fields[5] or '0')
               - tonumber(fields[8] or '0')
+if seq <= last then return {-3, last, -1, '', depth} end
+if fields[7] and ARGV[5] ~= '' and fields[7] ~= ARGV[5] then return {-5, 0, -1, fields[7]} end
 local hold = tonumber(fields[6] or '-1')
 if hold >= 0 and seq > hold then return {-4, depth, hold} end
 if depth >= tonumber(ARGV[2]) then
@@ -66,15 +71,15 @@ return 1
 """
 
 _BLPOP_SLICE_S = 2.0
-# A stream opened on an abandoned session within the grace period revives it: streaming again, and a new job so
-# that a worker resumes it from its snapshot. 1 revived, 0 past the grace period, -1 not abandoned.
+log = logging.getLogger(__name__)
+# A stream opened on an abandoned session within the grace period revives it: streaming again (then a new job,
+# see `revive`, so that a worker resumes it from its snapshot). 1 revived, 0 past the grace period, -1 not abandoned.
 _REVIVE = """
 local f = redis.call('HMGET', KEYS[1], 'status', 'abandoned_at')
 if f[1] ~= 'abandoned' then return -1 end
 if tonumber(ARGV[1]) - tonumber(f[2] or '0') > tonumber(ARGV[2]) then return 0 end
 redis.call('HSET', KEYS[1], 'status', 'streaming', 'updated_at', ARGV[3])
 redis.call('HDEL', KEYS[1], 'abandoned_at')
-redis.call('XADD', KEYS[2], '*', 'session_id', ARGV[4])
 return 1
 """
 INGEST_ACCEPTED, NO_SESSION, NOT_ACCEPTING, SEQ_NOT_INCREASING, QUEUE_FULL, SIZE_MISMATCH = 0, -1, -2, -3, -4, -5
@@ -93,6 +98,7 @@ class IngestResult:
     value: int
     resend_from: int = -1  # with QUEUE_FULL: the seq the sender must re-send next
     frame_size: str = ""  # with SIZE_MISMATCH: the session's frame size, "WxH"
+    queue_depth: int = -1  # with SEQ_NOT_INCREASING: the session's queue depth
 
 
 class ArchiveUnavailable(Exception):
@@ -106,9 +112,15 @@ class RequestTimeout(Exception):
 class Registry:
     """Session records and streams in Redis, for one gateway process."""
 
-    def __init__(self, client: aioredis.Redis, blobs: BlobStore | None = None) -> None:
+    def __init__(self, client: aioredis.Redis, blobs: BlobStore | None = None, wait_replicas: int = 0,
+                 wait_timeout_ms: int = 100) -> None:
         self.client = client
         self.blobs = blobs
+        self.cluster = is_cluster(client)
+        self.wait_replicas = wait_replicas
+        self.wait_timeout_ms = wait_timeout_ms
+        self.frames_unreplicated = 0  # acked although fewer than `wait_replicas` replicas confirmed them in time
+        self._next_unreplicated_log = 0.0
         self._ingest = client.register_script(_INGEST)
         self._finish = client.register_script(_FINISH)
         self._revive = client.register_script(_REVIVE)
@@ -127,12 +139,13 @@ class Registry:
             "metadata": json.dumps(body.get("metadata") or {}), "owner": owner, "last_seq": -1,
         }
         member = f"{datetime.now(UTC).timestamp() * 1e6:020.0f}:{session_id}"
-        pipe = self.client.pipeline(transaction=True)
-        pipe.hset(keys.session(session_id), mapping=record)
-        pipe.hset(keys.session(session_id), "index_member", member)
+        # atomic on a single instance; on a cluster these keys sit on several shards, so it is one round trip per
+        # shard in this order: the record first, its job last (a record without a job is a session never started)
+        pipe = self.client.pipeline(transaction=not self.cluster)
+        pipe.hset(keys.session(session_id), mapping={**record, "index_member": member})
         pipe.zadd(keys.SESSIONS_INDEX, {member: 0})
         pipe.zadd(keys.owner_live(owner), {session_id: 0})
-        pipe.xadd(keys.JOBS, {"session_id": session_id})
+        pipe.xadd(keys.jobs(session_id), {"session_id": session_id})
         await pipe.execute()
         return parse_session(record)
 
@@ -187,8 +200,8 @@ class Registry:
 
     async def delete_session(self, session_id: str, record: dict[str, str]) -> None:
         failpoint("delete:gateway")
-        pipe = self.client.pipeline(transaction=True)
-        pipe.delete(*keys.all_session_keys(session_id))
+        pipe = self.client.pipeline(transaction=not self.cluster)
+        pipe.execute_command("DEL", *keys.all_session_keys(session_id))  # one hash slot: one command on a cluster
         if record.get("index_member"):
             pipe.zrem(keys.SESSIONS_INDEX, record["index_member"])
         if record.get("owner"):
@@ -200,11 +213,52 @@ class Registry:
     # --- streaming ----------------------------------------------------------------------------------------------
     async def ingest_frame(self, session_id: str, seq: int, message: bytes, max_queue: int,
                            frame_size: str = "") -> IngestResult:
-        """Queue one frame (see _INGEST); `frame_size` "WxH" must match the session's first frame."""
-        code, value, resend_from, *size = await self._ingest(
-            keys=[keys.session(session_id), keys.inbox(session_id)],
-            args=[seq, max_queue, now_iso(), message, frame_size])
-        return IngestResult(int(code), int(value), int(resend_from), size[0].decode() if size else "")
+        """Queue one frame (see _INGEST); `frame_size` "WxH" must match the session's first frame. With
+        `wait_replicas`, the frame is answered only once that many replicas hold it (or the wait timed out)."""
+        script_keys = [keys.session(session_id), keys.inbox(session_id)]
+        args = [seq, max_queue, now_iso(), message, frame_size]
+        if self.wait_replicas:
+            reply = await self._ingest_replicated(script_keys, args)
+        else:
+            try:
+                reply = await self._ingest(keys=script_keys, args=args)
+            except RuntimeError as err:  # the stream takes a RuntimeError for a client gone: not this one
+                raise closed_transport(err) from err
+        code, value, resend_from, *extra = reply
+        return IngestResult(int(code), int(value), int(resend_from), extra[0].decode() if extra else "",
+                            int(extra[1]) if len(extra) > 1 else -1)
+
+    async def _ingest_replicated(self, script_keys: list[str], args: list) -> list:
+        """The ingest script then WAIT on the same connection (WAIT covers that connection's writes): on a cluster
+        both go to the primary of the session's slot. Redis replicates asynchronously: without this wait a
+        primary that dies right after answering can take acked frames with it; with it, its replica has them."""
+        reply, replicas = await self._evalsha_then_wait(script_keys, args)
+        if isinstance(reply, NoScriptError):  # a new primary (after a failover) or a flushed script cache
+            await self.client.script_load(_INGEST)
+            reply, replicas = await self._evalsha_then_wait(script_keys, args)
+        if isinstance(reply, Exception):
+            raise reply
+        if isinstance(replicas, Exception) or int(replicas) < self.wait_replicas:
+            self.frames_unreplicated += 1
+            if time.monotonic() >= self._next_unreplicated_log:  # a primary without its replica: once a minute
+                log.warning("%d frames acked unconfirmed by %d replicas within %d ms so far (last: %s); is a "
+                            "replica down?", self.frames_unreplicated, self.wait_replicas, self.wait_timeout_ms,
+                            replicas)
+                self._next_unreplicated_log = time.monotonic() + 60
+        return reply
+
+    async def _evalsha_then_wait(self, script_keys: list[str], args: list) -> list:
+        pipe = self.client.pipeline(transaction=False)
+        # (a cluster pipeline refuses pipe.evalsha; the raw command is routed by its keys like any other)
+        pipe.execute_command("EVALSHA", self._ingest.sha, len(script_keys), *script_keys, *args)
+        route = {"target_nodes": self.client.get_node_from_key(script_keys[0])} if self.cluster else {}
+        pipe.execute_command("WAIT", self.wait_replicas, self.wait_timeout_ms, **route)
+        try:
+            return await pipe.execute(raise_on_error=False)
+        except (RuntimeError, AttributeError) as err:
+            # redis-py's asyncio cluster pipeline lets raw transport errors through on a connection the server
+            # closed (uvloop's RuntimeError, or its writer already torn down): a Redis outage, not a bug here
+            raise closed_transport(err) from err
 
     async def request_finish(self, session_id: str) -> int:
         """1 finishing now, 0 already finishing/finished, -1 no such session."""
@@ -212,9 +266,13 @@ class Registry:
 
     async def revive(self, session_id: str, grace_s: float) -> int:
         """1: the abandoned session streams again (a worker resumes it); 0: abandoned too long ago; -1: not
-        abandoned."""
-        return int(await self._revive(keys=[keys.session(session_id), keys.JOBS],
-                                      args=[f"{time.time():.3f}", grace_s, now_iso(), session_id]))
+        abandoned. The job goes to its partition after the status changed (another shard on a cluster): a worker
+        that reads it sees the session streaming."""
+        revived = int(await self._revive(keys=[keys.session(session_id)],
+                                         args=[f"{time.time():.3f}", grace_s, now_iso()]))
+        if revived == 1:
+            await self.client.xadd(keys.jobs(session_id), {"session_id": session_id})
+        return revived
 
     async def last_outbox_id(self, session_id: str) -> str:
         entries = await self.client.xrevrange(keys.outbox(session_id), count=1)
@@ -245,7 +303,7 @@ class Registry:
         """Ask the owning worker (live) or any worker (finished) to render/export; its reply dict."""
         request_id = uuid.uuid4().hex
         fields = {"id": request_id, "kind": kind, "params": json.dumps(params), "session_id": session_id}
-        stream = keys.session_requests(session_id) if live else keys.REQUESTS
+        stream = keys.session_requests(session_id) if live else keys.requests(session_id)
         await self.client.xadd(stream, fields, maxlen=1000, approximate=True)
         # BLPOP in slices shorter than the client's socket timeout (5 s by default in redis-py), which would
         # otherwise end a longer wait early, whatever `timeout_s` says

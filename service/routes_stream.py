@@ -19,11 +19,13 @@ from service.frame_validation import FrameRejected, check_frame_message
 from service.hardening import origin_allowed
 from service.outbox_hub import SESSION_DELETED, OutboxHub
 from service.registry import (
+    INGEST_ACCEPTED,
     NO_SESSION,
     NOT_ACCEPTING,
     QUEUE_FULL,
     SEQ_NOT_INCREASING,
     SIZE_MISMATCH,
+    IngestResult,
     Registry,
 )
 from worker.runtime.outage import REDIS_DOWN
@@ -185,6 +187,7 @@ class _Stream:
         Like backpressure, the refusal keeps the order: once a frame is refused, later ones are refused too until
         it comes again, so the client re-sends from it and nothing is queued out of order."""
         hold = self._unavailable_from
+        outcome_unknown = hold == seq  # its last attempt failed in flight: it may have been queued all the same
         if hold is not None and seq > hold:
             await self.error("unavailable", f"frame {seq} was not queued: frame {hold} was refused while the "
                              f"session store was unreachable; resend from seq {hold}", seq, resend_from=hold)
@@ -198,6 +201,10 @@ class _Stream:
                              "not queued: resend it later", seq, resend_from=seq)
             return None
         self._unavailable_from = None
+        if outcome_unknown and result.code == SEQ_NOT_INCREASING and result.value == seq:
+            # the attempt refused as `unavailable` had been queued before the connection broke (e.g. a cluster
+            # primary failing over): ack it now, once, rather than refuse the re-send as a duplicate
+            return IngestResult(INGEST_ACCEPTED, max(result.queue_depth, 0))
         return result
 
     async def _on_control(self, text: str) -> None:

@@ -20,7 +20,10 @@ class Settings:
     WebSockets per gateway process, 2000); FLASHMONO_REDIS_CONNECTIONS (the gateway's Redis connection pool, 64);
     FLASHMONO_MAX_LIVE_SESSIONS (live sessions per API key, 100; 0: no limit); FLASHMONO_ABANDONED_GRACE_S (how long
     a session abandoned for want of frames can still be resumed by opening its stream, 3600); FLASHMONO_BLOB_DIR (the
-    blob store finished sessions are archived to by the workers, read here for their trajectories)."""
+    blob store finished sessions are archived to by the workers, read here for their trajectories);
+    FLASHMONO_REDIS_WAIT_REPLICAS (0: a frame is acked once its Redis primary has it; N: once N replicas have it
+    too, so a primary that fails over loses no acked frame) and FLASHMONO_REDIS_WAIT_MS (100: how long to wait for
+    them; a frame still unconfirmed then is acked all the same and logged)."""
 
     redis_url: str = "redis://127.0.0.1:6379/0"
     api_keys: dict[str, frozenset[str]] = field(default_factory=dict)
@@ -35,6 +38,8 @@ class Settings:
     max_live_sessions: int = 100
     abandoned_grace_s: float = 3600.0
     blob_dir: str = ""
+    redis_wait_replicas: int = 0
+    redis_wait_ms: int = 100
 
     @property
     def auth_enabled(self) -> bool:
@@ -59,12 +64,16 @@ class Settings:
             max_live_sessions=int(env.get("FLASHMONO_MAX_LIVE_SESSIONS", cls.max_live_sessions)),
             abandoned_grace_s=float(env.get("FLASHMONO_ABANDONED_GRACE_S", cls.abandoned_grace_s)),
             blob_dir=env.get("FLASHMONO_BLOB_DIR", ""),
+            redis_wait_replicas=int(env.get("FLASHMONO_REDIS_WAIT_REPLICAS", cls.redis_wait_replicas)),
+            redis_wait_ms=int(env.get("FLASHMONO_REDIS_WAIT_MS", cls.redis_wait_ms)),
             allowed_origins=frozenset(o.strip().rstrip("/") for o in env.get("FLASHMONO_ALLOWED_ORIGINS", "").split(",")
                                       if o.strip()),
         )
         if settings.max_queue < 1 or settings.max_frame_bytes < 1024 or settings.max_body_bytes < 1024:
             raise ValueError("FLASHMONO_MAX_QUEUE must be >= 1, FLASHMONO_MAX_FRAME_BYTES and FLASHMONO_MAX_BODY_BYTES "
                              ">= 1024")
+        if settings.redis_wait_replicas < 0 or settings.redis_wait_ms < 1:
+            raise ValueError("FLASHMONO_REDIS_WAIT_REPLICAS must be >= 0 and FLASHMONO_REDIS_WAIT_MS >= 1")
         if settings.request_timeout_s <= 0:
             raise ValueError("FLASHMONO_REQUEST_TIMEOUT_S must be positive")
         if settings.max_streams < 1 or settings.redis_connections < 4 or settings.max_live_sessions < 0:

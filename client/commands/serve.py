@@ -67,6 +67,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"error: {err}")
             return 2
         redis_url = embedded.url
+        _migrate_legacy_keys(redis_url)
         logging.getLogger("flashmono.serve").info("embedded redis-server at %s (data: %s)", redis_url,
                                                   data_dir or "not persisted")
     os.environ["REDIS_URL"] = redis_url
@@ -85,3 +86,17 @@ def run(args: argparse.Namespace) -> int:
         if embedded is not None:
             embedded.stop()
     return 0
+
+
+def _migrate_legacy_keys(redis_url: str) -> None:
+    """Data kept by an older `serve` in the same data dir: move it to today's key layout before anything runs."""
+    import logging
+
+    import redis
+
+    from worker.runtime.migrate import migrate
+
+    report = migrate(redis.Redis.from_url(redis_url))
+    if report.sessions:
+        logging.getLogger("flashmono.serve").info("moved %d sessions to the hash-tagged key layout",
+                                                  report.sessions)

@@ -24,7 +24,7 @@ def _dockerfile_cmd(name: str) -> list[str]:
 
 def test_compose_has_redis_a_gateway_and_two_gpu_workers() -> None:
     compose = _compose()
-    services = compose["services"]
+    services = {name: s for name, s in compose["services"].items() if "profiles" not in s}
     assert set(services) == {"redis", "gateway", "worker-0", "worker-1"}
     assert services["redis"]["image"].startswith("redis:")
     assert services["gateway"]["build"]["dockerfile"] == "docker/Dockerfile.gateway"
@@ -43,8 +43,27 @@ def test_compose_has_redis_a_gateway_and_two_gpu_workers() -> None:
 def test_every_service_talks_to_the_same_redis() -> None:
     services = _compose()["services"]
     urls = {services[name]["environment"]["REDIS_URL"] for name in ("gateway", "worker-0", "worker-1")}
-    assert urls == {"redis://redis:6379/0"}
+    assert urls == {"${REDIS_URL:-redis://redis:6379/0}"}  # the single instance unless REDIS_URL names another
     assert "redis" in services  # the host name in REDIS_URL is the compose service
+
+
+def test_cluster_profile_forms_three_primaries_with_a_replica_each() -> None:
+    services = _compose()["services"]
+    nodes = sorted(name for name, s in services.items() if s.get("profiles") == ["cluster"] and "node" in name)
+    assert nodes == [f"redis-node-{i}" for i in range(1, 7)]
+    for name in nodes:
+        command = services[name]["command"]
+        assert command[command.index("--cluster-enabled") + 1] == "yes"
+        assert command[command.index("--cluster-announce-hostname") + 1] == name  # each announces itself
+    init = services["redis-cluster-init"]
+    assert init["profiles"] == ["cluster"] and set(init["depends_on"]) == set(nodes)
+    create = " ".join(init["command"][-1].split())
+    assert "--cluster-replicas 1" in create and all(f"{n}:6379" in create for n in nodes)
+    # the README's command for the profile names seeds that exist, in the URL form the service reads
+    from worker.runtime.connection import cluster_seeds
+
+    url = re.search(r"REDIS_URL=(redis\+cluster://\S+)", (DOCKER_DIR / "compose.yaml").read_text()).group(1)
+    assert {f"{host}" for host, _ in cluster_seeds(url)[1]} <= set(nodes)
 
 
 def test_build_contexts_are_the_repository_root() -> None:

@@ -51,7 +51,7 @@ def test_a_crash_at_each_finish_step_still_finishes_every_session():
             for ws in sockets:
                 ws.close()
         r = redis.Redis.from_url(stack.redis_url)
-        wait_for(lambda: r.xpending(keys.JOBS, keys.GROUP)["pending"] == 0, timeout_s=30)
+        wait_for(lambda: sum(r.xpending(s, keys.GROUP)["pending"] for s in keys.JOB_STREAMS) == 0, timeout_s=30)
 
 
 def test_a_crash_at_each_delete_step_leaves_no_zombie():
@@ -85,7 +85,7 @@ def test_a_crash_at_each_delete_step_leaves_no_zombie():
             receive_until(ws, lambda m: m["type"] == "pose")
             assert api.delete(f"/v1/sessions/{sid}").status_code == 204
         assert stack.workers[0].wait(timeout=60) == CRASH_EXIT_CODE
-        wait_for(lambda: all(k.startswith(b"fm:lease:") for k in session_keys(r, sid)), timeout_s=10)
+        wait_for(lambda: all(k == keys.lease(sid).encode() for k in session_keys(r, sid)), timeout_s=10)
         assert api.get(f"/v1/sessions/{sid}").status_code == 404
 
 
@@ -98,8 +98,8 @@ def test_create_delete_races_leave_no_record_behind():
             sid = api.post("/v1/sessions", json={}).json()["id"]
             assert api.delete(f"/v1/sessions/{sid}").status_code == 204
             sids.append(sid)
-        wait_for(lambda: r.xpending(keys.JOBS, keys.GROUP)["pending"] == 0, timeout_s=60)
+        wait_for(lambda: sum(r.xpending(s, keys.GROUP)["pending"] for s in keys.JOB_STREAMS) == 0, timeout_s=60)
         assert [api.get(f"/v1/sessions/{sid}").status_code for sid in sids] == [404] * len(sids)
-        leftovers = [k for sid in sids for k in session_keys(r, sid) if not k.startswith(b"fm:lease:")]
+        leftovers = [k for sid in sids for k in session_keys(r, sid) if k != keys.lease(sid).encode()]
         assert leftovers == []
         assert api.get("/v1/sessions").json()["sessions"] == []

@@ -83,5 +83,5 @@ def test_worker_killed_mid_stream_is_replaced_without_loss_or_duplicates(stack):
         assert int(r.hget(keys.snapshot(sid), "seq")) == FRAMES - 1 and snapshot_seq < FRAMES - 1
         assert r.xpending(keys.inbox(sid), keys.GROUP)["pending"] == 0
         # the job entry is acknowledged when the worker reaps the finished session's runner (its next loop turn)
-        wait_for(lambda: r.xpending(keys.JOBS, keys.GROUP)["pending"] == 0, timeout_s=20)
+        wait_for(lambda: sum(r.xpending(s, keys.GROUP)["pending"] for s in keys.JOB_STREAMS) == 0, timeout_s=20)
         assert api.get(f"/v1/sessions/{sid}/map.ply").content.count(b"\n") == FRAMES + 7  # header + one per frame

@@ -78,7 +78,7 @@ def archive_finished(client: redis.Redis, store: BlobStore, after_s: float, limi
         if now - datetime.fromisoformat(updated.decode()).timestamp() < after_s:
             continue
         session_id = member.split(":", 1)[1]
-        if not client.set(f"fm:archiving:{session_id}", "1", nx=True, px=60_000):
+        if not client.set(keys.archiving(session_id), "1", nx=True, px=60_000):
             continue  # another worker is on it
         snapshot = client.hgetall(keys.snapshot(session_id))
         if not snapshot:

@@ -1,6 +1,8 @@
-"""The worker: takes sessions from the "fm:jobs" stream (consumer group "workers"), runs each in a
-`SessionRunner` thread under a lease, renews its leases by heartbeats, takes over sessions of dead workers
-(XAUTOCLAIM of jobs idle longer than the lease TTL) and serves render/export requests for finished sessions.
+"""The worker: takes sessions from the jobs streams (`keys.JOB_STREAMS`, consumer group "workers", read as
+`worker.runtime.partitions` says), runs each in a `SessionRunner` thread under a lease, renews its leases by
+heartbeats, takes over sessions of dead workers (XAUTOCLAIM of jobs idle longer than the lease TTL) and serves
+render/export requests for finished sessions. A session's job always sits in the partition of its id,
+`keys.jobs(session_id)`.
 """
 
 from __future__ import annotations
@@ -9,6 +11,7 @@ import collections
 import logging
 import threading
 import time
+import zlib
 from datetime import datetime
 
 import redis
@@ -19,6 +22,7 @@ from worker.runtime.engine import SessionEngine, close_engine, restore_engine
 from worker.runtime.leases import Leases
 from worker.runtime.memory import over_budget
 from worker.runtime.outage import REDIS_DOWN, Backoff, OutageLog, wait_for_redis
+from worker.runtime.partitions import PartitionReader
 from worker.runtime.record import abandon_unstarted
 from worker.runtime.requests import handle_request
 from worker.runtime.sessions import RuntimeConfig, SessionRunner, ensure_group
@@ -44,6 +48,9 @@ class Worker:
         self._next_deferred_check = 0.0
         self.blobs = BlobStore(config.blob_dir) if config.blob_dir else None
         self._finished_engines: collections.OrderedDict[str, SessionEngine] = collections.OrderedDict()
+        start = zlib.crc32(worker_id.encode())  # workers start their turns at different partitions
+        self._jobs = PartitionReader(keys.JOB_STREAMS, min(config.block_ms, 500), start)
+        self._requests = PartitionReader(keys.REQUEST_STREAMS, 500, start)
 
     # --- lifecycle ----------------------------------------------------------------------------------------------
     def run(self) -> None:
@@ -78,8 +85,8 @@ class Worker:
         self._stopping.set()
 
     def _ensure_groups(self) -> None:
-        ensure_group(self.client, keys.JOBS)
-        ensure_group(self.client, keys.REQUESTS)
+        for stream in (*keys.JOB_STREAMS, *keys.REQUEST_STREAMS):
+            ensure_group(self.client, stream)
 
     # --- jobs ---------------------------------------------------------------------------------------------------
     def _jobs_loop(self) -> None:
@@ -114,41 +121,42 @@ class Worker:
         if len(self.runners) >= self.config.max_sessions or over_budget(self.config.memory_budget_mb):
             time.sleep(0.05)
             return
-        reply = self.client.xreadgroup(keys.GROUP, self.worker_id, {keys.JOBS: ">"}, count=1,
-                                       block=min(self.config.block_ms, 500))
-        for _stream, entries in reply or []:
-            for job_id, fields in entries:
+        for index, (_stream, job_id, fields) in enumerate(self._jobs.read(self.client, self.worker_id)):
+            if index == 0:
                 self._take(fields[b"session_id"].decode(), job_id.decode())
+            else:  # one job per read, as from a single queue: the others go back for any worker
+                self._hand_back(fields[b"session_id"].decode(), job_id.decode())
 
     def _claim_stale_jobs(self) -> None:
         """Jobs whose owner stopped renewing them (dead worker) for longer than a lease lasts."""
-        start = "0-0"
-        while True:
-            start, claimed, *_ = self.client.xautoclaim(keys.JOBS, keys.GROUP, self.worker_id,
-                                                        min_idle_time=self.config.lease_ttl_ms, start_id=start,
-                                                        count=10)
-            for job_id, fields in claimed:
-                if fields:
-                    session_id = fields[b"session_id"].decode()
-                    if session_id not in self.runners:
-                        log.info("claimed the job of session %s from a silent worker", session_id)
-                        self._take(session_id, job_id.decode())
-                else:  # the entry was trimmed away
-                    self.client.xack(keys.JOBS, keys.GROUP, job_id)
-            if start in (b"0-0", "0-0"):
-                return
+        for stream in keys.JOB_STREAMS:
+            start = "0-0"
+            while True:
+                start, claimed, *_ = self.client.xautoclaim(stream, keys.GROUP, self.worker_id,
+                                                            min_idle_time=self.config.lease_ttl_ms, start_id=start,
+                                                            count=10)
+                for job_id, fields in claimed:
+                    if fields:
+                        session_id = fields[b"session_id"].decode()
+                        if session_id not in self.runners:
+                            log.info("claimed the job of session %s from a silent worker", session_id)
+                            self._take(session_id, job_id.decode())
+                    else:  # the entry was trimmed away
+                        self.client.xack(stream, keys.GROUP, job_id)
+                if start in (b"0-0", "0-0"):
+                    break
 
     def _take(self, session_id: str, job_id: str) -> None:
         """Own the session if it still needs running and its lease is free."""
         running = self.runners.get(session_id)
         if running is not None and running.is_alive():
             if running.job_id != job_id:  # a duplicate job (a create retried by the client library)
-                self.client.xack(keys.JOBS, keys.GROUP, job_id)
+                self.client.xack(keys.jobs(session_id), keys.GROUP, job_id)
             self._waiting.pop(session_id, None)
             return
         status = self.client.hget(keys.session(session_id), "status")
         if status is None or status.decode() in ("finished", "failed", "abandoned"):
-            self.client.xack(keys.JOBS, keys.GROUP, job_id)
+            self.client.xack(keys.jobs(session_id), keys.GROUP, job_id)
             self._waiting.pop(session_id, None)
             return
         if status == b"created":  # no frame yet: it takes no slot until one comes (see _check_deferred)
@@ -160,8 +168,8 @@ class Worker:
             self._waiting[session_id] = job_id  # retried until the old owner's lease expires
             return
         self._waiting.pop(session_id, None)
-        self.client.xclaim(keys.JOBS, keys.GROUP, self.worker_id, min_idle_time=0, message_ids=[job_id],
-                           justid=True)
+        self.client.xclaim(keys.jobs(session_id), keys.GROUP, self.worker_id, min_idle_time=0,
+                           message_ids=[job_id], justid=True)
         runner = SessionRunner(self.client, self.worker_id, session_id, job_id, self.leases, self.config,
                                self.stats)
         self.runners[session_id] = runner
@@ -191,9 +199,9 @@ class Worker:
 
     def _hand_back(self, session_id: str, job_id: str) -> None:
         """Put a session's job back in the queue as a new entry, for any worker (and ack this one)."""
-        pipe = self.client.pipeline(transaction=True)
-        pipe.xadd(keys.JOBS, {"session_id": session_id})
-        pipe.xack(keys.JOBS, keys.GROUP, job_id)
+        pipe = self.client.pipeline(transaction=True)  # one stream: one hash slot, atomic on a cluster too
+        pipe.xadd(keys.jobs(session_id), {"session_id": session_id})
+        pipe.xack(keys.jobs(session_id), keys.GROUP, job_id)
         pipe.execute()
 
     def _reap_runners(self) -> None:
@@ -202,7 +210,7 @@ class Worker:
                 continue
             del self.runners[session_id]
             if runner.terminal:
-                self.client.xack(keys.JOBS, keys.GROUP, runner.job_id)
+                self.client.xack(keys.jobs(session_id), keys.GROUP, runner.job_id)
             elif runner.interrupted:  # Redis went away under it: take the session again once Redis is back
                 self._waiting[session_id] = runner.job_id
 
@@ -230,7 +238,7 @@ class Worker:
                 continue
             if self.leases.renew(session_id):
                 # keep our job entry fresh so XAUTOCLAIM by others only catches jobs of silent workers
-                self.client.xclaim(keys.JOBS, keys.GROUP, self.worker_id, min_idle_time=0,
+                self.client.xclaim(keys.jobs(session_id), keys.GROUP, self.worker_id, min_idle_time=0,
                                    message_ids=[runner.job_id], justid=True)
             else:
                 runner.lease_lost()
@@ -251,15 +259,12 @@ class Worker:
         outage = OutageLog(log, f"worker {self.worker_id} requests")
         while not self._stopping.is_set():
             try:
-                reply = self.client.xreadgroup(keys.GROUP, self.worker_id, {keys.REQUESTS: ">"}, count=1,
-                                               block=500)
-                for _stream, entries in reply or []:
-                    for entry_id, fields in entries:
-                        t0 = time.perf_counter()
-                        session_id = fields.get(b"session_id", b"").decode()
-                        handle_request(self.client, self._finished_engine(session_id), fields)
-                        self.client.xack(keys.REQUESTS, keys.GROUP, entry_id)
-                        self.stats.add("render", time.perf_counter() - t0)
+                for stream, entry_id, fields in self._requests.read(self.client, self.worker_id):
+                    t0 = time.perf_counter()
+                    session_id = fields.get(b"session_id", b"").decode()
+                    handle_request(self.client, self._finished_engine(session_id), fields)
+                    self.client.xack(stream, keys.GROUP, entry_id)
+                    self.stats.add("render", time.perf_counter() - t0)
                 outage.recovered()
                 backoff.reset()
             except REDIS_DOWN as err:

@@ -1,6 +1,7 @@
 """Worker process entry point: `python -m worker.runtime.main` (or via `flashmono serve`).
 
-Environment (flags override): REDIS_URL (required here), FLASHMONO_WORKER_ID, FLASHMONO_ENGINE (slam|passthrough),
+Environment (flags override): REDIS_URL (required here; `redis+cluster://host:port,...` for a Redis Cluster),
+FLASHMONO_WORKER_ID, FLASHMONO_ENGINE (slam|passthrough),
 FLASHMONO_LEASE_TTL_MS (2500: a dead worker's sessions resume elsewhere within seconds),
 FLASHMONO_SNAPSHOT_EVERY (keyframes between snapshots, 5),
 FLASHMONO_MAX_SESSIONS (sessions per worker, 16), FLASHMONO_TORCH_THREADS (torch intra-op threads),
@@ -20,10 +21,10 @@ import socket
 import sys
 import uuid
 
-import redis
 from redis.backoff import NoBackoff
 from redis.retry import Retry
 
+from worker.runtime.connection import connect
 from worker.runtime.consumer import Worker
 from worker.runtime.engine import ENGINE_KINDS
 from worker.runtime.sessions import RuntimeConfig
@@ -94,7 +95,8 @@ def main(argv: list[str] | None = None) -> int:
                            skip_after_ms=args.skip_after_ms, max_consecutive_skips=args.max_consecutive_skips)
     # No silent retries inside redis-py: a lost connection surfaces to the worker's loops, which wait the outage
     # out and resume each session from its snapshot (a retried XREADGROUP could lose the entries of its reply).
-    client = redis.Redis.from_url(args.redis_url, health_check_interval=30, retry=Retry(NoBackoff(), 0))
+    # REDIS_URL may name a Redis Cluster (redis+cluster://host:port,...): see worker.runtime.connection
+    client = connect(args.redis_url, health_check_interval=30, retry=Retry(NoBackoff(), 0))
     worker = Worker(client, worker_id, config)
     signal.signal(signal.SIGTERM, lambda *_: worker.shutdown())
     signal.signal(signal.SIGINT, lambda *_: worker.shutdown())

@@ -11,10 +11,22 @@ import random
 import threading
 
 import redis
+from redis.exceptions import ClusterError, RedisClusterException, TryAgainError
 
 # What redis-py raises while the server is down, restarting (LOADING is a BusyLoadingError, a ConnectionError)
-# or unreachable; the asyncio client raises the same classes.
-REDIS_DOWN: tuple[type[Exception], ...] = (redis.ConnectionError, redis.TimeoutError)
+# or unreachable; the asyncio client raises the same classes. On a Redis Cluster also while a shard fails over
+# (CLUSTERDOWN, too many redirections, nodes that disagree on the slot map or none reachable while the client
+# refreshes it: RedisClusterException) or a slot migrates (TRYAGAIN). RedisClusterException also stands for a
+# command over keys of several slots, which this code never sends (every multi-key call stays in one session's
+# slot, checked against a real cluster by tests/runtime/test_cluster.py).
+REDIS_DOWN: tuple[type[Exception], ...] = (redis.ConnectionError, redis.TimeoutError, ClusterError, TryAgainError,
+                                           RedisClusterException)
+
+
+def closed_transport(err: Exception) -> redis.ConnectionError:
+    """The ConnectionError for a raw transport error on a connection the server closed (a killed cluster primary):
+    uvloop's RuntimeError on a write, which redis-py's asyncio client lets through instead of its own error."""
+    return redis.ConnectionError(f"connection closed by the server: {err}")
 
 
 class Backoff:

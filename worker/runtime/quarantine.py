@@ -2,7 +2,7 @@
 not handed to worker after worker; once `max_attempts` workers started it without storing its result, the next
 one fails the session with a clear error instead of processing it again.
 
-One small key per session, `fm:s:{id}:inflight` = "<seq>:<attempts>", is set before each frame is processed
+One small key per session, `keys.inflight(id)` = "<seq>:<attempts>", is set before each frame is processed
 (one round trip); it is overwritten by the next frame, so nothing grows.
 """
 

@@ -56,7 +56,7 @@ def serve_request(engine: SessionEngine, kind: str, params: dict[str, Any]) -> t
 
 
 def handle_request(client: redis.Redis, engine: SessionEngine | None, fields: dict[bytes, bytes]) -> None:
-    """Run one request entry {id, kind, params} and post its reply (errors included) to fm:reply:{id}."""
+    """Run one request entry {id, kind, params} and post its reply (errors included) to `keys.reply(id)`."""
     request_id = fields.get(b"id", b"").decode()
     if not request_id:
         log.warning("request without id dropped")
