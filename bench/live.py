@@ -12,8 +12,8 @@ reports them), the worker's and gateway's RSS over time, and at the end the ATE 
 worker once a fraction F of the frames is sent, starts a new one at once (as `flashmono serve`'s supervisor does) and
 reports the gap until poses resume and whether any acked frame was lost or answered twice.
 
-`python -m bench live [SOURCE] [--mode rgbd|rgb] [--size 320x240] [--fps 30] [--frames N] [--kill-at 0.5]
-[--no-offline] [--plot PATH] [--json PATH] [--write-results]`; SOURCE defaults to tests/data/icl_mini (any
+`python -m bench live [--source PATH] [--mode rgbd|rgb] [--size 320x240] [--fps 30] [--frames N] [--kill-at 0.5]
+[--no-offline] [--plot PATH] [--json PATH] [--write-results]`; PATH defaults to tests/data/icl_mini (any
 `worker.data.open_source` path with ground truth, e.g. /work/shared/data/icl_livingroom1_micro or a TUM folder).
 """
 
@@ -76,6 +76,7 @@ class LiveRun:
         self._next = 0
         self._epoch = 0
         self._resume_at = 0.0
+        self._streak = 0  # rewinds since the last accepted frame: the back-off doubles with each
         self._unanswered: collections.deque[tuple[int, int]] = collections.deque()
         self._done = asyncio.Event()
 
@@ -161,12 +162,14 @@ class LiveRun:
         if kind == "ack":
             log.acked = now
             log.error = None
+            self._streak = 0
         elif message.get("code") == "backpressure":
             if epoch == self._epoch:  # the first refusal since the last rewind: rewind as the protocol says
                 self._epoch += 1
                 self.rewinds += 1
                 self._next = int(message.get("resend_from", seq))
-                self._resume_at = now + 0.05
+                self._resume_at = now + min(1.0, 0.05 * 2 ** self._streak)
+                self._streak += 1
         else:
             log.error = str(message.get("code"))
 
@@ -469,7 +472,7 @@ def main(argv: list[str]) -> int:
     from service.launcher import LocalStack
 
     parser = argparse.ArgumentParser(prog="python -m bench live")
-    parser.add_argument("source", nargs="?", default=str(MINI), help="a sequence with ground truth")
+    parser.add_argument("--source", default=str(MINI), help="a sequence with ground truth (default: icl_mini)")
     parser.add_argument("--mode", choices=("rgbd", "rgb"), default="rgbd",
                         help="rgbd: send depth, no poses; rgb: images only")
     parser.add_argument("--size", default="320x240")
