@@ -44,8 +44,8 @@ SHARED_ICL = Path("/work/shared/data/icl_livingroom1_micro")
 MINI = ROOT / "tests" / "data" / "icl_mini"
 RESULTS = ROOT / "bench" / "RESULTS.md"
 MAP_SAMPLE_EVERY = 25  # frames between map-size samples (the count takes the backend's lock)
-FIELDS = ("frame", "push_ms", "tracking_ms", "loop_detection_ms", "is_keyframe", "keyframes", "surfels", "rss_mib",
-          "wall_s")
+FIELDS = ("frame", "push_ms", "tracking_ms", "loop_detection_ms", "loop_detections", "is_keyframe", "keyframes",
+          "surfels", "rss_mib", "wall_s")
 
 
 # ---------------------------------------------------------------------------------------------------- frames
@@ -109,9 +109,13 @@ class StageClock:
 
     def _totals(self) -> dict[str, float]:
         timings = getattr(self.system, "timings", None)
-        return dict(getattr(timings, "seconds", {}) or {})
+        seconds = dict(getattr(timings, "seconds", {}) or {})
+        counts = {f"{k}#": float(v) for k, v in (getattr(timings, "counts", {}) or {}).items()}
+        return seconds | counts
 
     def delta(self) -> dict[str, float]:
+        """Seconds per stage since the last call, and events as `stage#` (a stage may run in another thread: its
+        time is attributed to the frame during which it ended)."""
         now = self._totals()
         out = {k: v - self.last.get(k, 0.0) for k, v in now.items()}
         self.last = now
@@ -163,7 +167,8 @@ def run(args, out_rows: list[dict], checkpoint: Path | None) -> dict[str, Any]:
         out_rows.append({
             "frame": k, "push_ms": push_ms,
             "tracking_ms": 1000 * (d.get("frontend_tracking", 0.0) + d.get("frontend_inference", 0.0)),
-            "loop_detection_ms": 1000 * d.get("loop_detection", 0.0), "is_keyframe": int(result.is_keyframe),
+            "loop_detection_ms": 1000 * d.get("loop_detection", 0.0),
+            "loop_detections": int(d.get("loop_detection#", 0)), "is_keyframe": int(result.is_keyframe),
             "keyframes": int(system.counters.get("keyframes", 0)), "surfels": surfels,
             "rss_mib": rss_mib() if k % 10 == 0 else out_rows[-1]["rss_mib"] if out_rows else rss_mib(),
             "wall_s": time.perf_counter() - t0})
@@ -245,10 +250,11 @@ def bucket_table(rows: list[dict], buckets: int = 6) -> str:
         if not part:
             continue
         track = [r["tracking_ms"] for r in part]
-        loops = [r["loop_detection_ms"] for r in part if r["is_keyframe"]]
+        events = sum(r.get("loop_detections", r["is_keyframe"]) for r in part)
+        loop_ms = sum(r["loop_detection_ms"] for r in part) / events if events else 0.0
         lines.append(f"| {part[0]['frame']}-{part[-1]['frame']} | {np.median([r['push_ms'] for r in part]):.0f} | "
                      f"{np.median(track):.1f} / {np.percentile(track, 95):.1f} | "
-                     f"{np.mean(loops) if loops else 0:.0f} ({len(loops)} kf) | {part[-1]['keyframes']} | "
+                     f"{loop_ms:.0f} ({events} kf) | {part[-1]['keyframes']} | "
                      f"{part[-1]['surfels']:,} | {max(r['rss_mib'] for r in part):.0f} |")
     return "\n".join(lines)
 
@@ -274,7 +280,8 @@ def plot(rows: list[dict], path: Path, title: str) -> None:
     axes[0].set_yscale("log")
     axes[0].set_ylabel("ms per frame")
     axes[0].legend(fontsize=8)
-    kf = [(r["frame"], r["loop_detection_ms"]) for r in rows if r["is_keyframe"]]
+    kf = [(r["frame"], r["loop_detection_ms"] / r.get("loop_detections", 1)) for r in rows
+          if r.get("loop_detections", r["is_keyframe"])]
     if kf:
         axes[1].plot(*zip(*kf), ".", ms=3)
     axes[1].set_ylabel("loop detection ms / keyframe")
