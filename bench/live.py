@@ -9,8 +9,9 @@ mapping lag (`mapping_lag_keyframes`, `mapping_lag_s`, `frames_skipped` of GET /
 reports them), the worker's and gateway's RSS over time, and at the end the ATE against the sequence's ground truth
 (SE(3)-aligned with depth, Sim(3) for RGB only) and the PSNR of rendered non-keyframes, beside the offline
 `flashmono run` engine (worker.engine.offline.run_sequence) on the same frames. `--kill-at F` SIGKILLs the owning
-worker once a fraction F of the frames is sent, starts a new one at once (as `flashmono serve`'s supervisor does) and
-reports the gap until poses resume and whether any acked frame was lost or answered twice.
+worker once a fraction F of the frames is sent and poses are flowing (5 received), starts a new one at once (as
+`flashmono serve`'s supervisor does) and reports the gap until poses resume and whether any acked frame was lost or
+answered twice.
 
 `python -m bench live [--source PATH] [--mode rgbd|rgb] [--size 320x240] [--fps 30] [--frames N] [--kill-at 0.5]
 [--no-offline] [--plot PATH] [--json PATH] [--write-results]`; PATH defaults to tests/data/icl_mini (any
@@ -80,7 +81,7 @@ class LiveRun:
         self._unanswered: collections.deque[tuple[int, int]] = collections.deque()
         self._done = asyncio.Event()
 
-    async def run(self, timeout_s: float, on_progress=None) -> None:
+    async def run(self, timeout_s: float) -> None:
         """Send every frame at its capture time (later after a rewind), then `finish`; wait for `finished`."""
         import websockets
 
@@ -107,8 +108,6 @@ class LiveRun:
                 log = self.frames[seq]
                 log.sent, log.sends = time.monotonic(), log.sends + 1
                 await ws.send(self.messages[seq])
-                if on_progress is not None:
-                    on_progress(seq)
             self.finish_sent = time.monotonic()
             await ws.send(json.dumps({"type": "finish"}))
             try:
@@ -278,17 +277,15 @@ async def stream_case(stack, frames, intrinsics, messages: list[bytes], args) ->
         sampler = Sampler(stack.base_url, sid, stack)
         sampling = asyncio.create_task(sampler.run())
         kill: dict[str, Any] = {}
-        kill_at = None if args.kill_at is None else int(args.kill_at * len(messages))
-
-        def on_progress(seq: int) -> None:
-            if kill_at is not None and seq == kill_at and not kill:
-                kill["task"] = asyncio.get_running_loop().create_task(_kill_owner(stack, http, sid, kill))
-
-        await run.run(args.timeout_s, on_progress)
+        killer = None
+        if args.kill_at is not None:
+            killer = asyncio.create_task(_kill_when_running(run, int(args.kill_at * len(messages)), stack, http, sid,
+                                                            kill))
+        await run.run(args.timeout_s)
         sampler.stop()
         await sampling
-        if "task" in kill:
-            await kill.pop("task")
+        if killer is not None:
+            killer.cancel()
         record = (await http.get(f"/v1/sessions/{sid}")).json()
         trajectory = (await http.get(f"/v1/sessions/{sid}/trajectory", params={"which": "all"})).json()
         keyframes = (await http.get(f"/v1/sessions/{sid}/trajectory", params={"which": "keyframes"})).json()
@@ -302,6 +299,19 @@ async def stream_case(stack, frames, intrinsics, messages: list[bytes], args) ->
     summary.update({"keyframes": len(keyframe_seqs), "psnr": psnr_value, "psnr_frames": psnr_frames,
                     "session": sid})
     return {"summary": summary, "run": run, "samples": sampler.rows}
+
+
+async def _kill_when_running(run: LiveRun, sent: int, stack, http, sid: str, out: dict, min_poses: int = 5) -> None:
+    """Once `sent` frames are on the wire and poses are flowing (`min_poses` received), kill the owning worker."""
+    while True:
+        on_wire = sum(f.sent is not None for f in run.frames)
+        posed = sum(f.pose is not None for f in run.frames)
+        if on_wire >= sent and posed >= min_poses:
+            break
+        await asyncio.sleep(0.05)
+    out["at_frame_sent"] = on_wire
+    out["poses_before"] = posed
+    await _kill_owner(stack, http, sid, out)
 
 
 async def _kill_owner(stack, http, sid: str, out: dict) -> None:
@@ -368,9 +378,13 @@ def summarize(run: LiveRun, samples: list[dict], record: dict, poses: dict, fram
     out["frames_skipped_record"] = record.get("frames_skipped")
     out["ate_m"] = ate(poses, frames, rgb_only=args.mode == "rgb")
     if kill.get("at"):
-        after = sorted(f.pose for f in logs if f.pose is not None and f.pose > kill["at"])
-        out["kill"] = {"owner": kill.get("owner"), "at_frame": int(args.kill_at * len(logs)),
-                       "gap_s": (after[0] - kill["at"]) if after else None}
+        times = sorted(f.pose for f in logs if f.pose is not None)
+        before = [t for t in times if t <= kill["at"]]
+        after = [t for t in times if t > kill["at"]]
+        out["kill"] = {"owner": kill.get("owner"), "at_frame": kill.get("at_frame_sent"),
+                       "poses_before": kill.get("poses_before"), "at_s": kill["at"] - run.start,
+                       "gap_s": (after[0] - kill["at"]) if after else None,
+                       "pose_gap_s": (after[0] - before[-1]) if after and before else None}
     return out
 
 
@@ -434,7 +448,7 @@ def plot(result: dict, path: Path, title: str) -> None:
         twin.set_ylabel("mapping lag (keyframes)")
     if result["summary"].get("kill"):
         for ax in axes[1:]:
-            ax.axvline(result["summary"]["kill_at_s"], color="black", lw=0.8, ls="--")
+            ax.axvline(result["summary"]["kill"]["at_s"], color="black", lw=0.8, ls="--")
     axes[2].set_ylabel("frames")
     axes[2].set_xlabel("seconds since the first frame's capture")
     axes[2].legend(fontsize=8, loc="upper left")
@@ -502,8 +516,6 @@ def main(argv: list[str]) -> int:
     with LocalStack(workers=1, worker_env=env, worker_nice=args.worker_nice) as stack:
         result = asyncio.run(stream_case(stack, frames, intrinsics, messages, args))
     summary = result["summary"]
-    if summary.get("kill"):
-        summary["kill_at_s"] = result["run"].frames[summary["kill"]["at_frame"]].capture - result["run"].start
     load_after = os.getloadavg()
     load = f"{load_before[0]:.1f} -> {load_after[0]:.1f}"
     offline = None
