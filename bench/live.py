@@ -454,6 +454,7 @@ def plot(result: dict, path: Path, title: str) -> None:
     axes[2].legend(fontsize=8, loc="upper left")
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=90)
     plt.close(fig)
 

@@ -296,6 +296,7 @@ def plot(rows: list[dict], path: Path, title: str) -> None:
     axes[3].set_xlabel("frame")
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=90)
     plt.close(fig)
 
