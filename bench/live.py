@@ -27,6 +27,7 @@ import json
 import os
 import signal
 import tempfile
+import textwrap
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -452,7 +453,7 @@ def plot(result: dict, path: Path, title: str) -> None:
     axes[2].set_ylabel("frames")
     axes[2].set_xlabel("seconds since the first frame's capture")
     axes[2].legend(fontsize=8, loc="upper left")
-    fig.suptitle(title, fontsize=10)
+    fig.suptitle("\n".join(textwrap.wrap(title, 100)), fontsize=9)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=90)

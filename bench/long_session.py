@@ -32,6 +32,7 @@ import csv
 import json
 import os
 import resource
+import textwrap
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -294,7 +295,7 @@ def plot(rows: list[dict], path: Path, title: str) -> None:
     axes[3].axhline(2048, color="red", lw=0.8, ls="--")
     axes[3].set_ylabel("process RSS (MiB)")
     axes[3].set_xlabel("frame")
-    fig.suptitle(title, fontsize=10)
+    fig.suptitle("\n".join(textwrap.wrap(title, 100)), fontsize=9)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=90)
