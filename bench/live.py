@@ -79,6 +79,7 @@ class LiveRun:
         self._epoch = 0
         self._resume_at = 0.0
         self._streak = 0  # rewinds since the last accepted frame: the back-off doubles with each
+        self._probing = False  # after a rewind, frames go one at a time until the server accepts one
         self._unanswered: collections.deque[tuple[int, int]] = collections.deque()
         self._done = asyncio.Event()
 
@@ -101,8 +102,8 @@ class LiveRun:
                     continue
                 seq = self._next
                 wait = max(self.frames[seq].capture, self._resume_at) - time.monotonic()
-                if wait > 0:
-                    await asyncio.sleep(wait)
+                if wait > 0 or (self._probing and self._unanswered):  # after a rewind: one frame until accepted
+                    await asyncio.sleep(wait if wait > 0 else 0.005)
                     continue
                 self._unanswered.append((seq, self._epoch))
                 self._next += 1
@@ -163,6 +164,7 @@ class LiveRun:
             log.acked = now
             log.error = None
             self._streak = 0
+            self._probing = False
         elif message.get("code") == "backpressure":
             if epoch == self._epoch:  # the first refusal since the last rewind: rewind as the protocol says
                 self._epoch += 1
@@ -170,6 +172,7 @@ class LiveRun:
                 self._next = int(message.get("resend_from", seq))
                 self._resume_at = now + min(1.0, 0.05 * 2 ** self._streak)
                 self._streak += 1
+                self._probing = True
         else:
             log.error = str(message.get("code"))
 
