@@ -321,13 +321,21 @@ async def _kill_when_running(run: LiveRun, sent: int, stack, http, sid: str, out
 async def _kill_owner(stack, http, sid: str, out: dict) -> None:
     """SIGKILL the worker owning the session and start a new one at once (what `flashmono serve` does)."""
     owner = (await http.get(f"/v1/sessions/{sid}")).json().get("worker")
-    victim = next((w for w in stack.workers if getattr(w, "worker_id", None) == owner), stack.workers[0])
+    victim = stack.workers[0] if len(stack.workers) == 1 else _process_of(owner, stack.workers)
     out["at"] = time.monotonic()
     out["owner"] = owner
     victim.send_signal(signal.SIGKILL)
     await asyncio.to_thread(victim.wait)
     stack.workers.remove(victim)
     stack.add_worker()
+
+
+def _process_of(worker_id: str | None, processes: list) -> Any:
+    """The worker process whose id (`host-pid-random` by default) names its pid; the first one when none matches."""
+    for process in processes:
+        if worker_id and f"-{process.pid}-" in worker_id:
+            return process
+    return processes[0]
 
 
 async def _live_psnr(http, sid, frames, poses, keyframe_seqs, intrinsics, every: int, se3_part) -> tuple[float, int]:
@@ -503,6 +511,7 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--psnr-every", type=int, default=5, help="render every N-th non-keyframe (0: no PSNR)")
     parser.add_argument("--no-offline", action="store_true", help="skip the offline run of the same frames")
     parser.add_argument("--worker-nice", type=int, default=10, help="as `flashmono serve` (default 10)")
+    parser.add_argument("--workers", type=int, default=1, help="worker processes (a second one can take over at once)")
     parser.add_argument("--timeout-s", type=float, default=1800.0)
     parser.add_argument("--plot", default=None, help="PNG path (default: none)")
     parser.add_argument("--json", default=None, help="write the summary (and per-frame times) here")
@@ -518,7 +527,7 @@ def main(argv: list[str]) -> int:
     print(f"{label}: {len(frames)} frames, {sum(map(len, messages)) / len(messages) / 1024:.1f} KiB a message, "
           f"load {load_before[0]:.2f}", flush=True)
     env = {"FLASHMONO_LOG_LEVEL": "WARNING"}
-    with LocalStack(workers=1, worker_env=env, worker_nice=args.worker_nice) as stack:
+    with LocalStack(workers=args.workers, worker_env=env, worker_nice=args.worker_nice) as stack:
         result = asyncio.run(stream_case(stack, frames, intrinsics, messages, args))
     summary = result["summary"]
     load_after = os.getloadavg()
