@@ -3,13 +3,17 @@
 Both descriptors of worker.loop.descriptors are measured on the same keyframes at the tiny model's input size:
 describe time, query time against the whole database, and retrieval quality judged by ground truth (the top-1
 candidate's true view overlap relative to the best overlap available outside the exclusion window). Also times one
-hidden-state relocalization forward pass of the `tiny` model and one PnP relocalization.
+hidden-state relocalization forward pass of the `tiny` model and one PnP relocalization, and the loop closure time
+per keyframe (ORB, inverted index, PnP on depth) against the keyframe count up to 1,000 (`--only-long` for just that).
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import cv2
@@ -59,19 +63,56 @@ def _retrieval(descriptor, images, overlap: np.ndarray, window: int) -> dict[str
             "queries": len(ratios)}
 
 
-def _orb_query_scaling(images, sizes: list[int]) -> None:
-    """ORB query time against large databases (copies of the ICL keyframes), vocabulary shortlist vs verify-all."""
-    with_vocabulary = OrbDescriptor()
-    for label, descriptor in ((f"vocabulary shortlist {with_vocabulary.shortlist} above "
-                               f"{with_vocabulary.shortlist_above}", with_vocabulary),
-                              ("verify every entry", OrbDescriptor(vocabulary=None))):
-        features = [descriptor.describe(image) for image in images]
-        for n in sizes:
-            database = [features[k % len(features)] for k in range(n)]
-            descriptor.similarities(features[-1], database[:2])  # warm-up (bags, ORB objects)
-            t0 = time.perf_counter()
-            descriptor.similarities(features[-1], database)
-            print(f"orb query, database {n:5d}, {label}: {1e3 * (time.perf_counter() - t0):8.1f} ms", flush=True)
+def _long_session(sizes: list[int], queries: int, shortlist: int | None) -> None:
+    """Loop closure time per keyframe against the keyframe count, in RGB-D mode (ORB + index + PnP on depth): a
+    database of N keyframes re-adds the ICL keyframes under new ids (every pass revisits the room, like a camera
+    played forward and back), then `queries` more keyframes go through LoopCloser.process_keyframe."""
+    from worker.config import LoopConfig
+    from worker.data import open_source
+    from worker.engine.loop_closer import DepthKeyframePoints, LoopCloser
+    from worker.engine.stage_times import StageTimes
+
+    class CpuStageTimes(StageTimes):
+        """Process CPU time per stage: the machine is shared, and wall time measures the other users too."""
+
+        @contextmanager
+        def measure(self, stage: str) -> Iterator[None]:
+            start = time.process_time()
+            try:
+                yield
+            finally:
+                self.add(stage, time.process_time() - start)
+
+    frames = list(open_source(DATA, use_gt_depth=True))
+    images = [torch.from_numpy(f.image).permute(2, 0, 1)[None].float() / 255.0 for f in frames]
+    intrinsics = frames[0].intrinsics
+    cfg = LoopConfig() if shortlist is None else LoopConfig(shortlist=shortlist)
+    for size in sizes:
+        depth_points = DepthKeyframePoints()
+        closer = LoopCloser(cfg, depth_points=depth_points)
+        descriptors = [closer.detector.descriptor.describe(image) for image in images]
+        depths = [torch.from_numpy(f.depth) for f in frames]
+        for key in range(size):  # key k shows frame k % 71, 3 frames apart: one pass of the room per 71 keys
+            source = key % len(frames)
+            descriptor = copy.copy(descriptors[source])
+            closer.detector.add(3 * key, descriptor=descriptor)
+            if closer.pnp is not None:
+                closer.pnp.add_keyframe(3 * key, images[source], descriptor)
+            depth_points.add(3 * key, depths[source], intrinsics.matrix())
+        detection, relocalization, loops = [], [], 0
+        for q in range(queries):
+            key = size + q
+            source = key % len(frames)
+            depth_points.add(3 * key, depths[source], intrinsics.matrix())
+            closer.timings = CpuStageTimes()
+            closer.last_loop_keyframe_count = -10**9  # every query may close a loop (no cooldown)
+            loops += bool(closer.process_keyframe(3 * key, images[source], intrinsics))
+            detection.append(closer.timings.seconds["loop_detection"])
+            relocalization.append(closer.timings.seconds.get("loop_relocalization", 0.0))
+        total = np.add(detection, relocalization)
+        print(f"keyframes {size:5d}: CPU per keyframe: loop detection median {1e3 * np.median(detection):7.1f} ms, "
+              f"relocalization {1e3 * np.median(relocalization):6.1f} ms, together {1e3 * np.median(total):7.1f} ms "
+              f"({loops}/{queries} closed a loop)", flush=True)
 
 
 def main(argv: list[str]) -> int:
@@ -79,8 +120,16 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--window", type=int, default=20)
     parser.add_argument("--descriptors", default="encoder_gem,orb", help="comma-separated subset to measure")
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--scaling", default="100,500,2000", help="database sizes for the ORB query-time scaling")
+    parser.add_argument("--long", default="50,100,200,500,1000",
+                        help="keyframe counts for the loop-closure time per keyframe (empty: skip)")
+    parser.add_argument("--queries", type=int, default=5, help="keyframes timed at each count")
+    parser.add_argument("--shortlist", type=int, default=None, help="LoopConfig.shortlist (default: the config's)")
+    parser.add_argument("--only-long", action="store_true", help="only the time per keyframe against the count")
     args = parser.parse_args(argv)
+    if args.only_long:
+        torch.set_num_threads(args.threads)
+        _long_session([int(n) for n in args.long.split(",")], args.queries, args.shortlist)
+        return 0
     torch.set_num_threads(args.threads)
     frames = load_rgbd_folder(DATA)
     overlap = _overlap_table(load_rgbd_folder(DATA, downscale=4), args.window)
@@ -97,8 +146,8 @@ def main(argv: list[str]) -> int:
         print(f"{descriptor.name:12s} describe {r['describe_ms']:6.1f} ms  query {r['query_ms']:6.1f} ms "
               f"(database up to {r['db_size']})  top-1 true overlap {r['top1_overlap']:.3f} = "
               f"{100 * r['overlap_ratio']:.1f}% of the best available ({r['queries']} queries)")
-    if "orb" in wanted and args.scaling:
-        _orb_query_scaling(images, [int(n) for n in args.scaling.split(",")])
+    if "orb" in wanted and args.long:
+        _long_session([int(n) for n in args.long.split(",")], args.queries, args.shortlist)
     with torch.no_grad():
         state = model.init_state(1)
         for image in images[:8]:

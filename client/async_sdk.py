@@ -388,6 +388,9 @@ class AsyncFrameStream:
             elif isinstance(event, TrackingEvent):
                 self.summary.tracking_events.append(event)
             await self._publish(event)
+        elif kind == "skipped" and seq is not None:  # the tracker dropped it for a newer frame: its result
+            self.flow.on_result(int(seq))
+            self.summary.skipped.append(int(seq))
         elif kind == "error":
             self._handle_error(message)
         elif kind == "finished":
@@ -471,9 +474,10 @@ class AsyncFlashMonoClient:
 
     async def create_session(self, *, intrinsics: Any = None, preset: str | None = None, name: str | None = None,
                              device_id: str | None = None, metadata: dict[str, Any] | None = None,
-                             pose_mode: str | None = None) -> Session:
+                             pose_mode: str | None = None, skip_frames: bool | None = None) -> Session:
         """A new session (see FlashMonoClient.create_session)."""
-        return await self._call(rest.create_session(intrinsics, preset, name, device_id, metadata, pose_mode))
+        return await self._call(rest.create_session(intrinsics, preset, name, device_id, metadata, pose_mode,
+                                                        skip_frames))
 
     async def presets(self) -> dict[str, Any]:
         """GET /v1/presets: {presets: [{name, purpose, input}], input_modes}."""
@@ -516,9 +520,10 @@ class AsyncFlashMonoClient:
         """Like `render`, decoded: RGB uint8 [H, W, 3] or depth in metres float32 [H, W]."""
         return decode_png(await self.render(session_id, pose, kind=kind, **camera), kind)
 
-    async def download_map(self, session_id: str, sh_degree: int = 0) -> bytes:
-        """The session's surfel map as PLY bytes (sh_degree 3: with the 45 zero f_rest coefficients)."""
-        return await self._call(rest.map_ply(session_id, sh_degree))
+    async def download_map(self, session_id: str, sh_degree: int = 0, format: str = "ply") -> bytes:
+        """The session's surfel map as PLY bytes (sh_degree 3: with the 45 zero f_rest coefficients); format "spz"
+        or "splat" for web viewers."""
+        return await self._call(rest.map_ply(session_id, sh_degree, format))
 
     # ------------------------------------------------------------------------------------------- streaming
     def open_stream(self, session_id: str, *, window: int = 4, max_pending: int = 8, max_retries: int = 20,

@@ -51,6 +51,11 @@ class Session:
     raw: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
     pose_mode: str | None = None
     estimated_intrinsics: dict[str, Any] | None = None  # the camera the engine uses: given, or estimated
+    frames_skipped: int = 0  # skipped by the tracker under overload (newest first wins)
+    skip_frames: bool = True  # whether the tracker may skip late frames (a live camera)
+    tracking_state: str | None = None  # "tracking" or "lost" at the newest processed frame
+    mapping_lag_keyframes: int | None = None  # keyframes tracked but not yet mapped
+    mapping_lag_s: float | None = None  # how long the oldest of them has waited
 
     @classmethod
     def from_json(cls, data: dict[str, Any]) -> Session:
@@ -76,6 +81,11 @@ class Session:
             raw=dict(data),
             pose_mode=data.get("pose_mode"),
             estimated_intrinsics=data.get("estimated_intrinsics"),
+            frames_skipped=int(data.get("frames_skipped") or 0),
+            skip_frames=bool(data.get("skip_frames", True)),
+            tracking_state=data.get("tracking_state"),
+            mapping_lag_keyframes=data.get("mapping_lag_keyframes"),
+            mapping_lag_s=data.get("mapping_lag_s"),
         )
 
 
@@ -189,6 +199,7 @@ class StreamSummary:
     backpressure_retries: int = 0
     frames_dropped: int = 0  # refused for backpressure after a later frame got in: re-sending would reorder
     errors: list[dict[str, Any]] = field(default_factory=list)
+    skipped: list[int] = field(default_factory=list)  # seqs the tracker skipped under overload (no pose for them)
     finished_frames: int | None = None
     elapsed_s: float = 0.0
     max_queue_depth: int = 0

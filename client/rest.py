@@ -78,9 +78,10 @@ def intrinsics_payload(intrinsics: Any) -> dict[str, float] | None:
 
 def create_session(intrinsics: Any = None, preset: str | None = None, name: str | None = None,
                    device_id: str | None = None, metadata: dict[str, Any] | None = None,
-                   pose_mode: str | None = None) -> Call:
+                   pose_mode: str | None = None, skip_frames: bool | None = None) -> Call:
     body = _drop_none({"intrinsics": intrinsics_payload(intrinsics), "preset": preset, "name": name,
-                       "device_id": device_id, "metadata": metadata, "pose_mode": pose_mode})
+                       "device_id": device_id, "metadata": metadata, "pose_mode": pose_mode,
+                       "skip_frames": skip_frames})
     return Call("POST", f"{API_PREFIX}/sessions", lambda r: Session.from_json(r.json()), json=body)
 
 
@@ -133,10 +134,18 @@ def render(session_id: str, pose: Any, width: int, height: int, fx: float, fy: f
     return Call("GET", _session_path(session_id, "/render"), lambda r: r.content, params=params)
 
 
-def map_ply(session_id: str, sh_degree: int = 0) -> Call:
+MAP_FORMATS = ("ply", "spz", "splat")
+
+
+def map_ply(session_id: str, sh_degree: int = 0, format: str = "ply") -> Call:
     if not 0 <= sh_degree <= 3:
         raise ValueError(f"sh_degree must be within 0..3, got {sh_degree}")
-    return Call("GET", _session_path(session_id, "/map.ply"), lambda r: r.content, params={"sh_degree": sh_degree})
+    if format not in MAP_FORMATS:
+        raise ValueError(f"format must be one of {', '.join(MAP_FORMATS)}, got {format!r}")
+    if format == "ply":
+        return Call("GET", _session_path(session_id, "/map.ply"), lambda r: r.content,
+                    params={"sh_degree": sh_degree})
+    return Call("GET", _session_path(session_id, "/map"), lambda r: r.content, params={"format": format})
 
 
 def health() -> Call:

@@ -97,11 +97,13 @@ class FlashMonoClient:
 
     def create_session(self, *, intrinsics: Any = None, preset: str | None = None, name: str | None = None,
                        device_id: str | None = None, metadata: dict[str, Any] | None = None,
-                       pose_mode: str | None = None) -> Session:
+                       pose_mode: str | None = None, skip_frames: bool | None = None) -> Session:
         """A new session; intrinsics as {fx, fy, cx, cy, width, height}, an Intrinsics or [fx, fy, cx, cy].
         pose_mode: "fixed" keeps the device poses frames carry exactly as sent ("prior", the default, refines them;
-        "ignore" tracks without them)."""
-        return self._call(rest.create_session(intrinsics, preset, name, device_id, metadata, pose_mode))
+        "ignore" tracks without them). skip_frames: False tracks every frame however late (recorded data); the
+        default (True) lets the tracker skip frames that fell behind a newer one, with a `skipped` message."""
+        return self._call(rest.create_session(intrinsics, preset, name, device_id, metadata, pose_mode,
+                                                        skip_frames))
 
     def presets(self) -> dict[str, Any]:
         """GET /v1/presets: {presets: [{name, purpose, input}], input_modes}."""
@@ -142,10 +144,11 @@ class FlashMonoClient:
         """Like `render`, decoded: RGB uint8 [H, W, 3] or depth in metres float32 [H, W]."""
         return decode_png(self.render(session_id, pose, kind=kind, **camera), kind)
 
-    def download_map(self, session_id: str, sh_degree: int = 0) -> bytes:
+    def download_map(self, session_id: str, sh_degree: int = 0, format: str = "ply") -> bytes:
         """The session's surfel map as PLY bytes: f_dc colour only (68 bytes a surfel); sh_degree=3 adds the 45 zero
-        f_rest coefficients fixed-record 3DGS readers expect (248 bytes a surfel)."""
-        return self._call(rest.map_ply(session_id, sh_degree))
+        f_rest coefficients fixed-record 3DGS readers expect (248 bytes a surfel). format="spz" (Niantic SPZ v3)
+        or "splat" (antimatter15, 32 bytes a surfel) give what web splat viewers read."""
+        return self._call(rest.map_ply(session_id, sh_degree, format))
 
     # ------------------------------------------------------------------------------------------- streaming
     def stream(self, session_id: str, source: Any, *, on_event: EventCallback | None = None,

@@ -11,7 +11,15 @@ import redis.asyncio as aioredis
 from fastapi import FastAPI
 from fastapi.staticfiles import StaticFiles
 
-from service import hardening, routes_health, routes_presets, routes_results, routes_sessions, routes_stream
+from service import (
+    hardening,
+    routes_events,
+    routes_health,
+    routes_presets,
+    routes_results,
+    routes_sessions,
+    routes_stream,
+)
 from service.auth import Authenticator
 from service.metrics import GatewayMetrics
 from service.outbox_hub import OutboxHub
@@ -62,11 +70,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.metrics = GatewayMetrics()
     app.state.validate_preset = _validate_preset
     hardening.install(app, settings.max_body_bytes)
-    for module in (routes_sessions, routes_presets, routes_results, routes_stream, routes_health):
+    for module in (routes_sessions, routes_presets, routes_results, routes_stream, routes_events, routes_health):
         app.include_router(module.router)
     if VIEWER_DIR.is_dir():
         app.mount("/viewer/static", StaticFiles(directory=VIEWER_DIR), name="viewer-static")
         app.add_api_route("/viewer", _viewer_index, include_in_schema=False)
+        app.add_api_route("/viewer/capture", _capture_page, include_in_schema=False)
     app.openapi = lambda: _openapi_with_websocket(app)
     return app
 
@@ -76,6 +85,14 @@ async def _viewer_index():
 
     index = VIEWER_DIR / "index.html"
     return FileResponse(index) if index.is_file() else PlainTextResponse("viewer not installed", status_code=404)
+
+
+async def _capture_page():
+    """The phone's capture page: the camera streamed to a new session (same auth as the API: the key is asked)."""
+    from fastapi.responses import FileResponse, PlainTextResponse
+
+    page = VIEWER_DIR / "capture.html"
+    return FileResponse(page) if page.is_file() else PlainTextResponse("capture page not installed", status_code=404)
 
 
 def _openapi_with_websocket(app: FastAPI) -> dict[str, Any]:

@@ -5,9 +5,12 @@ API keys redacted.
 
 from __future__ import annotations
 
+import base64
+import hashlib
 import json
 import logging
 import re
+from pathlib import Path
 from urllib.parse import urlsplit
 
 from fastapi import FastAPI, Request
@@ -18,11 +21,32 @@ from worker.runtime.outage import REDIS_DOWN
 
 log = logging.getLogger(__name__)
 
-VIEWER_CSP = ("default-src 'self'; script-src 'self'; style-src 'self'; img-src 'self' blob: data:; "
-              "connect-src 'self'; object-src 'none'; base-uri 'none'; form-action 'none'; frame-ancestors 'none'")
+VIEWER_DIR = Path(__file__).parent / "static" / "viewer"
+
+
+def inline_import_map_hashes(directory: Path = VIEWER_DIR) -> list[str]:
+    """CSP sources ('sha256-...') of the inline import maps of the viewer's pages: browsers read import maps only
+    inline, and the splat renderer's modules are found through one (three, @sparkjsdev/spark)."""
+    sources = set()
+    for page in sorted(directory.glob("*.html")) if directory.is_dir() else []:
+        for body in re.findall(r'<script type="importmap">(.*?)</script>', page.read_text(), flags=re.S):
+            sources.add("'sha256-" + base64.b64encode(hashlib.sha256(body.encode()).digest()).decode() + "'")
+    return sorted(sources)
+
+
+# 'wasm-unsafe-eval' and blob: workers: the splat renderer (Spark) decodes and sorts splats in WebAssembly inside a
+# Web Worker it starts from a blob URL. No 'unsafe-eval', no inline script but the import maps.
+_SCRIPT_SOURCES = " ".join(["'self'", "'wasm-unsafe-eval'", *inline_import_map_hashes()])
+VIEWER_CSP = (f"default-src 'self'; script-src {_SCRIPT_SOURCES}"
+              "; worker-src 'self' blob:; style-src 'self'; img-src 'self' blob: data:; "
+              "connect-src 'self'; media-src 'self' blob: mediastream:; object-src 'none'; base-uri 'none'; "
+              "form-action 'none'; frame-ancestors 'none'")
 _COMMON_HEADERS = [(b"x-content-type-options", b"nosniff")]
 _VIEWER_HEADERS = [(b"content-security-policy", VIEWER_CSP.encode()), (b"x-frame-options", b"DENY"),
                    (b"referrer-policy", b"no-referrer"), (b"cache-control", b"no-store")]
+# the vendored libraries (3.4 MB) change only with a release: cacheable for a day
+_VENDOR_PREFIX = "/viewer/static/vendor/"
+_VENDOR_HEADERS = [*_VIEWER_HEADERS[:-1], (b"cache-control", b"public, max-age=86400")]
 _SECRET_QUERY = re.compile(r"(?i)((?:api_key|apikey|token|access_token)=)[^&\s\"']+")
 
 
@@ -105,7 +129,9 @@ class SecurityHeadersMiddleware:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        extra = _COMMON_HEADERS + (_VIEWER_HEADERS if scope["path"].startswith("/viewer") else [])
+        path = scope["path"]
+        viewer = _VENDOR_HEADERS if path.startswith(_VENDOR_PREFIX) else _VIEWER_HEADERS
+        extra = _COMMON_HEADERS + (viewer if path.startswith("/viewer") else [])
 
         async def with_headers(message: Message) -> None:
             if message["type"] == "http.response.start":

@@ -30,7 +30,7 @@ from worker.runtime.similarity import similarity_scale
 _INGEST = """
 local h = KEYS[1]
 local fields = redis.call('HMGET', h, 'status', 'last_seq', 'frames_received', 'frames_processed',
-                          'frames_rejected', 'resend_from', 'frame_size')
+                          'frames_rejected', 'resend_from', 'frame_size', 'frames_skipped')
 if not fields[1] then return {-1, 0, -1} end
 if fields[1] ~= 'created' and fields[1] ~= 'streaming' then return {-2, 0, -1} end
 local seq = tonumber(ARGV[1])
@@ -38,6 +38,7 @@ local last = tonumber(fields[2] or '-1')
 if seq <= last then return {-3, last, -1} end
 if fields[7] and ARGV[5] ~= '' and fields[7] ~= ARGV[5] then return {-5, 0, -1, fields[7]} end
 local depth = tonumber(fields[3] or '0') - tonumber(fields[4] or '0') - tonumber(fields[5] or '0')
+              - tonumber(fields[8] or '0')
 local hold = tonumber(fields[6] or '-1')
 if hold >= 0 and seq > hold then return {-4, depth, hold} end
 if depth >= tonumber(ARGV[2]) then
@@ -77,7 +78,9 @@ redis.call('XADD', KEYS[2], '*', 'session_id', ARGV[4])
 return 1
 """
 INGEST_ACCEPTED, NO_SESSION, NOT_ACCEPTING, SEQ_NOT_INCREASING, QUEUE_FULL, SIZE_MISMATCH = 0, -1, -2, -3, -4, -5
-_INT_FIELDS = ("frames_received", "frames_processed", "frames_rejected", "keyframes", "revision")
+_INT_FIELDS = ("frames_received", "frames_processed", "frames_rejected", "frames_skipped", "keyframes", "revision")
+_FLOAT_FIELDS = ("mapping_lag_s",)
+_OPTIONAL_INT_FIELDS = ("mapping_lag_keyframes",)
 
 
 def now_iso() -> str:
@@ -117,8 +120,9 @@ class Registry:
         record = {
             "id": session_id, "name": body.get("name") or "", "device_id": body.get("device_id") or "",
             "status": "created", "created_at": created, "updated_at": created, "frames_received": 0,
-            "frames_processed": 0, "frames_rejected": 0, "keyframes": 0, "revision": 0, "worker": "",
-            "preset": body.get("preset") or "", "pose_mode": body.get("pose_mode") or "",
+            "frames_processed": 0, "frames_rejected": 0, "frames_skipped": 0, "keyframes": 0, "revision": 0,
+            "worker": "", "preset": body.get("preset") or "", "pose_mode": body.get("pose_mode") or "",
+            "skip_frames": "" if body.get("skip_frames") is None else int(bool(body["skip_frames"])),
             "intrinsics": json.dumps(body.get("intrinsics")),
             "metadata": json.dumps(body.get("metadata") or {}), "owner": owner, "last_seq": -1,
         }
@@ -288,5 +292,11 @@ def parse_session(record: dict[str, Any]) -> dict[str, Any]:
     }
     for name in _INT_FIELDS:
         out[name] = int(record.get(name) or 0)
+    for name in _OPTIONAL_INT_FIELDS:
+        out[name] = int(record[name]) if record.get(name) else None
+    for name in _FLOAT_FIELDS:
+        out[name] = float(record[name]) if record.get(name) else None
+    out["tracking_state"] = record.get("tracking_state") or None
+    out["skip_frames"] = record.get("skip_frames") != "0"
     out["last_seq"] = int(record.get("last_seq") or -1)
     return out

@@ -108,6 +108,33 @@ async def export_map(
     return response
 
 
+@router.get("/map", response_class=Response,
+            responses={200: {"content": {"application/octet-stream": {}},
+                             "description": "the map file (X-Map-Format, X-Map-Revision headers)"},
+                       409: {"model": ErrorBody}, 503: {"model": ErrorBody}, 504: {"model": ErrorBody}})
+async def export_map_as(
+    session_id: str,
+    request: Request,
+    format: Annotated[Literal["ply", "spz", "splat"], Query(
+        description="ply: binary 3DGS-layout PLY, 68 bytes a surfel (248 with sh_degree=3); spz: Niantic SPZ "
+                    "version 3 (gzip, quantised, right-up-back axes as its specification says), about 10 bytes a "
+                    "surfel; splat: antimatter15's 32-byte records, world axes as in the PLY. 2D surfels carry a "
+                    "zero (splat) or tiny (ply, spz) third scale: flat Gaussians, orientation kept")] = "ply",
+    sh_degree: Annotated[int, Query(ge=0, le=3, description="PLY only: 0 or 3 (see /map.ply)")] = 0,
+    principal: Principal = Depends(caller),
+    reg: Registry = Depends(registry),
+) -> Response:
+    """The session's surfel map in the format a web viewer reads (PLY, SPZ or .splat)."""
+    request.app.state.auth.require(principal, "read", "stream")
+    record = await session_for(reg, principal, session_id, write=False)
+    response = await _ask_worker(request, reg, session_id, record, "export_ply",
+                                 {"sh_degree": sh_degree, "format": format})
+    response.headers["content-disposition"] = f'attachment; filename="{session_id}.{format}"'
+    response.headers["x-map-format"] = format
+    response.headers["x-map-revision"] = str(record.get("revision") or 0)
+    return response
+
+
 async def _ask_worker(request: Request, reg: Registry, session_id: str, record: dict[str, str], kind: str,
                       params: dict) -> Response:
     status = record["status"]

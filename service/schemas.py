@@ -37,11 +37,18 @@ class IntrinsicsIn(BaseModel):
         return self
 
 
+SKIP_FRAMES_DOC = (
+    "live camera (true, the default): when tracking falls behind, a frame that waited longer than the worker's limit "
+    "(100 ms) while a newer one is waiting gets a `skipped` message instead of a pose (newest first wins, a few in a "
+    "row at most), so poses keep up with the camera; false: every frame is tracked however late (recorded data)")
+
+
 class SessionCreate(BaseModel):
     model_config = ConfigDict(extra="forbid")
     intrinsics: IntrinsicsIn | None = None
     preset: PresetName | None = Field(default=None, description=preset_field_description())
     pose_mode: PoseMode | None = Field(default=None, description=POSE_MODE_DOC)
+    skip_frames: bool | None = Field(default=None, description=SKIP_FRAMES_DOC)
     name: str | None = Field(default=None, max_length=200)
     device_id: str | None = Field(default=None, max_length=200)
     metadata: dict[str, Any] = Field(default_factory=dict)
@@ -57,6 +64,14 @@ class Session(BaseModel):
     frames_received: int = Field(description="frames accepted into the session's queue")
     frames_processed: int = Field(description="frames the engine has tracked (each seq counted once)")
     frames_rejected: int = Field(0, description="accepted frames the worker refused (corrupt image, ...)")
+    frames_skipped: int = Field(
+        0, description="frames the tracker skipped under overload (a newer frame was waiting: newest first wins); "
+        "each got a `skipped` message instead of a pose")
+    tracking_state: Literal["tracking", "lost"] | None = Field(
+        None, description="whether the newest processed frame was tracked; null before the first frame")
+    mapping_lag_keyframes: int | None = Field(
+        None, description="keyframes tracked but not yet in the map (the mapping stage runs behind tracking)")
+    mapping_lag_s: float | None = Field(None, description="seconds the oldest of those keyframes has waited")
     last_seq: int = Field(-1, description="the highest frame seq accepted so far (-1: none); a stream opened again "
                                           "(after a lost connection) continues after it")
     keyframes: int
@@ -64,6 +79,7 @@ class Session(BaseModel):
     worker: str | None = Field(None, description="id of the worker that owns (or last owned) the session")
     preset: str | None = None
     pose_mode: PoseMode | None = Field(None, description="as created (null: the engine's default, prior)")
+    skip_frames: bool = Field(True, description=SKIP_FRAMES_DOC)
     intrinsics: IntrinsicsIn | None = None
     estimated_intrinsics: IntrinsicsIn | None = Field(
         None, description="the camera the engine uses at the frames' resolution: the given intrinsics, or the ones it "

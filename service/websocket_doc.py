@@ -129,6 +129,13 @@ WEBSOCKET_DOC = {
                 "type": {"const": "pose"}, "seq": {"type": "integer"}, "timestamp": {"type": "number"},
                 "pose": _POSE, "scale": _SCALE, "is_keyframe": {"type": "boolean"}, "revision": {"type": "integer"}},
                 "description": "the tracked pose of a frame: its result, sent once per seq"},
+            "skipped": {"type": "object", "properties": {
+                "type": {"const": "skipped"}, "seq": {"type": "integer"},
+                "reason": {"type": "string", "enum": ["overload"]}},
+                "description": "the result of a frame the tracker skipped: it waited longer than the worker's skip "
+                               "limit (FLASHMONO_SKIP_AFTER_MS, 100 ms) while a newer frame was waiting, so the newer "
+                               "one was tracked instead (newest first wins, a few in a row at most); no pose comes "
+                               "for this seq"},
             "loop_closed": {"type": "object", "properties": {
                 "type": {"const": "loop_closed"}, "revision": {"type": "integer"}},
                 "additionalProperties": True,
@@ -171,5 +178,16 @@ WEBSOCKET_DOC = {
         },
         "limits": "frame messages up to FLASHMONO_MAX_FRAME_BYTES (8 MiB); at most FLASHMONO_MAX_QUEUE (64) frames "
                   "queued per session",
-    }
+    },
+    "/v1/sessions/{session_id}/events": {
+        "description": "A read-only feed for viewers that do not send the frames (the web viewer): the messages the "
+                       "session's stream gets (pose, loop_closed, tracking_lost, relocalized, initialized, error, "
+                       "finishing, finished) from the moment of connection; the trajectory endpoint has the earlier "
+                       "ones. A session already finished or failed answers one `finished`/`failed` message. Same "
+                       "authentication as the stream (read or stream scope; ?api_key= allowed).",
+        "client_messages": {},
+        "server_messages": "as the stream's server_messages, without ack",
+        "close_codes": {"1000": "after finished", "4401": "unknown or missing API key", "4403": "not allowed",
+                        "4404": "no such session, or it was deleted"},
+    },
 }

@@ -66,6 +66,11 @@ class LoopConfig(_Section):
     relocalization: Literal["hidden_state", "pnp"] = Field(
         "hidden_state", description="hidden_state = f(I_j, M_a) (paper); pnp needs depth (given or predicted)")
     top_k: int = Field(5, ge=1, description="candidates verified per keyframe")
+    shortlist: int = Field(
+        10, ge=1, description="ORB: keyframes scored geometrically per query, the inverted index's best (bounds the "
+        "cost per keyframe whatever the map size)")
+    recent_candidates: int = Field(
+        2, ge=0, description="ORB: of the shortlist, the newest keyframes outside the exclusion window, always scored")
     max_loops_per_keyframe: int = Field(
         1, ge=1, description="verified candidates of one keyframe that become loop edges (best first)")
     min_score: float = Field(0.03, ge=0.0, le=1.0, description="descriptor similarity needed to verify a candidate")
@@ -107,6 +112,12 @@ class MappingConfig(_Section):
     final_refine_passes: int = Field(
         0, ge=0, le=1000, description="refinement at finish(): passes over every keyframe whose image is held "
         "(window + archive), one iteration per keyframe per pass, in a seeded random order")
+    shed_backlog: int = Field(
+        2, ge=0, description="load shedding: with more keyframes than this waiting, each keyframe's refinement "
+        "shrinks in proportion (iterations x shed_backlog / backlog) and trains no archived views; 0 = never shed")
+    merge_only_backlog: int = Field(
+        6, ge=1, description="load shedding: with more keyframes than this waiting, keyframes are merged into the "
+        "map without refinement (finish() refines them)")
 
 
 class InputConfig(_Section):
@@ -146,8 +157,11 @@ class SlamConfig(_Section):
     input: InputConfig = Field(default_factory=InputConfig)
     tracking: TrackingConfig = Field(default_factory=TrackingConfig)
     depth: MultiViewDepthConfig = Field(default_factory=MultiViewDepthConfig)
-    threaded: bool = Field(True, description="frontend and backend in two threads; False = deterministic, inline")
-    queue_size: int = Field(8, ge=1, le=1024, description="bound of the frontend->backend keyframe queue")
+    threaded: bool = Field(
+        True, description="tracking, mapping and loop closing in their own threads; False = inline, deterministic")
+    queue_size: int = Field(
+        24, ge=1, le=1024, description="the mapping stage's keyframe backlog: keyframes waiting beyond it are "
+        "dropped from the map, oldest first (tracking never waits for mapping)")
     device: str = Field("cpu", pattern=r"^(cpu|cuda(:\d+)?)$")
     num_threads: int = Field(2, ge=1, le=256, description="torch intra-op threads")
 

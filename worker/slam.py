@@ -1,8 +1,13 @@
 """The SLAM system: one object per session, frame in -> pose out, with a 2DGS map behind it.
 
-Two threads as in the paper (appendix E): the caller's thread is the frontend (model step, submaps, keyframes,
-loop detection, relocalization, PGO) and a backend thread maps keyframes (voxelize, prune, fuse, refine, loop
-correction); a bounded queue joins them. `SlamConfig.threaded=False` runs the backend inline: deterministic.
+Three stages, each with its own input queue and thread (the Tracking / LocalMapping / LoopClosing split of
+ORB-SLAM3): the tracking stage (worker.engine.tracking_stage, in the caller's thread: pose source, keyframe
+decision, trajectory) publishes each frame's pose at once;
+the mapping stage (worker.engine.mapping_stage) builds keyframe depth and maps keyframes (voxelize, prune, fuse,
+refine, loop correction), shedding work when it falls behind; the loop-closing stage (worker.engine.loop_stage)
+keeps the pose graph, detects and verifies loops and hands optimised keyframe poses back, which tracking applies as
+a new trajectory revision. Tracking never waits for either. `SlamConfig.threaded=False` runs every stage inline in
+the caller: deterministic.
 
 One frame path: pose source -> keyframe selection -> map job -> loop closure. The pose source (worker.tracking) is
 chosen once per session from `frontend.tracking` and the first frame (see `choose_tracking`):
@@ -19,7 +24,8 @@ the source's hint, else the motion-based selector.
 
 `snapshot()` writes everything needed to continue (config, model id, pose source, tracker, bag of hidden states,
 pose graph, trajectory, keyframes waiting for depth, map, counters) as msgpack; `SlamSystem.restore(data)`
-continues from it in any process.
+continues from it in any process. `begin_snapshot()` takes the same without waiting: the tracking state at once,
+each stage's at a marker in its queue once it has done what came before (`SnapshotFuture`).
 """
 
 from __future__ import annotations
@@ -33,22 +39,27 @@ import torch
 
 from worker.config import SlamConfig
 from worker.data.frame import Frame, FrameResult
-from worker.engine.backend import KeyframeJob, MapBackend, PoseUpdateJob
+from worker.engine.backend import KeyframeJob, PoseUpdateJob
 from worker.engine.keyframe_depth import KeyframeDepth
 from worker.engine.keyframes import MotionKeyframeSelector
 from worker.engine.loop_closer import DepthKeyframePoints, LoopCloser
+from worker.engine.loop_stage import CameraUpdate, LoopClosingStage, LoopCorrection, LoopQuery
+from worker.engine.mapping_stage import MappingStage
+from worker.engine.snapshot_future import SnapshotFuture
 from worker.engine.stage_times import StageTimes
 from worker.engine.surfel_init import grid_from_depth, grid_from_prediction
-from worker.engine.trajectory import Trajectory
-from worker.geometry import Intrinsics, se3_part, sim3_inverse
+from worker.engine.tracking_stage import TrackingStage
+from worker.geometry import Intrinsics, sim3_inverse
 from worker.loop.pose_graph import DEFAULT_SIGMAS, EdgeSigmas, Sim3PoseGraph
 from worker.serialization import pack, unpack
-from worker.tracking.base import TrackingResult
 from worker.tracking.sources import DevicePoses, ModelTracking, choose_tracking
 
 log = logging.getLogger(__name__)
 
-SNAPSHOT_FORMAT = "flashmono.slam/1"
+SNAPSHOT_FORMAT = "flashmono.slam/2"
+# Snapshots of format 1 (one dict, made after waiting for the backend) restore too: format 2 splits the same keys
+# into the tracking, mapping and loop-closing parts.
+SNAPSHOT_FORMATS = ("flashmono.slam/1", SNAPSHOT_FORMAT)
 # Log-scale standard deviation of pose-graph edges when poses and depth are metric: the scale is known.
 METRIC_LOG_SCALE_SIGMA = 1e-4
 # The engine's mode (metrics, stats) for each pose source.
@@ -72,20 +83,21 @@ class SlamSystem:
         self.intrinsics = intrinsics
         self.mode: str | None = None  # MODE_OF_TRACKING[self.tracking], set by the first frame
         self.tracking: str | None = None  # the pose source's name
-        self.pose_source = None
         self._model: ModelTracking | None = None  # the learned model, as pose source or surfel predictor
-        self._traj = Trajectory()
-        self.pose_graph = self._new_pose_graph()
-        self.selector = MotionKeyframeSelector(self.config.frontend.keyframe_every,
-                                               self.config.frontend.keyframe_translation,
-                                               self.config.frontend.keyframe_rotation_deg)
         self.timings = StageTimes()  # the runtime breakdown of paper appendix E
-        self.backend = (MapBackend(self.config.mapping, self.config.threaded, self.config.queue_size,
-                                   self.config.device, self.timings) if self.config.mapping.enabled else None)
+        self._with_depth = False
+        self.loop_stage = self._new_loop_stage(self._new_pose_graph(), closer=None, depth_points=None)
+        fc = self.config.frontend
+        self.tracking_stage = TrackingStage(
+            MotionKeyframeSelector(fc.keyframe_every, fc.keyframe_translation, fc.keyframe_rotation_deg),
+            publish_keyframe=lambda node: self.loop_stage.submit(node), timings=self.timings)
+        self._traj = self.tracking_stage.trajectory
+        self.backend = (MappingStage(self.config.mapping, self.config.threaded, self.config.queue_size,
+                                     self.config.device, self.timings) if self.config.mapping.enabled else None)
+        if self.backend is not None:
+            self.backend.on_keyframe_built = self._keyframe_depth_built
         self.counters: dict[str, float] = {"frames": 0, "keyframes": 0, "loops": 0, "frontend_seconds": 0.0,
                                            "wall_seconds": 0.0, "path_given": 0.0, "path_tracked": 0.0}
-        self._last_keyframe: int | None = None
-        self._submap_of: dict[int, int] = {}
         self._frame_size: tuple[int, int] | None = None
         self._keyframe_images: dict[int, np.ndarray] = {}
         self._finished = False
@@ -97,8 +109,7 @@ class SlamSystem:
         self.depth_points: DepthKeyframePoints | None = None
         self.depth_source: str | None = None  # "sensor", "mvs" or "model": where keyframe surfels come from
         self.keyframe_depth: KeyframeDepth | None = None
-        self._loops_waiting: list[int] = []  # keyframes whose loop closure waits for their multi-view depth
-        self._depth_jobs: dict[int, KeyframeJob] = {}  # ... and their map jobs (the backend builds the depth)
+        self._loop_after_depth: set[int] = set()  # keyframes whose loop query waits for their multi-view depth
         self._started: float | None = None
         self._pending_jobs: list[tuple[KeyframeJob, bool]] = []
         self._with_depth = False
@@ -122,14 +133,27 @@ class SlamSystem:
     def num_gaussians(self) -> int:
         return 0 if self.backend is None else self.backend.num_gaussians()
 
+    @property
+    def pose_source(self):
+        """The session's pose source (the tracking stage's)."""
+        return self.tracking_stage.pose_source
+
+    @property
+    def selector(self) -> MotionKeyframeSelector:
+        return self.tracking_stage.selector
+
+    @property
+    def pose_graph(self) -> Sim3PoseGraph:
+        """The keyframe pose graph (the loop-closing stage's: read it only while that stage is idle)."""
+        return self.loop_stage.pose_graph
+
     def push(self, frame: Frame) -> FrameResult:
         """Track one frame (and queue its keyframe for mapping); returns its pose and events."""
         if self._finished:
             raise ValueError("this SLAM session is finished; start a new one")
         if not isinstance(frame, Frame):
             raise ValueError(f"push() takes a worker.data.Frame, got {type(frame).__name__}")
-        if self.backend is not None:
-            self.backend.raise_if_failed()
+        self._raise_if_a_stage_failed()
         start = time.perf_counter()
         self._started = self._started or start
         self._check_frame(frame)
@@ -140,7 +164,8 @@ class SlamSystem:
         return result
 
     def finish(self) -> None:
-        """Wait for the backend to map every keyframe, run the final refinement, stop the backend thread."""
+        """Drain the stages (every keyframe mapped, every loop query answered, the corrections applied), run the
+        final refinement, stop the stages' threads."""
         if self._finished:
             return
         if self.backend is not None:
@@ -148,19 +173,27 @@ class SlamSystem:
             self._queue_depth_jobs(force=True)
             self._flush_map_jobs(force=True)
             self.backend.wait_idle()
-            if self._close_waiting_loops():
-                self.backend.wait_idle()
+        self.loop_stage.wait_idle()
+        if self._apply_corrections() and self.backend is not None:
+            self.backend.wait_idle()
+        if self.backend is not None:
             if self.config.mapping.final_refine_passes:
                 self.backend.refine_all(self.config.mapping.final_refine_passes)
-            self.backend.close()
+        self.close()
         if self._started is not None:
             self.counters["wall_seconds"] = self._wall_offset + time.perf_counter() - self._started
         self._finished = True
 
     def close(self) -> None:
-        """Stop the backend thread without further work (idempotent)."""
+        """Stop the stages' threads without further work (idempotent)."""
         if self.backend is not None:
             self.backend.close()
+        self.loop_stage.close()
+
+    def _raise_if_a_stage_failed(self) -> None:
+        if self.backend is not None:
+            self.backend.raise_if_failed()
+        self.loop_stage.raise_if_failed()
 
     def trajectory(self, which: str = "all") -> list[tuple[int, float, np.ndarray]]:
         """[(index, timestamp, c2w pose 4x4)] of "all" frames or the "keyframes", at the current revision."""
@@ -195,9 +228,24 @@ class SlamSystem:
                 "num_gaussians": self.num_gaussians, "fps": frames / wall if wall > 0 else 0.0,
                 "backend_pending": 0 if self.backend is None else self.backend.pending,
                 "backend_seconds": 0.0 if self.backend is None else self.backend.busy_seconds,
-                "runtime_breakdown": self.timings.breakdown(int(frames))}
+                **self.live_stats(), "runtime_breakdown": self.timings.breakdown(int(frames))}
+
+    def live_stats(self) -> dict[str, Any]:
+        """What a live client watches, cheap to read while frames stream: how far mapping lags (keyframes waiting,
+        seconds the oldest has waited), what it shed, and the loop-closing stage's backlog."""
+        mapping = {"mapping_lag_keyframes": 0, "mapping_lag_s": 0.0, "keyframes_shed": {}} if self.backend is None \
+            else self.backend.stats()
+        return {"mapping_lag_keyframes": mapping["mapping_lag_keyframes"], "mapping_lag_s": mapping["mapping_lag_s"],
+                "keyframes_shed": mapping["keyframes_shed"], "loop_pending": self.loop_stage.pending}
 
     # ------------------------------------------------------------------------------------------------- helpers
+    def _new_loop_stage(self, pose_graph: Sim3PoseGraph, closer: LoopCloser | None,
+                        depth_points: DepthKeyframePoints | None) -> LoopClosingStage:
+        """The loop-closing stage; inline with the learned model, whose tracker state loop closure reads."""
+        threaded = self.config.threaded and self.tracking != "model"
+        return LoopClosingStage(self.config.loop, pose_graph, closer, depth_points, metric=self._metric_loops(),
+                                threaded=threaded, timings=self.timings)
+
     def _new_pose_graph(self, metric: bool = False) -> Sim3PoseGraph:
         """The keyframe pose graph; `metric` (given poses and depth) leaves the scale no freedom."""
         lc = self.config.loop
@@ -246,11 +294,8 @@ class SlamSystem:
     def _push_frame(self, frame: Frame) -> FrameResult:
         """Pose source -> keyframe selection -> map job -> loop closure, the same for every source."""
         intrinsics = self.frame_intrinsics(frame)
-        events = self._close_waiting_loops()
-        stage = "frontend_inference" if self.tracking == "model" else "frontend_tracking"
-        with self.timings.measure(stage):
-            tracking = self.pose_source.track(frame, intrinsics)
-        pose = _checked_pose(frame, tracking)
+        events = self._apply_corrections()
+        tracking, pose = self.tracking_stage.track(frame, intrinsics)
         events += [self._apply_tracking_event(event) for event in tracking.events]
         prediction = tracking.prediction
         if prediction is None and self._model is not None:  # the model predicts the surfels beside the source
@@ -259,10 +304,10 @@ class SlamSystem:
             self._accumulate_path(pose, prediction[1].pose_world.numpy())
         if self.keyframe_depth is not None and tracking.tracked:  # a lost frame's held pose is not its own
             self.keyframe_depth.add_frame(frame.index, frame.image)
-        is_kf = self._is_keyframe(tracking, pose)
+        is_kf = self.tracking_stage.is_keyframe(tracking, pose)
         if is_kf:
-            self._add_keyframe(frame.index, pose, submap_id=tracking.submap_id)
-            self.pose_source.keyframe_added(frame, pose)
+            self.tracking_stage.add_keyframe(frame, pose, submap_id=tracking.submap_id)
+            self.counters["keyframes"] += 1
             if self.keyframe_depth is not None:  # mapped once later frames give it neighbours
                 self.keyframe_depth.add_keyframe(frame.index, self.camera(frame).matrix().numpy(), tracking.depth)
             elif self.backend is not None:  # the keyframe enters the map before a loop closure can move it
@@ -270,8 +315,7 @@ class SlamSystem:
                 self._flush_map_jobs()
             if self.loop_closer is not None:
                 events += self._keyframe_loop(frame, prediction)
-        world = self._traj.add_frame(frame.index, frame.timestamp, self._last_keyframe, pose, is_kf,
-                                     tracking.submap_id)
+        world = self.tracking_stage.add_frame(frame, pose, is_kf, tracking.submap_id)
         self._last_frame = None if is_kf else (frame, tracking.tracked)
         if self.backend is not None:
             self._queue_depth_jobs()
@@ -286,7 +330,7 @@ class SlamSystem:
         poses = {int(i): np.asarray(p, np.float64) for i, p in event["frames"]}
         revised = {i: p for i, p in poses.items() if np.all(np.isfinite(p))}
         if event.get("intrinsics") and self.depth_points is not None:  # keyframe points made with the old camera
-            self.depth_points.reproject(Intrinsics.from_dict(event["intrinsics"]).matrix())
+            self.loop_stage.submit(CameraUpdate(Intrinsics.from_dict(event["intrinsics"]).matrix()))
         out = {k: v for k, v in event.items() if k != "frames"}
         out["revision"] = self._traj.revise_frames(revised)
         out["frames_revised"] = len(revised)
@@ -323,70 +367,29 @@ class SlamSystem:
             return
         for job in self.keyframe_depth.ready_jobs(self._traj.pose_at, force):
             self._pending_jobs.append((job, False))
-            if job.kf_id in self._loops_waiting:
-                self._depth_jobs[job.kf_id] = job
-
-    def _is_keyframe(self, tracking: TrackingResult, pose: np.ndarray) -> bool:
-        """The first frame always; then the source's hint when it gives one (False while lost), else the motion
-        selector."""
-        if self._last_keyframe is None:
-            self.selector.is_keyframe(pose)
-            return True
-        if tracking.keyframe_hint is False:
-            return False
-        return self.selector.is_keyframe(pose, force=bool(tracking.keyframe_hint))
 
     def _keyframe_loop(self, frame: Frame, prediction) -> list[dict[str, Any]]:
-        """Loop closure for a new keyframe: against keyframe depth (ORB + PnP + ICP) or the model's hidden states.
-        With multi-view depth it waits until the backend has computed the keyframe's depth."""
+        """Queue loop closure for a new keyframe: against keyframe depth (ORB + PnP + ICP) or the model's hidden
+        states. With multi-view depth the mapping stage queues it once it has built the keyframe's depth."""
         if self.keyframe_depth is not None:
-            self._loops_waiting.append(frame.index)
-            return []
-        if self.depth_points is not None:
-            return self._depth_loop(frame)
-        prep = prediction[0]
-        return self._close_loop(frame.index, prep.tensor, self.model_intrinsics)
+            self._loop_after_depth.add(frame.index)
+        elif self.depth_points is not None:
+            intr = self.camera(frame)
+            image = torch.from_numpy(frame.image).permute(2, 0, 1)[None].float() / 255.0
+            self.loop_stage.submit(LoopQuery(frame.index, image, intr, torch.from_numpy(
+                np.asarray(frame.depth, np.float32)), intr.matrix()))
+        else:
+            self.loop_stage.submit(LoopQuery(frame.index, prediction[0].tensor, self.model_intrinsics))
+        return self._apply_corrections() if not self.loop_stage.pending else []
 
-    def _add_keyframe(self, kf_id: int, tracked_pose: np.ndarray, submap_id: int) -> np.ndarray:
-        """Insert a keyframe in the trajectory and the pose graph (odometry edge from the previous keyframe)."""
-        previous = self._last_keyframe
-        world = self._traj.add_keyframe(kf_id, tracked_pose, reference=previous)
-        self.pose_graph.add_node(kf_id, world)
-        if previous is not None:
-            rel = sim3_inverse(torch.from_numpy(self._traj.tracked_keyframe_poses[previous])) @ torch.from_numpy(
-                np.asarray(tracked_pose, np.float64))
-            kind = "sequential" if self._submap_of.get(previous, submap_id) == submap_id else "inter_submap"
-            self.pose_graph.add_edge(previous, kf_id, rel.numpy(), kind=kind)
-        self._submap_of[kf_id] = submap_id
-        self._last_keyframe = kf_id
-        self.counters["keyframes"] += 1
-        return world
-
-    def _depth_loop(self, frame: Frame) -> list[dict[str, Any]]:
-        """Loop closure for a keyframe that carries depth: its points join the PnP database first."""
-        intr = self.camera(frame)
-        self.depth_points.add(frame.index, torch.from_numpy(np.asarray(frame.depth, np.float32)), intr.matrix())
-        image = torch.from_numpy(frame.image).permute(2, 0, 1)[None].float() / 255.0
-        return self._close_loop(frame.index, image, intr)
-
-    def _close_waiting_loops(self) -> list[dict[str, Any]]:
-        """Loop closure for the keyframes whose multi-view depth the backend has finished, in keyframe order."""
-        events: list[dict[str, Any]] = []
-        pending = {p.kf_id for p in self.keyframe_depth.pending} if self.keyframe_depth is not None else set()
-        while self._loops_waiting:
-            job = self._depth_jobs.get(self._loops_waiting[0])
-            if job is None and self._loops_waiting[0] not in pending:  # it got no depth job: no loop closure
-                self._loops_waiting.pop(0)
-                continue
-            if job is None or job.build is not None:  # not yet queued, or not yet built
-                break
-            self._loops_waiting.pop(0)
-            del self._depth_jobs[job.kf_id]
-            h, w = job.image.shape[:2]
-            self.depth_points.add(job.kf_id, job.depth, job.K)
-            image = job.image.permute(2, 0, 1)[None]
-            events += self._close_loop(job.kf_id, image, Intrinsics.from_matrix(job.K, w, h))
-        return events
+    def _keyframe_depth_built(self, job: KeyframeJob) -> None:
+        """The mapping stage built a keyframe's multi-view depth (in its thread): queue its loop query."""
+        if job.kf_id not in self._loop_after_depth or job.depth is None:
+            return
+        self._loop_after_depth.discard(job.kf_id)
+        h, w = job.image.shape[:2]
+        self.loop_stage.submit(LoopQuery(job.kf_id, job.image.permute(2, 0, 1)[None],
+                                         Intrinsics.from_matrix(job.K, w, h), job.depth, job.K))
 
     def _accumulate_path(self, given: np.ndarray, tracked: np.ndarray) -> None:
         """Path lengths of the given and the tracked trajectories: their ratio converts model units to pose units."""
@@ -444,7 +447,6 @@ class SlamSystem:
         self.tracking = tracking
         self.mode = MODE_OF_TRACKING[tracking]
         cfg = self.config
-        self.pose_graph = self._new_pose_graph(metric=self._metric_loops())
         self.depth_source = self._choose_depth_source(tracking, with_depth)
         mvs = self.depth_source == "mvs" and cfg.mapping.enabled
         needs_model = tracking == "model" or self.depth_source == "model" or (
@@ -455,8 +457,17 @@ class SlamSystem:
             fill = self._model_depth_filler() if cfg.input.mvs_fill == "model" else None
             self.keyframe_depth = KeyframeDepth(cfg.depth, cfg.input.mvs_buffer_frames, cfg.input.mvs_frames_after,
                                                 fill)
-        self.pose_source = self._build_pose_source(tracking)
+        self.tracking_stage.pose_source = self._build_pose_source(tracking)
+        self.tracking_stage.timing_stage = "frontend_inference" if tracking == "model" else "frontend_tracking"
         log.info("session tracking: %s (mode %s), surfels from %s", tracking, self.mode, self.depth_source)
+        self._build_loop_closer(tracking, with_depth)
+        self.loop_stage.close()
+        self.loop_stage = self._new_loop_stage(self._new_pose_graph(metric=self._metric_loops()),
+                                               self.loop_closer, self.depth_points)
+
+    def _build_loop_closer(self, tracking: str, with_depth: bool) -> None:
+        """The loop closer and the keyframe points it verifies with, when this session closes loops."""
+        cfg = self.config
         loops = cfg.loop.enabled and not (tracking == "device" and cfg.input.pose_mode == "fixed")
         if not loops:
             return
@@ -590,49 +601,6 @@ class SlamSystem:
         return grid, depth
 
     # ------------------------------------------------------------------------------------------ loop closure
-    def _close_loop(self, index: int, image: torch.Tensor, intrinsics: Intrinsics | None) -> list[dict[str, Any]]:
-        constraints = self.loop_closer.process_keyframe(index, image, intrinsics)
-        if not constraints:
-            return []
-        kept = []
-        for constraint in constraints:
-            relative = constraint.relative
-            if self._metric_loops():  # given metric poses and depth: a loop measures no scale change
-                relative = self._align_depth(constraint.i, constraint.j, se3_part(relative), intrinsics)
-                if relative is None:
-                    continue
-            self.pose_graph.add_edge(constraint.i, constraint.j, relative, kind="loop",
-                                     weight=self.config.loop.loop_weight)
-            kept.append(constraint)
-        if not kept:
-            return []
-        constraints = kept
-        best = constraints[0]
-        event = self._apply_pgo(best.j, best.i)
-        event["source"] = best.source
-        event["scale"] = float(best.scale)
-        if len(constraints) > 1:
-            event["also_to_keyframes"] = [int(c.i) for c in constraints[1:]]
-        return [event]
-
-    def _align_depth(self, i: int, j: int, relative: np.ndarray, intrinsics: Intrinsics | None) -> np.ndarray | None:
-        """A posed RGB-D loop edge refined by ICP on the two keyframes' depth (half resolution), or None when the
-        depth maps do not fit together (too few close points or a large residual)."""
-        lc = self.config.loop
-        if not lc.depth_alignment or intrinsics is None:
-            return relative
-        from worker.engine.rgbd_align import refine_relative_pose
-
-        points_i, _ = self.depth_points.keyframe_points(i)
-        points_j, _ = self.depth_points.keyframe_points(j)
-        half = intrinsics.scaled(intrinsics.width // 2, intrinsics.height // 2).matrix()
-        with self.timings.measure("loop_relocalization"):
-            fit = refine_relative_pose(points_i[::2, ::2], points_j[::2, ::2], half, torch.from_numpy(relative))
-        if fit.inlier_fraction < lc.alignment_min_inliers or fit.rms > lc.alignment_max_rms:
-            self.loop_closer.rejected += 1
-            return None
-        return fit.relative.numpy()
-
     def _metric_poses(self) -> bool:
         """Whether poses are in the depth's units (given poses, or tracked on the depth itself)."""
         return self.tracking in ("device", "rgbd_odometry")
@@ -640,14 +608,15 @@ class SlamSystem:
     def _metric_loops(self) -> bool:
         return self._metric_poses() and self._with_depth
 
-    def _apply_pgo(self, loop_from: int, loop_to: int) -> dict[str, Any]:
-        """Optimise the pose graph, move the trajectory and the map; returns the loop event."""
-        old = {k: v.copy() for k, v in self._traj.keyframe_poses.items()}
-        with self.timings.measure("pgo"):
-            result = self.pose_graph.optimize(max_iterations=self.config.loop.pgo_iterations)
-        revision = self._traj.update_keyframes(result.poses)
+    def _apply_corrections(self) -> list[dict[str, Any]]:
+        """Apply the loop-closing stage's new corrections (in order); returns their loop events."""
+        return [self._apply_correction(c) for c in self.loop_stage.take_corrections()]
+
+    def _apply_correction(self, correction: LoopCorrection) -> dict[str, Any]:
+        """Move the trajectory and the map to the optimised keyframe poses. Keyframes made after the optimisation
+        follow the newest optimised keyframe before them, so nothing jumps. Returns the loop event."""
+        revision, changed = self.tracking_stage.apply_correction(correction.poses)
         if self.backend is not None:
-            changed = {k: p for k, p in result.poses.items() if not np.allclose(p, old[k], atol=1e-9)}
             for job, _ in self._pending_jobs:  # not in the map yet (waiting for their scale): they move here
                 if job.kf_id in changed:
                     job.pose = changed.pop(job.kf_id)
@@ -656,17 +625,32 @@ class SlamSystem:
             if changed:
                 self.backend.submit(PoseUpdateJob(changed))
         self.counters["loops"] += 1
-        return {"type": "loop_closed", "revision": revision, "from_keyframe": int(loop_from),
-                "to_keyframe": int(loop_to), "pgo_error_before": result.initial_error,
-                "pgo_error_after": result.final_error}
+        return {**correction.event, "revision": revision}
 
     # ---------------------------------------------------------------------------------------- snapshot/restore
     def snapshot(self) -> bytes:
-        """Everything needed to continue this session, as msgpack bytes (waits for the backend to be idle)."""
+        """Everything needed to continue this session, as msgpack bytes (waits for the stages' parts)."""
+        return self.begin_snapshot().result()
+
+    def begin_snapshot(self) -> SnapshotFuture:
+        """A snapshot of the session as of now, without waiting: the tracking state is packed at once, the map and
+        the loop-closing state by their stages once they have done what was submitted before (see the module
+        docstring); `result()` gives the bytes that `restore` takes."""
         if self.backend is not None:
             self._flush_map_jobs(force=True)
-            self.backend.wait_idle()
-        state = {
+        tracking = pack(self._tracking_state())  # packed now: the next frames change what it refers to
+        backend, loop_stage = self.backend, self.loop_stage
+        parts = ["loop"] + ([] if backend is None else ["map"])
+        future = SnapshotFuture(parts, lambda done: pack({"format": SNAPSHOT_FORMAT, "tracking": tracking,
+                                                          "map": done.get("map"), "loop": done["loop"]}))
+        if backend is not None:
+            backend.at_marker(lambda: future.deliver("map", lambda: pack(backend.state_dict())))
+        loop_stage.at_marker(lambda: future.deliver("loop", lambda: pack(loop_stage.state_dict())))
+        return future
+
+    def _tracking_state(self) -> dict[str, Any]:
+        """The tracking thread's part of a snapshot."""
+        return {
             "format": SNAPSHOT_FORMAT,
             "config": self.config.model_dump(mode="json"),
             "model_id": self.model_id,
@@ -674,51 +658,35 @@ class SlamSystem:
             "model_intrinsics": None if self.model_intrinsics is None else self.model_intrinsics.to_dict(),
             "mode": self.mode,
             "tracking": self.tracking,
-            "pose_source": None if self.pose_source is None else self.pose_source.state_dict(),
             "with_depth": self._with_depth,
             "frame_size": None if self._frame_size is None else list(self._frame_size),
-            "last_keyframe": self._last_keyframe,
-            "submap_of": [[k, v] for k, v in self._submap_of.items()],
             "previous_poses": None if self._previous_poses is None else list(self._previous_poses),
             "counters": dict(self.counters),
-            "trajectory": self._traj.state_dict(),
-            "pose_graph": self.pose_graph.state_dict(),
-            "selector": self.selector.state_dict(),
+            **self.tracking_stage.state_dict(),
             "tracker": None if self.tracker is None else self.tracker.state_dict(),
             "bag": None if self.bag is None else self.bag.to_bytes(torch.float32),
-            "loop": None if self.loop_closer is None else self.loop_closer.state_dict(),
-            "depth_points": None if self.depth_points is None else self.depth_points.state_dict(),
             "keyframe_depth": None if self.keyframe_depth is None else self.keyframe_depth.state_dict(),
-            "loops_waiting": self._waiting_loops_state(),
-            "map": None if self.backend is None else self.backend.state_dict(),
+            "loop_after_depth": sorted(self._loop_after_depth),
         }
-        return pack(state)
 
-    def _waiting_loops_state(self) -> list[dict[str, Any]]:
-        """Keyframes waiting for loop closure; with their depth, image and K once the backend built them."""
-        out = []
-        for kf in self._loops_waiting:
-            job = self._depth_jobs.get(kf)
-            built = job is not None and job.build is None
-            out.append({"kf": kf, "depth": job.depth.numpy() if built else None,
-                        "K": job.K.numpy() if built else None,
-                        "image": (job.image * 255.0).round().to(torch.uint8).numpy() if built else None})
-        return out
-
-    def _load_waiting_loops(self, entries: list[dict[str, Any]]) -> None:
-        self._loops_waiting = [int(e["kf"]) for e in entries]
-        for e in entries:
-            if e["depth"] is not None:
-                image = torch.from_numpy(np.asarray(e["image"], np.uint8)).to(torch.float32) / 255.0
-                self._depth_jobs[int(e["kf"])] = KeyframeJob(int(e["kf"]), np.eye(4), torch.from_numpy(
-                    np.asarray(e["K"], np.float32)), image, {}, torch.from_numpy(np.asarray(e["depth"], np.float32)))
+    def _load_waiting_loops(self, state: dict[str, Any]) -> None:
+        """Keyframes whose loop query waits for their multi-view depth; a format-1 snapshot lists them as
+        `loops_waiting`, with the depth when the backend had built it (their queries go to the stage now)."""
+        self._loop_after_depth = {int(k) for k in state.get("loop_after_depth") or []}
+        for e in state.get("loops_waiting") or []:
+            if e["depth"] is None:
+                self._loop_after_depth.add(int(e["kf"]))
+                continue
+            image = torch.from_numpy(np.asarray(e["image"], np.uint8)).to(torch.float32) / 255.0
+            K = torch.from_numpy(np.asarray(e["K"], np.float32))
+            h, w = image.shape[:2]
+            self.loop_stage.submit(LoopQuery(int(e["kf"]), image.permute(2, 0, 1)[None], Intrinsics.from_matrix(
+                K, w, h), torch.from_numpy(np.asarray(e["depth"], np.float32)), K))
 
     @classmethod
     def restore(cls, data: bytes) -> SlamSystem:
         """A system continuing from `snapshot()` bytes (never unpickles anything)."""
-        state = unpack(data)
-        if not isinstance(state, dict) or state.get("format") != SNAPSHOT_FORMAT:
-            raise ValueError("not a Flash-Mono SLAM snapshot")
+        state = _flat_snapshot(unpack(data))
         from worker.loop.bag import HiddenStateBag
 
         config = SlamConfig.from_dict(state["config"])
@@ -727,45 +695,40 @@ class SlamSystem:
         if state["mode"] is not None:
             system._with_depth = bool(state["with_depth"])
             system._setup(state.get("tracking") or TRACKING_OF_MODE[state["mode"]], with_depth=system._with_depth)
-            if state.get("pose_source"):
-                system.pose_source.load_state_dict(state["pose_source"])
         if system.model_id != state["model_id"]:
             raise ValueError(f"the snapshot was made with model {state['model_id']!r}, this machine has "
                              f"{system.model_id!r}")
         if state["model_intrinsics"] is not None and system._model is not None:
             system._model.model_intrinsics = Intrinsics.from_dict(state["model_intrinsics"])
         system._frame_size = None if state["frame_size"] is None else tuple(state["frame_size"])
-        system._last_keyframe = state["last_keyframe"]
-        system._submap_of = {int(k): int(v) for k, v in state["submap_of"]}
         if state["previous_poses"] is not None:
             system._previous_poses = tuple(np.asarray(p, np.float64) for p in state["previous_poses"])
         system.counters.update(state["counters"])
         system._wall_offset = float(system.counters["wall_seconds"])
-        system._traj.load_state_dict(state["trajectory"])
-        system.pose_graph.load_state_dict(state["pose_graph"])
-        system.selector.load_state_dict(state["selector"])
+        system.tracking_stage.load_state_dict(state)
         if system.tracker is not None:
             system.tracker.load_state_dict(state["tracker"])
             system.bag = HiddenStateBag.from_bytes(state["bag"])
             if system.loop_closer is not None and system.loop_closer.pnp is None:
                 system.loop_closer.relocalizer.bag = system.bag
-        if system.loop_closer is not None:
-            system.loop_closer.load_state_dict(state["loop"])
-        if system.depth_points is not None:
-            system.depth_points.load_state_dict(state["depth_points"])
+        system.loop_stage.load_state_dict(state)
         if system.keyframe_depth is not None and state.get("keyframe_depth") is not None:
             system.keyframe_depth.load_state_dict(state["keyframe_depth"])
-        system._load_waiting_loops(state.get("loops_waiting") or [])
+        system._load_waiting_loops(state)
         if system.backend is not None and state["map"] is not None:
             system.backend.load_state_dict(state["map"])
         return system
 
-def _checked_pose(frame: Frame, tracking: TrackingResult) -> np.ndarray:
-    """The source's pose as float64 4x4; a non-finite one is a bug in the source, never passed on."""
-    pose = np.asarray(tracking.pose, np.float64)
-    if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
-        raise RuntimeError(f"frame {frame.index}: the pose source returned a non-finite pose")
-    return pose
+
+def _flat_snapshot(state: Any) -> dict[str, Any]:
+    """A snapshot's state as one dict of format 1's keys (format 2 keeps the stages' parts packed apart)."""
+    if not isinstance(state, dict) or state.get("format") not in SNAPSHOT_FORMATS:
+        raise ValueError("not a Flash-Mono SLAM snapshot")
+    if state["format"] != SNAPSHOT_FORMAT:
+        return state
+    flat = {**unpack(state["tracking"]), **unpack(state["loop"])}
+    flat["map"] = None if state["map"] is None else unpack(state["map"])
+    return flat
 
 
 def _uncrop_intrinsics(intr: Intrinsics, geometry: tuple[float, tuple[int, int, int, int]], width: int,

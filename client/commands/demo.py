@@ -191,7 +191,7 @@ def run_demo(server: str, api_key: str | None, source: str, mode: str, args: arg
     try:
         with FlashMonoClient(server, api_key=api_key) as client:
             session = client.create_session(intrinsics=intrinsics, preset=args.preset, name="demo",
-                                            device_id="flashmono-demo",
+                                            device_id="flashmono-demo", skip_frames=False,
                                             metadata={"source": Path(source).name, "mode": mode})
             print(f"session {session.id}: streaming {len(frames)} frames ({mode}) from {source}",
                   file=sys.stderr)

@@ -27,6 +27,8 @@ def add_run_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--unknown-intrinsics", action="store_true",
                         help="withhold the dataset's camera intrinsics: the system estimates them (reported in "
                         "metrics.json and intrinsics.json)")
+    parser.add_argument("--pingpong", type=int, default=1, metavar="N",
+                        help="play a dataset folder forward and back N sweeps (a long session revisiting places)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -69,7 +71,8 @@ def run_one(args: argparse.Namespace, source: str, out_dir: str) -> dict:
     try:
         return run_sequence(source, out_dir, config, use_gt_depth=args.use_gt_depth, use_gt_poses=args.use_gt_poses,
                             max_frames=args.max_frames, stride=args.stride, resize=args.resize, drift=drift,
-                            progress=progress, unknown_intrinsics=args.unknown_intrinsics)
+                            progress=progress, unknown_intrinsics=args.unknown_intrinsics,
+                            pingpong=args.pingpong)
     finally:
         bar.close()
 

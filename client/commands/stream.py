@@ -29,6 +29,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--device-id", help="device id recorded with the new session")
     parser.add_argument("--fps", type=float, help="pace frames like a live camera at this rate (default: as fast "
                                                   "as the server takes them)")
+    parser.add_argument("--skip-frames", choices=("auto", "on", "off"), default="auto",
+                        help="let the tracker skip frames that fell behind a newer one (a live camera) or track "
+                             "every frame however late (recorded data); auto: on for webcam:N and with --fps")
     parser.add_argument("--stride", type=int, default=1, help="use every STRIDE-th frame")
     parser.add_argument("--max-frames", type=int, help="stop after this many frames")
     parser.add_argument("--resize", type=parse_size, metavar="WxH", help="resize frames (intrinsics follow)")
@@ -60,7 +63,8 @@ def run(args: argparse.Namespace) -> int:
         session_id = args.session
         if session_id is None:
             session = client.create_session(intrinsics=getattr(frames, "intrinsics", None), preset=args.preset,
-                                            name=args.name, device_id=args.device_id)
+                                            name=args.name, device_id=args.device_id,
+                                            skip_frames=_skips_frames(args))
             session_id = session.id
         print(f"session {session_id}", file=sys.stderr)
         bar = tqdm(total=total, unit="frame", desc="tracked", disable=args.quiet, file=sys.stderr)
@@ -101,3 +105,10 @@ def _length(frames: object) -> int | None:
         return len(frames)  # type: ignore[arg-type]
     except TypeError:
         return None
+
+
+def _skips_frames(args: argparse.Namespace) -> bool:
+    """Whether the new session may skip late frames: asked for, or a live source (a webcam, paced frames)."""
+    if args.skip_frames != "auto":
+        return args.skip_frames == "on"
+    return str(args.source).startswith("webcam:") or args.fps is not None

@@ -21,3 +21,22 @@ def test_export_command_defaults_to_degree_0_and_offers_3():
     assert parser.parse_args(["export", "abc", "--sh-degree", "3"]).sh_degree == 3
     with pytest.raises(SystemExit):
         parser.parse_args(["export", "abc", "--sh-degree", "2"])
+
+
+def test_map_format_picks_the_route_and_the_export_command_follows_format_or_suffix():
+    from client.commands.export import chosen_format
+
+    assert rest.map_ply("abc", format="spz").params == {"format": "spz"}
+    assert rest.map_ply("abc", format="spz").path.endswith("/abc/map")
+    assert rest.map_ply("abc").path.endswith("/abc/map.ply")
+    with pytest.raises(ValueError, match="format"):
+        rest.map_ply("abc", format="ksplat")
+    assert chosen_format(None, None) == ("ply", "map.ply")
+    assert chosen_format(None, "spz") == ("spz", "map.spz")
+    assert chosen_format("out/room.splat", None) == ("splat", "out/room.splat")
+    assert chosen_format("room.bin", "spz") == ("spz", "room.bin")
+    assert chosen_format("-", None) == ("ply", "-")
+    parser = build_parser()
+    assert parser.parse_args(["export", "abc", "--format", "splat"]).format == "splat"
+    with pytest.raises(SystemExit):
+        parser.parse_args(["export", "abc", "--format", "ksplat"])

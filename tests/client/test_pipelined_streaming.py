@@ -62,7 +62,7 @@ def _check_session(stack: LiveStack, session_id: str, pose_seqs: list[int], pose
 def test_sdk_streams_211_frames_at_30_fps_without_loss(stack, images) -> None:
     frames = [Frame(index=i, timestamp=i / FPS, image=images[i % len(images)], pose=_pose(i)) for i in range(FRAMES)]
     with FlashMonoClient(stack.url) as client:
-        session = client.create_session(name="sdk-30fps")
+        session = client.create_session(name="sdk-30fps", skip_frames=False)  # recorded: every frame counts
         summary = client.stream(session.id, frames, fps=FPS, window=8, max_pending=16,
                                 wire=WireOptions(send_intrinsics=False, send_pose=True))
     assert summary.backpressure_retries > 0, "the server never refused a frame: the test proves nothing"
@@ -78,7 +78,7 @@ def test_independent_client_streams_211_frames_at_30_fps_without_loss(stack, ima
         messages.append(msgpack.packb({"type": "frame", "seq": seq, "timestamp": seq / FPS, "image": jpeg,
                                        "pose": _pose(seq).reshape(-1).tolist()}))
     with httpx.Client(base_url=stack.url, timeout=30) as api:
-        session_id = api.post("/v1/sessions", json={"name": "raw-30fps"}).json()["id"]
+        session_id = api.post("/v1/sessions", json={"name": "raw-30fps", "skip_frames": False}).json()["id"]
     client = RawPipelinedClient(f"ws://127.0.0.1:{stack.port}/v1/sessions/{session_id}/stream", messages, FPS)
     client.run()
     assert client.rewinds > 0, "the server never refused a frame: the test proves nothing"

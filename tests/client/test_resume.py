@@ -61,7 +61,7 @@ def _gateway_up(stack):
 def test_stream_survives_a_gateway_restart_without_loss_or_renumbering(stack):
     async def scenario():
         async with AsyncFlashMonoClient(stack.base_url) as client:
-            session = await client.create_session(name="resume")
+            session = await client.create_session(name="resume", skip_frames=False)
             restarter = None
 
             def frames():
@@ -87,7 +87,7 @@ def test_stream_survives_a_gateway_restart_without_loss_or_renumbering(stack):
 def test_a_new_stream_on_a_session_continues_after_its_last_seq(stack):
     async def scenario():
         async with AsyncFlashMonoClient(stack.base_url) as client:
-            session = await client.create_session(name="continue")
+            session = await client.create_session(name="continue", skip_frames=False)
             async with client.open_stream(session.id, wire=WIRE) as first:
                 for i in range(5):
                     await first.send(frame(i))
@@ -109,7 +109,7 @@ def test_a_new_stream_on_a_session_continues_after_its_last_seq(stack):
 def test_an_unreachable_server_ends_the_stream_within_seconds(stack):
     async def scenario():
         async with AsyncFlashMonoClient(stack.base_url) as client:
-            session = await client.create_session(name="gone")
+            session = await client.create_session(name="gone", skip_frames=False)
             async with client.open_stream(session.id, wire=WIRE, reconnect_s=3) as stream:
                 await stream.send(frame(0))
                 stack.gateway.kill()

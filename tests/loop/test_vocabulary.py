@@ -1,4 +1,4 @@
-"""The ORB visual vocabulary: k-majority clustering, tree quantization, tf-idf bags, the shortlist in OrbDescriptor."""
+"""The ORB visual vocabulary: k-majority clustering, tree quantization, tf-idf bags (dense and sparse)."""
 
 from __future__ import annotations
 
@@ -76,14 +76,13 @@ def test_shipped_vocabulary_is_usable():
     assert np.all(np.isfinite(vocabulary.idf)) and np.all(vocabulary.idf >= 0)
 
 
-def test_shortlist_verifies_only_the_best_ranked_entries_of_a_large_database(icl_frames):
-    short = OrbDescriptor(n_features=500, shortlist=4, shortlist_above=10)
-    features = [short.describe(f.image) for f in icl_frames[:40]]
-    query = features[-1]
-    small, large = features[:8], features[:20]
-    assert np.count_nonzero(short.similarities(query, small)) > 4  # small databases: everything is verified
-    ranked = set(short.shortlisted(query, large).tolist())
-    scores = short.similarities(query, large)
-    assert len(ranked) == 4 and set(np.flatnonzero(scores).tolist()) <= ranked
-    bow = Vocabulary.score(short.bag_of(query), np.stack([short.bag_of(f) for f in large]))
-    assert min(bow[list(ranked)]) >= max(np.delete(bow, list(ranked)))
+def test_sparse_bag_is_the_dense_bag(icl_frames):
+    vocabulary = default_vocabulary()
+    orb = OrbDescriptor(n_features=500)
+    for frame in icl_frames[:5]:
+        descriptors = orb.describe(frame.image).descriptors
+        sparse = vocabulary.sparse_bag(descriptors)
+        assert np.all(np.diff(sparse.words) > 0) and np.all(sparse.weights > 0)
+        np.testing.assert_allclose(sparse.dense(vocabulary.size), vocabulary.bag_of_words(descriptors), atol=1e-6)
+    empty = vocabulary.sparse_bag(np.zeros((0, 32), np.uint8))
+    assert len(empty.words) == 0 and empty.dense(vocabulary.size).sum() == 0

@@ -72,7 +72,7 @@ def test_ply_export_has_every_gaussian(mapped) -> None:
 
 def test_threaded_backend_gives_the_same_result(frames, mapped) -> None:
     inline, _ = mapped
-    system = SlamSystem(rgbd_config(threaded=True, queue_size=1))
+    system = SlamSystem(rgbd_config(threaded=True, mapping={"shed_backlog": 0}))
     for frame in frames:
         system.push(frame)
     system.finish()

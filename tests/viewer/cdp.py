@@ -62,8 +62,11 @@ def ensure_chromium() -> str:
 class Browser:
     """`async with Browser(binary) as page:` - one headless page driven through CDP."""
 
-    def __init__(self, binary: str) -> None:
+    def __init__(self, binary: str, extra_flags: list[str] | None = None) -> None:
+        """`extra_flags` are added to CHROMIUM_FLAGS; with any, --disable-gpu is dropped (e.g. to ask for
+        software WebGL through --use-angle=swiftshader, or a fake camera)."""
         self.binary = binary
+        self.flags = [f for f in CHROMIUM_FLAGS if not (extra_flags and f == "--disable-gpu")] + list(extra_flags or [])
         self.profile = tempfile.mkdtemp(prefix="flashmono-chromium-")
         self.process: subprocess.Popen | None = None
         self.ws: Any = None
@@ -72,9 +75,11 @@ class Browser:
         self.replies: dict[int, asyncio.Future] = {}
         self.console_errors: list[str] = []
         self.reader: asyncio.Task | None = None
+        self.reply_timeout_s = 60.0  # a page busy drawing (software WebGL, big maps) answers late
+        self.handlers: dict[str, Any] = {}  # CDP event name -> async callback(params), e.g. Fetch.requestPaused
 
     async def __aenter__(self) -> Browser:
-        self.process = subprocess.Popen([self.binary, *CHROMIUM_FLAGS, f"--user-data-dir={self.profile}",
+        self.process = subprocess.Popen([self.binary, *self.flags, f"--user-data-dir={self.profile}",
                                          "about:blank"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         port_file = Path(self.profile) / "DevToolsActivePort"
         deadline = time.monotonic() + 60
@@ -115,7 +120,7 @@ class Browser:
         future = asyncio.get_running_loop().create_future()
         self.replies[message_id] = future
         await self.ws.send(json.dumps(message))
-        reply = await asyncio.wait_for(future, timeout=60)
+        reply = await asyncio.wait_for(future, timeout=self.reply_timeout_s)
         if "error" in reply:
             raise RuntimeError(f"{method}: {reply['error']}")
         return reply.get("result", {})
@@ -127,6 +132,9 @@ class Browser:
                 self.replies.pop(message["id"]).set_result(message)
                 continue
             method, params = message.get("method"), message.get("params", {})
+            if method in self.handlers:
+                asyncio.get_running_loop().create_task(self.handlers[method](params))
+                continue
             if method == "Runtime.consoleAPICalled" and params.get("type") in ("error", "assert"):
                 text = " ".join(str(a.get("value", a.get("description", ""))) for a in params.get("args", []))
                 self.console_errors.append(f"console.{params['type']}: {text}")
@@ -137,6 +145,18 @@ class Browser:
             elif method == "Log.entryAdded" and params.get("entry", {}).get("level") == "error":
                 entry = params["entry"]
                 self.console_errors.append(f"log: {entry.get('text')} {entry.get('url', '')}")
+
+    async def redirect(self, url_pattern: str, target_for: Any) -> None:
+        """Send the page's requests matching `url_pattern` to `target_for(url)` instead (transparently for the page;
+        None lets one through): for benchmarks that serve data no session holds at network speed."""
+
+        async def paused(params: dict) -> None:
+            target = target_for(params["request"]["url"])
+            args = {"requestId": params["requestId"], **({"url": target} if target else {})}
+            await self.send("Fetch.continueRequest", args)
+
+        self.handlers["Fetch.requestPaused"] = paused
+        await self.send("Fetch.enable", {"patterns": [{"urlPattern": url_pattern}]})
 
     async def navigate(self, url: str) -> None:
         await self.send("Page.navigate", {"url": url})

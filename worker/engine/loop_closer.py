@@ -21,48 +21,97 @@ from worker.loop.descriptors import EncoderGeMDescriptor, OrbDescriptor, OrbFeat
 from worker.loop.detector import LoopDetector
 from worker.loop.pnp import PnPRelocalizer
 from worker.loop.relocalize import LoopConstraint
+from worker.loop.vocabulary import SparseBag
 
 
 class DepthKeyframePoints:
-    """Keyframe camera-frame points from given depth, stored in float16 (snapshots reproduce them exactly); offers
-    the tracker's `keyframe_points(index) -> (points [H,W,3], conf [H,W])` so the PnP relocalizer can use them."""
+    """Keyframe depth in float16 and the camera it was taken with; offers the tracker's
+    `keyframe_points(index) -> (points [H,W,3], conf [H,W])`, unprojected when asked, so that the PnP relocalizer
+    can use them. A third of the memory of stored points, and snapshots reproduce the points exactly."""
 
     def __init__(self) -> None:
-        self.points: dict[int, torch.Tensor] = {}
+        self.depths: dict[int, torch.Tensor] = {}
+        self.cameras: dict[int, torch.Tensor] = {}
+
+    def __contains__(self, index: int) -> bool:
+        return int(index) in self.depths
 
     def add(self, index: int, depth: torch.Tensor, K: torch.Tensor) -> None:
-        self.points[int(index)] = unproject_depth(depth.to(torch.float32), K.to(torch.float32)).to(torch.float16)
+        self.depths[int(index)] = depth.detach().to(torch.float16).clone()
+        self.cameras[int(index)] = K.detach().to(torch.float32).clone()
 
     def reproject(self, K: torch.Tensor) -> None:
-        """Every keyframe's points again from their depth, with camera K (the session's camera was re-estimated)."""
-        for index, points in self.points.items():
-            self.add(index, points[..., 2].to(torch.float32), K)
+        """Every keyframe's points from now on with camera K (the session's camera was re-estimated)."""
+        for index in self.cameras:
+            self.cameras[index] = K.detach().to(torch.float32).clone()
 
     def keyframe_points(self, index: int) -> tuple[torch.Tensor, torch.Tensor]:
-        if index not in self.points:
+        if index not in self.depths:
             raise ValueError(f"frame {index} is not a keyframe with depth")
-        p = self.points[index].float()
+        p = unproject_depth(self.depths[index].float(), self.cameras[index])
         return p, (p[..., 2] > 0).float() + 1.0
 
+    def __len__(self) -> int:
+        return len(self.depths)
+
     def state_dict(self) -> dict:
-        return {"keys": list(self.points), "points": [p.numpy() for p in self.points.values()]}
+        keys = list(self.depths)
+        return {"keys": keys, "depths": [self.depths[k].numpy() for k in keys],
+                "cameras": [self.cameras[k].numpy() for k in keys]}
 
     def load_state_dict(self, d: dict) -> None:
-        self.points = {int(k): torch.from_numpy(np.asarray(p)) for k, p in zip(d["keys"], d["points"])}
+        keys = [int(k) for k in d["keys"]]
+        if "points" in d:  # snapshots before depth-only storage: the depth and the camera are in the points
+            self.depths, self.cameras = {}, {}
+            for k, points in zip(keys, d["points"]):
+                points = torch.from_numpy(np.asarray(points)).float()
+                self.add(k, points[..., 2], _camera_of_points(points))
+            return
+        self.depths = {k: torch.from_numpy(np.asarray(v, np.float16)) for k, v in zip(keys, d["depths"])}
+        self.cameras = {k: torch.from_numpy(np.asarray(v, np.float32)) for k, v in zip(keys, d["cameras"])}
+
+
+def _camera_of_points(points: torch.Tensor) -> torch.Tensor:
+    """K of a camera-frame point map [H,W,3] (pixel centres at +0.5): least squares on u = fx x/z + cx."""
+    H, W = points.shape[:2]
+    z = points[..., 2]
+    valid = z > 0
+    if int(valid.sum()) < 2:
+        raise ValueError("keyframe points hold too little depth to recover their camera")
+    pixels = (torch.arange(W, dtype=torch.float64) + 0.5)[None, :].expand(H, W), \
+        (torch.arange(H, dtype=torch.float64) + 0.5)[:, None].expand(H, W)
+    K = torch.eye(3)
+    for axis in (0, 1):
+        ratio = (points[..., axis][valid] / z[valid]).double()
+        A = torch.stack([ratio, torch.ones_like(ratio)], dim=-1)
+        f, c = torch.linalg.lstsq(A, pixels[axis][valid][:, None]).solution.ravel().tolist()
+        K[axis, axis], K[axis, 2] = f, c
+    return K
 
 
 def _entry_to_dict(entry: Any) -> dict:
     if isinstance(entry, OrbFeatures):
-        return {"kind": "orb", "keypoints": entry.keypoints, "descriptors": entry.descriptors,
-                "width": entry.width, "height": entry.height}
+        d = {"kind": "orb", "keypoints": entry.keypoints, "descriptors": entry.descriptors,
+             "width": entry.width, "height": entry.height}
+        if entry.words is not None:  # kept so that a restore rebuilds the inverted index without quantizing
+            d["words"] = entry.words.words.astype(np.uint16 if entry.words.words.max(initial=0) < 2**16
+                                                  else np.int32)
+            d["weights"] = entry.words.weights
+        return d
     return {"kind": "vector", "value": entry.detach().cpu().numpy()}
 
 
 def _entry_from_dict(d: dict) -> Any:
     if d["kind"] == "orb":
+        words = None
+        if "words" in d:
+            words = SparseBag(np.asarray(d["words"]).astype(np.int32), np.asarray(d["weights"], np.float32))
         return OrbFeatures(np.asarray(d["keypoints"], np.float32), np.asarray(d["descriptors"], np.uint8),
-                           int(d["width"]), int(d["height"]))
+                           int(d["width"]), int(d["height"]), words)
     return torch.from_numpy(np.asarray(d["value"]))
+
+
+_SAME_AS_DETECTOR = {"kind": "detector"}  # a PnP entry that is the detector's own entry for the keyframe
 
 
 class LoopCloser:
@@ -80,7 +129,8 @@ class LoopCloser:
         else:
             descriptor = orb
         self.detector = LoopDetector(descriptor, exclusion_window=cfg.exclusion_frames, top_k=cfg.top_k,
-                                     min_score=cfg.min_score)
+                                     min_score=cfg.min_score, shortlist=cfg.shortlist,
+                                     recent=min(cfg.recent_candidates, cfg.shortlist))
         self.pnp: PnPRelocalizer | None = None
         if depth_points is not None:
             self.relocalizer = self.pnp = PnPRelocalizer(depth_points, orb, min_inliers=cfg.min_inliers)
@@ -124,21 +174,29 @@ class LoopCloser:
         return accepted
 
     def state_dict(self) -> dict:
+        """The keyframe database (descriptors with their bags of words; the PnP features that are the detector's
+        own entries only by reference) and the counters."""
+        detector = self.detector
+        pnp_features = []
+        for key, features in ({} if self.pnp is None else self.pnp.features).items():
+            shared = key in detector and detector.descriptor_of(key) is features
+            pnp_features.append(_SAME_AS_DETECTOR if shared else _entry_to_dict(features))
         return {
-            "indices": list(self.detector.indices),
-            "entries": [_entry_to_dict(e) for e in self.detector.entries],
+            "indices": list(detector.indices),
+            "entries": [_entry_to_dict(e) for e in detector.entries],
             "pnp_keys": [] if self.pnp is None else list(self.pnp.features),
-            "pnp_features": [] if self.pnp is None else [_entry_to_dict(f) for f in self.pnp.features.values()],
+            "pnp_features": pnp_features,
             "last_loop_keyframe_count": self.last_loop_keyframe_count,
             "keyframes_seen": self.keyframes_seen,
             "rejected": self.rejected,
         }
 
     def load_state_dict(self, d: dict) -> None:
-        self.detector.indices = [int(i) for i in d["indices"]]
-        self.detector.entries = [_entry_from_dict(e) for e in d["entries"]]
+        self.detector.load([int(i) for i in d["indices"]], [_entry_from_dict(e) for e in d["entries"]])
         if self.pnp is not None:
-            self.pnp.features = {int(k): _entry_from_dict(f) for k, f in zip(d["pnp_keys"], d["pnp_features"])}
+            self.pnp.features = {
+                int(k): self.detector.descriptor_of(int(k)) if f.get("kind") == "detector" else _entry_from_dict(f)
+                for k, f in zip(d["pnp_keys"], d["pnp_features"])}
         self.last_loop_keyframe_count = int(d["last_loop_keyframe_count"])
         self.keyframes_seen = int(d["keyframes_seen"])
         self.rejected = int(d["rejected"])

@@ -22,6 +22,9 @@ from worker.engine.drift import PoseDrift
 from worker.geometry import se3_part
 
 MAX_SAVED_RENDERS = 12
+# Frames whose image and depth are held for the rendering metrics: every k-th, k chosen to hold at most this many
+# (a long session's frames would otherwise fill the memory; 211 ICL frames are all held).
+MAX_HELD_FRAMES = 400
 
 
 def _write_trajectory(path: Path, entries: list[tuple[int, float, np.ndarray]]) -> None:
@@ -47,6 +50,7 @@ def run_sequence(
     eval_every: int = 1,
     progress: Callable[[int, int | None], None] | None = None,
     unknown_intrinsics: bool = False,
+    pingpong: int = 1,
 ) -> dict[str, Any]:
     """Run one sequence end to end and evaluate it (see the module docstring)."""
     from worker.data import open_source
@@ -57,14 +61,15 @@ def run_sequence(
     # Depth is always read when the dataset has it (the evaluation needs it); the engine uses it only when asked.
     config = config.model_copy(update={"input": config.input.model_copy(update={"use_depth": use_gt_depth})})
     src = open_source(str(source), stride=stride, max_frames=max_frames, resize=resize, use_gt_depth=True,
-                      use_gt_poses=use_gt_poses)
+                      use_gt_poses=use_gt_poses, pingpong=pingpong)
     try:
         total = len(src)
     except TypeError:
         total = None
     given_intrinsics = None if unknown_intrinsics else src.intrinsics
     system = SlamSystem(config, intrinsics=given_intrinsics)
-    frames: list[Frame] = []
+    frames: list[Frame] = []  # every frame; the image and depth only of every `hold_every`-th (see MAX_HELD_FRAMES)
+    hold_every = 1 if total is None else max(1, -(-total // MAX_HELD_FRAMES))
     results = []
     injector = None if drift is None else drift.injector()
     start = time.perf_counter()
@@ -74,9 +79,11 @@ def run_sequence(
         if unknown_intrinsics:
             frame.intrinsics = None
         results.append(system.push(frame))
-        frames.append(frame)
+        frames.append(frame if k % hold_every == 0 else _without_pixels(frame))
         if progress is not None:
             progress(k + 1, total)
+    tracked_s = time.perf_counter() - start
+    lag_at_last_pose = system.live_stats()
     system.finish()
     runtime = time.perf_counter() - start
     if not frames:
@@ -93,25 +100,36 @@ def run_sequence(
         "mode": system.mode, "preset": config.name, "num_frames": len(frames),
         "num_keyframes": sum(r.is_keyframe for r in results), "loops": int(system.counters["loops"]),
         "revision": system.revision, "runtime_s": runtime, "fps": len(frames) / runtime,
-        # the same without the end-of-run refinement: the rate a live stream is tracked and mapped at
-        "fps_streaming": len(frames) / max(1e-9, runtime - system.timings.seconds["map_final_refine"]),
+        # the rate poses come out while the frames stream (mapping runs behind, shedding work when it must: what it
+        # shed and how far it lagged at the last pose are below; finish() then drains it and refines)
+        "fps_streaming": len(frames) / max(1e-9, tracked_s),
+        "finish_s": runtime - tracked_s,
+        "mapping_lag_at_last_pose": {"keyframes": lag_at_last_pose["mapping_lag_keyframes"],
+                                     "seconds": lag_at_last_pose["mapping_lag_s"]},
+        "keyframes_shed": system.live_stats()["keyframes_shed"],
         "use_gt_depth": use_gt_depth, "use_gt_poses": use_gt_poses, "tracking": system.tracking,
         "depth_source": system.depth_source,
         "intrinsics": intrinsics.to_dict() if intrinsics else None, "intrinsics_estimated": given_intrinsics is None,
         "drift": None if drift is None else drift.to_dict(),
         "runtime_breakdown": system.timings.breakdown(len(frames)),
+        "eval_frames_held_every": hold_every,
     }
     metrics.update(_trajectory_metrics(frames, all_poses, drift))
     if system.backend is not None:
         (out / "map.ply").write_bytes(system.export_ply())
         metrics["num_gaussians"] = system.num_gaussians
-        metrics.update(_render_metrics(system, frames, results, all_poses, intrinsics, out, eval_every))
+        metrics.update(_render_metrics(system, frames, results, all_poses, intrinsics, out, eval_every, hold_every))
     else:
         metrics.update({"num_gaussians": 0, "psnr": None, "ssim": None, "lpips": None, "depth_l1": None,
                         "lpips_note": "mapping disabled"})
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
     system.close()
     return metrics
+
+
+def _without_pixels(frame: Frame) -> Frame:
+    """The frame's poses only (for the trajectory metrics), without its image and depth."""
+    return Frame(frame.index, frame.timestamp, np.zeros((1, 1, 3), np.uint8), pose=frame.pose, gt_pose=frame.gt_pose)
 
 
 def _dataset_name(source: str | Path) -> str:
@@ -134,9 +152,10 @@ def _trajectory_metrics(frames: list[Frame], poses: list, drift: PoseDrift | Non
     return out
 
 
-def _render_metrics(system, frames: list[Frame], results, poses, intrinsics, out: Path, every: int
-                    ) -> dict[str, Any]:
-    """PSNR/SSIM/LPIPS and depth L1 on non-keyframes rendered from their estimated poses."""
+def _render_metrics(system, frames: list[Frame], results, poses, intrinsics, out: Path, every: int,
+                    hold_every: int = 1) -> dict[str, Any]:
+    """PSNR/SSIM/LPIPS and depth L1 on non-keyframes rendered from their estimated poses (those held: every
+    `hold_every`-th frame)."""
     import cv2
 
     from worker.eval import evaluate_renders, non_keyframe_indices
@@ -144,7 +163,8 @@ def _render_metrics(system, frames: list[Frame], results, poses, intrinsics, out
     if intrinsics is None:
         return {"psnr": None, "ssim": None, "lpips": None, "depth_l1": None, "lpips_note": "no intrinsics"}
     mapped = [r.is_keyframe or r.index == system.last_frame_mapped for r in results]  # the final view is mapped
-    chosen = non_keyframe_indices(mapped, every) or list(range(len(frames)))
+    chosen = [i for i in non_keyframe_indices(mapped, every) if i % hold_every == 0] or list(
+        range(0, len(frames), hold_every))
     metric_depth = system.config.input.use_depth
     K = intrinsics.matrix().numpy()
     (out / "renders").mkdir(exist_ok=True)

@@ -5,9 +5,9 @@
   cosine. No extra weights, one encoder pass per keyframe.
 * `OrbDescriptor`: classical, needs no weights: ORB keypoints through OpenCV, direct descriptor matching with
   Lowe's ratio test, then RANSAC on the fundamental matrix; similarity is the fraction of geometrically
-  consistent matches. A visual vocabulary (worker.loop.vocabulary) ranks the database first so that only a short
-  list is verified geometrically: the query cost stays flat as the map grows. Its features are also what the PnP
-  relocalizer matches.
+  consistent matches. Its bags of words under a visual vocabulary (worker.loop.vocabulary) let the loop detector
+  rank the database through an inverted index, so that only a short list is verified geometrically and the query
+  cost stays flat as the map grows. Its features are also what the PnP relocalizer matches.
 """
 
 from __future__ import annotations
@@ -20,10 +20,13 @@ import cv2
 import numpy as np
 import torch
 
-from .vocabulary import DEFAULT_PATH, Vocabulary
+from .vocabulary import DEFAULT_PATH, SparseBag, Vocabulary
 
 
 class GlobalDescriptor(Protocol):
+    """A keyframe descriptor. One that also has a `vocabulary` and `words_of(descriptor) -> SparseBag` lets the
+    loop detector rank its database through an inverted index."""
+
     name: str
 
     def describe(self, image: torch.Tensor) -> Any:
@@ -70,14 +73,14 @@ class EncoderGeMDescriptor:
 
 @dataclass
 class OrbFeatures:
-    """ORB keypoints [N,2] (x, y pixels) and binary descriptors [N,32] of one image of width x height; `bag` is
-    the tf-idf bag of words under the descriptor's vocabulary (filled on first use)."""
+    """ORB keypoints [N,2] (x, y pixels) and binary descriptors [N,32] of one image of width x height; `words` is
+    the sparse tf-idf bag of words under the descriptor's vocabulary (filled on first use)."""
 
     keypoints: np.ndarray
     descriptors: np.ndarray
     width: int
     height: int
-    bag: np.ndarray | None = None
+    words: SparseBag | None = None
 
     def __len__(self) -> int:
         return len(self.keypoints)
@@ -99,22 +102,15 @@ def default_vocabulary() -> Vocabulary:
 class OrbDescriptor:
     """ORB + ratio-test matching + fundamental-matrix RANSAC; score = inliers / min(#features).
 
-    With a vocabulary (the shipped one by default; None = verify everything), a database of more than
-    `shortlist_above` entries is ranked by bag-of-words score and only the `shortlist` best entries are verified
-    (the rest score 0): the query cost stops growing with the map. Smaller databases are verified entirely, since
-    within one room the bag of words ranks places less reliably than geometric verification.
+    `vocabulary` (the shipped one by default) gives each keyframe's bag of words, which the loop detector's
+    inverted index ranks the database with; None leaves the detector to verify every entry.
     """
 
     name = "orb"
 
     def __init__(self, n_features: int = 1000, ratio: float = 0.8, ransac_px: float = 2.0,
-                 min_matches: int = 12, vocabulary: Vocabulary | None | str = "default", shortlist: int = 30,
-                 shortlist_above: int = 100) -> None:
-        if shortlist < 1 or shortlist_above < shortlist:
-            raise ValueError(f"need 1 <= shortlist <= shortlist_above, got {shortlist} and {shortlist_above}")
+                 min_matches: int = 12, vocabulary: Vocabulary | None | str = "default") -> None:
         self.vocabulary = default_vocabulary() if vocabulary == "default" else vocabulary
-        self.shortlist = shortlist
-        self.shortlist_above = shortlist_above
         self.n_features = n_features
         self._orbs: dict[int, cv2.ORB] = {}
         self.matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
@@ -157,23 +153,18 @@ class OrbDescriptor:
         keep = mask.ravel().astype(bool)
         return ia[keep], ib[keep]
 
-    def bag_of(self, features: OrbFeatures) -> np.ndarray:
-        """The features' bag of words (computed once and kept on them)."""
-        if features.bag is None:
-            features.bag = self.vocabulary.bag_of_words(features.descriptors)
-        return features.bag
-
-    def shortlisted(self, query: OrbFeatures, database: list[OrbFeatures]) -> np.ndarray:
-        """Indices of the database entries to verify: all, or the vocabulary's `shortlist` best."""
-        if self.vocabulary is None or len(database) <= self.shortlist_above:
-            return np.arange(len(database))
-        scores = Vocabulary.score(self.bag_of(query), np.stack([self.bag_of(e) for e in database]))
-        return np.argsort(-scores, kind="stable")[: self.shortlist]
+    def words_of(self, features: OrbFeatures) -> SparseBag | None:
+        """The features' sparse bag of words (computed once and kept on them); None without a vocabulary."""
+        if self.vocabulary is None:
+            return None
+        if features.words is None:
+            features.words = self.vocabulary.sparse_bag(features.descriptors)
+        return features.words
 
     def similarities(self, query: OrbFeatures, database: list[OrbFeatures]) -> np.ndarray:
+        """Geometric verification of the query against every given entry (the caller shortlists)."""
         scores = np.zeros(len(database))
-        for n in self.shortlisted(query, database):
-            entry = database[n]
+        for n, entry in enumerate(database):
             ia, _ = self.geometric_matches(query, entry)
             scores[n] = len(ia) / max(1, min(len(query), len(entry)))
         return scores

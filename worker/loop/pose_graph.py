@@ -1,14 +1,20 @@
-"""Sim(3) pose graph over keyframe poses (paper eq. 14), solved with GTSAM Levenberg-Marquardt.
+"""Sim(3) pose graph over keyframe poses (paper eq. 14), solved incrementally with GTSAM's iSAM2.
 
 Nodes are keyframe camera-to-world similarities T_k^W. An edge (i, j) carries the measured relative similarity
 H = T_i^-1 T_j (the pose of j in the frame of i) and penalises log(H^-1 T_i^-1 T_j) in sim(3) with a diagonal
 information matrix. Three kinds of edges exist: sequential (consecutive keyframes inside one submap),
 inter-submap (through the overlap frame) and loop. Loop edges get a robust kernel by default so a single wrong
 loop is down-weighted instead of bending the whole trajectory; a prior pins the first keyframe (the gauge).
+
+`optimize()` hands the nodes and edges added since the last call to iSAM2 (worker.loop.incremental), which
+re-eliminates only the part of the graph they touch; `optimize_full()` is the batch Levenberg-Marquardt solve over
+everything, the reference the incremental one is tested against. The first solve, and the first after a restore or
+after a node was re-initialised, is a batch solve that iSAM2 then starts from.
 """
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 
@@ -16,10 +22,13 @@ import gtsam
 import numpy as np
 import torch
 
-from worker.geometry import make_sim3, relative_transform, sim3_decompose
+from worker.geometry import relative_transform, sim3_decompose
 from worker.geometry.gtsam_bridge import sim3_to_gtsam
 
+from .incremental import IncrementalSolver
+
 EDGE_KINDS = ("sequential", "inter_submap", "loop")
+DIVERGED_COST_RATIO = 1.05  # an incremental solve ending this much above its starting cost is redone in batch
 
 
 @dataclass(frozen=True)
@@ -74,13 +83,15 @@ class PoseGraphEdge:
 
 @dataclass
 class PoseGraphResult:
-    """Optimised poses by key, with the cost before/after and LM iterations."""
+    """Optimised poses by key, with the cost before/after, LM iterations (iSAM2 updates for an incremental
+    solve) and which solve ran ("batch" or "incremental")."""
 
     poses: dict[int, np.ndarray]
     initial_error: float
     final_error: float
     iterations: int
     loop_residuals: dict[tuple[int, int], float] = field(default_factory=dict)
+    solver: str = "batch"
 
 
 def sim3_batch_to_gtsam(T: np.ndarray) -> list[gtsam.Similarity3]:
@@ -92,11 +103,15 @@ def sim3_batch_to_gtsam(T: np.ndarray) -> list[gtsam.Similarity3]:
 
 def sim3_batch_from_gtsam(values: list[gtsam.Similarity3]) -> np.ndarray:
     """gtsam.Similarity3 list as [N,4,4] (batched gtsam_bridge.sim3_from_gtsam: GTSAM's matrix is [R t; 0 1/s])."""
+    out = np.zeros((len(values), 4, 4))
     if not values:
-        return np.zeros((0, 4, 4))
-    M = torch.from_numpy(np.stack([v.matrix() for v in values]))
+        return out
+    M = np.stack([v.matrix() for v in values])
     s = 1.0 / M[:, 3, 3]
-    return make_sim3(M[:, :3, :3], M[:, :3, 3] * s[:, None], s).numpy()
+    out[:, :3, :3] = s[:, None, None] * M[:, :3, :3]
+    out[:, :3, 3] = M[:, :3, 3] * s[:, None]
+    out[:, 3, 3] = 1.0
+    return out
 
 
 def _as_matrix(T: np.ndarray | torch.Tensor) -> np.ndarray:
@@ -110,7 +125,9 @@ class Sim3PoseGraph:
     """Keyframe Sim(3) pose graph: add nodes and edges, then `optimize()`.
 
     robust: "cauchy", "huber" or None; applied to the edge kinds in `robust_kinds` (loop edges by default) with
-    threshold `robust_k` on the whitened residual norm.
+    threshold `robust_k` on the whitened residual norm. incremental: solve with iSAM2 after the first (batch)
+    solve; False solves every time with batch Levenberg-Marquardt. relinearize_threshold: iSAM2 relinearises a
+    node whose step exceeds this tangent-space norm. The methods may be called from several threads (one lock).
     """
 
     def __init__(
@@ -120,33 +137,51 @@ class Sim3PoseGraph:
         robust_k: float = 1.0,
         robust_kinds: Iterable[str] = ("loop",),
         prior_sigma: float = 1e-6,
+        incremental: bool = True,
+        relinearize_threshold: float = 0.001,
     ) -> None:
         if robust not in ("cauchy", "huber", None):
             raise ValueError(f"robust kernel must be 'cauchy', 'huber' or None, got {robust!r}")
+        if relinearize_threshold <= 0:
+            raise ValueError(f"relinearize_threshold must be positive, got {relinearize_threshold}")
         self.sigmas = {**DEFAULT_SIGMAS, **(sigmas or {})}
         self.robust = robust
         self.robust_k = robust_k
         self.robust_kinds = frozenset(robust_kinds)
         self.prior_sigma = prior_sigma
+        self.incremental = incremental
+        self.relinearize_threshold = relinearize_threshold
         self.nodes: dict[int, np.ndarray] = {}
         self.edges: list[PoseGraphEdge] = []
+        self._lock = threading.RLock()
+        self._noises = {kind: self._noise_model(kind) for kind in EDGE_KINDS}
+        self._drop_solver()
 
     def __len__(self) -> int:
         return len(self.nodes)
 
     def add_node(self, key: int, pose: np.ndarray | torch.Tensor) -> None:
         """Add (or re-initialise) keyframe `key` with its current world pose (4x4 Sim(3) c2w)."""
-        self.nodes[int(key)] = _as_matrix(pose)
+        key = int(key)
+        with self._lock:
+            self.nodes[key] = _as_matrix(pose)
+            if self._solver is None:
+                return
+            if key in self._solver or key < self._anchor:
+                self._drop_solver()  # a moved linearisation point or a new gauge: the next solve starts afresh
+            else:
+                self._pending[key] = None
 
     def add_edge(self, i: int, j: int, relative: np.ndarray | torch.Tensor, kind: str = "sequential",
                  weight: float = 1.0) -> PoseGraphEdge:
         """Constrain T_i^-1 T_j = relative. Both nodes must exist."""
-        for key in (i, j):
-            if int(key) not in self.nodes:
-                raise ValueError(f"pose graph has no node {key}")
-        edge = PoseGraphEdge(int(i), int(j), _as_matrix(relative), kind, float(weight))
-        self.edges.append(edge)
-        return edge
+        with self._lock:
+            for key in (i, j):
+                if int(key) not in self.nodes:
+                    raise ValueError(f"pose graph has no node {key}")
+            edge = PoseGraphEdge(int(i), int(j), _as_matrix(relative), kind, float(weight))
+            self.edges.append(edge)
+            return edge
 
     def add_odometry_edge(self, i: int, j: int, kind: str = "sequential", weight: float = 1.0) -> PoseGraphEdge:
         """An edge whose measurement is the current relative pose of the two nodes (sequential/inter-submap)."""
@@ -164,60 +199,169 @@ class Sim3PoseGraph:
                      else gtsam.noiseModel.mEstimator.Huber).Create(self.robust_k)
         return gtsam.noiseModel.Robust.Create(estimator, base)
 
-    def build(self, fixed: int | None = None) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
-        """The GTSAM factor graph and initial values; `fixed` (default: the smallest key) gets the prior."""
+    def _add_edge_factors(self, graph: gtsam.NonlinearFactorGraph, edges: list[PoseGraphEdge]) -> None:
+        measured = sim3_batch_to_gtsam(np.stack([e.relative for e in edges])) if edges else []
+        for edge, meas in zip(edges, measured):
+            noise = self._noises[edge.kind] if edge.weight == 1.0 else self._noise_model(edge.kind, edge.weight)
+            graph.add(gtsam.BetweenFactorSimilarity3(edge.i, edge.j, meas, noise))
+
+    def _values(self, keys: list[int]) -> gtsam.Values:
+        values = gtsam.Values()
+        if keys:
+            for key, pose in zip(keys, sim3_batch_to_gtsam(np.stack([self.nodes[k] for k in keys]))):
+                values.insert(key, pose)
+        return values
+
+    def _isolated(self, anchor: int) -> dict[int, None]:
+        """Nodes that are neither the anchor nor on an edge."""
+        connected = {anchor, *(e.i for e in self.edges), *(e.j for e in self.edges)}
+        return dict.fromkeys(k for k in self.nodes if k not in connected)
+
+    def _anchor_of(self, fixed: int | None) -> int:
         if not self.nodes:
             raise ValueError("pose graph is empty")
-        anchor = min(self.nodes) if fixed is None else int(fixed)
+        return min(self.nodes) if fixed is None else int(fixed)
+
+    def build(self, fixed: int | None = None) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+        """The GTSAM factor graph and initial values; `fixed` (default: the smallest key) gets the prior. Nodes
+        without any edge (yet) are left out."""
+        anchor = self._anchor_of(fixed)
         graph = gtsam.NonlinearFactorGraph()
-        values = gtsam.Values()
-        keys = list(self.nodes)
-        for key, pose in zip(keys, sim3_batch_to_gtsam(np.stack([self.nodes[k] for k in keys]))):
-            values.insert(key, pose)
+        values = self._values([k for k in self.nodes if k not in self._isolated(anchor)])
         prior = gtsam.noiseModel.Isotropic.Sigma(7, self.prior_sigma)
         graph.add(gtsam.PriorFactorSimilarity3(anchor, values.atSimilarity3(anchor), prior))
-        noises = {kind: self._noise_model(kind) for kind in EDGE_KINDS}
-        measured = sim3_batch_to_gtsam(np.stack([e.relative for e in self.edges])) if self.edges else []
-        for edge, meas in zip(self.edges, measured):
-            noise = noises[edge.kind] if edge.weight == 1.0 else self._noise_model(edge.kind, edge.weight)
-            graph.add(gtsam.BetweenFactorSimilarity3(edge.i, edge.j, meas, noise))
+        self._add_edge_factors(graph, self.edges)
         return graph, values
+
+    def _result(self, values: gtsam.Values, initial_error: float, final_error: float, iterations: int,
+                update: bool, unsolved: Mapping[int, None] | None = None) -> PoseGraphResult:
+        """The result over `values`; nodes in `unsolved` (not in `values`) keep their poses."""
+        unsolved = unsolved or {}
+        keys = [k for k in self.nodes if k not in unsolved]
+        poses = dict(zip(keys, sim3_batch_from_gtsam([values.atSimilarity3(k) for k in keys])))
+        poses.update({k: self.nodes[k] for k in unsolved})
+        loop_residuals = {}
+        for edge in self.edges_of_kind("loop"):
+            err = values.atSimilarity3(edge.i).between(values.atSimilarity3(edge.j))
+            delta = gtsam.Similarity3.Logmap(sim3_to_gtsam(edge.relative).between(err))
+            loop_residuals[(edge.i, edge.j)] = float(np.linalg.norm(delta / self.sigmas["loop"].vector(edge.weight)))
+        if update:
+            self.nodes.update(poses)
+        return PoseGraphResult(poses, float(initial_error), float(final_error), iterations, loop_residuals)
 
     def optimize(self, max_iterations: int = 50, fixed: int | None = None, update: bool = True,
                  relative_tolerance: float = 1e-4) -> PoseGraphResult:
-        """Levenberg-Marquardt over all nodes. With `update`, the graph's nodes take the optimised poses."""
-        graph, values = self.build(fixed)
+        """Solve for every node: with iSAM2 from the last solve (`incremental`, same gauge), else with
+        `optimize_full`, which then seeds iSAM2. With `update`, the graph's nodes take the optimised poses.
+        `iterations` counts LM iterations, or iSAM2 updates for an incremental solve."""
+        with self._lock:
+            anchor = self._anchor_of(fixed)
+            if self.incremental and self._solver is not None and anchor == self._anchor:
+                result = self._optimize_incremental(max_iterations, update)
+                if result is not None:
+                    return result
+            graph, values, result = self._optimize_batch(anchor, max_iterations, relative_tolerance)
+            isolated = self._isolated(anchor)
+            if self.incremental:
+                self._seed_solver(anchor, graph, values)
+                self._pending = dict(isolated)
+            return self._result(values, *result, update=update, unsolved=isolated)
+
+    def optimize_full(self, max_iterations: int = 50, fixed: int | None = None, update: bool = True,
+                      relative_tolerance: float = 1e-4) -> PoseGraphResult:
+        """Levenberg-Marquardt over all nodes from their current poses (the reference solve; leaves iSAM2 alone)."""
+        with self._lock:
+            anchor = self._anchor_of(fixed)
+            _, values, result = self._optimize_batch(anchor, max_iterations, relative_tolerance)
+            if update:
+                self._drop_solver()  # iSAM2 no longer linearises at the nodes' poses
+            return self._result(values, *result, update=update, unsolved=self._isolated(anchor))
+
+    def _optimize_batch(self, anchor: int, max_iterations: int, relative_tolerance: float
+                        ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, tuple[float, float, int]]:
+        graph, values = self.build(anchor)
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(max_iterations)
         params.setRelativeErrorTol(relative_tolerance)
         params.setAbsoluteErrorTol(1e-9)
         optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
         initial_error = graph.error(values)
-        result = optimizer.optimize()
-        keys = list(self.nodes)
-        poses = dict(zip(keys, sim3_batch_from_gtsam([result.atSimilarity3(k) for k in keys])))
-        loop_residuals = {}
-        for edge in self.edges_of_kind("loop"):
-            err = result.atSimilarity3(edge.i).between(result.atSimilarity3(edge.j))
-            delta = gtsam.Similarity3.Logmap(sim3_to_gtsam(edge.relative).between(err))
-            loop_residuals[(edge.i, edge.j)] = float(np.linalg.norm(delta / self.sigmas["loop"].vector(edge.weight)))
-        if update:
-            self.nodes.update(poses)
-        return PoseGraphResult(poses, float(initial_error), float(graph.error(result)), optimizer.iterations(),
-                               loop_residuals)
+        solution = optimizer.optimize()
+        return graph, solution, (initial_error, graph.error(solution), optimizer.iterations())
+
+    def _drop_solver(self) -> None:
+        self._solver: IncrementalSolver | None = None
+        self._anchor: int | None = None
+        self._edges_sent = 0
+        self._pending: dict[int, None] = {}  # nodes added since the solver was seeded, not yet handed to it
+
+    def _seed_solver(self, anchor: int, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> None:
+        """A fresh iSAM2 over the whole graph, linearised at `values` (a solution, so one update suffices)."""
+        self._solver = IncrementalSolver(self.relinearize_threshold)
+        self._solver.solve(graph, values, max_updates=1)
+        self._anchor = anchor
+        self._edges_sent = len(self.edges)
+        self._pending = {}
+
+    def _new_factors(self) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+        """The edges not yet in iSAM2 and the pending nodes they reach (a node without an edge would leave
+        Gauss-Newton's system singular: it waits for its first edge)."""
+        edges = self.edges[self._edges_sent:]
+        factors = gtsam.NonlinearFactorGraph()
+        self._add_edge_factors(factors, edges)
+        reached = {k for e in edges for k in (e.i, e.j) if k in self._pending}
+        keys = [k for k in self._pending if k in reached]
+        for key in keys:
+            del self._pending[key]
+        self._edges_sent = len(self.edges)
+        return factors, self._values(keys)
+
+    def _optimize_incremental(self, max_iterations: int, update: bool) -> PoseGraphResult | None:
+        """Fold the new nodes and edges into iSAM2 and iterate; None (and no solver) if the cost went up, so
+        that the caller falls back to the batch solve."""
+        solver = self._solver
+        factors, values = self._new_factors()
+        before = solver.estimate()
+        before.insert(values)
+        initial_error = solver.factors().error(before) + factors.error(before)
+        step = solver.solve(factors, values, max_updates=max_iterations)
+        estimate = solver.estimate()
+        final_error = solver.factors().error(estimate)
+        # Partial relinearisation may end a little above the start when the new edges agree with the estimate;
+        # a clearly higher cost means Gauss-Newton diverged, and the batch solve (damped) takes over.
+        if not np.isfinite(final_error) or final_error > DIVERGED_COST_RATIO * initial_error + 1e-9:
+            self._drop_solver()
+            return None
+        result = self._result(estimate, initial_error, final_error, step.updates, update, self._pending)
+        result.solver = "incremental"
+        return result
+
+    def flush(self) -> bool:
+        """Hand the nodes and edges added since the last solve to iSAM2 now (one update, no result), so that the
+        next `optimize` has less to do; False when there is no incremental solver yet (before the first solve)."""
+        with self._lock:
+            if self._solver is None:
+                return False
+            if len(self.edges) > self._edges_sent:
+                self._solver.solve(*self._new_factors(), max_updates=1)
+            return True
 
     def state_dict(self) -> dict:
         """msgpack-able contents (nodes and edges; the solver settings are construction arguments)."""
-        keys = sorted(self.nodes)
-        return {"keys": np.asarray(keys, np.int64),
-                "poses": np.stack([self.nodes[k] for k in keys]) if keys else np.zeros((0, 4, 4)),
-                "edges": [e.to_dict() for e in self.edges]}
+        with self._lock:
+            keys = sorted(self.nodes)
+            return {"keys": np.asarray(keys, np.int64),
+                    "poses": np.stack([self.nodes[k] for k in keys]) if keys else np.zeros((0, 4, 4)),
+                    "edges": [e.to_dict() for e in self.edges]}
 
     def load_state_dict(self, state: Mapping) -> None:
+        """Restore nodes and edges. iSAM2 is rebuilt by the next `optimize`, a batch solve that seeds it."""
         keys = np.asarray(state["keys"]).tolist()
         poses = np.asarray(state["poses"], np.float64)
-        self.nodes = {int(k): poses[n] for n, k in enumerate(keys)}
-        self.edges = [PoseGraphEdge.from_dict(d) for d in state["edges"]]
+        with self._lock:
+            self.nodes = {int(k): poses[n] for n, k in enumerate(keys)}
+            self.edges = [PoseGraphEdge.from_dict(d) for d in state["edges"]]
+            self._drop_solver()
 
 
 def propagate_to_frames(

@@ -57,6 +57,19 @@ def k_majority(descriptors: np.ndarray, k: int, rng: np.random.Generator, iterat
     return centres
 
 
+@dataclass(frozen=True)
+class SparseBag:
+    """A tf-idf bag of words by its non-zero entries: sorted word ids [n] (int32) and L1-normalised weights [n]."""
+
+    words: np.ndarray
+    weights: np.ndarray
+
+    def dense(self, size: int) -> np.ndarray:
+        bag = np.zeros(size, np.float32)
+        bag[self.words] = self.weights
+        return bag
+
+
 @dataclass
 class Vocabulary:
     """`levels` arrays of node centres: level l holds branching**(l+1) centres [.., 32]; plus idf per word."""
@@ -89,6 +102,18 @@ class Vocabulary:
             if total > 0:
                 bag /= total
         return bag
+
+    def sparse_bag(self, descriptors: np.ndarray) -> SparseBag:
+        """The same tf-idf bag as `bag_of_words`, as its non-zero words only."""
+        descriptors = _check_descriptors(descriptors)
+        if not len(descriptors):
+            return SparseBag(np.zeros(0, np.int32), np.zeros(0, np.float32))
+        words, counts = np.unique(self.quantize(descriptors), return_counts=True)
+        weights = counts.astype(np.float32) * self.idf[words]
+        keep = weights > 0
+        words, weights = words[keep].astype(np.int32), weights[keep]
+        total = weights.sum()
+        return SparseBag(words, weights / total if total > 0 else weights)
 
     @staticmethod
     def score(query: np.ndarray, database: np.ndarray) -> np.ndarray:

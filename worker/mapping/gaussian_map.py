@@ -7,6 +7,8 @@ world-unit depth divided by its scale s.
 
 from __future__ import annotations
 
+import math
+import time
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -18,9 +20,10 @@ from .fusion import FusionThresholds, attribute_errors, densify_mask, prune_mask
 from .keyframe_archive import ArchivedKeyframe
 from .loop_correction import correct_map
 from .ply import surfels_to_ply_bytes
-from .rasterize import RenderResult, rasterize
+from .rasterize import RenderResult, rasterize, visible_mask
 from .refine import RefineReport, RefineSettings, RefineView, refine_surfels
 from .surfels import Surfels
+from .voxel_grid import capped_mask, voxel_keys
 
 
 @dataclass
@@ -38,6 +41,15 @@ class MapConfig:
     # Each refinement also trains against this many archived keyframes drawn at random (seeded), with their
     # surfels: the online map keeps the views the window has left (MonoGS-style random past keyframes).
     archived_views_per_refine: int = 0
+    # Voxel cap (worker.mapping.voxel_grid): a keyframe adds surfels to a world voxel only when it offers more than
+    # `voxel_finer` times the surfels the map has there (a closer view), up to `voxel_cap`, so revisits do not grow
+    # the map. Voxel side: `voxel_pixels` pixels of the first keyframe at its median depth (world units; monocular
+    # maps have arbitrary scale). voxel_cap 0 = no cap.
+    voxel_cap: int = 64
+    voxel_pixels: float = 8.0
+    voxel_finer: float = 1.5
+    # refine_global stops after this many seconds whatever its iteration count (None = no bound).
+    final_refine_budget_s: float | None = 25.0
     device: str = "cpu"
 
     def to_dict(self) -> dict:
@@ -133,6 +145,7 @@ class GaussianMap:
         self.device = torch.device(self.config.device)
         self._surfels = Surfels.empty(self.device)
         self._keyframes: dict[int, _Keyframe] = {}
+        self._voxel_size: float | None = None  # world units, fixed by the first keyframe (see MapConfig.voxel_size)
 
     # -- read access -------------------------------------------------------------------------------------------
     @property
@@ -173,20 +186,33 @@ class GaussianMap:
 
         pruned = 0
         accumulation = torch.zeros(kf.height, kf.width, device=self.device)
-        if len(self._surfels):
-            attribution = attribute_errors(self._surfels, viewmat, kf.K, kf.image, kf.depth, th, scale)
+        # Only the surfels this view can draw take part (the rasterizer's own culling rule, so the render is the
+        # whole map's): the merge costs what the view holds, not what the map holds.
+        in_view = self._in_view(viewmat, kf.K, kf.width, kf.height)
+        local = self._surfels.select(in_view)
+        if len(local):
+            attribution = attribute_errors(local, viewmat, kf.K, kf.image, kf.depth, th, scale)
             remove = prune_mask(attribution, th)
             pruned = int(remove.sum())
             accumulation = attribution.render.alpha
             if pruned:
-                self._surfels = self._surfels.select(~remove)
+                drop = torch.zeros(len(self._surfels), dtype=torch.bool, device=self.device)
+                drop[torch.nonzero(in_view, as_tuple=True)[0][remove]] = True
+                self._surfels = self._surfels.select(~drop)
+                local = local.select(~remove)
                 with torch.no_grad():
-                    accumulation = rasterize(self._surfels, viewmat, kf.K, kf.width, kf.height).alpha
+                    accumulation = rasterize(local, viewmat, kf.K, kf.width, kf.height).alpha
 
         add = densify_mask(surfels_cam, kf.K, accumulation, th.tau_accum)
-        new = surfels_cam.select(add)
+        offered = surfels_cam.transform(pose.to(self.device, torch.float32))
+        if self.config.voxel_cap > 0 and len(offered):
+            if self._voxel_size is None:
+                median_z = float(surfels_cam.means[:, 2].median())
+                self._voxel_size = self.config.voxel_pixels * scale * median_z / float(kf.K[0, 0])
+            add = capped_mask(voxel_keys(local.means, self._voxel_size), voxel_keys(offered.means, self._voxel_size),
+                              add, self.config.voxel_cap, self.config.voxel_finer)
+        new = offered.select(add)
         new.keyframe_ids = torch.full((len(new),), kf_id, dtype=torch.int64, device=self.device)
-        new = new.transform(pose.to(self.device, torch.float32))
         self._surfels = Surfels.concat([self._surfels, new])
         self._keyframes[kf_id] = kf
         self._archive_old_images()
@@ -211,24 +237,32 @@ class GaussianMap:
         generator = torch.Generator().manual_seed(len(self._keyframes))
         return [pool[i] for i in torch.randperm(len(pool), generator=generator)[:count].sort().values.tolist()]
 
-    def refine_global(self, iterations: int, seed: int = 0, restart_every: int | None = None) -> RefineReport:
+    def refine_global(self, iterations: int, seed: int = 0, restart_every: int | None = None,
+                      budget_s: float | None = None) -> RefineReport:
         """Refine every surfel against every keyframe whose image is still held (the window and the archive):
         the end-of-run pass that reconciles views the window has left.
 
         The iterations run in chunks of `restart_every` (default: two passes over the held keyframes), each with
         a fresh optimiser and a new seeded random order of the views. Measured on ICL (36 keyframes, 8 passes):
-        a restart every 2 passes 28.9 dB, every 4 passes 28.7, every pass 28.1; one 300-iteration run 28.3."""
+        a restart every 2 passes 28.9 dB, every 4 passes 28.7, every pass 28.1; one 300-iteration run 28.3.
+        It stops after `budget_s` seconds (default `config.final_refine_budget_s`; math.inf: no bound) whatever
+        `iterations` asks: a long session's end costs the same as a short one's."""
         held = [kf_id for kf_id in self.keyframe_ids if self._keyframes[kf_id].held]
         if not held or len(self._surfels) == 0 or iterations <= 0:
             return RefineReport()
+        budget = self.config.final_refine_budget_s if budget_s is None else budget_s
+        deadline = None if budget is None or math.isinf(budget) else time.perf_counter() + float(budget)
         chunk = max(1, restart_every or 2 * len(held))
         generator = torch.Generator().manual_seed(seed)
         report = RefineReport()
         for start in range(0, int(iterations), chunk):
+            if deadline is not None and time.perf_counter() >= deadline:
+                break
             order = [held[i] for i in torch.randperm(len(held), generator=generator).tolist()]
             views = [self._keyframes[kf_id].refine_view() for kf_id in order]
             trainable = torch.ones(len(self._surfels), dtype=torch.bool, device=self.device)
-            part = self._refine(trainable, views, min(chunk, int(iterations) - start), self._scene_scale(held))
+            part = self._refine(trainable, views, min(chunk, int(iterations) - start), self._scene_scale(held),
+                                deadline)
             report.losses += part.losses
             report.views += [held.index(order[i]) for i in part.views]
         return report
@@ -238,11 +272,11 @@ class GaussianMap:
         """Keyframes whose image is held for refinement (window + archive)."""
         return sum(kf.held for kf in self._keyframes.values())
 
-    def _refine(self, trainable: torch.Tensor, views: list[RefineView], iterations: int, scene_scale: float
-                ) -> RefineReport:
+    def _refine(self, trainable: torch.Tensor, views: list[RefineView], iterations: int, scene_scale: float,
+                deadline: float | None = None) -> RefineReport:
         with torch.enable_grad():
             refined, report = refine_surfels(self._surfels, trainable, views, iterations, self.config.refine,
-                                             scene_scale)
+                                             scene_scale, deadline)
         keep = refined.opacities >= self.config.min_opacity
         self._surfels = refined.select(keep) if not bool(keep.all()) else refined
         return report
@@ -284,6 +318,7 @@ class GaussianMap:
             "config": self.config.to_dict(),
             "surfels": {k: v.detach().cpu().numpy() for k, v in self._surfels.tensors().items()},
             "keyframes": keyframes,
+            "voxel_size": self._voxel_size,
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -308,6 +343,8 @@ class GaussianMap:
             raise ValueError(f"malformed GaussianMap state: {err}") from err
         self._surfels = surfels.to(dtype=torch.float32)
         self._keyframes = keyframes
+        voxel_size = state.get("voxel_size")
+        self._voxel_size = None if voxel_size is None else float(voxel_size)
         self._archive_old_images()
 
     @classmethod
@@ -342,6 +379,12 @@ class GaussianMap:
             archived = archived[1::2]
         for kf_id in archived:
             self._keyframes[kf_id].archive()
+
+    def _in_view(self, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int) -> torch.Tensor:
+        """[N] bool: the map's surfels a render from this camera can touch."""
+        if len(self._surfels) == 0:
+            return torch.zeros(0, dtype=torch.bool, device=self.device)
+        return visible_mask(self._surfels, viewmat, K, width, height)
 
     def _scene_scale(self, window: list[int]) -> float:
         """Median keyframe depth in world units (sets the position learning rate)."""

@@ -127,6 +127,15 @@ def _binary_vertices(data: bytes) -> np.ndarray | None:
     return np.frombuffer(body, dtype=dtype, count=count)
 
 
+def read_vertex_records(data: bytes) -> np.ndarray:
+    """The vertex records of a binary little-endian PLY with one `vertex` element of scalar properties, as a numpy
+    structured array viewing `data` (no copy); ValueError for anything else."""
+    vertex = _binary_vertices(data)
+    if vertex is None:
+        raise ValueError("the PLY must be binary little endian with one 'vertex' element of scalar properties")
+    return vertex
+
+
 def surfels_from_ply_bytes(data: bytes) -> Surfels:
     """Surfels from a PLY file in the 3DGS or 2DGS layout (extra properties are ignored; f_rest is dropped)."""
     try:

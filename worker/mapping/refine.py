@@ -17,6 +17,7 @@ cost milliseconds and the 20 iterations 3x slower.
 from __future__ import annotations
 
 import contextlib
+import time
 from dataclasses import dataclass, field
 
 import torch
@@ -88,8 +89,10 @@ def refine_surfels(
     iterations: int = 20,
     settings: RefineSettings | None = None,
     scene_scale: float = 1.0,
+    deadline: float | None = None,
 ) -> tuple[Surfels, RefineReport]:
-    """Optimise the surfels selected by `trainable` ([N] bool) against `views` (newest last) for `iterations` steps.
+    """Optimise the surfels selected by `trainable` ([N] bool) against `views` (newest last) for `iterations` steps,
+    fewer when `time.perf_counter()` passes `deadline` (checked before each step).
 
     Returns the updated map (same order and size as `surfels`) and a report of the losses.
     """
@@ -121,7 +124,7 @@ def refine_surfels(
     depth_scales = [_median_depth(v.depth) for v in views]
     order = list(range(len(views) - 1, -1, -1))  # newest first
     with _serial_torch_parallel_kernels():
-        _optimise(params, fixed, views, depth_scales, order, optimizer, iterations, settings, report)
+        _optimise(params, fixed, views, depth_scales, order, optimizer, iterations, settings, report, deadline)
 
     out = surfels.detach().clone()
     refined = params.surfels().detach()
@@ -148,9 +151,11 @@ def _median_depth(depth: torch.Tensor | None) -> torch.Tensor | None:
 
 def _optimise(params: _RawParams, fixed: Surfels, views: list[RefineView], depth_scales: list, order: list[int],
               optimizer: torch.optim.Optimizer, iterations: int, settings: RefineSettings,
-              report: RefineReport) -> None:
-    """The Adam iterations (each renders one view of the window, round robin over `order`)."""
+              report: RefineReport, deadline: float | None = None) -> None:
+    """The Adam iterations (each renders one view of the window, round robin over `order`), until `deadline`."""
     for it in range(iterations):
+        if deadline is not None and time.perf_counter() >= deadline:
+            break
         index = order[it % len(order)]
         view = views[index]
         H, W = view.image.shape[:2]

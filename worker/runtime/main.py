@@ -1,11 +1,13 @@
 """Worker process entry point: `python -m worker.runtime.main` (or via `flashmono serve`).
 
 Environment (flags override): REDIS_URL (required here), FLASHMONO_WORKER_ID, FLASHMONO_ENGINE (slam|passthrough),
-FLASHMONO_LEASE_TTL_MS (10000), FLASHMONO_SNAPSHOT_EVERY (keyframes between snapshots, 5),
+FLASHMONO_LEASE_TTL_MS (2500: a dead worker's sessions resume elsewhere within seconds),
+FLASHMONO_SNAPSHOT_EVERY (keyframes between snapshots, 5),
 FLASHMONO_MAX_SESSIONS (sessions per worker, 16), FLASHMONO_TORCH_THREADS (torch intra-op threads),
 FLASHMONO_MAX_FRAME_SIDE (640), FLASHMONO_MAX_FRAME_ATTEMPTS (2), FLASHMONO_MEMORY_BUDGET_MB (0: none),
 FLASHMONO_IDLE_TIMEOUT_S (600; 0: never), FLASHMONO_TRANSIENT_TTL_S (3600), FLASHMONO_RETENTION_S (0: kept),
-FLASHMONO_BLOB_DIR (none), FLASHMONO_ARCHIVE_AFTER_S (3600).
+FLASHMONO_BLOB_DIR (none), FLASHMONO_ARCHIVE_AFTER_S (3600), FLASHMONO_SKIP_AFTER_MS (100: a frame that waited
+longer while a newer one is waiting is skipped, newest first wins; 0: never), FLASHMONO_MAX_CONSECUTIVE_SKIPS (3).
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--redis-url", default=env("REDIS_URL"))
     parser.add_argument("--worker-id", default=env("FLASHMONO_WORKER_ID"))
     parser.add_argument("--engine", choices=ENGINE_KINDS, default=env("FLASHMONO_ENGINE", "slam"))
-    parser.add_argument("--lease-ttl-ms", type=int, default=int(env("FLASHMONO_LEASE_TTL_MS", "10000")))
+    parser.add_argument("--lease-ttl-ms", type=int, default=int(env("FLASHMONO_LEASE_TTL_MS", "2500")))
     parser.add_argument("--snapshot-every", type=int, default=int(env("FLASHMONO_SNAPSHOT_EVERY", "5")))
     parser.add_argument("--max-sessions", type=int, default=int(env("FLASHMONO_MAX_SESSIONS", "16")))
     parser.add_argument("--max-frame-side", type=int, default=int(env("FLASHMONO_MAX_FRAME_SIDE", "640")),
@@ -52,6 +54,12 @@ def build_parser() -> argparse.ArgumentParser:
                         help="blob store (a directory) finished sessions move to, map and trajectory included")
     parser.add_argument("--archive-after-s", type=float, default=float(env("FLASHMONO_ARCHIVE_AFTER_S", "3600")),
                         help="finished sessions move to --blob-dir this long after finishing (0: never)")
+    parser.add_argument("--skip-after-ms", type=float, default=float(env("FLASHMONO_SKIP_AFTER_MS", "100")),
+                        help="live tracking: a frame that waited longer than this while a newer frame is waiting is "
+                             "skipped with a `skipped` message (newest first wins; 0: never skip)")
+    parser.add_argument("--max-consecutive-skips", type=int,
+                        default=int(env("FLASHMONO_MAX_CONSECUTIVE_SKIPS", "3")),
+                        help="frames skipped in a row at most (tracking keeps its continuity)")
     parser.add_argument("--torch-threads", type=int, default=int(env("FLASHMONO_TORCH_THREADS", "0")))
     parser.add_argument("--log-level", default=env("FLASHMONO_LOG_LEVEL", "INFO"))
     return parser
@@ -82,7 +90,8 @@ def main(argv: list[str] | None = None) -> int:
                            max_frame_side=args.max_frame_side, max_frame_attempts=args.max_frame_attempts,
                            memory_budget_mb=args.memory_budget_mb, idle_timeout_s=args.idle_timeout_s,
                            transient_ttl_s=args.transient_ttl_s, retention_s=args.retention_s,
-                           blob_dir=args.blob_dir, archive_after_s=args.archive_after_s)
+                           blob_dir=args.blob_dir, archive_after_s=args.archive_after_s,
+                           skip_after_ms=args.skip_after_ms, max_consecutive_skips=args.max_consecutive_skips)
     # No silent retries inside redis-py: a lost connection surfaces to the worker's loops, which wait the outage
     # out and resume each session from its snapshot (a retried XREADGROUP could lose the entries of its reply).
     client = redis.Redis.from_url(args.redis_url, health_check_interval=30, retry=Retry(NoBackoff(), 0))

@@ -27,11 +27,18 @@ class RequestError(ValueError):
 
 
 def serve_request(engine: SessionEngine, kind: str, params: dict[str, Any]) -> tuple[str, bytes]:
-    """(content type, body) for a "render" or "export_ply" request."""
-    if kind == "export_ply":
-        from worker.mapping.ply import ply_with_sh_degree
+    """(content type, body) for a "render" or "export_ply" request (params "format": ply, spz or splat)."""
+    if kind == "export_ply":  # the map in any of worker.mapping.map_formats.FORMATS (the name predates them)
+        from worker.mapping.map_formats import FORMATS, encode_map
 
-        return "application/octet-stream", ply_with_sh_degree(engine.export_ply(), int(params.get("sh_degree", 0)))
+        fmt = str(params.get("format", "ply"))
+        if fmt not in FORMATS:
+            raise RequestError(400, f"unknown map format {fmt!r}; choose one of {', '.join(FORMATS)}")
+        try:
+            encoded = encode_map(engine.export_ply(), fmt, int(params.get("sh_degree", 0)))
+        except ValueError as err:  # e.g. a map without Gaussians (the passthrough engine's point list)
+            raise RequestError(409, f"the map cannot be written as {fmt}: {err}") from err
+        return encoded.content_type, encoded.body
     if kind != "render":
         raise RequestError(400, f"unknown request kind {kind!r}")
     pose = np.asarray(params["pose"], dtype=np.float64).reshape(4, 4)

@@ -54,12 +54,13 @@ redis.call('HSET', KEYS[1], 'revision', ARGV[6], 'updated_at', ARGV[7])
 redis.call('XACK', KEYS[4], 'workers', ARGV[4])
 return new
 """
+# A refused or skipped frame: its code in the rejected hash, the counter ARGV[7] incremented, the message out.
 _STORE_REJECTION = """
 if redis.call('EXISTS', KEYS[1]) == 0 then return -1 end
 if redis.call('GET', KEYS[5]) ~= ARGV[6] then return -2 end
 local new = redis.call('HSETNX', KEYS[2], ARGV[1], ARGV[2])
 if new == 1 then
-  redis.call('HINCRBY', KEYS[1], 'frames_rejected', 1)
+  redis.call('HINCRBY', KEYS[1], ARGV[7], 1)
   redis.call('XADD', KEYS[3], 'MAXLEN', '~', ARGV[5], '*', 'msg', ARGV[3])
 end
 redis.call('XACK', KEYS[4], 'workers', ARGV[4])
@@ -81,7 +82,7 @@ class RuntimeConfig:
     """How a worker runs sessions (environment names in worker/runtime/main.py)."""
 
     engine_kind: str = "slam"
-    lease_ttl_ms: int = 10_000
+    lease_ttl_ms: int = 2_500
     snapshot_every_keyframes: int = 5
     max_sessions: int = 16
     block_ms: int = 500
@@ -94,6 +95,11 @@ class RuntimeConfig:
     retention_s: float = 0.0  # an ended session's record, trajectory and map expire after this (0: kept)
     blob_dir: str = ""  # the blob store of finished sessions ("" : none)
     archive_after_s: float = 3600.0  # finished sessions move to the blob store this long after finishing
+    # Live tracking: a frame older than this (since the gateway queued it) is skipped when a newer one is waiting,
+    # newest first wins (0: never skip); at most `max_consecutive_skips` in a row, so tracking keeps its continuity.
+    skip_after_ms: float = 100.0
+    max_consecutive_skips: int = 3
+    live_stats_every_s: float = 0.5  # how often the session record gets the engine's live figures
 
 
 class SessionGone(Exception):
@@ -121,6 +127,14 @@ def ensure_group(client: redis.Redis, stream: str) -> None:
     except redis.ResponseError as err:
         if "BUSYGROUP" not in str(err):
             raise
+
+
+def _newest_frame_id(entries: list[tuple[bytes, dict[bytes, bytes]]]) -> bytes | None:
+    """The id of the newest frame entry among `entries` (None when there is none)."""
+    for entry_id, fields in reversed(entries):
+        if fields.get(b"kind", b"frame") == b"frame":
+            return entry_id
+    return None
 
 
 def pose_message(seq: int, timestamp: float, pose: np.ndarray, is_keyframe: bool, revision: int) -> bytes:
@@ -160,6 +174,10 @@ class SessionRunner(threading.Thread):
         self._store_snapshot = client.register_script(_STORE_SNAPSHOT)
         self._attempts = FrameAttempts(client, session_id, config.max_frame_attempts)
         self._record = SessionRecord(client, session_id)
+        self._snapshot_in_flight: tuple[Any, int, bytes] | None = None  # (future, seq, entry id)
+        self._consecutive_skips = 0
+        self._tracking_state: str | None = None
+        self._live_stats_at = 0.0
 
     # --- control from the worker --------------------------------------------------------------------------------
     def stop(self) -> None:
@@ -251,8 +269,12 @@ class SessionRunner(threading.Thread):
             entries = self.client.xrange(keys.inbox(self.session_id), min=f"({after.decode()}", count=64)
             if not entries:
                 break
+            newest_frame = _newest_frame_id(entries)
             for entry_id, fields in entries:
-                self._handle_entry(entry_id, fields)
+                if self._should_skip(entry_id, fields, newest_frame):  # caught up live: old frames are skipped
+                    self._skip(entry_id, int(fields[b"seq"]))
+                else:
+                    self._handle_entry(entry_id, fields)
                 after = entry_id
         self._cursor = stream_id_tuple(after)
         self._resume_interrupted_finish()
@@ -286,15 +308,67 @@ class SessionRunner(threading.Thread):
                 self.stats.add("read", time.perf_counter() - t0, frames)
             for stream, entries in reply:
                 is_inbox = stream.decode() == keys.inbox(self.session_id)
+                newest_frame = _newest_frame_id(entries) if is_inbox else None
                 for entry_id, fields in entries:
                     if not is_inbox:
                         self._handle_request(entry_id, fields)
                     elif stream_id_tuple(entry_id) <= self._cursor:
                         self.client.xack(keys.inbox(self.session_id), keys.GROUP, entry_id)  # replayed already
+                    elif self._should_skip(entry_id, fields, newest_frame):
+                        self._skip(entry_id, int(fields[b"seq"]))
+                        self._cursor = stream_id_tuple(entry_id)
                     else:
                         self._handle_entry(entry_id, fields)
                         self._cursor = stream_id_tuple(entry_id)
+                    self._store_finished_snapshot()
+            self._publish_live_stats()
         self._drain_requests()
+
+    # --- live tracking ------------------------------------------------------------------------------------------
+    def _should_skip(self, entry_id: bytes, fields: dict[bytes, bytes], newest_frame: bytes | None) -> bool:
+        """Newest first wins: a frame that waited longer than `skip_after_ms` while a newer frame is waiting is
+        skipped (never the session's first frame, a frame already counted, or more than a few in a row)."""
+        limit = self.config.skip_after_ms if self._session.get("skip_frames") != "0" else 0
+        if (limit <= 0 or newest_frame is None or entry_id == newest_frame or fields.get(b"kind", b"frame") != b"frame"
+                or not self._done_seqs or self._consecutive_skips >= self.config.max_consecutive_skips
+                or int(fields[b"seq"]) in self._done_seqs):
+            self._consecutive_skips = 0
+            return False
+        waited_ms = time.time() * 1000.0 - stream_id_tuple(entry_id)[0]
+        if waited_ms <= limit:
+            self._consecutive_skips = 0
+            return False
+        self._consecutive_skips += 1
+        return True
+
+    def _skip(self, entry_id: bytes, seq: int) -> None:
+        """Answer a skipped frame with a `skipped` message (its seq is done: no pose will come for it)."""
+        out = json.dumps({"type": "skipped", "seq": seq, "reason": "overload"}).encode()
+        status = self._store_rejection(
+            keys=[keys.session(self.session_id), keys.rejected(self.session_id), keys.outbox(self.session_id),
+                  keys.inbox(self.session_id), keys.lease(self.session_id)],
+            args=[seq, "skipped", out, entry_id, self.config.outbox_maxlen, self.worker_id, "frames_skipped"])
+        self._check_store_status(status)
+        self._done_seqs.add(seq)
+        self._rejected.add(seq)
+
+    def _publish_live_stats(self, force: bool = False) -> None:
+        """The engine's live figures (mapping lag, tracking state) into the session record, at most every
+        `live_stats_every_s`."""
+        now = time.monotonic()
+        if not force and now - self._live_stats_at < self.config.live_stats_every_s:
+            return
+        self._live_stats_at = now
+        live_stats = getattr(self.engine, "live_stats", None)
+        fields: dict[str, Any] = {}
+        if live_stats is not None:
+            figures = live_stats()
+            fields = {"mapping_lag_keyframes": int(figures["mapping_lag_keyframes"]),
+                      "mapping_lag_s": round(float(figures["mapping_lag_s"]), 3)}
+        if self._tracking_state is not None:
+            fields["tracking_state"] = self._tracking_state
+        if fields and not self._record.update(fields):
+            raise SessionGone
 
     # --- entries ------------------------------------------------------------------------------------------------
     def _handle_entry(self, entry_id: bytes, fields: dict[bytes, bytes]) -> None:
@@ -360,6 +434,8 @@ class SessionRunner(threading.Thread):
         for event in result.events:
             if event.get("type") in TRACKING_EVENTS:
                 self._publish_tracking_event(seq, event)
+                self._tracking_state = "lost" if event["type"] == "tracking_lost" else "tracking"
+        self._tracking_state = self._tracking_state or "tracking"
         if not self._session.get("estimated_intrinsics") or any(
                 e.get("type") == "initialized" and e.get("intrinsics") for e in result.events):  # (re-)estimated
             self._publish_estimated_intrinsics()
@@ -382,7 +458,7 @@ class SessionRunner(threading.Thread):
         """No frame for `idle_s`: snapshot what was processed, mark the session `abandoned` and free this slot.
         A stream opened within the gateway's grace period resumes it (from this snapshot) on any worker."""
         if self._done_seqs and self._cursor != stream_id_tuple(self._last_id):
-            self._write_snapshot(max(self._done_seqs), f"{self._cursor[0]}-{self._cursor[1]}".encode())
+            self._write_snapshot(max(self._done_seqs), f"{self._cursor[0]}-{self._cursor[1]}".encode(), wait=True)
         message = json.dumps({"type": "error", "code": "abandoned",
                               "message": f"no frame for {idle_s:g} s: the session was abandoned; open a stream "
                                          "again within the grace period to resume it"}).encode()
@@ -397,7 +473,7 @@ class SessionRunner(threading.Thread):
         status = self._store_rejection(
             keys=[keys.session(self.session_id), keys.rejected(self.session_id), keys.outbox(self.session_id),
                   keys.inbox(self.session_id), keys.lease(self.session_id)],
-            args=[seq, code, out, entry_id, self.config.outbox_maxlen, self.worker_id])
+            args=[seq, code, out, entry_id, self.config.outbox_maxlen, self.worker_id, "frames_rejected"])
         self._check_store_status(status)
         self._done_seqs.add(seq)
         self._rejected.add(seq)
@@ -438,16 +514,37 @@ class SessionRunner(threading.Thread):
         if mapping and not self._record.store_trajectory(mapping, fields):
             raise SessionGone
 
-    def _write_snapshot(self, seq: int, entry_id: bytes) -> None:
+    def _write_snapshot(self, seq: int, entry_id: bytes, wait: bool = False) -> None:
+        """Snapshot the engine as of frame `seq` (inbox entry `entry_id`). An engine that can take it without
+        stopping (`begin_snapshot`) delivers it later and `_store_finished_snapshot` stores it then; one snapshot
+        at a time is in flight (a later one is asked for at the next keyframe). `wait` stores it now."""
+        begin = getattr(self.engine, "begin_snapshot", None)
+        if begin is None or wait:
+            self._snapshot_in_flight = None  # superseded by this one
+            self._store_snapshot_blob(self.engine.snapshot(), seq, entry_id)
+            self._keyframes_since_snapshot = 0
+            return
+        if self._snapshot_in_flight is not None:
+            return
+        self._snapshot_in_flight = (begin(), seq, entry_id)
+        self._keyframes_since_snapshot = 0
+
+    def _store_finished_snapshot(self) -> None:
+        """Store the snapshot in flight once the engine's stages have delivered it."""
+        if self._snapshot_in_flight is None or not self._snapshot_in_flight[0].done():
+            return
+        future, seq, entry_id = self._snapshot_in_flight
+        self._snapshot_in_flight = None
+        self._store_snapshot_blob(future.result(), seq, entry_id)
+
+    def _store_snapshot_blob(self, blob: bytes, seq: int, entry_id: bytes) -> None:
         t0 = time.perf_counter()
-        blob = self.engine.snapshot()
         status = self._store_snapshot(
             keys=[keys.snapshot(self.session_id), keys.inbox(self.session_id), keys.lease(self.session_id),
                   keys.session(self.session_id)],
             args=[self.worker_id, blob, seq, entry_id, self.config.engine_kind, now_iso()])
         self._check_store_status(status)
         self._last_id = entry_id
-        self._keyframes_since_snapshot = 0
         self.stats.add("snapshot", time.perf_counter() - t0)
 
     def _finish(self, entry_id: bytes) -> None:
@@ -461,7 +558,7 @@ class SessionRunner(threading.Thread):
         self._store_trajectory()
         failpoint("finish:trajectory")
         last_seq = max(self._done_seqs) if self._done_seqs else -1
-        self._write_snapshot(last_seq, entry_id)
+        self._write_snapshot(last_seq, entry_id, wait=True)
         failpoint("finish:snapshot")
         self._mark_finished(entry_id)
 

@@ -41,3 +41,15 @@ class RgbdOdometryConfig(BaseModel):
         0.06, gt=0, description="self-calibration runs once the camera moved this fraction of the first frame's "
         "median depth (or turned 10x this many degrees), over a third of calibration_frames at least")
     calibration_frames: int = Field(24, ge=3, le=120, description="... or after this many frames at the latest")
+    reuse_keyframes: int = Field(
+        64, ge=0, le=1024, description="keyframes kept (grey, float16 depth) as places to track against when the "
+        "camera comes back; 0 = never reuse (the oldest beyond this are forgotten)")
+    reuse_min_age: int = Field(
+        30, ge=1, description="a keyframe is a place to come back to once this many frames old (younger ones are "
+        "the camera's current stretch)")
+    reuse_distance: float = Field(
+        0.15, gt=0, description="a place is near when the camera is within this fraction of its median depth ...")
+    reuse_rotation_deg: float = Field(15.0, gt=0, description="... and turned less than this from it")
+    reuse_overlap: float = Field(
+        0.7, gt=0, le=1, description="a frame seeing at least this fraction of the place it tracks against is "
+        "covered: it asks for no new keyframe")

@@ -3,6 +3,12 @@ dense_alignment), seeded by constant velocity and, where it disagrees, also by a
 (worker.tracking.feature_seed; the better-fitting alignment wins); the reference moves on when the view has changed
 enough.
 
+Keyframes are reused when the camera comes back: the engine's keyframes are kept (compact) as places; when the
+reference must move on and a place at least `reuse_min_age` frames old lies near the camera, the frame is aligned to
+it and, when it overlaps well, that place becomes the reference instead of a new one. Its pose is re-anchored to the
+frame's (no jump: drift is for loop closure to correct), and frames that see it well ask for no new keyframe
+(`keyframe_hint=False`): a room walked through again and again keeps the keyframes of its first visit.
+
 Frames without intrinsics: tracking starts with a typical focal length; once the camera has moved enough (or after
 `calibration_frames` frames) the focal length is estimated from those frames (worker.tracking.focal_calibration),
 they are tracked again with it, and an `initialized` event carries their new poses and the camera found.
@@ -70,8 +76,10 @@ def grey_of(image: np.ndarray) -> np.ndarray:
 class _Reference:
     """A reference keyframe: its pose and the RGB-D data alignment needs (rebuilt into a pyramid on demand)."""
 
-    def __init__(self, index: int, pose: np.ndarray, grey: np.ndarray, depth: np.ndarray) -> None:
+    def __init__(self, index: int, pose: np.ndarray, grey: np.ndarray, depth: np.ndarray, reused: bool = False
+                 ) -> None:
         self.index, self.pose, self.grey, self.depth = index, pose, grey, depth
+        self.reused = reused  # a place come back to (frames that see it well need no keyframe)
         valid = depth[depth > 0]
         self.median_depth = float(np.median(valid)) if valid.size else 1.0
         self._pyramid: list[PyramidLevel] | None = None
@@ -89,12 +97,34 @@ class _Reference:
 
     def to_dict(self) -> dict[str, Any]:
         return {"index": self.index, "pose": self.pose, "grey": (self.grey * 255).round().astype(np.uint8),
-                "depth": self.depth.astype(np.float16)}
+                "depth": self.depth.astype(np.float16), "reused": self.reused}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> _Reference:
         return cls(int(d["index"]), np.asarray(d["pose"], np.float64),
-                   np.asarray(d["grey"], np.uint8).astype(np.float32) / 255.0, np.asarray(d["depth"], np.float32))
+                   np.asarray(d["grey"], np.uint8).astype(np.float32) / 255.0, np.asarray(d["depth"], np.float32),
+                   bool(d.get("reused", False)))
+
+
+class _Place:
+    """An engine keyframe kept to come back to: pose, grey uint8 and depth float16 (a quarter of a reference)."""
+
+    def __init__(self, index: int, pose: np.ndarray, grey: np.ndarray, depth: np.ndarray) -> None:
+        self.index, self.pose = index, np.asarray(pose, np.float64)
+        self.grey, self.depth = np.asarray(grey, np.uint8), np.asarray(depth, np.float16)
+        valid = self.depth[self.depth > 0]
+        self.median_depth = float(np.median(valid)) if valid.size else 1.0
+
+    def reference(self, pose: np.ndarray) -> _Reference:
+        return _Reference(self.index, pose, self.grey.astype(np.float32) / 255.0, self.depth.astype(np.float32),
+                          reused=True)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"index": self.index, "pose": self.pose, "grey": self.grey, "depth": self.depth}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> _Place:
+        return cls(int(d["index"]), d["pose"], d["grey"], d["depth"])
 
 
 class RgbdOdometry:
@@ -108,6 +138,7 @@ class RgbdOdometry:
         self.settings = AlignmentSettings(iterations=tuple(reversed(c.iterations)), max_points=c.max_points,
                                           photometric_weight=c.photometric_weight)
         self.references: deque[_Reference] = deque(maxlen=c.reference_ring)
+        self.places: deque[_Place] = deque(maxlen=max(1, c.reuse_keyframes))  # engine keyframes to come back to
         self.last_pose: np.ndarray | None = None
         self.previous_pose: np.ndarray | None = None
         self.lost = False
@@ -150,8 +181,15 @@ class RgbdOdometry:
             return TrackingResult(self.last_pose.copy(), tracked=False, keyframe_hint=False,
                                   events=[{"type": "tracking_lost", "reason": reason}])
         self._advance(pose)
-        self._maybe_new_reference(index, grey, depth, pose)
-        return TrackingResult(pose, depth=depth)
+        self._maybe_new_reference(index, grey, depth, pose, current, K)
+        return TrackingResult(pose, depth=depth, keyframe_hint=self._covered_hint())
+
+    def _covered_hint(self) -> bool | None:
+        """False (no keyframe) while the frame sees a place come back to well; else None (the engine decides)."""
+        ref = self.reference
+        if ref is not None and ref.reused and self.last_overlap >= self.config.reuse_overlap:
+            return False
+        return None
 
     def _calibration_step(self, frame: Frame, grey: np.ndarray, depth: np.ndarray, result: TrackingResult
                           ) -> TrackingResult:
@@ -197,7 +235,12 @@ class RgbdOdometry:
         return self.estimated_intrinsics
 
     def keyframe_added(self, frame: Frame, pose: np.ndarray) -> None:
-        """Engine keyframes are independent of the odometry's references."""
+        """The engine's keyframe becomes a place to come back to (when it has depth)."""
+        if self.config.reuse_keyframes <= 0 or frame.depth is None:
+            return
+        depth = np.nan_to_num(np.asarray(frame.depth, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+        if np.count_nonzero(depth > 0) > 0.2 * depth.size:
+            self.places.append(_Place(frame.index, pose, _u8(grey_of(frame.image)), np.maximum(depth, 0.0)))
 
     # ------------------------------------------------------------------------------------------------ internals
     def _first(self, index: int, grey: np.ndarray, depth: np.ndarray) -> TrackingResult:
@@ -262,14 +305,62 @@ class RgbdOdometry:
     def _advance(self, pose: np.ndarray) -> None:
         self.previous_pose, self.last_pose = self.last_pose, pose
 
-    def _maybe_new_reference(self, index: int, grey: np.ndarray, depth: np.ndarray, pose: np.ndarray) -> None:
+    def _maybe_new_reference(self, index: int, grey: np.ndarray, depth: np.ndarray, pose: np.ndarray,
+                             current: _Current | None = None, K: np.ndarray | None = None) -> None:
         c = self.config
         ref = self.reference
         translation, rotation_deg = relative_motion(ref.pose, pose)
         if (self.last_overlap < c.new_reference_overlap or translation > c.new_reference_translation *
                 ref.median_depth or rotation_deg > c.new_reference_rotation_deg):
+            if current is not None and self._come_back(index, pose, current, K):
+                return
             if np.count_nonzero(depth) > 0.2 * depth.size:
                 self.references.append(_Reference(index, pose, grey, depth))
+
+    def _come_back(self, index: int, pose: np.ndarray, current: _Current, K: np.ndarray) -> bool:
+        """Switch the reference to the nearest place the camera has come back to, when the frame overlaps it well;
+        its pose is re-anchored so that this frame keeps `pose` (no jump)."""
+        c = self.config
+        place = self._nearest_place(index, pose)
+        if place is None:
+            return False
+        candidate = place.reference(place.pose)
+        reference = candidate.pyramid(K, c.pyramid_levels)
+        T_init = np.linalg.inv(pose) @ place.pose
+        result = align(reference, current.pyramid, T_init, self.settings)
+        if not result.ok or result.overlap < c.reuse_overlap:
+            seed = pnp_seed(candidate.keypoints(K, c.pyramid_levels), current.keypoints(), K)
+            if seed is not None:
+                result = _best([result, align(reference, current.pyramid, seed, self.settings)])
+        if (not result.ok or result.overlap < c.reuse_overlap
+                or result.photometric_rms > min(c.max_photometric_residual,
+                                                c.seed_residual_ratio * self.typical_residual)):
+            return False
+        moved, turned = relative_motion(place.pose, pose @ result.T)
+        if moved > c.max_jump * place.median_depth or turned > 4 * c.reuse_rotation_deg:
+            return False  # the place is not where the odometry has it: leave it to loop closure
+        candidate.pose = place.pose = pose @ result.T
+        self.references.append(candidate)
+        self.last_overlap = result.overlap
+        log.debug("frame %d: tracking against keyframe %d again", index, place.index)
+        return True
+
+    def _nearest_place(self, index: int, pose: np.ndarray) -> _Place | None:
+        """The place at least `reuse_min_age` frames old nearest the camera within the reuse distance and angle,
+        other than the current reference."""
+        c = self.config
+        best, best_score = None, np.inf
+        current = self.reference.index if self.reference is not None else None
+        for place in self.places:
+            if index - place.index < c.reuse_min_age or place.index == current:
+                continue
+            moved, turned = relative_motion(place.pose, pose)
+            if moved > c.reuse_distance * place.median_depth or turned > c.reuse_rotation_deg:
+                continue
+            score = moved / (c.reuse_distance * place.median_depth) + turned / c.reuse_rotation_deg
+            if score < best_score:
+                best, best_score = place, score
+        return best
 
     # ------------------------------------------------------------------------------------------ snapshot/restore
     def state_dict(self) -> dict[str, Any]:
@@ -277,7 +368,8 @@ class RgbdOdometry:
                 "previous_pose": self.previous_pose, "lost": self.lost, "typical_residual": self.typical_residual,
                 "estimated_intrinsics": None if self.estimated_intrinsics is None else
                 self.estimated_intrinsics.to_dict(), "calibrating": self.calibrating,
-                "calibration": [[i, _u8(g), d.astype(np.float16)] for i, g, d in self._calibration]}
+                "calibration": [[i, _u8(g), d.astype(np.float16)] for i, g, d in self._calibration],
+                "places": [p.to_dict() for p in self.places]}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.references = deque((_Reference.from_dict(r) for r in state["references"]),
@@ -290,5 +382,7 @@ class RgbdOdometry:
         if state.get("estimated_intrinsics"):
             self.estimated_intrinsics = Intrinsics.from_dict(state["estimated_intrinsics"])
         self.calibrating = bool(state.get("calibrating", False))
+        self.places = deque((_Place.from_dict(p) for p in state.get("places", [])),
+                            maxlen=max(1, self.config.reuse_keyframes))
         self._calibration = [(int(i), np.asarray(g, np.uint8).astype(np.float32) / 255.0, np.asarray(d, np.float32))
                              for i, g, d in state.get("calibration", [])]

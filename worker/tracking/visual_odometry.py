@@ -8,7 +8,9 @@ when that fails). Keyframes are taken when tracks drop or the baseline grows: th
 candidate tracks that gained enough parallax since the oldest keyframe that saw them, and run a windowed bundle
 adjustment in which the oldest keyframes stay fixed, so scale carries over without rescaling. A lost frame first
 tries to take up the last tracked frame's tracks (a short loss), then place recognition with the ORB features the
-keyframes keep.
+keyframes keep. When the camera comes back, a keyframe VO takes for its own map is not offered to the engine
+(`keyframe_hint=False`) if an engine keyframe at least `reuse_min_age` frames old lies near and sees most of the
+frame's tracked map points: a place walked through again keeps the keyframes of its first visit.
 
 Poses are camera-to-world rigid 4x4 matrices (a Sim(3) with s = 1); the world is the camera of the frame the map
 was initialised from and the scale makes that map's median depth 1.
@@ -16,6 +18,7 @@ was initialised from and the scale makes that map's median depth 1.
 
 from __future__ import annotations
 
+from collections import deque
 from typing import Any
 
 import cv2
@@ -69,6 +72,8 @@ class VisualOdometry:
         self.image_size: tuple[int, int] | None = None
         self.estimated_intrinsics: Intrinsics | None = None
         self.focal = FocalEstimator(self.config)
+        # (frame index, pose) of the engine's keyframes, to come back to
+        self.engine_keyframes: deque[tuple[int, np.ndarray]] = deque(maxlen=max(1, self.config.reuse_keyframes))
 
     # ---- PoseSource ------------------------------------------------------------------------------------------
     def track(self, frame: Frame, intrinsics: Intrinsics | None) -> TrackingResult:
@@ -87,7 +92,9 @@ class VisualOdometry:
         return result
 
     def keyframe_added(self, frame: Frame, pose: np.ndarray) -> None:
-        """The engine's keyframes do not change VO's own (it keeps its keyframes for its map)."""
+        """The engine's keyframes do not change VO's own; they are remembered as places to come back to."""
+        if self.config.reuse_keyframes > 0:
+            self.engine_keyframes.append((int(frame.index), np.asarray(pose, np.float64).copy()))
 
     # ---- camera ----------------------------------------------------------------------------------------------
     def _camera(self, frame: Frame, intrinsics: Intrinsics | None) -> Intrinsics:
@@ -229,7 +236,34 @@ class VisualOdometry:
             return TrackingResult(pose, tracked=True, keyframe_hint=False)
         kf = self._insert_keyframe(index, pose, gray, K)
         self.velocity = rigid(self.velocity @ invert_pose(pose) @ kf.pose)
+        if self._covered(index, kf.pose, K, camera):
+            return TrackingResult(kf.pose, tracked=True, keyframe_hint=False)
         return TrackingResult(kf.pose, tracked=True, keyframe_hint=True, depth=self._sparse_depth(kf, camera))
+
+    def _covered(self, index: int, pose: np.ndarray, K: np.ndarray, camera: Intrinsics) -> bool:
+        """Whether an engine keyframe at least `reuse_min_age` frames old lies near `pose` and sees at least
+        `reuse_overlap` of the frame's tracked map points (in its image, in front of it)."""
+        c = self.config
+        t = self.tracks
+        points = self.map.positions[t.rows[t.mapped]]
+        if c.reuse_keyframes <= 0 or len(points) < c.min_tracked:
+            return False
+        depth = to_camera(points, pose)[:, 2]
+        median = float(np.median(depth[depth > 0])) if np.any(depth > 0) else 1.0
+        for kf_index, kf_pose in self.engine_keyframes:
+            if index - kf_index < c.reuse_min_age:
+                continue
+            relative = invert_pose(kf_pose) @ pose
+            turned = np.degrees(np.linalg.norm(cv2.Rodrigues(relative[:3, :3])[0]))
+            if np.linalg.norm(relative[:3, 3]) > c.reuse_distance * median or turned > c.reuse_rotation_deg:
+                continue
+            seen = to_camera(points, kf_pose)
+            z = np.maximum(seen[:, 2], 1e-9)
+            u, v = K[0, 0] * seen[:, 0] / z + K[0, 2], K[1, 1] * seen[:, 1] / z + K[1, 2]
+            inside = (seen[:, 2] > 0) & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+            if inside.mean() >= c.reuse_overlap:
+                return True
+        return False
 
     def _follow(self, gray: np.ndarray, predicted: np.ndarray, K: np.ndarray
                 ) -> tuple[np.ndarray, Tracks, int] | None:
@@ -486,6 +520,7 @@ class VisualOdometry:
             "previous_gray": image(self.previous_gray), "keyframe_gray": image(self.keyframe_gray),
             "tracks": self.tracks.to_state(), "next_id": self.next_id,
             "map": self.map.to_state(), "retired": [p.to_state() for p in self.retired],
+            "engine_keyframes": [{"index": i, "pose": p} for i, p in self.engine_keyframes],
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -512,3 +547,5 @@ class VisualOdometry:
         self.next_id = int(state["next_id"])
         self.map = LocalMap.from_state(state["map"])
         self.retired = [Place.from_state(p) for p in state["retired"]]
+        self.engine_keyframes.extend((int(k["index"]), np.asarray(k["pose"], np.float64).reshape(4, 4))
+                                     for k in state.get("engine_keyframes", []))

@@ -80,3 +80,13 @@ class VisualOdometryConfig(BaseModel):
     # unknown intrinsics
     focal_guess: float = Field(0.9, gt=0.1, lt=5.0, description="focal guess as a share of max(W, H)")
     self_calibrate: bool = Field(True, description="estimate the focal length from the first frames' geometry")
+
+    # coming back: no new engine keyframe where an old one already sees the view
+    reuse_keyframes: int = Field(256, ge=0, description="engine keyframe poses remembered to come back to (0: off)")
+    reuse_min_age: int = Field(30, ge=1, description="a keyframe is a place to come back to once this many frames "
+                                                     "old (younger ones are the camera's current stretch)")
+    reuse_distance: float = Field(0.15, gt=0.0, description="an old keyframe is near within this share of the "
+                                                             "median depth ...")
+    reuse_rotation_deg: float = Field(15.0, gt=0.0, description="... and this many degrees")
+    reuse_overlap: float = Field(0.8, gt=0.0, le=1.0, description="... and when it sees this share of the frame's "
+                                                                  "tracked map points: the frame needs no keyframe")

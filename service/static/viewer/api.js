@@ -16,12 +16,12 @@ export class Api {
     return this.apiKey ? { "X-API-Key": this.apiKey } : {};
   }
 
-  async request(path, params = {}) {
+  async request(path, params = {}, init = {}) {
     const url = new URL(path, window.location.origin);
     for (const [key, value] of Object.entries(params)) {
       if (value !== undefined && value !== null) url.searchParams.set(key, String(value));
     }
-    const response = await fetch(url, { headers: this.headers() });
+    const response = await fetch(url, { ...init, headers: { ...this.headers(), ...(init.headers || {}) } });
     if (!response.ok) {
       let message = `${response.status} ${response.statusText}`;
       try {
@@ -37,6 +37,11 @@ export class Api {
     return (await this.request("/v1/sessions", { limit })).json();
   }
 
+  async createSession(body) {
+    const init = { method: "POST", body: JSON.stringify(body), headers: { "Content-Type": "application/json" } };
+    return (await this.request("/v1/sessions", {}, init)).json();
+  }
+
   async session(id) {
     return (await this.request(`/v1/sessions/${encodeURIComponent(id)}`)).json();
   }
@@ -50,7 +55,8 @@ export class Api {
     return (await this.request(`/v1/sessions/${encodeURIComponent(id)}/render`, params)).blob();
   }
 
-  async map(id) {
-    return (await this.request(`/v1/sessions/${encodeURIComponent(id)}/map.ply`)).blob();
+  // The map file in `format` (ply, spz or splat): the Response, for .blob() or .arrayBuffer().
+  async map(id, format = "ply") {
+    return this.request(`/v1/sessions/${encodeURIComponent(id)}/map`, { format });
   }
 }

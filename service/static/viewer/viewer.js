@@ -7,6 +7,7 @@ import { Api } from "./api.js";
 import { OrbitView, VirtualCamera, drawTopDown, position } from "./scene.js";
 
 const POLL_TRAJECTORY_MS = 1000;
+const MAP_REFRESH_MIN_MS = 2000; // a streaming session's map is fetched again at most this often
 const POLL_SESSIONS_MS = 4000;
 const RENDER_MAX_WIDTH = 320;
 
@@ -37,9 +38,20 @@ const state = {
   renderQueued: false,
   renderTimer: null,
   renderUrl: null,
+  splats: null, // the SplatView, once WebGL and the renderer loaded
+  mapFormat: "spz",
+  mapKey: null, // what the shown map reflects: revision, keyframes and status of the session
+  mapLoading: false,
+  mapFetchedAt: 0,
+  splatPosePlaced: false,
+  events: null, // the WebSocket of the session's live events
+  sessionList: [],
 };
 // What tests and curious users can read: how much has been drawn and rendered.
-window.viewerState = { posesDrawn: 0, renders: 0, lastError: null, loopClosures: 0, mapDownloads: 0, lastMap: null };
+window.viewerState = { posesDrawn: 0, renders: 0, lastError: null, loopClosures: 0, mapDownloads: 0, lastMap: null,
+  splat: { ready: false, error: null, fps: 0, frames: 0, firstSplatFrameMs: null, maps: 0, map: null,
+    history: [] },
+  events: [], livePoses: 0 };
 
 const orbit = new OrbitView($("view3d"));
 
@@ -52,24 +64,56 @@ function setStatus(text, isError = false) {
 
 // ----------------------------------------------------------------------------------------------- sessions
 
+function ago(iso) {
+  const s = Math.max(0, (Date.now() - Date.parse(iso)) / 1000);
+  return s < 90 ? `${Math.round(s)} s ago` : s < 5400 ? `${Math.round(s / 60)} min ago` : `${Math.round(s / 3600)} h ago`;
+}
+
+const LIVE = new Set(["created", "streaming", "finishing", "abandoned"]);
+
+function sessionMatches(s) {
+  const text = $("session-filter").value.trim().toLowerCase();
+  const status = $("status-filter").value;
+  if (status && s.status !== status) return false;
+  return !text || [s.name, s.id, s.device_id].some((v) => v && v.toLowerCase().includes(text));
+}
+
+// The fleet: each session's status, frames, keyframes, last pose time, tracking state, and a link to its live view.
+function drawSessions() {
+  const list = $("sessions");
+  list.replaceChildren();
+  const shown = state.sessionList.filter(sessionMatches);
+  for (const s of shown) {
+    const li = document.createElement("li");
+    li.dataset.id = s.id;
+    li.dataset.status = s.status;
+    li.classList.toggle("selected", s.id === state.sessionId);
+    const title = document.createElement("span");
+    title.textContent = s.name || s.id;
+    const link = document.createElement("a");
+    link.href = `/viewer?session=${encodeURIComponent(s.id)}`;
+    link.textContent = "live view";
+    link.addEventListener("click", (e) => { e.preventDefault(); e.stopPropagation(); selectSession(s.id); });
+    const meta = document.createElement("span");
+    meta.className = "meta";
+    meta.textContent = `${s.status} · ${s.frames_processed} frames · ${s.keyframes} keyframes · last pose `
+      + `${s.frames_processed ? ago(s.updated_at) : "–"} · ${s.device_id || "no device"}`;
+    const trackingState = s.tracking_state || (LIVE.has(s.status) && !s.frames_processed ? "waiting" : null);
+    const tracking = document.createElement("span");
+    tracking.className = `meta tracking-${trackingState || "none"}`;
+    tracking.textContent = trackingState ? `tracking: ${trackingState}` : "";
+    li.append(title, link, meta, tracking);
+    li.addEventListener("click", () => selectSession(s.id));
+    list.append(li);
+  }
+  window.viewerState.sessionsShown = shown.length;
+}
+
 async function refreshSessions() {
   try {
-    const { sessions } = await state.api.sessions();
-    const list = $("sessions");
-    list.replaceChildren();
-    for (const s of sessions) {
-      const li = document.createElement("li");
-      li.dataset.id = s.id;
-      li.classList.toggle("selected", s.id === state.sessionId);
-      const title = document.createElement("span");
-      title.textContent = s.name || s.id;
-      const meta = document.createElement("span");
-      meta.className = "meta";
-      meta.textContent = `${s.status} · ${s.frames_processed} frames · ${s.device_id || "no device"}`;
-      li.append(title, meta);
-      li.addEventListener("click", () => selectSession(s.id));
-      list.append(li);
-    }
+    const { sessions } = await state.api.sessions(200);
+    state.sessionList = sessions;
+    drawSessions();
     if (!state.sessionId) setStatus(sessions.length ? "pick a session" : "no sessions yet");
   } catch (err) {
     setStatus(`sessions: ${err.message}`, true);
@@ -78,12 +122,16 @@ async function refreshSessions() {
 
 function selectSession(id) {
   Object.assign(state, { sessionId: id, session: null, poses: [], keyframes: [], loops: [], revision: null,
-    cameraPlaced: false });
+    cameraPlaced: false, mapKey: null, splatPosePlaced: false });
   const url = new URL(window.location.href);
   url.searchParams.set("session", id);
   window.history.replaceState(null, "", url);
   for (const li of $("sessions").children) li.classList.toggle("selected", li.dataset.id === id);
   $("download-map").disabled = false;
+  window.viewerState.events = [];
+  $("tracking-state").textContent = "tracking: –";
+  $("tracking-state").className = "";
+  watchEvents(id);
   pollSession();
 }
 
@@ -111,6 +159,7 @@ async function pollSession() {
     $("session-stats").textContent = `${session.status} · ${session.frames_processed}/${session.frames_received} `
       + `frames · ${session.keyframes} keyframes · revision ${all.revision}`;
     drawTrajectory();
+    updateSplats(session);
     if (!state.cameraPlaced && poses.length) {
       state.camera.setFromPose(poses[poses.length - 1]);
       state.cameraPlaced = true;
@@ -127,6 +176,137 @@ function drawTrajectory() {
   orbit.update(state.poses, state.keyframes, state.loops);
   window.viewerState.posesDrawn = drawn;
   document.body.dataset.posesDrawn = String(drawn);
+}
+
+// --------------------------------------------------------------------------------------- live events
+
+const EVENT_TYPES = new Set(["tracking_lost", "relocalized", "initialized", "loop_closed", "finished", "error"]);
+const MAX_EVENTS_SHOWN = 12;
+
+// The session's live feed (WS /v1/sessions/{id}/events): tracking events and loop closures as they happen.
+function watchEvents(id) {
+  if (state.events) state.events.close();
+  state.events = null;
+  $("events").replaceChildren();
+  const scheme = window.location.protocol === "https:" ? "wss" : "ws";
+  const query = state.api.apiKey ? `?api_key=${encodeURIComponent(state.api.apiKey)}` : "";
+  const ws = new WebSocket(`${scheme}://${window.location.host}/v1/sessions/${encodeURIComponent(id)}/events${query}`);
+  state.events = ws;
+  ws.addEventListener("message", (e) => {
+    if (id !== state.sessionId) return;
+    let message;
+    try { message = JSON.parse(e.data); } catch (_) { return; }
+    if (message.type === "pose") {
+      window.viewerState.livePoses += 1;
+      return;
+    }
+    if (!EVENT_TYPES.has(message.type)) return;
+    showEvent(message);
+    if (message.type === "loop_closed") state.mapFetchedAt = 0; // the corrected map as soon as the revision shows
+  });
+}
+
+function showEvent(message) {
+  window.viewerState.events.push(message);
+  const li = document.createElement("li");
+  li.className = message.type;
+  const at = message.seq !== undefined ? ` @${message.seq}` : "";
+  li.textContent = `${message.type.replace("_", " ")}${at}`;
+  $("events").prepend(li);
+  while ($("events").children.length > MAX_EVENTS_SHOWN) $("events").lastChild.remove();
+  const tracking = { tracking_lost: ["lost", "lost"], relocalized: ["tracking", "ok"], initialized: ["tracking", "ok"],
+    finished: ["finished", ""] }[message.type];
+  if (tracking) {
+    $("tracking-state").textContent = `tracking: ${tracking[0]}`;
+    $("tracking-state").className = tracking[1];
+  }
+}
+
+// ------------------------------------------------------------------------------------------- splat view
+
+async function startSplatView() {
+  const info = $("splat-info");
+  try {
+    const { SplatView } = await import("./splats.js");
+    state.splats = new SplatView($("splats"), {
+      onFrame: (view) => {
+        const s = window.viewerState.splat;
+        s.frames = view.frames;
+        s.fps = view.fps;
+        if (view.firstSplatFrameAt !== null && s.firstSplatFrameMs === null) s.firstSplatFrameMs = view.firstSplatFrameAt;
+      },
+    });
+    window.splatView = state.splats; // for tests and the curious: pose(), setPose(), readSplats()
+    window.viewerState.splat.ready = true;
+    info.textContent = "renderer ready";
+    setInterval(showSplatInfo, 1000);
+  } catch (err) {
+    window.viewerState.splat.error = String(err && err.message ? err.message : err);
+    info.textContent = `splat view unavailable (WebGL2 needed): ${window.viewerState.splat.error}`;
+  }
+}
+
+function showSplatInfo() {
+  const s = window.viewerState.splat;
+  if (s.mapError) return;
+  const m = s.map;
+  $("splat-info").textContent = m
+    ? `${m.splats ?? "?"} splats · ${m.format} ${(m.bytes / 1e6).toFixed(2)} MB · ${s.fps.toFixed(1)} frames/s`
+    : `no map yet · ${s.fps.toFixed(1)} frames/s`;
+  document.body.dataset.splatFps = s.fps.toFixed(1);
+}
+
+// Called on every poll: trajectory and frustums in the 3D scene, and the map again when the session's map changed
+// (a new keyframe, a loop closure's revision, the final refinement once finished).
+function updateSplats(session) {
+  const view = state.splats;
+  if (!view) return;
+  const k = session.estimated_intrinsics || session.intrinsics;
+  if (k) view.setIntrinsics(k);
+  view.setTrajectory(state.poses, state.keyframes, state.loops);
+  if (!state.splatPosePlaced && state.poses.length) {
+    view.setPose(state.poses[state.poses.length - 1]);
+    state.splatPosePlaced = true;
+  }
+  const key = `${session.revision}|${session.keyframes}|${session.status}|${state.mapFormat}`;
+  const due = performance.now() - state.mapFetchedAt >= MAP_REFRESH_MIN_MS;
+  if (session.keyframes > 0 && key !== state.mapKey && due && !state.mapLoading) loadSplatMap(session.id, key);
+}
+
+async function loadSplatMap(id, key) {
+  state.mapLoading = true;
+  state.mapFetchedAt = performance.now();
+  const format = state.mapFormat;
+  try {
+    const t0 = performance.now();
+    const bytes = new Uint8Array(await (await state.api.map(id, format)).arrayBuffer());
+    const fetchMs = performance.now() - t0;
+    if (id !== state.sessionId) return;
+    const loaded = await state.splats.loadMap(bytes, format, key);
+    state.mapKey = key;
+    window.viewerState.splat.maps += 1;
+    window.viewerState.splat.map = { ...loaded, fetchMs, key, loadedAt: performance.now() };
+    window.viewerState.splat.history.push({ splats: loaded.splats, key, bytes: loaded.bytes });
+    window.viewerState.splat.mapError = null;
+    showSplatInfo();
+  } catch (err) {
+    // shown beside the view, not as a page error: a session may have no Gaussian map (409: not again until the
+    // session changes), or its worker may be busy (503/504: tried again at the next poll)
+    if (err.status === 409) state.mapKey = key;
+    window.viewerState.splat.mapError = `map (${format}): ${err.message}`;
+    $("splat-info").textContent = window.viewerState.splat.mapError;
+  } finally {
+    state.mapLoading = false;
+  }
+}
+
+// The exact reference: the server renders the splat view's camera (pose and pinhole) as a PNG.
+function exactServerView() {
+  if (!state.splats || !state.sessionId) return;
+  state.camera.setFromPose(state.splats.pose());
+  state.cameraPlaced = true;
+  renderNow();
+  $("render").scrollIntoView({ block: "nearest" });
 }
 
 // ------------------------------------------------------------------------------------------ rendered view
@@ -209,8 +389,9 @@ async function downloadMap() {
   mapStatus.classList.remove("error");
   mapStatus.textContent = "downloading…";
   try {
-    const blob = await state.api.map(id);
-    const name = `${id}.ply`;
+    const format = $("download-format").value;
+    const blob = await (await state.api.map(id, format)).blob();
+    const name = `${id}.${format}`;
     const link = document.createElement("a");
     link.href = URL.createObjectURL(blob);
     link.download = name;
@@ -241,6 +422,8 @@ function init() {
     refreshSessions();
   });
   $("refresh-sessions").addEventListener("click", refreshSessions);
+  $("session-filter").addEventListener("input", drawSessions);
+  $("status-filter").addEventListener("change", drawSessions);
   $("download-map").addEventListener("click", downloadMap);
   $("snap-camera").addEventListener("click", () => {
     if (!state.poses.length) return;
@@ -256,13 +439,24 @@ function init() {
     button.addEventListener("click", () => move(button.dataset.move));
   }
   window.addEventListener("keydown", (e) => {
-    if (e.target instanceof HTMLInputElement) return;
+    if (e.target instanceof HTMLInputElement || e.target === $("splats")) return; // the splat view's own keys
     const name = KEYS[e.key] || KEYS[e.key.toLowerCase()];
     if (name) {
       e.preventDefault();
       move(name);
     }
   });
+  $("splat-mode").addEventListener("change", (e) => state.splats && state.splats.setMode(e.target.value));
+  $("splat-format").addEventListener("change", (e) => {
+    state.mapFormat = e.target.value;
+    if (state.session) updateSplats(state.session);
+  });
+  $("splat-overlay").addEventListener("change", (e) => state.splats && state.splats.showOverlay(e.target.checked));
+  $("splat-to-pose").addEventListener("click", () => {
+    if (state.splats && state.poses.length) state.splats.setPose(state.poses[state.poses.length - 1]);
+  });
+  $("splat-exact").addEventListener("click", exactServerView);
+  startSplatView().then(() => state.session && updateSplats(state.session));
   refreshSessions();
   if (state.sessionId) selectSession(state.sessionId);
   setInterval(refreshSessions, POLL_SESSIONS_MS);

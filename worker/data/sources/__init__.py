@@ -50,9 +50,20 @@ def open_source(path_or_uri: str | Path, format: str | None = None, **options: A
     """Open any supported frame source.
 
     Common options: stride, max_frames, resize=(width, height), use_gt_poses (copy ground truth into Frame.pose),
-    use_gt_depth (attach depth, default True), intrinsics (override the camera). Format-specific options are passed
-    on (e.g. fps for image folders, max_difference for TUM, poses_file for KITTI). `format` forces a reader.
+    use_gt_depth (attach depth, default True), intrinsics (override the camera), pingpong=N (a dataset folder played
+    forward and back N sweeps, `PingPongSource`). Format-specific options are passed on (e.g. fps for image folders,
+    max_difference for TUM, poses_file for KITTI). `format` forces a reader.
     """
+    sweeps = options.pop("pingpong", None)
+    source = _open(path_or_uri, format, **options)
+    if sweeps is None or int(sweeps) == 1:
+        return source
+    from .pingpong import PingPongSource
+
+    return PingPongSource(source, int(sweeps))
+
+
+def _open(path_or_uri: str | Path, format: str | None, **options: Any) -> FrameSource:
     text = str(path_or_uri)
     if format is None and text.startswith("synthetic://"):
         format = "synthetic"

@@ -1,0 +1,117 @@
+"""The live engine shape: tracking publishes poses while the mapping stage is stalled, mapping sheds work and says
+so, finish() drains every stage, and a snapshot taken while mapping lags restores a system that continues exactly."""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from worker.config import SlamConfig
+from worker.data import Frame, open_source
+from worker.engine.tracking_stage import follow_corrections
+from worker.slam import SlamSystem
+
+SIZE = (80, 60)
+
+
+@pytest.fixture(scope="module")
+def frames() -> list[Frame]:
+    return list(open_source(Path(__file__).parents[1] / "data" / "icl_mini", max_frames=14, resize=SIZE,
+                            use_gt_depth=True))
+
+
+def live_config(**overrides) -> SlamConfig:
+    """RGB-D odometry (no poses), every stage in its own thread, a keyframe every 2 frames."""
+    base = {"input": {"surfel_init": "depth"}, "frontend": {"keyframe_every": 2}, "threaded": True}
+    for key, value in overrides.items():
+        base[key] = {**base.get(key, {}), **value} if isinstance(value, dict) else value
+    return SlamConfig.preset("test", **base)
+
+
+def push_all_within(system: SlamSystem, frames: list[Frame], timeout_s: float = 120.0) -> list:
+    """Push `frames` from another thread; fails if tracking does not get through them (it waited for mapping)."""
+    results: list = []
+    pusher = threading.Thread(target=lambda: results.extend(system.push(f) for f in frames), daemon=True)
+    pusher.start()
+    pusher.join(timeout_s)
+    assert not pusher.is_alive(), "tracking waited for the stalled mapping stage"
+    return results
+
+
+def test_tracking_publishes_poses_while_mapping_is_stalled_and_finish_drains(frames) -> None:
+    system = SlamSystem(live_config(mapping={"shed_backlog": 0}, queue_size=64))
+    with system.backend.lock:  # the mapping stage cannot map anything while this is held
+        results = push_all_within(system, frames)
+        assert len(results) == len(frames)
+        assert all(np.all(np.isfinite(r.pose)) for r in results)
+        keyframes = sum(r.is_keyframe for r in results)
+        stats = system.live_stats()
+        assert keyframes >= 4 and stats["mapping_lag_keyframes"] >= keyframes - 1
+        assert system.backend.keyframes_mapped == 0
+    system.finish()
+    assert system.backend.pending == 0 and system.loop_stage.pending == 0
+    last_frame = system.last_frame_mapped is not None  # finish() maps the newest view too
+    assert system.backend.keyframes_mapped == keyframes + last_frame
+    assert system.live_stats()["mapping_lag_keyframes"] == 0
+    assert system.num_gaussians > 0
+
+
+def test_mapping_sheds_work_when_it_falls_behind_and_reports_it(frames) -> None:
+    system = SlamSystem(live_config(mapping={"shed_backlog": 1, "merge_only_backlog": 2}, queue_size=3))
+    with system.backend.lock:
+        results = push_all_within(system, frames)
+    system.finish()
+    keyframes = sum(r.is_keyframe for r in results)
+    shed = system.stats()["keyframes_shed"]
+    assert shed["dropped"] > 0 and shed["merge_only"] > 0  # the backlog was 6 when the stage woke up
+    assert system.backend.keyframes_mapped + shed["dropped"] == keyframes + (system.last_frame_mapped is not None)
+    assert len(system.backend.map.keyframe_ids) == system.backend.keyframes_mapped
+
+
+def test_mapping_keeps_every_refinement_when_it_keeps_up(frames) -> None:
+    system = SlamSystem(live_config())
+    for frame in frames:  # inline-like pace: the stage is idle before each keyframe
+        system.push(frame)
+        system.backend.wait_idle()
+    system.finish()
+    assert system.stats()["keyframes_shed"] == {"reduced": 0, "merge_only": 0, "dropped": 0}
+
+
+def test_snapshot_while_mapping_lags_restores_and_continues_exactly(frames) -> None:
+    cut = 8
+    system = SlamSystem(live_config(mapping={"shed_backlog": 0}, queue_size=64))
+    with system.backend.lock:
+        push_all_within(system, frames[:cut])
+        future = system.begin_snapshot()  # returns at once: the map part comes when mapping gets there
+        assert not future.done()
+        later = push_all_within(system, frames[cut:])  # tracking goes on meanwhile
+    blob = future.result(timeout=120)
+    system.finish()
+    restored = SlamSystem.restore(blob)
+    assert [i for i, _, _ in restored.trajectory()] == [f.index for f in frames[:cut]]
+    keyframes_before_cut = len(restored.trajectory("keyframes"))
+    assert restored.backend.keyframes_mapped == keyframes_before_cut  # everything submitted before the cut
+    again = [restored.push(f) for f in frames[cut:]]
+    for a, b in zip(later, again):
+        np.testing.assert_allclose(a.pose, b.pose, atol=1e-3)  # the snapshot keeps depth as float16
+        assert a.is_keyframe == b.is_keyframe
+    restored.finish()
+    assert restored.backend.keyframes_mapped == system.backend.keyframes_mapped
+
+
+def test_keyframes_made_after_an_optimisation_follow_the_newest_corrected_one() -> None:
+    def at(x: float) -> np.ndarray:
+        pose = np.eye(4)
+        pose[0, 3] = x
+        return pose
+
+    current = {0: at(0.0), 2: at(1.0), 4: at(2.0), 6: at(3.0)}
+    corrected = {0: at(0.0), 2: at(1.5)}  # the loop stage optimised keyframes 0 and 2 only
+    moved = follow_corrections(current, corrected)
+    np.testing.assert_allclose(moved[2], at(1.5))
+    np.testing.assert_allclose(moved[4], at(2.5))  # rigidly with keyframe 2: no jump between 2 and 4
+    np.testing.assert_allclose(moved[6], at(3.5))
+    assert set(moved) == set(current)

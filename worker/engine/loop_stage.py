@@ -1,0 +1,189 @@
+"""The loop-closing stage (paper 4.2, ORB-SLAM's LoopClosing in our terms): keyframes in, pose corrections out.
+
+It owns the keyframe pose graph, the loop closer (detection + relocalization) and the keyframe points used to
+verify loops, and works in its own thread on two kinds of input, in order: `GraphKeyframe` (a new keyframe's node
+and odometry edge, from tracking) and `LoopQuery` (a keyframe's image and depth, from tracking when the frames
+carry depth, from mapping once it has built a keyframe's multi-view depth). A verified loop adds its edges and
+re-optimises the graph; the optimised keyframe poses go out as a `LoopCorrection` that the tracking thread takes
+with `take_corrections()` and publishes as a new trajectory revision: tracking never waits for loop closure.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from worker.config import LoopConfig
+from worker.engine.loop_closer import DepthKeyframePoints, LoopCloser
+from worker.engine.stage_thread import StageThread
+from worker.engine.stage_times import StageTimes
+from worker.geometry import Intrinsics, se3_part
+from worker.loop.pose_graph import Sim3PoseGraph
+
+
+@dataclass
+class GraphKeyframe:
+    """A new keyframe for the pose graph: its world pose and, after the first, the odometry edge to the previous."""
+
+    kf_id: int
+    world_pose: np.ndarray
+    previous: int | None = None
+    relative: np.ndarray | None = None  # previous^-1 @ this, as tracked
+    kind: str = "sequential"
+
+
+@dataclass
+class LoopQuery:
+    """A keyframe to detect loops with: image [1,3,H,W] in [0,1], its camera, its depth when it has one."""
+
+    kf_id: int
+    image: torch.Tensor
+    intrinsics: Intrinsics | None
+    depth: torch.Tensor | None = None
+    K: torch.Tensor | None = None  # the depth's camera matrix
+
+
+@dataclass
+class CameraUpdate:
+    """The session's camera was re-estimated: keyframe points are made again with camera matrix K."""
+
+    K: torch.Tensor
+
+
+@dataclass
+class LoopCorrection:
+    """Optimised keyframe poses after a loop closure, and the loop's event (without the revision, which the
+    trajectory gives when the correction is applied)."""
+
+    poses: dict[int, np.ndarray]
+    event: dict[str, Any]
+
+
+# ICP of two keyframes' depth for metric loops: relative pose refined, or None when they do not fit.
+DepthAligner = Callable[[int, int, np.ndarray, Intrinsics | None], np.ndarray | None]
+
+
+class LoopClosingStage:
+    """Pose graph + loop closer behind an input queue (see the module docstring)."""
+
+    def __init__(self, cfg: LoopConfig, pose_graph: Sim3PoseGraph, closer: LoopCloser | None,
+                 depth_points: DepthKeyframePoints | None, metric: bool, threaded: bool,
+                 timings: StageTimes | None = None) -> None:
+        self.cfg = cfg
+        self.pose_graph = pose_graph
+        self.closer = closer
+        self.depth_points = depth_points
+        self.metric = metric  # given metric poses and depth: a loop measures no scale change
+        self.timings = timings or StageTimes()
+        self.loops = 0
+        self._corrections: list[LoopCorrection] = []
+        self._corrections_lock = threading.Lock()
+        self._stage = StageThread("loop-closing", self._process, threaded)
+
+    # -- submission ------------------------------------------------------------------------------------------------
+    def submit(self, item: GraphKeyframe | LoopQuery | CameraUpdate) -> None:
+        """Queue a keyframe node or a loop query; never blocks (inline when not threaded)."""
+        self._stage.submit(item)
+
+    def at_marker(self, action: Callable[[], None]) -> None:
+        self._stage.at_marker(action)
+
+    def wait_idle(self) -> None:
+        self._stage.wait_idle()
+
+    def close(self) -> None:
+        self._stage.close()
+
+    def raise_if_failed(self) -> None:
+        self._stage.raise_if_failed()
+
+    @property
+    def pending(self) -> int:
+        return self._stage.pending
+
+    def take_corrections(self) -> list[LoopCorrection]:
+        """The corrections made since the last call, oldest first."""
+        with self._corrections_lock:
+            out, self._corrections = self._corrections, []
+        return out
+
+    # -- work (the stage's thread) -------------------------------------------------------------------------------
+    def _process(self, item: GraphKeyframe | LoopQuery | CameraUpdate) -> None:
+        if isinstance(item, CameraUpdate):
+            if self.depth_points is not None:
+                self.depth_points.reproject(item.K)
+            return
+        if isinstance(item, GraphKeyframe):
+            self.pose_graph.add_node(item.kf_id, item.world_pose)
+            if item.previous is not None:
+                self.pose_graph.add_edge(item.previous, item.kf_id, item.relative, kind=item.kind)
+            self.pose_graph.flush()  # iSAM2 takes the keyframe now: a later loop's solve has less to do
+            return
+        if self.closer is None:
+            return
+        if item.depth is not None and self.depth_points is not None:
+            self.depth_points.add(item.kf_id, item.depth, item.K)
+        self._close_loop(item)
+
+    def _close_loop(self, query: LoopQuery) -> None:
+        constraints = self.closer.process_keyframe(query.kf_id, query.image, query.intrinsics)
+        kept = []
+        for constraint in constraints:
+            relative = constraint.relative
+            if self.metric:
+                relative = self._align_depth(constraint.i, constraint.j, se3_part(relative), query.intrinsics)
+                if relative is None:
+                    continue
+            self.pose_graph.add_edge(constraint.i, constraint.j, relative, kind="loop", weight=self.cfg.loop_weight)
+            kept.append(constraint)
+        if not kept:
+            return
+        best = kept[0]
+        with self.timings.measure("pgo"):
+            result = self.pose_graph.optimize(max_iterations=self.cfg.pgo_iterations)
+        self.loops += 1
+        event: dict[str, Any] = {"type": "loop_closed", "from_keyframe": int(best.j), "to_keyframe": int(best.i),
+                                 "pgo_error_before": result.initial_error, "pgo_error_after": result.final_error,
+                                 "source": best.source, "scale": float(best.scale)}
+        if len(kept) > 1:
+            event["also_to_keyframes"] = [int(c.i) for c in kept[1:]]
+        with self._corrections_lock:
+            self._corrections.append(LoopCorrection(dict(result.poses), event))
+
+    def _align_depth(self, i: int, j: int, relative: np.ndarray, intrinsics: Intrinsics | None) -> np.ndarray | None:
+        """A metric loop edge refined by ICP on the two keyframes' depth (half resolution), or None when the depth
+        maps do not fit together (too few close points or a large residual)."""
+        if not self.cfg.depth_alignment or intrinsics is None:
+            return relative
+        from worker.engine.rgbd_align import refine_relative_pose
+
+        points_i, _ = self.depth_points.keyframe_points(i)
+        points_j, _ = self.depth_points.keyframe_points(j)
+        half = intrinsics.scaled(intrinsics.width // 2, intrinsics.height // 2).matrix()
+        with self.timings.measure("loop_relocalization"):
+            fit = refine_relative_pose(points_i[::2, ::2], points_j[::2, ::2], half, torch.from_numpy(relative))
+        if fit.inlier_fraction < self.cfg.alignment_min_inliers or fit.rms > self.cfg.alignment_max_rms:
+            self.closer.rejected += 1
+            return None
+        return fit.relative.numpy()
+
+    # -- snapshot ------------------------------------------------------------------------------------------------
+    def state_dict(self) -> dict[str, Any]:
+        """The stage's state between two work items (call it from `at_marker`, or when idle)."""
+        return {"pose_graph": self.pose_graph.state_dict(),
+                "loop": None if self.closer is None else self.closer.state_dict(),
+                "depth_points": None if self.depth_points is None else self.depth_points.state_dict(),
+                "loops": self.loops}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.pose_graph.load_state_dict(state["pose_graph"])
+        if self.closer is not None and state.get("loop") is not None:
+            self.closer.load_state_dict(state["loop"])
+        if self.depth_points is not None and state.get("depth_points") is not None:
+            self.depth_points.load_state_dict(state["depth_points"])
+        self.loops = int(state.get("loops", 0))

@@ -1,0 +1,179 @@
+"""The mapping stage (paper 4.3, ORB-SLAM's LocalMapping in our terms): keyframes in, the 2DGS map out.
+
+Per keyframe, in submission order, in the stage's own thread: build the surfel grid where it is costly (multi-view
+depth) -> hand the keyframe to loop closing -> voxelize -> prune -> fuse -> refine; pose updates after loop
+closures move the map. Tracking never waits for it: `submit` never blocks, and the stage sheds work when it falls
+behind (`MappingConfig.shed_backlog`, `merge_only_backlog`, `SlamConfig.queue_size`): fewer refinement iterations,
+then merge only (finish() refines the whole map), then the oldest waiting keyframes are left out of the map. What it
+shed and how far it lags (keyframes, seconds) is in `stats()`. All map access goes through one lock, so renders and
+exports from other threads see the map between two refinement steps, never in the middle of one.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import torch
+
+from worker.config import MappingConfig
+from worker.engine.backend import KeyframeJob, PoseUpdateJob, build_gaussian_map, unmerged_surfels
+from worker.engine.stage_thread import StageThread
+from worker.engine.stage_times import StageTimes
+from worker.mapping.voxelize import voxelize
+
+SHED_KINDS = ("reduced", "merge_only", "dropped")
+
+
+class MappingStage:
+    """Map jobs in its own thread (or inline), with load shedding; serves renders and exports under a lock."""
+
+    def __init__(self, cfg: MappingConfig, threaded: bool, max_backlog: int, device: str = "cpu",
+                 timings: StageTimes | None = None) -> None:
+        self.cfg = cfg
+        self.max_backlog = max_backlog
+        self.timings = timings or StageTimes()
+        self.device = device
+        self.map = build_gaussian_map(cfg, device)
+        self.lock = threading.RLock()
+        self.keyframes_mapped = 0
+        self.busy_seconds = 0.0
+        self.shed = dict.fromkeys(SHED_KINDS, 0)
+        # Called in the stage's thread with each keyframe job once its grid, depth and K exist (loop closing).
+        self.on_keyframe_built: Callable[[KeyframeJob], None] | None = None
+        self._waiting: deque[tuple[int, float]] = deque()  # (kf_id, submit time) of keyframe jobs not yet done
+        self._waiting_lock = threading.Lock()
+        self._stage = StageThread("mapping", self._process, threaded)
+
+    # -- submission (the tracking thread) ------------------------------------------------------------------------
+    def submit(self, job: KeyframeJob | PoseUpdateJob) -> None:
+        """Queue a job; never blocks (inline when not threaded)."""
+        if isinstance(job, KeyframeJob):
+            with self._waiting_lock:
+                self._waiting.append((job.kf_id, time.monotonic()))
+        self._stage.submit(job)
+
+    def at_marker(self, action: Callable[[], None]) -> None:
+        """Run `action` in the stage's thread once every job submitted so far is done (see StageThread)."""
+        self._stage.at_marker(action)
+
+    def wait_idle(self) -> None:
+        """Block until every submitted job is done."""
+        self._stage.wait_idle()
+
+    def close(self) -> None:
+        self._stage.close()
+
+    def raise_if_failed(self) -> None:
+        self._stage.raise_if_failed()
+
+    @property
+    def pending(self) -> int:
+        """Jobs submitted and not done yet."""
+        return self._stage.pending
+
+    def lag(self) -> tuple[int, float]:
+        """(keyframes waiting to be mapped, seconds the oldest of them has waited)."""
+        with self._waiting_lock:
+            if not self._waiting:
+                return 0, 0.0
+            return len(self._waiting), time.monotonic() - self._waiting[0][1]
+
+    def stats(self) -> dict[str, Any]:
+        backlog, seconds = self.lag()
+        return {"mapping_lag_keyframes": backlog, "mapping_lag_s": seconds, "keyframes_mapped": self.keyframes_mapped,
+                "keyframes_shed": dict(self.shed), "mapping_busy_s": self.busy_seconds}
+
+    # -- work (the stage's thread) -------------------------------------------------------------------------------
+    def _process(self, job: KeyframeJob | PoseUpdateJob) -> None:
+        start = time.perf_counter()
+        if isinstance(job, KeyframeJob):
+            try:
+                self._map_keyframe_job(job)
+            finally:
+                with self._waiting_lock:
+                    if self._waiting and self._waiting[0][0] == job.kf_id:
+                        self._waiting.popleft()
+        else:
+            with self.lock, self.timings.measure("map_loop_correction"):
+                known = set(self.map.keyframe_ids)  # keyframes shed from the map have nothing to move
+                self.map.apply_pose_updates({k: torch.as_tensor(v) for k, v in job.poses.items() if k in known})
+        self.busy_seconds += time.perf_counter() - start
+
+    def _backlog_behind(self) -> int:
+        """Keyframe jobs waiting behind the one being processed."""
+        with self._waiting_lock:
+            return max(0, len(self._waiting) - 1)
+
+    def _map_keyframe_job(self, job: KeyframeJob) -> None:
+        backlog = self._backlog_behind()
+        if backlog > self.max_backlog:  # too far behind: this keyframe stays out of the map
+            self.shed["dropped"] += 1
+            return
+        if job.build is not None:  # outside the lock: renders go on meanwhile
+            with self.timings.measure("map_depth"):
+                job.K, job.grid, job.depth = job.build()
+            job.build = None
+        if self.on_keyframe_built is not None:
+            self.on_keyframe_built(job)
+        with self.lock:
+            self._map_keyframe(job, self._refine_iterations(backlog))
+
+    def _refine_iterations(self, backlog: int) -> int:
+        """This keyframe's refinement iterations after load shedding."""
+        iterations = self.cfg.refine_iterations
+        if iterations == 0 or self.cfg.shed_backlog == 0 or backlog <= self.cfg.shed_backlog:
+            return iterations
+        if backlog > self.cfg.merge_only_backlog:
+            self.shed["merge_only"] += 1
+            return 0
+        self.shed["reduced"] += 1
+        return max(1, iterations * self.cfg.shed_backlog // backlog)
+
+    def _map_keyframe(self, job: KeyframeJob, iterations: int) -> None:
+        g = job.grid
+        with self.timings.measure("map_merge"):
+            vox = voxelize(g["means"], g["quats"], g["scales"], g["opacities"], g["colors"], valid=g["valid"],
+                           tau_d=self.cfg.tau_depth, keyframe_id=job.kf_id,
+                           merged_scale_factor=self.cfg.merged_scale_factor
+                           ) if self.cfg.voxel_block > 1 else unmerged_surfels(g, job.kf_id)
+            self.map.add_keyframe(job.kf_id, torch.as_tensor(job.pose), job.K, job.image, vox.surfels,
+                                  depth=job.depth)
+        if iterations > 0:
+            with self.timings.measure("map_refine"):
+                self.map.refine(iterations)
+        self.keyframes_mapped += 1
+
+    def refine_all(self, passes: int) -> None:
+        """The end-of-run refinement: every surfel against every keyframe image the map still holds, `passes`
+        times over those keyframes."""
+        with self.lock, self.timings.measure("map_final_refine"):
+            self.map.refine_global(passes * self.map.held_images)
+
+    # -- reads ---------------------------------------------------------------------------------------------------
+    def render(self, pose_c2w: np.ndarray, K: torch.Tensor, width: int, height: int) -> Any:
+        with self.lock, torch.no_grad():
+            return self.map.render(torch.as_tensor(pose_c2w), K, width, height)
+
+    def num_gaussians(self) -> int:
+        with self.lock:
+            return int(self.map.num_gaussians)
+
+    def to_ply_bytes(self) -> bytes:
+        with self.lock:
+            return self.map.to_ply_bytes()
+
+    def state_dict(self) -> dict:
+        with self.lock:
+            return {"map": self.map.state_dict(), "keyframes_mapped": self.keyframes_mapped,
+                    "shed": dict(self.shed)}
+
+    def load_state_dict(self, d: dict) -> None:
+        with self.lock:
+            self.map.load_state_dict(d["map"])
+            self.keyframes_mapped = int(d["keyframes_mapped"])
+            self.shed.update({k: int(v) for k, v in (d.get("shed") or {}).items() if k in self.shed})

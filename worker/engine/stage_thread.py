@@ -1,0 +1,105 @@
+"""The shape every pipeline stage shares: an input queue served by one thread, or inline in the caller.
+
+A stage (mapping, loop closing) receives work items from the stage before it. `submit` never blocks the producer:
+the queue is unbounded and each stage bounds its own backlog by shedding work (it sees its backlog through
+`pending`). `at_marker(fn)` runs `fn` in the stage's thread once every item submitted before it is done: a
+consistent cut of the pipeline (snapshots) without stopping the producer. With `threaded=False` every item runs
+inline, in submission order: deterministic runs for tests and offline evaluation.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+from collections.abc import Callable
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+_STOP = object()
+
+
+class _Marker:
+    def __init__(self, action: Callable[[], None]) -> None:
+        self.action = action
+
+
+class StageThread:
+    """One input queue and the thread that serves it with `handle(item)` (see the module docstring)."""
+
+    def __init__(self, name: str, handle: Callable[[Any], None], threaded: bool) -> None:
+        self.name = name
+        self._handle = handle
+        self._error: BaseException | None = None
+        self._queue: queue.Queue | None = None
+        self._thread: threading.Thread | None = None
+        self._items = 0  # work items queued or running (markers not counted)
+        self._count_lock = threading.Lock()
+        if threaded:
+            self._queue = queue.Queue()
+            self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+            self._thread.start()
+
+    @property
+    def threaded(self) -> bool:
+        return self._queue is not None
+
+    @property
+    def pending(self) -> int:
+        """Work items submitted and not finished yet (the running one included)."""
+        return self._items
+
+    def submit(self, item: Any) -> None:
+        """Queue `item` (never blocks); handled at once when not threaded."""
+        self.raise_if_failed()
+        if self._queue is None:
+            self._handle(item)
+            return
+        with self._count_lock:
+            self._items += 1
+        self._queue.put(item)
+
+    def at_marker(self, action: Callable[[], None]) -> None:
+        """Run `action` in the stage's thread after every item submitted so far (at once when not threaded)."""
+        if self._queue is None:
+            action()
+        else:
+            self._queue.put(_Marker(action))
+
+    def wait_idle(self) -> None:
+        """Block until everything submitted is done; re-raise a failure of the stage."""
+        if self._queue is not None:
+            self._queue.join()
+        self.raise_if_failed()
+
+    def close(self) -> None:
+        """Stop the thread after the items already queued (idempotent)."""
+        if self._queue is not None and self._thread is not None and self._thread.is_alive():
+            self._queue.put(_STOP)
+            self._thread.join()
+        self._queue = None
+
+    def raise_if_failed(self) -> None:
+        if self._error is not None:
+            raise RuntimeError(f"the {self.name} stage failed: {self._error!r}") from self._error
+
+    def _run(self) -> None:
+        assert self._queue is not None
+        while True:
+            item = self._queue.get()
+            try:
+                if item is _STOP:
+                    return
+                if isinstance(item, _Marker):
+                    item.action()
+                elif self._error is None:
+                    self._handle(item)
+            except BaseException as err:  # noqa: BLE001 - reported to the producer on its next call
+                log.exception("%s stage: a work item failed", self.name)
+                self._error = err
+            finally:
+                if item is not _STOP and not isinstance(item, _Marker):
+                    with self._count_lock:
+                        self._items -= 1
+                self._queue.task_done()
