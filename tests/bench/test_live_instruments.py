@@ -1,6 +1,7 @@
 """The measuring instruments of `python -m bench live` and `python -m bench long` (issue 24): the paced pipelined
 client against a real stack (Redis, the gateway under uvicorn, a passthrough worker slower than the client, a
-queue of 4 frames, so backpressure is certain), and the forward-and-back frame order of the long-session bench."""
+queue of 4 frames: backpressure is certain, and frames may be skipped), and the forward-and-back frame order of the
+long-session bench."""
 
 from __future__ import annotations
 
@@ -48,14 +49,16 @@ def test_live_client_accounts_for_every_frame_under_backpressure() -> None:
         poses = httpx.get(f"{stack.url}/v1/sessions/{session_id}/trajectory").json()["poses"]
     assert run.failure is None
     assert run.rewinds > 0, "a 60 ms worker behind a 4-frame queue must refuse some of 30 frames/s"
-    assert all(f.acked is not None and f.pose is not None and f.poses == 1 for f in run.frames)
-    assert all(f.capture <= f.sent <= f.pose for f in run.frames), "a pose before its frame was sent"
-    assert run.frames[-1].pose - run.frames[-1].capture > 0.5, "40 frames at 60 ms each end well behind the clock"
+    # every frame acked, then exactly one result: a pose, or `skipped` where the worker skips under overload
+    assert all(f.acked is not None and (f.pose is None) != (f.skipped is None) and f.poses <= 1 for f in run.frames)
+    assert all(f.capture <= f.sent <= (f.pose or f.skipped) for f in run.frames), "a result before its frame"
+    assert run.frames[-1].pose is not None, "the newest frame is never skipped"
     args = SimpleNamespace(fps=FPS, mode="rgbd", kill_at=None)
     summary = summarize(run, [], {"status": "finished"}, {int(p["seq"]): np.asarray(p["pose"]).reshape(4, 4)
                                                           for p in poses}, [], args, {})
-    assert summary["acked"] == summary["with_pose"] == FRAMES
-    assert summary["acked_lost"] == 0 and summary["duplicate_poses"] == 0 and summary["skipped"] == 0
+    assert summary["acked"] == summary["with_pose"] + summary["skipped"] == FRAMES
+    assert summary["with_pose"] == len(poses), "the live poses are the trajectory's"
+    assert summary["acked_lost"] == 0 and summary["duplicate_poses"] == 0
     assert summary["resends"] > 0
     assert 0 < summary["latency_ms"][50] <= summary["latency_ms"][95] <= summary["latency_ms"][99]
     assert summary["finish_s"] is not None and summary["types"]["finished"] == 1
