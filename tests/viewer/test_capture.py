@@ -5,33 +5,21 @@ over the WebSocket contract with the acks' flow control, and the real engine rec
 from __future__ import annotations
 
 import asyncio
-import os
 import sys
 from pathlib import Path
 
 import cv2
 import numpy as np
-import pytest
 from live_stack import LiveStack
 
 from client.sdk import FlashMonoClient
 
 sys.path.insert(0, str(Path(__file__).parent))
-from cdp import Browser, ensure_chromium  # noqa: E402
+from cdp import Browser  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
 KEY = "phone"
 FPS = 5
-
-
-@pytest.fixture(scope="module")
-def chromium() -> str:
-    try:
-        return ensure_chromium()
-    except RuntimeError as err:
-        if os.environ.get("FLASHMONO_REQUIRE_CHROMIUM") == "1":
-            pytest.fail(f"headless Chromium is required here and unavailable: {err}")
-        pytest.skip(f"headless Chromium unavailable: {err}")
 
 
 def write_y4m(path: Path, frames: list[np.ndarray], fps: int) -> None:

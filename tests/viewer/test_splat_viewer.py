@@ -23,7 +23,7 @@ from client.streaming import WireOptions, open_frames
 from worker.mapping.splat_arrays import splat_arrays_from_ply
 
 sys.path.insert(0, str(Path(__file__).parent))
-from cdp import Browser, ensure_chromium  # noqa: E402
+from cdp import Browser  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
 ARTIFACTS = Path(os.environ.get("FLASHMONO_TEST_ARTIFACTS", REPO / ".test-artifacts")) / "viewer"
@@ -31,16 +31,6 @@ KEY = "splats"
 WIDTH, HEIGHT = 320, 240
 # software WebGL2 (SwiftShader): what a headless machine without a GPU has
 WEBGL_FLAGS = ["--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"]
-
-
-@pytest.fixture(scope="module")
-def chromium() -> str:
-    try:
-        return ensure_chromium()
-    except RuntimeError as err:
-        if os.environ.get("FLASHMONO_REQUIRE_CHROMIUM") == "1":
-            pytest.fail(f"headless Chromium is required here and unavailable: {err}")
-        pytest.skip(f"headless Chromium unavailable: {err}")
 
 
 def icl_frames(count: int = 12) -> list:

@@ -5,7 +5,6 @@ logs no console errors."""
 from __future__ import annotations
 
 import asyncio
-import os
 import sys
 from pathlib import Path
 
@@ -19,22 +18,11 @@ from client.sdk import FlashMonoClient
 from client.streaming import WireOptions, open_frames
 
 sys.path.insert(0, str(Path(__file__).parent))
-from cdp import Browser, ensure_chromium  # noqa: E402
+from cdp import Browser  # noqa: E402
 
 ENGINE = "passthrough"  # the page is under test, not the engine; the SLAM compute would only add minutes
 PRESET = "test"
 BACKGROUND = np.array([17, 14, 11])  # the canvas background #0b0e11, in BGR
-
-
-@pytest.fixture(scope="module")
-def chromium() -> str:
-    """Chromium, installed if needed; FLASHMONO_REQUIRE_CHROMIUM=1 turns a missing browser into a failure."""
-    try:
-        return ensure_chromium()
-    except RuntimeError as err:
-        if os.environ.get("FLASHMONO_REQUIRE_CHROMIUM") == "1":
-            pytest.fail(f"headless Chromium is required here and unavailable: {err}")
-        pytest.skip(f"headless Chromium unavailable: {err}")
 
 
 @pytest.fixture(scope="module")

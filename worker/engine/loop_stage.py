@@ -20,7 +20,7 @@ import torch
 
 from worker.config import LoopConfig
 from worker.engine.loop_closer import DepthKeyframePoints, LoopCloser
-from worker.engine.stage_thread import StageThread
+from worker.engine.stage_thread import QueuedStage, StageThread
 from worker.engine.stage_times import StageTimes
 from worker.geometry import Intrinsics, se3_part
 from worker.loop.pose_graph import Sim3PoseGraph
@@ -68,7 +68,7 @@ class LoopCorrection:
 DepthAligner = Callable[[int, int, np.ndarray, Intrinsics | None], np.ndarray | None]
 
 
-class LoopClosingStage:
+class LoopClosingStage(QueuedStage):
     """Pose graph + loop closer behind an input queue (see the module docstring)."""
 
     def __init__(self, cfg: LoopConfig, pose_graph: Sim3PoseGraph, closer: LoopCloser | None,
@@ -84,27 +84,6 @@ class LoopClosingStage:
         self._corrections: list[LoopCorrection] = []
         self._corrections_lock = threading.Lock()
         self._stage = StageThread("loop-closing", self._process, threaded)
-
-    # -- submission ------------------------------------------------------------------------------------------------
-    def submit(self, item: GraphKeyframe | LoopQuery | CameraUpdate) -> None:
-        """Queue a keyframe node or a loop query; never blocks (inline when not threaded)."""
-        self._stage.submit(item)
-
-    def at_marker(self, action: Callable[[], None]) -> None:
-        self._stage.at_marker(action)
-
-    def wait_idle(self) -> None:
-        self._stage.wait_idle()
-
-    def close(self) -> None:
-        self._stage.close()
-
-    def raise_if_failed(self) -> None:
-        self._stage.raise_if_failed()
-
-    @property
-    def pending(self) -> int:
-        return self._stage.pending
 
     def take_corrections(self) -> list[LoopCorrection]:
         """The corrections made since the last call, oldest first."""

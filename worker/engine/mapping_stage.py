@@ -22,14 +22,14 @@ import torch
 
 from worker.config import MappingConfig
 from worker.engine.backend import KeyframeJob, PoseUpdateJob, build_gaussian_map, unmerged_surfels
-from worker.engine.stage_thread import StageThread
+from worker.engine.stage_thread import QueuedStage, StageThread
 from worker.engine.stage_times import StageTimes
 from worker.mapping.voxelize import voxelize
 
 SHED_KINDS = ("reduced", "merge_only", "dropped")
 
 
-class MappingStage:
+class MappingStage(QueuedStage):
     """Map jobs in its own thread (or inline), with load shedding; serves renders and exports under a lock."""
 
     def __init__(self, cfg: MappingConfig, threaded: bool, max_backlog: int, device: str = "cpu",
@@ -56,25 +56,6 @@ class MappingStage:
             with self._waiting_lock:
                 self._waiting.append((job.kf_id, time.monotonic()))
         self._stage.submit(job)
-
-    def at_marker(self, action: Callable[[], None]) -> None:
-        """Run `action` in the stage's thread once every job submitted so far is done (see StageThread)."""
-        self._stage.at_marker(action)
-
-    def wait_idle(self) -> None:
-        """Block until every submitted job is done."""
-        self._stage.wait_idle()
-
-    def close(self) -> None:
-        self._stage.close()
-
-    def raise_if_failed(self) -> None:
-        self._stage.raise_if_failed()
-
-    @property
-    def pending(self) -> int:
-        """Jobs submitted and not done yet."""
-        return self._stage.pending
 
     def lag(self) -> tuple[int, float]:
         """(keyframes waiting to be mapped, seconds the oldest of them has waited)."""

@@ -103,3 +103,33 @@ class StageThread:
                     with self._count_lock:
                         self._items -= 1
                 self._queue.task_done()
+
+
+class QueuedStage:
+    """Base of the pipeline's stages: the queue-and-thread controls, delegated to `self._stage` (a StageThread the
+    subclass makes with its own handler)."""
+
+    _stage: StageThread
+
+    def submit(self, item: Any) -> None:
+        """Queue a work item; never blocks (handled at once when not threaded)."""
+        self._stage.submit(item)
+
+    def at_marker(self, action: Callable[[], None]) -> None:
+        """Run `action` in the stage's thread once every item submitted so far is done."""
+        self._stage.at_marker(action)
+
+    def wait_idle(self) -> None:
+        """Block until every submitted item is done."""
+        self._stage.wait_idle()
+
+    def close(self) -> None:
+        self._stage.close()
+
+    def raise_if_failed(self) -> None:
+        self._stage.raise_if_failed()
+
+    @property
+    def pending(self) -> int:
+        """Items submitted and not done yet."""
+        return self._stage.pending
