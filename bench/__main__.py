@@ -11,6 +11,8 @@ import pkgutil
 import sys
 from pathlib import Path
 
+ALIASES = {"long": "long_session"}  # `python -m bench long` runs bench/long_session.py
+
 
 def main(argv: list[str]) -> int:
     split = next((i for i, a in enumerate(argv) if a.startswith("-")), len(argv))
@@ -19,7 +21,7 @@ def main(argv: list[str]) -> int:
         names = sorted(m.name for m in pkgutil.iter_modules([str(Path(__file__).parent)]) if m.name != "__main__")
     status = 0
     for name in names:
-        module = importlib.import_module(f"bench.{name}")
+        module = importlib.import_module(f"bench.{ALIASES.get(name, name)}")
         if hasattr(module, "main"):
             print(f"== bench.{name}", flush=True)
             status |= int(module.main(options) or 0)
