@@ -60,7 +60,7 @@ def _camera(frames) -> dict:
 def test_sync_client_streams_and_fetches_results(stack, frames) -> None:
     events = []
     with FlashMonoClient(stack.url, api_key="streamer") as client:
-        session = client.create_session(intrinsics=frames[0].intrinsics, preset=PRESET, skip_frames=False, name="sync-walk",
+        session = client.create_session(intrinsics=frames[0].intrinsics, preset=PRESET, name="sync-walk",
                                         device_id="phone-1", metadata={"app": "tests"})
         assert session.status == "created" and session.name == "sync-walk" and session.device_id == "phone-1"
         summary = client.stream(session.id, frames, on_event=events.append, wire=RGBD_POSED, max_pending=3)
@@ -93,7 +93,7 @@ def test_sync_client_streams_and_fetches_results(stack, frames) -> None:
 def test_async_client_yields_live_events_while_streaming(stack, frames) -> None:
     async def scenario() -> tuple[list, object]:
         async with AsyncFlashMonoClient(stack.url, api_key="streamer") as client:
-            session = await client.create_session(intrinsics=frames[0].intrinsics, preset=PRESET, skip_frames=False, name="async")
+            session = await client.create_session(intrinsics=frames[0].intrinsics, preset=PRESET, name="async")
             received = []
             async with client.open_stream(session.id, wire=RGBD_POSED, max_pending=3) as stream:
                 async def consume() -> None:
@@ -117,7 +117,7 @@ def test_async_client_yields_live_events_while_streaming(stack, frames) -> None:
 
 def test_backpressure_is_honoured_without_reordering(stack, frames) -> None:
     with FlashMonoClient(stack.url, api_key="streamer") as client:
-        session = client.create_session(intrinsics=frames[0].intrinsics, preset=PRESET, skip_frames=False, name="greedy")
+        session = client.create_session(intrinsics=frames[0].intrinsics, preset=PRESET, name="greedy")
         summary = client.stream(session.id, frames, wire=RGBD_POSED, window=16, max_pending=16)
         # The server (queue of 3) refused frames; the client backed off and re-sent them under their seqs: none lost.
         assert summary.backpressure_retries > 0
@@ -154,7 +154,7 @@ def test_refused_frames_are_reported_and_the_stream_continues(stack, frames) -> 
     # A square frame without intrinsics cannot belong to the session's 4:3 camera: the gateway refuses it.
     square = Frame(index=1, timestamp=frames[1].timestamp, image=np.zeros((120, 120, 3), np.uint8))
     with FlashMonoClient(stack.url, api_key="streamer") as client:
-        session = client.create_session(intrinsics=frames[0].intrinsics, preset=PRESET, skip_frames=False, name="mixed")
+        session = client.create_session(intrinsics=frames[0].intrinsics, preset=PRESET, name="mixed")
         summary = client.stream(session.id, [frames[0], square, frames[2]], wire=RGBD_POSED, max_pending=3)
     assert [(e["code"], e["seq"]) for e in summary.errors] == [("bad_intrinsics", 1)]
     assert "aspect ratio" in summary.errors[0]["message"]
@@ -175,7 +175,7 @@ def test_streams_from_a_video_file_and_an_image_folder(stack, frames, tmp_path: 
     options = {"intrinsics": k}  # neither a video nor a folder of images knows its camera
     with FlashMonoClient(stack.url, api_key="streamer") as client:
         for source, count in ((video, 5), (folder, 4)):
-            session = client.create_session(intrinsics=k, preset=PRESET, skip_frames=False, name=source.name)
+            session = client.create_session(intrinsics=k, preset=PRESET, name=source.name)
             summary = client.stream(session.id, str(source), source_options=options, max_pending=3)
             assert [p.seq for p in summary.poses] == list(range(count)), source
             assert client.get_session(session.id).frames_processed == count

@@ -4,7 +4,7 @@ import math
 import time
 
 import torch
-from mapping_scene import HEIGHT, WIDTH, camera_pose, intrinsics, psnr, view, voxelized_surfels
+from mapping_scene import HEIGHT, WIDTH, camera_pose, intrinsics, view, voxelized_surfels
 
 from worker.mapping.fusion import FusionThresholds
 from worker.mapping.gaussian_map import GaussianMap, MapConfig
