@@ -272,7 +272,7 @@ async def stream_case(stack, frames, intrinsics, messages: list[bytes], args) ->
 
     async with httpx.AsyncClient(base_url=stack.base_url, timeout=120) as http:
         k = intrinsics
-        body = {"name": "bench-live", "preset": args.preset,
+        body = {"name": "bench-live", "preset": args.preset, "skip_frames": not args.every_frame,
                 "intrinsics": {"width": k.width, "height": k.height, "fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy}}
         created = await http.post("/v1/sessions", json=body)
         created.raise_for_status()
@@ -506,6 +506,8 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--fps", type=float, default=30.0, help="the client's frame rate")
     parser.add_argument("--frames", type=int, default=None, help="at most this many frames")
     parser.add_argument("--preset", default="rgbd")
+    parser.add_argument("--every-frame", action="store_true",
+                        help="a session without live skipping (skip_frames false): every frame tracked however late")
     parser.add_argument("--kill-at", type=float, default=None,
                         help="SIGKILL the owning worker when this fraction of the frames is sent")
     parser.add_argument("--psnr-every", type=int, default=5, help="render every N-th non-keyframe (0: no PSNR)")
