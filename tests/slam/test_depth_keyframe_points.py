@@ -19,7 +19,7 @@ def test_points_come_from_the_depth_and_follow_a_new_camera():
     want = unproject_depth(depth, K)
     assert torch.allclose(points, want, rtol=1e-3, atol=1e-3)
     assert torch.equal(conf, (want[..., 2] > 0).float() + 1.0)
-    assert store.depth[7].dtype == torch.float16 and store.depth[7].shape == depth.shape
+    assert store.depths[7].dtype == torch.float16 and store.depths[7].shape == depth.shape
     restored = DepthKeyframePoints()
     restored.load_state_dict(unpack(pack(store.state_dict())))
     assert torch.equal(restored.keyframe_points(7)[0], points) and len(restored) == 1
