@@ -112,6 +112,12 @@ class MappingConfig(_Section):
     final_refine_passes: int = Field(
         0, ge=0, le=1000, description="refinement at finish(): passes over every keyframe whose image is held "
         "(window + archive), one iteration per keyframe per pass, in a seeded random order")
+    final_refine_budget_s: float = Field(
+        25.0, ge=0, description="finish(): the final refinement stops after this many seconds whatever its passes "
+        "(0 = no bound), so finishing a long session stays bounded")
+    voxel_cap: int = Field(
+        64, ge=0, description="surfels per world voxel at most; a revisited voxel takes new surfels only from a "
+        "clearly finer view (0 = no cap)")
     shed_backlog: int = Field(
         2, ge=0, description="load shedding: with more keyframes than this waiting, each keyframe's refinement "
         "shrinks in proportion (iterations x shed_backlog / backlog) and trains no archived views; 0 = never shed")

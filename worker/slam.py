@@ -99,7 +99,6 @@ class SlamSystem:
         self.counters: dict[str, float] = {"frames": 0, "keyframes": 0, "loops": 0, "frontend_seconds": 0.0,
                                            "wall_seconds": 0.0, "path_given": 0.0, "path_tracked": 0.0}
         self._frame_size: tuple[int, int] | None = None
-        self._keyframe_images: dict[int, np.ndarray] = {}
         self._finished = False
         self.model_id: str | None = None
         self.model = None

@@ -52,6 +52,8 @@ def build_gaussian_map(cfg: MappingConfig, device: str):
         refine=RefineSettings(lambda_ssim=cfg.ssim_weight, lambda_depth=cfg.depth_weight),
         archived_images=cfg.archived_images,
         archived_views_per_refine=cfg.archived_views_per_refine,
+        voxel_cap=cfg.voxel_cap,
+        final_refine_budget_s=cfg.final_refine_budget_s or None,
         device=device,
     ))
 
