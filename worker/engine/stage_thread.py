@@ -10,6 +10,7 @@ inline, in submission order: deterministic runs for tests and offline evaluation
 from __future__ import annotations
 
 import logging
+import os
 import queue
 import threading
 from collections.abc import Callable
@@ -18,6 +19,10 @@ from typing import Any
 log = logging.getLogger(__name__)
 
 _STOP = object()
+# A stage's thread runs this much nicer than the process (Linux threads have their own nice value): tracking, in the
+# caller's thread, gets a core first; mapping and loop closing take what is left (and their torch workers, created
+# from them, inherit it).
+BACKGROUND_NICE = 10
 
 
 class _Marker:
@@ -86,6 +91,7 @@ class StageThread:
 
     def _run(self) -> None:
         assert self._queue is not None
+        _lower_priority(BACKGROUND_NICE)
         while True:
             item = self._queue.get()
             try:
@@ -133,3 +139,12 @@ class QueuedStage:
     def pending(self) -> int:
         """Items submitted and not done yet."""
         return self._stage.pending
+
+
+def _lower_priority(increment: int) -> None:
+    """Make the calling thread `increment` nicer (best effort: where threads share one priority, nothing)."""
+    try:
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, min(19, os.getpriority(os.PRIO_PROCESS, tid) + increment))
+    except (AttributeError, OSError):
+        pass
