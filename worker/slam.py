@@ -116,6 +116,7 @@ class SlamSystem:
         self._previous_poses: tuple[np.ndarray, np.ndarray] | None = None
         self._last_frame: tuple[Frame, bool] | None = None  # the newest frame and whether tracking held
         self.last_frame_mapped: int | None = None  # the final frame's index when finish() mapped it too
+        self.finish_events: list[dict[str, Any]] = []  # loop events finish() applied (no frame result carries them)
 
     # ------------------------------------------------------------------------------------------------ public API
     @property
@@ -173,7 +174,8 @@ class SlamSystem:
             self._flush_map_jobs(force=True)
             self.backend.wait_idle()
         self.loop_stage.wait_idle()
-        if self._apply_corrections() and self.backend is not None:
+        self.finish_events = self._apply_corrections()  # loops the stage closed after the last frame
+        if self.finish_events and self.backend is not None:
             self.backend.wait_idle()
         if self.backend is not None:
             if self.config.mapping.final_refine_passes:

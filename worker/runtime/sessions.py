@@ -556,8 +556,13 @@ class SessionRunner(threading.Thread):
             self._lease_lost.set()
             raise LeaseLost
         failpoint("finish:engine")
-        self._revision = int(getattr(self.engine, "revision", self._revision))
-        self._store_trajectory()
+        revision = int(getattr(self.engine, "revision", self._revision))
+        late_loops = list(getattr(self.engine, "finish_events", []))  # closed while finishing: told like the others
+        if late_loops:
+            self._publish_revision(revision, late_loops)
+        else:
+            self._revision = revision
+            self._store_trajectory()
         self._publish_live_stats(force=True)  # drained: the lag reads 0 from now on
         failpoint("finish:trajectory")
         last_seq = max(self._done_seqs) if self._done_seqs else -1
