@@ -79,6 +79,7 @@ def run_sequence(
         if unknown_intrinsics:
             frame.intrinsics = None
         results.append(system.push(frame))
+        _wait_for_mapping(system, config.queue_size // 2)
         frames.append(frame if k % hold_every == 0 else _without_pixels(frame))
         if progress is not None:
             progress(k + 1, total)
@@ -130,6 +131,14 @@ def run_sequence(
 def _without_pixels(frame: Frame) -> Frame:
     """The frame's poses only (for the trajectory metrics), without its image and depth."""
     return Frame(frame.index, frame.timestamp, np.zeros((1, 1, 3), np.uint8), pose=frame.pose, gt_pose=frame.gt_pose)
+
+
+def _wait_for_mapping(system, backlog: int) -> None:
+    """Recorded frames can wait: hold the next frame while mapping has more than `backlog` keyframes waiting, so an
+    offline run never makes the mapping stage drop keyframes as a live stream would (sources that outrun any
+    mapping, such as given poses, would otherwise leave holes in the map)."""
+    while system.live_stats()["mapping_lag_keyframes"] > backlog:
+        time.sleep(0.005)
 
 
 def _dataset_name(source: str | Path) -> str:
