@@ -26,6 +26,7 @@ from worker.runtime.partitions import PartitionReader
 from worker.runtime.record import abandon_unstarted
 from worker.runtime.requests import handle_request
 from worker.runtime.sessions import RuntimeConfig, SessionRunner, ensure_group
+from worker.runtime.snapshots import read_snapshot
 from worker.runtime.stats import StageStats
 
 log = logging.getLogger(__name__)
@@ -276,7 +277,8 @@ class Worker:
 
     def _finished_engine(self, session_id: str) -> SessionEngine | None:
         """The engine of a finished session, restored from its snapshot (a small LRU cache)."""
-        snap = self.client.hmget(keys.snapshot(session_id), ["stream_id", "engine", "data"])
+        stored = read_snapshot(self.client, session_id)
+        snap = [None, None, None] if stored is None else [stored.stream_id, stored.engine.encode(), stored.data]
         if snap[2] is None and self.blobs is not None:  # archived: the snapshot lives in the blob store
             archived = self.blobs.snapshot(session_id) or {}
             snap = [archived.get(b"stream_id"), archived.get(b"engine"), archived.get(b"data")]
@@ -286,7 +288,7 @@ class Worker:
         if cache_key in self._finished_engines:
             self._finished_engines.move_to_end(cache_key)
             return self._finished_engines[cache_key]
-        engine = restore_engine(snap[1].decode(), snap[2])
+        engine = restore_engine(snap[1].decode(), snap[2], None if stored is None else stored.chunks)
         self._finished_engines[cache_key] = engine
         while len(self._finished_engines) > 4:
             close_engine(self._finished_engines.popitem(last=False)[1])

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import redis
 
+from worker.engine.snapshot_chunks import ChunkWrite
 from worker.geometry import Intrinsics
 from worker.runtime import keys
 from worker.runtime.engine import SessionEngine, close_engine, create_engine, engine_intrinsics, restore_engine
@@ -32,6 +33,7 @@ from worker.runtime.quarantine import FrameAttempts
 from worker.runtime.record import SessionRecord
 from worker.runtime.requests import handle_request
 from worker.runtime.similarity import similarity_scale
+from worker.runtime.snapshots import SnapshotWriter, read_snapshot
 from worker.runtime.stats import StageStats
 from worker.serialization import pack, unpack
 
@@ -66,16 +68,6 @@ end
 redis.call('XACK', KEYS[4], 'workers', ARGV[4])
 return new
 """
-
-_STORE_SNAPSHOT = """
-if redis.call('EXISTS', KEYS[4]) == 0 then return -1 end
-if redis.call('GET', KEYS[3]) ~= ARGV[1] then return -2 end
-redis.call('HSET', KEYS[1], 'data', ARGV[2], 'seq', ARGV[3], 'stream_id', ARGV[4], 'engine', ARGV[5],
-           'created_at', ARGV[6])
-redis.call('XTRIM', KEYS[2], 'MINID', ARGV[4])
-return 1
-"""
-
 
 @dataclass
 class RuntimeConfig:
@@ -171,7 +163,7 @@ class SessionRunner(threading.Thread):
         self._session: dict[str, Any] = {}
         self._store_result = client.register_script(_STORE_RESULT)
         self._store_rejection = client.register_script(_STORE_REJECTION)
-        self._store_snapshot = client.register_script(_STORE_SNAPSHOT)
+        self._snapshots = SnapshotWriter(client, session_id, worker_id)
         self._attempts = FrameAttempts(client, session_id, config.max_frame_attempts)
         self._record = SessionRecord(client, session_id)
         self._snapshot_in_flight: tuple[Any, int, bytes] | None = None  # (future, seq, entry id)
@@ -244,11 +236,12 @@ class SessionRunner(threading.Thread):
     def _restore_and_replay(self) -> None:
         ensure_group(self.client, keys.inbox(self.session_id))
         ensure_group(self.client, keys.session_requests(self.session_id))
-        snap = self.client.hgetall(keys.snapshot(self.session_id))
-        if snap:
-            self.engine = restore_engine(snap[b"engine"].decode(), snap[b"data"])
-            self._last_id = snap[b"stream_id"]
-            log.info("session %s restored from snapshot at seq %s", self.session_id, snap[b"seq"].decode())
+        snap = read_snapshot(self.client, self.session_id)
+        if snap is not None:
+            self.engine = restore_engine(snap.engine, snap.data, snap.chunks)
+            self._snapshots.restored(snap)
+            self._last_id = snap.stream_id
+            log.info("session %s restored from snapshot at seq %s", self.session_id, snap.seq)
         else:
             intrinsics = self._session_intrinsics()
             self.engine = create_engine(self.config.engine_kind, self._session.get("preset") or None,
@@ -521,14 +514,14 @@ class SessionRunner(threading.Thread):
         stopping (`begin_snapshot`) delivers it later and `_store_finished_snapshot` stores it then; one snapshot
         at a time is in flight (a later one is asked for at the next keyframe). `wait` stores it now."""
         begin = getattr(self.engine, "begin_snapshot", None)
-        if begin is None or wait:
+        if begin is None or wait:  # self-contained: a finished session's snapshot is read without its chunks
             self._snapshot_in_flight = None  # superseded by this one
-            self._store_snapshot_blob(self.engine.snapshot(), seq, entry_id)
+            self._store_snapshot_blob(self.engine.snapshot(), None, seq, entry_id)
             self._keyframes_since_snapshot = 0
             return
         if self._snapshot_in_flight is not None:
             return
-        self._snapshot_in_flight = (begin(), seq, entry_id)
+        self._snapshot_in_flight = (begin(stored_chunks=dict(self._snapshots.stored_chunks)), seq, entry_id)
         self._keyframes_since_snapshot = 0
 
     def _store_finished_snapshot(self) -> None:
@@ -537,14 +530,11 @@ class SessionRunner(threading.Thread):
             return
         future, seq, entry_id = self._snapshot_in_flight
         self._snapshot_in_flight = None
-        self._store_snapshot_blob(future.result(), seq, entry_id)
+        self._store_snapshot_blob(future.result(), getattr(future, "chunks", None), seq, entry_id)
 
-    def _store_snapshot_blob(self, blob: bytes, seq: int, entry_id: bytes) -> None:
+    def _store_snapshot_blob(self, blob: bytes, chunks: ChunkWrite | None, seq: int, entry_id: bytes) -> None:
         t0 = time.perf_counter()
-        status = self._store_snapshot(
-            keys=[keys.snapshot(self.session_id), keys.inbox(self.session_id), keys.lease(self.session_id),
-                  keys.session(self.session_id)],
-            args=[self.worker_id, blob, seq, entry_id, self.config.engine_kind, now_iso()])
+        status = self._snapshots.write(blob, chunks, seq, entry_id, self.config.engine_kind, now_iso())
         self._check_store_status(status)
         self._last_id = entry_id
         self.stats.add("snapshot", time.perf_counter() - t0)
