@@ -43,6 +43,7 @@ class Worker:
         self.stats = StageStats()
         self.runners: dict[str, SessionRunner] = {}
         self._waiting: dict[str, str] = {}  # session id -> job id claimed while the old lease had not expired yet
+        self._claimed_at: dict[str, float] = {}  # session id -> wall time its job was claimed from a silent worker
         self._stopping = threading.Event()
         self._next_claim = 0.0
         self._deferred: dict[str, str] = {}  # session id -> job id of sessions created but not streamed yet
@@ -141,6 +142,7 @@ class Worker:
                         session_id = fields[b"session_id"].decode()
                         if session_id not in self.runners:
                             log.info("claimed the job of session %s from a silent worker", session_id)
+                            self._claimed_at[session_id] = time.time()
                             self._take(session_id, job_id.decode())
                     else:  # the entry was trimmed away
                         self.client.xack(stream, keys.GROUP, job_id)
@@ -173,6 +175,7 @@ class Worker:
                            message_ids=[job_id], justid=True)
         runner = SessionRunner(self.client, self.worker_id, session_id, job_id, self.leases, self.config,
                                self.stats)
+        runner.claimed_at = self._claimed_at.pop(session_id, None)
         self.runners[session_id] = runner
         runner.start()
         log.info("session %s started on %s", session_id, self.worker_id)

@@ -170,6 +170,8 @@ class SessionRunner(threading.Thread):
         self._consecutive_skips = 0
         self._tracking_state: str | None = None
         self._live_stats_at = 0.0
+        self.claimed_at: float | None = None  # wall time the worker claimed a silent worker's job (takeovers)
+        self._timeline: dict[str, Any] | None = None  # until the first pose: the phases of taking the session
 
     # --- control from the worker --------------------------------------------------------------------------------
     def stop(self) -> None:
@@ -181,6 +183,7 @@ class SessionRunner(threading.Thread):
 
     # --- thread body --------------------------------------------------------------------------------------------
     def run(self) -> None:
+        self._timeline = {"worker": self.worker_id, "claimed_at": self.claimed_at, "started_at": time.time()}
         try:
             self._load_session()
             self._restore_and_replay()
@@ -242,6 +245,7 @@ class SessionRunner(threading.Thread):
             self._snapshots.restored(snap)
             self._last_id = snap.stream_id
             log.info("session %s restored from snapshot at seq %s", self.session_id, snap.seq)
+            self._timeline.update(restored_at=time.time(), snapshot_seq=snap.seq, replayed=0)
         else:
             intrinsics = self._session_intrinsics()
             self.engine = create_engine(self.config.engine_kind, self._session.get("preset") or None,
@@ -272,6 +276,8 @@ class SessionRunner(threading.Thread):
                 self._store_finished_snapshot()
             self._publish_live_stats()  # a stream that keeps coming is caught up on here
         self._cursor = stream_id_tuple(after)
+        if self._timeline is not None:
+            self._timeline["replay_done_at"] = time.time()
         self._resume_interrupted_finish()
 
     def _process_until_done(self) -> None:
@@ -381,6 +387,8 @@ class SessionRunner(threading.Thread):
     def _replay_frame(self, fields: dict[bytes, bytes]) -> None:
         """Feed an already-counted frame to a restored engine so its state catches up (no results emitted)."""
         if int(fields[b"seq"]) not in self._rejected:
+            if self._timeline is not None:
+                self._timeline["replayed"] = self._timeline.get("replayed", 0) + 1
             try:
                 self.engine.push(decode_frame(unpack(fields[b"msg"]), self._session_intrinsics(),
                                               self.config.max_frame_side))
@@ -417,6 +425,8 @@ class SessionRunner(threading.Thread):
                   self.config.outbox_maxlen, self.worker_id])
         self._check_store_status(status)
         self._done_seqs.add(seq)
+        if self._timeline is not None:
+            self._publish_timeline(seq)
         t3, c3 = time.perf_counter(), time.thread_time()
         self.stats.add("decode", t1 - t0)
         self.stats.add("engine", t2 - t1)
@@ -438,6 +448,14 @@ class SessionRunner(threading.Thread):
             self._keyframes_since_snapshot += 1
             if self._keyframes_since_snapshot >= self.config.snapshot_every_keyframes:
                 self._write_snapshot(seq, entry_id)
+
+    def _publish_timeline(self, seq: int) -> None:
+        """The first pose since this worker took the session: its phases (wall times: claimed, started, restored,
+        replayed, first pose) go to the record's `takeover` field, for the kill benchmarks."""
+        timeline, self._timeline = self._timeline, None
+        timeline.update(first_pose_at=time.time(), first_pose_seq=seq)
+        if not self._record.update({"takeover": json.dumps(timeline)}):
+            raise SessionGone
 
     def _publish_estimated_intrinsics(self) -> None:
         """Once the engine knows the camera (given, or estimated from monocular frames), put it in the session
