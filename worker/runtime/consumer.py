@@ -31,6 +31,10 @@ from worker.runtime.stats import StageStats
 
 log = logging.getLogger(__name__)
 
+STALE_SCAN_COUNT = 200  # pending jobs per partition looked at for the next stale deadline
+STALE_MARGIN_S = 0.01  # past a job's stale deadline: XAUTOCLAIM's idle test must pass by then
+WAITING_RETRY_MS = 50  # a claimed session whose old lease is still there is tried again this soon
+
 
 class Worker:
     """One worker process's runtime. `run()` blocks until `shutdown()` (or SIGTERM in main.py)."""
@@ -114,7 +118,7 @@ class Worker:
         self._reap_runners()
         if time.monotonic() >= self._next_claim:
             self._claim_stale_jobs()
-            self._next_claim = time.monotonic() + self.config.lease_ttl_ms / 2000
+            self._next_claim = self._next_stale_at()
         for session_id, job_id in list(self._waiting.items()):
             self._take(session_id, job_id)
         if self._deferred and time.monotonic() >= self._next_deferred_check:
@@ -123,7 +127,9 @@ class Worker:
         if len(self.runners) >= self.config.max_sessions or over_budget(self.config.memory_budget_mb):
             time.sleep(0.05)
             return
-        for index, (_stream, job_id, fields) in enumerate(self._jobs.read(self.client, self.worker_id)):
+        due_ms = WAITING_RETRY_MS if self._waiting else int(1000 * max(0.0, self._next_claim - time.monotonic()))
+        for index, (_stream, job_id, fields) in enumerate(self._jobs.read(self.client, self.worker_id,
+                                                                          within_ms=due_ms + 1)):
             if index == 0:
                 self._take(fields[b"session_id"].decode(), job_id.decode())
             else:  # one job per read, as from a single queue: the others go back for any worker
@@ -148,6 +154,24 @@ class Worker:
                         self.client.xack(stream, keys.GROUP, job_id)
                 if start in (b"0-0", "0-0"):
                     break
+
+    def _next_stale_at(self) -> float:
+        """When (monotonic) the next job another worker holds goes stale if that worker stays silent: its last
+        heartbeat refreshed the job, so it goes stale a lease TTL after that. The jobs loop wakes then, rather than
+        polling, so a dead worker's sessions are taken as soon as its lease can have expired."""
+        now = time.monotonic()
+        ttl_s = self.config.lease_ttl_ms / 1000
+        soonest = now + ttl_s / 2  # jobs claimed or taken meanwhile are seen within half a lease
+        pipe = self.client.pipeline(transaction=False)
+        for stream in keys.JOB_STREAMS:
+            pipe.xpending_range(stream, keys.GROUP, min="-", max="+", count=STALE_SCAN_COUNT)
+        for pending in pipe.execute():
+            for entry in pending:
+                consumer = entry["consumer"].decode() if isinstance(entry["consumer"], bytes) else entry["consumer"]
+                if consumer != self.worker_id:
+                    idle_s = entry["time_since_delivered"] / 1000
+                    soonest = min(soonest, now + max(0.0, ttl_s - idle_s) + STALE_MARGIN_S)
+        return soonest
 
     def _take(self, session_id: str, job_id: str) -> None:
         """Own the session if it still needs running and its lease is free."""

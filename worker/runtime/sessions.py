@@ -76,6 +76,9 @@ class RuntimeConfig:
     engine_kind: str = "slam"
     lease_ttl_ms: int = 2_500
     snapshot_every_keyframes: int = 5
+    # ... or this often (seconds; 0: by keyframes only): the frames a new owner replays after a crash are those
+    # since the newest stored snapshot, so a still camera (no keyframes) must not leave it far behind either.
+    snapshot_every_s: float = 1.0
     max_sessions: int = 16
     block_ms: int = 500
     outbox_maxlen: int = 5000
@@ -167,6 +170,7 @@ class SessionRunner(threading.Thread):
         self._attempts = FrameAttempts(client, session_id, config.max_frame_attempts)
         self._record = SessionRecord(client, session_id)
         self._snapshot_in_flight: tuple[Any, int, bytes] | None = None  # (future, seq, entry id)
+        self._snapshot_begun_at = time.monotonic()
         self._consecutive_skips = 0
         self._tracking_state: str | None = None
         self._live_stats_at = 0.0
@@ -277,7 +281,7 @@ class SessionRunner(threading.Thread):
             self._publish_live_stats()  # a stream that keeps coming is caught up on here
         self._cursor = stream_id_tuple(after)
         if self._timeline is not None:
-            self._timeline["replay_done_at"] = time.time()
+            self._timeline.setdefault("replay_done_at", time.time())
         self._resume_interrupted_finish()
 
     def _process_until_done(self) -> None:
@@ -396,6 +400,8 @@ class SessionRunner(threading.Thread):
                 log.warning("replay of seq %s failed: %s", fields[b"seq"], err)
 
     def _process_frame(self, entry_id: bytes, seq: int, fields: dict[bytes, bytes]) -> None:
+        if self._timeline is not None:
+            self._timeline.setdefault("replay_done_at", time.time())
         if not self._attempts.begin(seq):  # before anything that could take the worker down with this frame
             raise SessionGone
         t0, c0 = time.perf_counter(), time.thread_time()
@@ -446,8 +452,10 @@ class SessionRunner(threading.Thread):
             self._publish_estimated_intrinsics()
         if result.is_keyframe:
             self._keyframes_since_snapshot += 1
-            if self._keyframes_since_snapshot >= self.config.snapshot_every_keyframes:
-                self._write_snapshot(seq, entry_id)
+        every_s = self.config.snapshot_every_s
+        if (self._keyframes_since_snapshot >= self.config.snapshot_every_keyframes
+                or (every_s > 0 and time.monotonic() - self._snapshot_begun_at >= every_s)):
+            self._write_snapshot(seq, entry_id)
 
     def _publish_timeline(self, seq: int) -> None:
         """The first pose since this worker took the session: its phases (wall times: claimed, started, restored,
@@ -540,6 +548,7 @@ class SessionRunner(threading.Thread):
         if self._snapshot_in_flight is not None:
             return
         self._snapshot_in_flight = (begin(stored_chunks=dict(self._snapshots.stored_chunks)), seq, entry_id)
+        self._snapshot_begun_at = time.monotonic()
         self._keyframes_since_snapshot = 0
 
     def _store_finished_snapshot(self) -> None:
