@@ -16,6 +16,11 @@ PNG plot and a CSV of the per-frame rows, and prints a table by frame-count buck
 odometry (frame to frame, bench/rgbd_odometry.py) is timed on the first and the last `--open3d-window` frames as
 the CPU peer (skipped with a note when `open3d` is not installed).
 
+`--snapshot-every N` measures the worker's snapshot every N frames: the bytes a chunked snapshot write carries
+(`SlamSystem.begin_snapshot(stored_chunks)`: the snapshot plus the trajectory chunks not stored yet, what the worker
+writes to Redis) against a self-contained one (what each write carried before: the same plus every sealed chunk),
+the snapshot's parts (tracking, map, loop closing), and the time to restore from it.
+
 Long runs checkpoint: `--checkpoint-dir D` saves the engine snapshot (SlamSystem.snapshot) and the rows every
 `--checkpoint-every` frames; running the same command again resumes from the newest checkpoint.
 
@@ -147,6 +152,8 @@ def run(args, out_rows: list[dict], checkpoint: Path | None) -> dict[str, Any]:
         gt = {}
     torch.set_num_threads(args.threads)
     clock = StageClock(system)
+    snapshots: list[dict[str, Any]] = []
+    chunks: dict[int, tuple[int, bytes]] = {}  # the trajectory chunks "stored" so far: chunk -> (version, bytes)
     window = args.open3d_window
     first_frames, last_frames = [], collections.deque(maxlen=window)
     surfels = out_rows[-1]["surfels"] if out_rows else 0
@@ -180,6 +187,9 @@ def run(args, out_rows: list[dict], checkpoint: Path | None) -> dict[str, Any]:
                   f"{os.getloadavg()[0]:.1f}", flush=True)
         if checkpoint is not None and args.checkpoint_every and k and k % args.checkpoint_every == 0:
             save_checkpoint(checkpoint, system, out_rows, k + 1, gt)
+        if args.snapshot_every and (k + 1) % args.snapshot_every == 0:
+            snapshots.append(measure_snapshot(system, chunks, k + 1))
+            print(f"snapshot at frame {k + 1}: {json.dumps(snapshots[-1])}", flush=True)
     streaming_s = time.perf_counter() - t0
     finish_s = None
     if not args.no_finish:
@@ -191,7 +201,7 @@ def run(args, out_rows: list[dict], checkpoint: Path | None) -> dict[str, Any]:
                "keyframes": int(system.counters.get("keyframes", 0)),
                "loops": int(system.counters.get("loops", 0)),
                "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-               "ate_m": final_ate(system, gt, rgb_only=not with_depth)}
+               "ate_m": final_ate(system, gt, rgb_only=not with_depth), "snapshots": snapshots}
     system.close()
     if with_depth and window:
         summary["open3d"] = open3d_peer(first_frames, list(last_frames), intrinsics)
@@ -210,6 +220,32 @@ def save_checkpoint(directory: Path, system, rows: list[dict], next_frame: int, 
     os.replace(directory / "state.json.tmp", directory / "state.json")
     print(f"checkpoint at frame {next_frame}: {len(data) / 2**20:.1f} MiB in {time.perf_counter() - start:.1f} s",
           flush=True)
+
+
+def measure_snapshot(system, chunks: dict[int, tuple[int, bytes]], frames: int) -> dict[str, Any]:
+    """One chunked snapshot as the worker writes it (`chunks`: what it stored before, updated here), beside the
+    self-contained size, its parts, and the time to restore from it."""
+    from worker.serialization import unpack
+    from worker.slam import SlamSystem
+
+    start = time.perf_counter()
+    future = system.begin_snapshot(stored_chunks={i: v for i, (v, _) in chunks.items()})
+    blob = future.result()
+    ready_s = time.perf_counter() - start
+    write = future.chunks
+    chunks.update({i: (write.versions()[i], raw) for i, raw in write.new.items()})
+    parts = unpack(blob)
+    start = time.perf_counter()
+    restored = SlamSystem.restore(blob, {i: raw for i, (_, raw) in chunks.items()})
+    restore_s = time.perf_counter() - start
+    assert len(restored.trajectory("all")) == len(system.trajectory("all"))
+    restored.close()
+    return {"frame": frames, "keyframes": int(system.counters.get("keyframes", 0)),
+            "write_bytes": len(blob) + sum(map(len, write.new.values())),
+            "self_contained_bytes": len(blob) + sum(len(raw) for _, raw in chunks.values()),
+            "tracking_bytes": len(parts["tracking"]), "map_bytes": len(parts["map"] or b""),
+            "loop_bytes": len(parts["loop"]), "chunks_written": len(write.new), "ready_s": round(ready_s, 3),
+            "restore_s": round(restore_s, 3)}
 
 
 def final_ate(system, gt: dict[int, np.ndarray], rgb_only: bool) -> float | None:
@@ -316,6 +352,8 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--checkpoint-dir", default=None)
     parser.add_argument("--checkpoint-every", type=int, default=1000)
     parser.add_argument("--no-finish", action="store_true", help="skip finish() (the final refinement)")
+    parser.add_argument("--snapshot-every", type=int, default=0,
+                        help="measure a chunked snapshot (bytes written, restore time) every N frames (0: off)")
     parser.add_argument("--plot", default=None)
     parser.add_argument("--csv", default=None)
     parser.add_argument("--write-results", action="store_true")
