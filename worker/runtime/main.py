@@ -8,8 +8,8 @@ FLASHMONO_MAX_SESSIONS (sessions per worker, 16), FLASHMONO_TORCH_THREADS (torch
 FLASHMONO_MAX_FRAME_SIDE (640), FLASHMONO_MAX_FRAME_ATTEMPTS (2), FLASHMONO_MEMORY_BUDGET_MB (0: none),
 FLASHMONO_IDLE_TIMEOUT_S (600; 0: never), FLASHMONO_TRANSIENT_TTL_S (3600), FLASHMONO_RETENTION_S (0: kept),
 FLASHMONO_BLOB_DIR (none), FLASHMONO_ARCHIVE_AFTER_S (3600), FLASHMONO_SKIP_AFTER_MS (100: a frame that waited
-longer while a newer one is waiting is skipped, newest first wins; 0: never), FLASHMONO_MAX_CONSECUTIVE_SKIPS (5), FLASHMONO_TRACKING_SIDE (0: sessions that name no tracking resolution
-track at their working size).
+longer while a newer one is waiting is skipped, newest first wins; 0: never), FLASHMONO_MAX_CONSECUTIVE_SKIPS (5),
+FLASHMONO_TRACKING_SIDE (0: sessions that name no tracking resolution track at their working size).
 """
 
 from __future__ import annotations
