@@ -151,6 +151,9 @@ class TrackingConfig(_Section):
 
     rgbd: RgbdOdometryConfig = Field(default_factory=RgbdOdometryConfig)
     visual: VisualOdometryConfig = Field(default_factory=VisualOdometryConfig)
+    max_side: int = Field(
+        0, ge=0, le=8192, description="the tracking resolution: frames whose long side is larger are tracked at this "
+        "long side (aspect kept; mapping keeps the full frame); 0 = as they come")
 
 
 class SlamConfig(_Section):

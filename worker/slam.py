@@ -92,7 +92,8 @@ class SlamSystem:
         fc = self.config.frontend
         self.tracking_stage = TrackingStage(
             MotionKeyframeSelector(fc.keyframe_every, fc.keyframe_translation, fc.keyframe_rotation_deg),
-            publish_keyframe=lambda node: self.loop_stage.submit(node), timings=self.timings)
+            publish_keyframe=lambda node: self.loop_stage.submit(node), timings=self.timings,
+            max_side=self.config.tracking.max_side)
         self._traj = self.tracking_stage.trajectory
         self.backend = (MappingStage(self.config.mapping, self.config.threaded, self.config.queue_size,
                                      self.config.device, self.timings) if self.config.mapping.enabled else None)
@@ -359,7 +360,7 @@ class SlamSystem:
 
     def camera(self, frame: Frame) -> Intrinsics:
         """The frame's camera: given, else the pose source's estimate."""
-        intrinsics = self.frame_intrinsics(frame) or getattr(self.pose_source, "estimated_intrinsics", None)
+        intrinsics = self.frame_intrinsics(frame) or self.tracking_stage.source_intrinsics(frame.width, frame.height)
         if intrinsics is None:
             raise ValueError("no intrinsics for this session: give them with the frames or the session")
         return intrinsics
@@ -561,7 +562,7 @@ class SlamSystem:
         self-calibration, RGB-D odometry's guess), else the model's (from its points)."""
         if self.intrinsics is not None or self._frame_size is None:
             return self.intrinsics
-        from_source = getattr(self.pose_source, "estimated_intrinsics", None)
+        from_source = self.tracking_stage.source_intrinsics(*self._frame_size)
         if from_source is not None:
             return from_source
         if self.model_intrinsics is None:

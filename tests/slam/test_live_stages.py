@@ -115,3 +115,25 @@ def test_keyframes_made_after_an_optimisation_follow_the_newest_corrected_one() 
     np.testing.assert_allclose(moved[4], at(2.5))  # rigidly with keyframe 2: no jump between 2 and 4
     np.testing.assert_allclose(moved[6], at(3.5))
     assert set(moved) == set(current)
+
+
+def test_a_tracking_resolution_tracks_large_frames_small_and_maps_them_whole() -> None:
+    """Frames twice the tracking resolution: the pose source sees them at half size (intrinsics scaled), the poses
+    match tracking the frames at that size, and the map still receives the full frames."""
+    source = Path(__file__).parents[1] / "data" / "icl_mini"
+    large = list(open_source(source, max_frames=8, resize=(160, 120), use_gt_depth=True))
+    small = list(open_source(source, max_frames=8, resize=(80, 60), use_gt_depth=True))
+    seen: list[tuple[int, int, float]] = []
+    system = SlamSystem(live_config(tracking={"max_side": 80}, threaded=False))
+    reference = SlamSystem(live_config(threaded=False))
+    for big, little in zip(large, small, strict=True):
+        result = system.push(big)
+        source_frame = system.tracking_stage._tracked_frame
+        seen.append((source_frame.width, source_frame.height, source_frame.intrinsics.fx))
+        expected = reference.push(little)
+        assert np.allclose(result.pose[:3, 3], expected.pose[:3, 3], atol=0.02)
+    assert {s[:2] for s in seen} == {(80, 60)}
+    assert abs(seen[0][2] - large[0].intrinsics.fx / 2) < 1e-6
+    system.finish()
+    reference.finish()
+    assert system.num_gaussians > 2 * reference.num_gaussians  # surfels from 4x the pixels
