@@ -155,7 +155,7 @@ async def takeovers(stack: LocalStack, kills: int, fps: float, settle_s: float =
         for _ in range(kills):
             await asyncio.to_thread(stack.wait_ready, 300, len(stack.workers))
             r.hdel(keys.session(sid), "takeover")
-            owner = r.hget(keys.session(sid), "worker").decode()
+            owner = r.get(keys.lease(sid)).decode()  # the lease holder: the owner right now
             victim = _process_of(owner, stack.workers)
             killed, killed_wall = time.monotonic(), time.time()
             victim.send_signal(signal.SIGKILL)
@@ -176,7 +176,7 @@ async def takeovers(stack: LocalStack, kills: int, fps: float, settle_s: float =
         seqs = {p.seq for p in trajectory.poses}
         lost = len(set(outcome["acked"]) - seqs) + sum(1 for p in trajectory.poses if p.pose[0, 3] != p.seq)
     r.close()
-    gaps = [row["gap_s"] for row in rows if row["gap_s"] is not None]
+    gaps = [row["gap_s"] for row in rows if row["gap_s"] is not None and row.get("worker")]
     claims = [row["claimed_after_kill_s"] for row in rows if row.get("claimed_after_kill_s") is not None]
     return {"kills": kills, "fps": fps, "takeovers": rows, "lost": lost, "acked": len(outcome["acked"]),
             "gap_s": {"median": float(np.median(gaps)) if gaps else None, "max": max(gaps, default=None)},

@@ -16,10 +16,10 @@ PNG plot and a CSV of the per-frame rows, and prints a table by frame-count buck
 odometry (frame to frame, bench/rgbd_odometry.py) is timed on the first and the last `--open3d-window` frames as
 the CPU peer (skipped with a note when `open3d` is not installed).
 
-`--snapshot-every N` measures the worker's snapshot every N frames: the bytes a chunked snapshot write carries
-(`SlamSystem.begin_snapshot(stored_chunks)`: the snapshot plus the trajectory chunks not stored yet, what the worker
-writes to Redis) against a self-contained one (what each write carried before: the same plus every sealed chunk),
-the snapshot's parts (tracking, map, loop closing), and the time to restore from it.
+`--snapshot-every N` measures the worker's snapshot every N frames: the bytes an incremental snapshot write
+carries (`SlamSystem.begin_snapshot(stored_chunks)`: the snapshot, the trajectory chunks and the arrays not stored
+yet: what the worker writes to Redis) against a self-contained one (what each write carried before: everything),
+and the time to restore from it.
 
 Long runs checkpoint: `--checkpoint-dir D` saves the engine snapshot (SlamSystem.snapshot) and the rows every
 `--checkpoint-every` frames; running the same command again resumes from the newest checkpoint.
@@ -153,7 +153,7 @@ def run(args, out_rows: list[dict], checkpoint: Path | None) -> dict[str, Any]:
     torch.set_num_threads(args.threads)
     clock = StageClock(system)
     snapshots: list[dict[str, Any]] = []
-    chunks: dict[int, tuple[int, bytes]] = {}  # the trajectory chunks "stored" so far: chunk -> (version, bytes)
+    stored: dict[str, Any] = {}  # the trajectory chunks and arrays "stored" so far (measure_snapshot)
     window = args.open3d_window
     first_frames, last_frames = [], collections.deque(maxlen=window)
     surfels = out_rows[-1]["surfels"] if out_rows else 0
@@ -188,7 +188,7 @@ def run(args, out_rows: list[dict], checkpoint: Path | None) -> dict[str, Any]:
         if checkpoint is not None and args.checkpoint_every and k and k % args.checkpoint_every == 0:
             save_checkpoint(checkpoint, system, out_rows, k + 1, gt)
         if args.snapshot_every and (k + 1) % args.snapshot_every == 0:
-            snapshots.append(measure_snapshot(system, chunks, k + 1))
+            snapshots.append(measure_snapshot(system, stored, k + 1))
             print(f"snapshot at frame {k + 1}: {json.dumps(snapshots[-1])}", flush=True)
     streaming_s = time.perf_counter() - t0
     finish_s = None
@@ -222,30 +222,39 @@ def save_checkpoint(directory: Path, system, rows: list[dict], next_frame: int, 
           flush=True)
 
 
-def measure_snapshot(system, chunks: dict[int, tuple[int, bytes]], frames: int) -> dict[str, Any]:
-    """One chunked snapshot as the worker writes it (`chunks`: what it stored before, updated here), beside the
-    self-contained size, its parts, and the time to restore from it."""
+def measure_snapshot(system, stored: dict[str, Any], frames: int) -> dict[str, Any]:
+    """One incremental snapshot as the worker writes it (`stored`: the trajectory chunks and arrays written
+    before, updated here), beside the self-contained size (what every write carried before), the sizes of the
+    parts kept outside (per stage: their arrays), and the time to restore from it."""
     from worker.serialization import unpack
     from worker.slam import SlamSystem
 
+    chunks: dict[int, tuple[int, bytes]] = stored.setdefault("chunks", {})
+    arrays: dict[str, bytes] = stored.setdefault("arrays", {})
     start = time.perf_counter()
     future = system.begin_snapshot(stored_chunks={i: v for i, (v, _) in chunks.items()})
     blob = future.result()
     ready_s = time.perf_counter() - start
     write = future.chunks
     chunks.update({i: (write.versions()[i], raw) for i, raw in write.new.items()})
+    new_arrays = {d: raw for d, raw in write.arrays.items() if d not in arrays}
+    arrays.clear()
+    arrays.update(write.arrays)  # what the store keeps: the arrays this snapshot names
     parts = unpack(blob)
     start = time.perf_counter()
-    restored = SlamSystem.restore(blob, {i: raw for i, (_, raw) in chunks.items()})
+    restored = SlamSystem.restore(blob, {**{i: raw for i, (_, raw) in chunks.items()}, **arrays})
     restore_s = time.perf_counter() - start
     assert len(restored.trajectory("all")) == len(system.trajectory("all"))
     restored.close()
     return {"frame": frames, "keyframes": int(system.counters.get("keyframes", 0)),
-            "write_bytes": len(blob) + sum(map(len, write.new.values())),
-            "self_contained_bytes": len(blob) + sum(len(raw) for _, raw in chunks.values()),
-            "tracking_bytes": len(parts["tracking"]), "map_bytes": len(parts["map"] or b""),
-            "loop_bytes": len(parts["loop"]), "chunks_written": len(write.new), "ready_s": round(ready_s, 3),
-            "restore_s": round(restore_s, 3)}
+            "write_bytes": len(blob) + sum(map(len, write.new.values())) + sum(map(len, new_arrays.values())),
+            "self_contained_bytes": len(blob) + sum(len(raw) for _, raw in chunks.values())
+            + sum(map(len, arrays.values())),
+            "snapshot_bytes": len(blob), "trajectory_chunk_bytes": sum(len(raw) for _, raw in chunks.values()),
+            "arrays": len(arrays), "arrays_bytes": sum(map(len, arrays.values())),
+            "new_arrays_bytes": sum(map(len, new_arrays.values())), "chunks_written": len(write.new),
+            "inline_tracking_bytes": len(parts["tracking"]), "inline_map_bytes": len(parts["map"] or b""),
+            "inline_loop_bytes": len(parts["loop"]), "ready_s": round(ready_s, 3), "restore_s": round(restore_s, 3)}
 
 
 def final_ate(system, gt: dict[int, np.ndarray], rgb_only: bool) -> float | None:

@@ -640,19 +640,22 @@ class SlamSystem:
         """A snapshot of the session as of now, without waiting: the tracking state is packed at once, the map and
         the loop-closing state by their stages once they have done what was submitted before (see the module
         docstring); `result()` gives the bytes that `restore` takes. With `stored_chunks` (chunk -> version already
-        stored) the trajectory's sealed frame records stay out of the bytes: `future.chunks` (a ChunkWrite) lists
-        the chunks `restore` will need and holds those not stored yet."""
+        stored) the snapshot is incremental: the trajectory's sealed frame records and every large array (keyframe
+        images, depth, the map's tensors) stay out of the bytes, and `future.chunks` (a ChunkWrite) holds the chunks
+        not stored yet and the arrays by digest, for `restore(data, chunks)`."""
         if self.backend is not None:
             self._flush_map_jobs(force=True)
         trajectory, chunks = (None, None) if stored_chunks is None else self._traj.chunked_state(stored_chunks)
-        tracking = pack(self._tracking_state(trajectory))  # packed now: the next frames change what it refers to
+        arrays = None if chunks is None else chunks.arrays
+        # packed now: the next frames change what it refers to
+        tracking = pack(self._tracking_state(trajectory), external=arrays)
         backend, loop_stage = self.backend, self.loop_stage
         parts = ["loop"] + ([] if backend is None else ["map"])
         future = SnapshotFuture(parts, lambda done: pack({"format": SNAPSHOT_FORMAT, "tracking": tracking,
                                                           "map": done.get("map"), "loop": done["loop"]}))
         if backend is not None:
-            backend.at_marker(lambda: future.deliver("map", lambda: pack(backend.state_dict())))
-        loop_stage.at_marker(lambda: future.deliver("loop", lambda: pack(loop_stage.state_dict())))
+            backend.at_marker(lambda: future.deliver("map", lambda: pack(backend.state_dict(), external=arrays)))
+        loop_stage.at_marker(lambda: future.deliver("loop", lambda: pack(loop_stage.state_dict(), external=arrays)))
         future.chunks = chunks
         return future
 
@@ -692,11 +695,14 @@ class SlamSystem:
                 K, w, h), torch.from_numpy(np.asarray(e["depth"], np.float32)), K))
 
     @classmethod
-    def restore(cls, data: bytes, chunks: Mapping[int, bytes] | None = None) -> SlamSystem:
-        """A system continuing from `snapshot()` bytes (never unpickles anything); `chunks` (chunk -> bytes) are
-        the trajectory chunks a chunked snapshot (`begin_snapshot(stored_chunks)`) left out."""
-        state = _flat_snapshot(unpack(data))
-        state["trajectory"] = Trajectory.joined_state(state["trajectory"], chunks or {})
+    def restore(cls, data: bytes, chunks: Mapping[int | str, bytes] | None = None) -> SlamSystem:
+        """A system continuing from `snapshot()` bytes (never unpickles anything); `chunks` holds what an
+        incremental snapshot (`begin_snapshot(stored_chunks)`) left out: trajectory chunks by number, arrays by
+        digest."""
+        chunks = chunks or {}
+        state = _flat_snapshot(unpack(data), {k: v for k, v in chunks.items() if isinstance(k, str)})
+        state["trajectory"] = Trajectory.joined_state(state["trajectory"],
+                                                      {k: v for k, v in chunks.items() if isinstance(k, int)})
         from worker.loop.bag import HiddenStateBag
 
         config = SlamConfig.from_dict(state["config"])
@@ -730,14 +736,16 @@ class SlamSystem:
         return system
 
 
-def _flat_snapshot(state: Any) -> dict[str, Any]:
-    """A snapshot's state as one dict of format 1's keys (format 2 keeps the stages' parts packed apart)."""
+def _flat_snapshot(state: Any, arrays: Mapping[str, bytes] | None = None) -> dict[str, Any]:
+    """A snapshot's state as one dict of format 1's keys (format 2 keeps the stages' parts packed apart; `arrays`:
+    the large arrays an incremental snapshot keeps outside, by digest)."""
     if not isinstance(state, dict) or state.get("format") not in SNAPSHOT_FORMATS:
         raise ValueError("not a Flash-Mono SLAM snapshot")
     if state["format"] != SNAPSHOT_FORMAT:
         return state
-    flat = {**unpack(state["tracking"]), **unpack(state["loop"])}
-    flat["map"] = None if state["map"] is None else unpack(state["map"])
+    arrays = arrays or {}
+    flat = {**unpack(state["tracking"], external=arrays), **unpack(state["loop"], external=arrays)}
+    flat["map"] = None if state["map"] is None else unpack(state["map"], external=arrays)
     return flat
 
 

@@ -171,7 +171,9 @@ def _session(client: redis.Redis, sid: str, worker: str) -> None:
 
 def test_store_writes_flat_and_reads_back_what_restore_needs(client, monkeypatch) -> None:
     """SlamSystem snapshots through SnapshotWriter into Redis: the write size stays flat from N to 4N frames, and
-    read_snapshot + restore gives the full trajectory, also to a new owner that continues and writes again."""
+    read_snapshot + restore gives the full trajectory, also to a new owner that continues and writes again. Arrays
+    from 64 bytes are kept outside (the default keeps only large ones out), so that path runs here too."""
+    monkeypatch.setattr("worker.serialization.EXTERNAL_MIN_BYTES", 64)
     sid, worker = "chunkstore1", "worker-a"
     _session(client, sid, worker)
     system = _posed_system()
@@ -189,9 +191,10 @@ def test_store_writes_flat_and_reads_back_what_restore_needs(client, monkeypatch
     early = max(v for k, v in sizes.items() if k <= n)
     late = max(v for k, v in sizes.items() if k > 3 * n)
     assert late <= early + 64, sizes
-    assert client.hlen(keys.snapshot_chunks(sid)) == 4 * 4 * CHUNK // CHUNK
     snap = read_snapshot(client, sid)
-    assert snap.seq == 4 * 4 * CHUNK - 1 and sorted(snap.chunks) == list(range(16))
+    assert snap.seq == 4 * 4 * CHUNK - 1 and sorted(k for k in snap.chunks if isinstance(k, int)) == list(range(16))
+    # arrays the newest snapshot no longer names were removed with its write: only its own parts are left
+    assert snap.arrays and client.hlen(keys.snapshot_chunks(sid)) == 16 + len(snap.arrays)
     restored = restore_engine("slam", snap.data, snap.chunks)
     _assert_same(system._traj, restored._traj)
     # the new owner knows which chunks are stored: its next write adds none of them again
@@ -206,6 +209,50 @@ def test_store_writes_flat_and_reads_back_what_restore_needs(client, monkeypatch
     client.set(keys.lease(sid), worker)
     assert writer.write(system.snapshot(), None, 99, entries[-1], "slam", "t") == 1
     assert read_snapshot(client, sid).chunks == {}
+    system.close()
+    restored.close()
+
+
+def test_large_arrays_kept_outside_by_digest() -> None:
+    big, small = np.arange(20000, dtype=np.float32), np.ones(3)
+    store: dict[str, bytes] = {}
+    data = pack({"big": big, "again": [big], "small": small}, external=store)
+    assert len(store) == 1 and len(data) < 200  # one digest for the same content, the small array inline
+    out = unpack(data, external=store)
+    np.testing.assert_array_equal(out["big"], big)
+    np.testing.assert_array_equal(out["again"][0], big)
+    with pytest.raises(ValueError, match="missing"):
+        unpack(data, external={})
+    with pytest.raises(ValueError):  # a reference in bytes read without a store (e.g. a client's frame) is refused
+        unpack(data)
+
+
+def test_incremental_slam_snapshot_does_not_write_unchanged_keyframe_data_again(data_dir, monkeypatch) -> None:
+    """RGB-D with mapping and loop closure: a second snapshot names the first one's unchanged arrays (keyframe
+    depth, images) by digest and carries only what changed; restore from the stored parts works."""
+    from worker.data import open_source
+
+    monkeypatch.setattr("worker.serialization.EXTERNAL_MIN_BYTES", 4096)
+    frames = list(open_source(data_dir / "icl_mini", max_frames=8, resize=(96, 72), use_gt_depth=True))
+    system = SlamSystem(SlamConfig.preset("test", mapping={"refine_iterations": 1}), intrinsics=frames[0].intrinsics)
+    for frame in frames[:4]:
+        system.push(frame)
+    first = system.begin_snapshot(stored_chunks={})
+    first_blob, first_write = first.result(), first.chunks
+    for frame in frames[4:]:
+        system.push(frame)
+    second = system.begin_snapshot(stored_chunks={})
+    blob, write = second.result(), second.chunks
+    kept = set(first_write.arrays) & set(write.arrays)
+    assert kept, "keyframe data of the first snapshot should be named again, not changed"
+    new_bytes = sum(len(v) for d, v in write.arrays.items() if d not in first_write.arrays)
+    assert len(blob) + new_bytes < len(system.snapshot())  # the incremental write is smaller than a whole one
+    restored = SlamSystem.restore(blob, {**write.arrays, **write.new})
+    assert restored.num_gaussians == system.num_gaussians > 0
+    _assert_same(system._traj, restored._traj)
+    with pytest.raises(ValueError, match="missing"):
+        SlamSystem.restore(blob, dict(write.new))
+    assert first_blob
     system.close()
     restored.close()
 

@@ -64,7 +64,7 @@ def _passthrough_delay_s() -> float:
     return float(os.environ.get("FLASHMONO_PASSTHROUGH_DELAY_MS", "0")) / 1000.0
 
 
-def restore_engine(kind: str, blob: bytes, chunks: Mapping[int, bytes] | None = None) -> SessionEngine:
+def restore_engine(kind: str, blob: bytes, chunks: Mapping[int | str, bytes] | None = None) -> SessionEngine:
     """An engine rebuilt from `snapshot()` bytes (and, for a chunked snapshot, the `chunks` it lists)."""
     if kind == "slam":
         from worker.slam import SlamSystem
