@@ -18,7 +18,7 @@ import redis
 
 from worker.runtime import keys
 from worker.runtime.archive import BlobStore, archive_finished
-from worker.runtime.engine import SessionEngine, close_engine, restore_engine
+from worker.runtime.engine import SessionEngine, close_engine, restore_engine, warm_up
 from worker.runtime.leases import Leases
 from worker.runtime.memory import over_budget
 from worker.runtime.outage import REDIS_DOWN, Backoff, OutageLog, wait_for_redis
@@ -62,6 +62,7 @@ class Worker:
     def run(self) -> None:
         if not wait_for_redis(self.client, self._stopping, f"worker {self.worker_id} start-up", log):
             return
+        warm_up(self.config.engine_kind)  # before taking sessions: a takeover must not wait for imports
         self._ensure_groups()
         self._heartbeat_once()
         threads = [threading.Thread(target=self._heartbeat_loop, name="heartbeat", daemon=True),

@@ -77,6 +77,19 @@ def restore_engine(kind: str, blob: bytes, chunks: Mapping[int | str, bytes] | N
     raise ValueError(f"unknown engine kind {kind!r}; expected one of {ENGINE_KINDS}")
 
 
+def warm_up(kind: str) -> None:
+    """Import what an engine of `kind` loads on its first session (the SLAM system, its pose sources, stages and
+    kernels), so that a worker taking over a dead worker's session does not pay for it then."""
+    if kind != "slam":
+        return
+    import importlib
+
+    for module in ("worker.slam", "worker.tracking.rgbd_odometry", "worker.tracking.visual_odometry",
+                   "worker.engine.mapping_stage", "worker.engine.loop_stage", "worker.engine.loop_closer",
+                   "worker.engine.keyframe_depth", "worker.loop.pose_graph"):
+        importlib.import_module(module)
+
+
 def engine_intrinsics(engine: SessionEngine) -> dict[str, float | int] | None:
     """The camera the engine uses at the frames' resolution (its `estimated_intrinsics()`: given or estimated),
     as {fx, fy, cx, cy, width, height}; None while unknown or when the engine cannot tell."""
