@@ -22,7 +22,7 @@ import numpy as np
 
 _ARRAY_EXT = 1
 _EXTERNAL_EXT = 2  # an array kept outside the bytes: its content digest (hex, ASCII)
-EXTERNAL_MIN_BYTES = 1 << 16
+EXTERNAL_MIN_BYTES = 1 << 14
 _ALLOWED_DTYPES = {
     "bool", "uint8", "int8", "uint16", "int16", "uint32", "int32", "uint64", "int64", "float16", "float32", "float64",
 }
