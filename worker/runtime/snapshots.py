@@ -108,7 +108,8 @@ class SnapshotWriter:
             if chunks is None:  # the parts are gone with it
                 self.stored_chunks, self.stored_arrays = {}, set()
             else:
-                self.stored_chunks.update({i: chunks.versions()[i] for i in chunks.new})
+                versions = chunks.versions()
+                self.stored_chunks.update({i: versions[i] for i in chunks.new})
                 self.stored_arrays = set(chunks.arrays)
         self.last_write_bytes = len(data) + len(manifest) + sum(len(v) for v in pairs[1::2])
         return int(status)
