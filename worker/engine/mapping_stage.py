@@ -110,8 +110,8 @@ class MappingStage(QueuedStage):
         iterations = self._refine_iterations(backlog)
         with self.lock:
             self._map_keyframe(job, iterations)
-        if self.cfg.idle_refine and iterations < self.cfg.refine_iterations:
-            self._owed[job.kf_id] = self.cfg.refine_iterations - iterations
+            if self.cfg.idle_refine and iterations < self.cfg.refine_iterations:
+                self._owed[job.kf_id] = self.cfg.refine_iterations - iterations
 
     def _refine_iterations(self, backlog: int) -> int:
         """This keyframe's refinement iterations after load shedding."""
@@ -140,13 +140,13 @@ class MappingStage(QueuedStage):
 
     def _catch_up(self) -> bool:
         """Idle work: refine the oldest keyframe whose refinement was shed; False when none is owed."""
-        if not self._owed:
-            return False
-        kf_id = next(iter(self._owed))
-        iterations = self._owed.pop(kf_id)
         start = time.perf_counter()
-        with self.lock, self.timings.measure("map_catch_up"):
-            self.map.refine_around(kf_id, iterations)
+        with self.lock:
+            if not self._owed:
+                return False
+            kf_id = next(iter(self._owed))
+            with self.timings.measure("map_catch_up"):
+                self.map.refine_around(kf_id, self._owed.pop(kf_id))
         self.caught_up += 1
         self.busy_seconds += time.perf_counter() - start
         return True
@@ -155,6 +155,7 @@ class MappingStage(QueuedStage):
         """The end-of-run refinement: every surfel against every keyframe image the map still holds, `passes`
         times over those keyframes."""
         with self.lock, self.timings.measure("map_final_refine"):
+            self._owed.clear()  # the whole map's refinement supersedes the keyframes' own
             self.map.refine_global(passes * self.map.held_images)
 
     # -- reads ---------------------------------------------------------------------------------------------------
