@@ -236,11 +236,13 @@ class SlamSystem:
 
     def live_stats(self) -> dict[str, Any]:
         """What a live client watches, cheap to read while frames stream: how far mapping lags (keyframes waiting,
-        seconds the oldest has waited), what it shed, and the loop-closing stage's backlog."""
-        mapping = {"mapping_lag_keyframes": 0, "mapping_lag_s": 0.0, "keyframes_shed": {}} if self.backend is None \
-            else self.backend.stats()
-        return {"mapping_lag_keyframes": mapping["mapping_lag_keyframes"], "mapping_lag_s": mapping["mapping_lag_s"],
-                "keyframes_shed": mapping["keyframes_shed"], "loop_pending": self.loop_stage.pending}
+        seconds the oldest has waited), what it shed, what it still owes and caught up since (refinement made up
+        while idle), and the loop-closing stage's backlog."""
+        mapping = {"mapping_lag_keyframes": 0, "mapping_lag_s": 0.0, "keyframes_shed": {}, "keyframes_owed": 0,
+                   "keyframes_caught_up": 0} if self.backend is None else self.backend.stats()
+        return {**{key: mapping[key] for key in ("mapping_lag_keyframes", "mapping_lag_s", "keyframes_shed",
+                                                 "keyframes_owed", "keyframes_caught_up")},
+                "loop_pending": self.loop_stage.pending}
 
     # ------------------------------------------------------------------------------------------------- helpers
     def _new_loop_stage(self, pose_graph: Sim3PoseGraph, closer: LoopCloser | None,

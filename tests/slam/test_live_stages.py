@@ -4,6 +4,7 @@ so, finish() drains every stage, and a snapshot taken while mapping lags restore
 from __future__ import annotations
 
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -137,3 +138,45 @@ def test_a_tracking_resolution_tracks_large_frames_small_and_maps_them_whole() -
     system.finish()
     reference.finish()
     assert system.num_gaussians > 2 * reference.num_gaussians  # surfels from 4x the pixels
+
+
+def _keyframe_psnr(system: SlamSystem, frames: list[Frame]) -> float:
+    """Mean PSNR of the map rendered at its keyframes against their images."""
+    by_index = {f.index: f for f in frames}
+    values = []
+    for index, _, pose in system.trajectory("keyframes"):
+        frame = by_index[index]
+        rgb, _ = system.render_view(pose, frame.intrinsics.matrix(), frame.width, frame.height)
+        mse = np.mean((rgb.astype(np.float64) - frame.image.astype(np.float64)) ** 2)
+        values.append(10 * np.log10(255.0**2 / max(mse, 1e-9)))
+    return float(np.mean(values))
+
+
+def _stalled_then_idle(frames: list[Frame], idle_refine: bool) -> SlamSystem:
+    """Every keyframe waits behind a stalled mapping stage (so all but the newest are merged without refinement),
+    then the stage is left alone until it owes nothing (or 120 s)."""
+    config = live_config(mapping={"shed_backlog": 1, "merge_only_backlog": 1, "idle_refine": idle_refine,
+                                  "archived_images": 64},
+                         queue_size=64)
+    system = SlamSystem(config)
+    with system.backend.lock:
+        push_all_within(system, frames)
+    system.backend.wait_idle()
+    deadline = time.monotonic() + 120
+    while idle_refine and system.stats()["keyframes_owed"] and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return system
+
+
+def test_refinement_shed_while_mapping_lagged_is_caught_up_when_the_stage_is_idle(frames) -> None:
+    """Keyframes merged without refinement under load are owed their refinement; the idle stage pays it back,
+    oldest first, and the map then renders those keyframes better than a stage that keeps its debt."""
+    caught_up = _stalled_then_idle(frames, idle_refine=True)
+    in_debt = _stalled_then_idle(frames, idle_refine=False)
+    stats, debt_stats = caught_up.stats(), in_debt.stats()
+    assert stats["keyframes_shed"]["merge_only"] > 0 and stats["keyframes_owed"] == 0
+    assert stats["keyframes_caught_up"] >= stats["keyframes_shed"]["merge_only"]
+    assert debt_stats["keyframes_caught_up"] == 0 and debt_stats["keyframes_shed"]["merge_only"] > 0
+    assert _keyframe_psnr(caught_up, frames) > _keyframe_psnr(in_debt, frames) + 0.5
+    caught_up.close()
+    in_debt.close()

@@ -9,7 +9,8 @@ FLASHMONO_MAX_FRAME_SIDE (640), FLASHMONO_MAX_FRAME_ATTEMPTS (2), FLASHMONO_MEMO
 FLASHMONO_IDLE_TIMEOUT_S (600; 0: never), FLASHMONO_TRANSIENT_TTL_S (3600), FLASHMONO_RETENTION_S (0: kept),
 FLASHMONO_BLOB_DIR (none), FLASHMONO_ARCHIVE_AFTER_S (3600), FLASHMONO_SKIP_AFTER_MS (100: a frame that waited
 longer while a newer one is waiting is skipped, newest first wins; 0: never), FLASHMONO_MAX_CONSECUTIVE_SKIPS (5),
-FLASHMONO_TRACKING_SIDE (0: sessions that name no tracking resolution track at their working size).
+FLASHMONO_TRACKING_SIDE (0: sessions that name no tracking resolution track at their working size),
+FLASHMONO_SWITCH_INTERVAL_MS (1).
 """
 
 from __future__ import annotations
@@ -67,6 +68,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--tracking-side", type=int, default=int(env("FLASHMONO_TRACKING_SIDE", "0")),
                         help="sessions that name no tracking resolution track frames at most this long a side "
                              "(0: at their working size)")
+    parser.add_argument("--switch-interval-ms", type=float,
+                        default=float(env("FLASHMONO_SWITCH_INTERVAL_MS", "1")),
+                        help="the interpreter's thread switch interval: how long the tracking thread may wait for the "
+                             "GIL while a mapping or loop thread runs Python (the interpreter's default is 5)")
     parser.add_argument("--torch-threads", type=int, default=int(env("FLASHMONO_TORCH_THREADS", "0")))
     parser.add_argument("--log-level", default=env("FLASHMONO_LOG_LEVEL", "INFO"))
     return parser
@@ -90,6 +95,10 @@ def main(argv: list[str] | None = None) -> int:
         print("error: --transient-ttl-s must be >= 1 (clients still read the last messages), --retention-s and "
               "--idle-timeout-s >= 0", file=sys.stderr)
         return 2
+    if args.switch_interval_ms <= 0:
+        print("error: --switch-interval-ms must be > 0", file=sys.stderr)
+        return 2
+    sys.setswitchinterval(args.switch_interval_ms / 1000.0)
     if args.torch_threads > 0:
         import torch
 
