@@ -76,6 +76,12 @@ class VisualOdometryConfig(BaseModel):
     place_radius_px: float = Field(1.5, gt=0.0, description="an ORB keypoint of a keyframe stands for the map point "
                                                              "observed this close to it, pixels")
     reloc_min_inliers: int = Field(30, ge=10, description="PnP inliers needed to relocalise")
+    reinit_after_loss: bool = Field(True, description="while lost, also restart the map from a two-view "
+                                                      "reconstruction anchored at the last tracked frame")
+    reinit_min_parallax_deg: float = Field(1.0, gt=0.0, description="median triangulation angle a restarted map "
+                                                                     "needs, degrees (ORB-SLAM's; its pose and "
+                                                                     "scale come from the anchor)")
+    reinit_min_matches: int = Field(50, ge=20, description="tracks shared with the anchor needed to restart")
 
     # unknown intrinsics
     focal_guess: float = Field(0.9, gt=0.1, lt=5.0, description="focal guess as a share of max(W, H)")
