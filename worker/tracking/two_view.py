@@ -20,6 +20,9 @@ from .projection import invert_pose
 from .triangulation import good_points, parallax_cos, triangulate
 from .vo_config import VisualOdometryConfig
 
+AMBIGUITY = 0.75  # a second motion with this share of the best one's points leaves the choice open (ORB-SLAM's)
+MIN_OFF_PLANE = 10  # matches off a homography's plane that decide between its two solutions
+
 
 @dataclass
 class TwoViewMap:
@@ -84,25 +87,41 @@ def two_view_from_matches(pa: np.ndarray, pb: np.ndarray, K: np.ndarray, config:
     use_h = H is not None and (F is None or scores.prefers_homography)
     model = "homography" if use_h else "essential"
     if use_h:
+        # The decomposition's two physical solutions explain the plane's points equally well; points off the
+        # plane (inliers of the epipolar geometry only) tell them apart.
         candidates = _homography_motions(H, K)
-        inlier = scores.inliers_h
+        inlier = scores.inliers_h | scores.inliers_f
     else:
         inlier = mask_e.ravel() > 0 if mask_e is not None else scores.inliers_f
         candidates = [motion for e in essentials for motion in _essential_motions(e, pa, pb, K, inlier)]
-    best, best_count = None, -1
-    for R, t in candidates:
-        candidate = _triangulate_candidate(R, t, pa, pb, ia, ib, inlier, K, config, sigma_a, sigma_b)
-        count = -1 if candidate is None else candidate[1]
-        if count > best_count:
-            best, best_count = candidate, count
-    rotation = rotation_of_homography(H, K).T if use_h else (best[2].T if best is not None else None)
+    tried = [_triangulate_candidate(R, t, pa, pb, ia, ib, inlier, K, config, sigma_a, sigma_b)
+             for R, t in candidates]
+    # A plane's points fit both physical solutions of its homography alike: the matches off the plane (inliers
+    # of the epipolar geometry only) tell them apart when there are enough of them.
+    off_plane = np.flatnonzero(scores.inliers_f & ~scores.inliers_h) if use_h else np.zeros(0, np.int64)
+    decisive = off_plane if len(off_plane) >= MIN_OFF_PLANE else None
+
+    def support(c: _Candidate) -> int:
+        return c.count if decisive is None else int(np.isin(c.good, decisive).sum())
+
+    tried.sort(key=lambda c: (support(c), c.count), reverse=True)
+    best = tried[0] if tried else None
+    rotation = rotation_of_homography(H, K).T if use_h else (best.rotation.T if best is not None else None)
     out = TwoViewAttempt(None, n, "", model, scores.ratio, rotation)
-    if best is None or best[0] is None:
-        out.reason = f"{max(best_count, 0)} points triangulated < {config.init_min_points} ({model})"
+    if best is None or best.map is None:
+        count = 0 if best is None else best.count
+        out.reason = f"{count} points triangulated < {config.init_min_points} ({model})"
         return out
-    two = best[0]
+    two = best.map
     if two.parallax_deg < config.init_min_parallax_deg:
         out.reason = f"median parallax {two.parallax_deg:.2f} deg < {config.init_min_parallax_deg} ({model})"
+        return out
+    rival = next((c for c in tried[1:] if _angle_deg(c.rotation @ best.rotation.T) > 0.5), None)
+    if rival is not None and support(rival) > AMBIGUITY * support(best):
+        # Two motions explain the matches about as well (a plane seen from a short baseline): wait, as ORB-SLAM
+        # does, until the motion or the points off the plane tell them apart.
+        out.reason = f"ambiguous motion: {support(rival)} vs {support(best)} points ({model})"
+        out.rotation = None
         return out
     if len(two.points) < config.init_min_points:
         out.reason = (f"{len(two.points)} points seen under {config.min_parallax_deg} deg or more < "
@@ -110,6 +129,10 @@ def two_view_from_matches(pa: np.ndarray, pb: np.ndarray, K: np.ndarray, config:
         return out
     out.map, out.rotation = two, two.pose_b[:3, :3].copy()
     return out
+
+
+def _angle_deg(R: np.ndarray) -> float:
+    return float(np.degrees(np.linalg.norm(cv2.Rodrigues(R)[0])))
 
 
 def _fundamental(E: np.ndarray, K: np.ndarray) -> np.ndarray:
@@ -130,13 +153,26 @@ def _essential_motions(E: np.ndarray, pa: np.ndarray, pb: np.ndarray, K: np.ndar
     return [(R, t.ravel())]
 
 
-def _triangulate_candidate(R, t, pa, pb, ia, ib, inlier, K, config, sigma_a, sigma_b
-                           ) -> tuple[TwoViewMap | None, int, np.ndarray]:
-    """The map of motion (R_ba, t_ba) over the model's inliers: (map or None, points consistent with it, R_ba).
-    The count (points in front of both cameras that reproject) judges the candidates, as cheirality does; the
-    map keeps the points seen under `min_parallax_deg` or more (perhaps too few: the caller judges)."""
+@dataclass
+class _Candidate:
+    """One motion (R_ba) tried: its map (None: too few points), the matches consistent with it."""
+
+    map: TwoViewMap | None
+    rotation: np.ndarray
+    good: np.ndarray  # indices of the matches it triangulates in front of both cameras, reprojecting
+
+    @property
+    def count(self) -> int:
+        return len(self.good)
+
+
+def _triangulate_candidate(R, t, pa, pb, ia, ib, inlier, K, config, sigma_a, sigma_b) -> _Candidate:
+    """The map of motion (R_ba, t_ba) over the model's inliers. The consistent matches (in front of both
+    cameras, reprojecting) judge the candidates, as cheirality does; the map keeps the points seen under
+    `min_parallax_deg` or more (perhaps too few: the caller judges)."""
+    none = np.zeros(0, np.int64)
     if np.linalg.norm(t) < 1e-9:
-        return None, 0, R
+        return _Candidate(None, R, none)
     w2c_b = np.eye(4)
     w2c_b[:3, :3], w2c_b[:3, 3] = R, t / np.linalg.norm(t)
     pose_a, pose_b = np.eye(4), invert_pose(w2c_b)
@@ -144,17 +180,17 @@ def _triangulate_candidate(R, t, pa, pb, ia, ib, inlier, K, config, sigma_a, sig
     points = triangulate(pose_a, pose_b, pa[sel], pb[sel], K)
     ok = good_points(points, pose_a, pose_b, pa[sel], pb[sel], sigma_a[sel], sigma_b[sel], K,
                      config.chi2_px, 0.0)
-    count = int(ok.sum())
-    if count < config.init_min_points:
-        return None, count, R
     points, sel = points[ok], sel[ok]
+    good = sel.copy()
+    if len(good) < config.init_min_points:
+        return _Candidate(None, R, good)
     # The median angle over all consistent points (not only the wide ones) tells rotation from translation.
     angles = np.rad2deg(np.arccos(np.clip(parallax_cos(points, pose_a, pose_b), -1, 1)))
     parallax = float(np.median(angles))
     wide = angles >= config.min_parallax_deg
     points, sel = points[wide], sel[wide]
     if len(points) == 0:
-        return None, count, R
+        return _Candidate(None, R, good)
     scale = 1.0 / float(np.median(points[:, 2]))
     pose_b[:3, 3] *= scale
-    return TwoViewMap(pose_b, ia[sel], ib[sel], points * scale, parallax), count, R
+    return _Candidate(TwoViewMap(pose_b, ia[sel], ib[sel], points * scale, parallax), R, good)

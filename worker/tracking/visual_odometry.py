@@ -579,7 +579,8 @@ class VisualOdometry:
         self.status = "lost"
         self.lost_since = index
         self.anchor = None
-        if self.config.reinit_after_loss and len(self.tracks) and was_tracking:
+        if self.config.reinit_after_loss and self.previous_gray is not None and was_tracking:
+            self._replenish(self.previous_gray)  # the anchor's corners, not only its surviving tracks
             t = self.tracks
             points = np.full((len(t), 3), np.nan)
             points[t.mapped] = self.map.positions[t.rows[t.mapped]]
