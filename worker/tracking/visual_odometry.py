@@ -19,7 +19,7 @@ was initialised from and the scale makes that map's median depth 1.
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import cv2
@@ -41,6 +41,7 @@ from .track_triangulation import triangulate_tracks
 from .tracks import Tracks, lookup_sorted
 from .two_view import TwoViewAttempt, TwoViewMap, two_view_from_matches
 from .vo_config import VisualOdometryConfig
+from .xfeat import XFeatExtractor, mutual_matches
 
 STATE_VERSION = 3
 MIN_SHARED_FOR_SCALE = 10  # old map points a restarted map must share to take its scale from them
@@ -58,6 +59,9 @@ class Anchor:
     points: np.ndarray
     velocity: np.ndarray  # the camera motion per frame when tracking broke
     predicted: np.ndarray  # where the motion model puts the latest frame the tracks were followed into
+    gray: np.ndarray  # its image (learned relocalisation describes its map points there)
+    descriptors: np.ndarray = field(default_factory=lambda: np.zeros((0, 64), np.float32))  # XFeat, lazily ...
+    world: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # ... of keypoints on these map points
 
     def scale_of(self, points: np.ndarray, rows: np.ndarray) -> tuple[float, int]:
         """Scale from a new map (`points` [n, 3] in the anchor camera's frame, on the anchor's tracks `rows` [n])
@@ -78,7 +82,8 @@ class Anchor:
 
     def to_state(self) -> dict[str, Any]:
         return {"index": self.index, "pose": self.pose, "ids": self.ids, "uv": self.uv, "points": self.points,
-                "velocity": self.velocity, "predicted": self.predicted}
+                "velocity": self.velocity, "predicted": self.predicted, "gray": self.gray,
+                "descriptors": self.descriptors, "world": self.world}
 
     @classmethod
     def from_state(cls, s: dict[str, Any]) -> Anchor:
@@ -86,7 +91,9 @@ class Anchor:
                    np.asarray(s["ids"], np.int64).reshape(-1), np.asarray(s["uv"], np.float32).reshape(-1, 2),
                    np.asarray(s["points"], np.float64).reshape(-1, 3),
                    np.asarray(s["velocity"], np.float64).reshape(4, 4),
-                   np.asarray(s["predicted"], np.float64).reshape(4, 4))
+                   np.asarray(s["predicted"], np.float64).reshape(4, 4), np.asarray(s["gray"], np.uint8),
+                   np.asarray(s["descriptors"], np.float32).reshape(-1, 64),
+                   np.asarray(s["world"], np.float64).reshape(-1, 3))
 
 
 class VisualOdometry:
@@ -98,6 +105,7 @@ class VisualOdometry:
         self.config = config or VisualOdometryConfig()
         self.extractor = OrbExtractor(self.config)
         self.recognizer = PlaceRecognizer(self.config)
+        self._xfeat_extractor: XFeatExtractor | None = None
         self._reset()
 
     def _reset(self) -> None:
@@ -564,7 +572,7 @@ class VisualOdometry:
         """Lose tracking; when a map restarts from the last tracked frame at once, this frame is tracked on it
         (both events are reported: the old map's tracks broke here)."""
         lost = self._lose(index, reason)
-        restarted = self._reinitialise(index, gray, camera)
+        restarted = self._reinitialise(index, gray, camera) or self._relocalise_learned(index, gray, camera)
         if restarted is None:
             return lost
         restarted.events = lost.events + restarted.events
@@ -585,7 +593,7 @@ class VisualOdometry:
             points = np.full((len(t), 3), np.nan)
             points[t.mapped] = self.map.positions[t.rows[t.mapped]]
             self.anchor = Anchor(self.last_tracked, self.pose.copy(), t.ids.copy(), t.uv.copy(), points,
-                                 self.velocity.copy(), self.pose.copy())
+                                 self.velocity.copy(), self.pose.copy(), self.previous_gray)
         self.velocity = np.eye(4)
         return TrackingResult(self.pose.copy(), tracked=False, keyframe_hint=False, quality=0.0,
                               events=[{"type": "tracking_lost", "reason": reason, "frame": index}])
@@ -612,24 +620,81 @@ class VisualOdometry:
         if len(features) >= c.min_features:
             places = self.retired + [self._place(kf) for kf in self.map.keyframes]
             hit = self.recognizer.relocalise(features, places, K, self.extractor.level_sigmas(features.octaves))
-        if hit is None:
-            restarted = self._reinitialise(index, gray, camera)
-            return restarted or TrackingResult(self.pose.copy(), tracked=False, keyframe_hint=False, quality=0.0)
+        if hit is not None:
+            return self._restart_from(index, gray, camera, hit.pose, features.keypoints[hit.keypoints], hit.points,
+                                      hit.place, "place recognition")
+        restarted = self._reinitialise(index, gray, camera) or self._relocalise_learned(index, gray, camera)
+        return restarted or TrackingResult(self.pose.copy(), tracked=False, keyframe_hint=False, quality=0.0)
+
+    def _restart_from(self, index: int, gray: np.ndarray, camera: Intrinsics, pose: np.ndarray, uv: np.ndarray,
+                      points: np.ndarray, place: int, method: str) -> TrackingResult:
+        """A new local map from the old map's points (world [n, 3]) seen at pixels uv [n, 2] of this frame, posed
+        at `pose` (their positions, hence the scale, carry over); the old keyframes become places."""
         self.anchor = None
         self._retire(self.map.keyframes)
         m = self.map = LocalMap()
-        rows = m.add_points(hit.points, np.zeros((len(hit.points), 32), np.uint8))
+        rows = m.add_points(points, np.zeros((len(points), 32), np.uint8))
         ids = np.arange(self.next_id, self.next_id + len(rows), dtype=np.int64)
         self.next_id += len(rows)
-        self.tracks = Tracks(ids, features.keypoints[hit.keypoints].astype(np.float32), rows)
-        kf = self._new_keyframe(index, hit.pose, gray)
+        self.tracks = Tracks(ids, np.asarray(uv, np.float32).reshape(-1, 2), rows)
+        kf = self._new_keyframe(index, pose, gray)
         self.tracked_at_keyframe = len(rows)
         self.previous_gray = gray
-        event = {"type": "relocalized", "frame": index, "place": hit.place, "inliers": len(rows),
+        event = {"type": "relocalized", "frame": index, "place": place, "inliers": len(rows), "method": method,
                  "lost_frames": index - (self.lost_since if self.lost_since is not None else index)}
         self.status, self.lost_since, self.velocity = "tracking", None, np.eye(4)
-        return TrackingResult(hit.pose, tracked=True, keyframe_hint=True, depth=self._sparse_depth(kf, camera),
+        return TrackingResult(pose, tracked=True, keyframe_hint=True, depth=self._sparse_depth(kf, camera),
                               events=[event], quality=1.0)
+
+    def _relocalise_learned(self, index: int, gray: np.ndarray, camera: Intrinsics) -> TrackingResult | None:
+        """XFeat descriptors of the anchor's map points (sampled at their tracked pixels) matched to XFeat
+        keypoints of this frame, verified by PnP + RANSAC and the robust refinement: the old map, hence its
+        scale, carries on past a turn too fast for optical flow and ORB (None: not found)."""
+        c = self.config
+        anchor = self.anchor
+        if not c.learned_relocalisation or anchor is None or anchor.gray.size == 0:
+            return None
+        if index - anchor.index > c.learned_reloc_frames:
+            self.anchor = None
+            return None
+        xfeat = self._xfeat()
+        if anchor.descriptors.size == 0:
+            anchor.descriptors, anchor.world = self._learned_place(anchor, xfeat)
+        if len(anchor.world) < c.reloc_min_inliers:
+            return None
+        current = xfeat.extract(gray)
+        ia, ib = mutual_matches(anchor.descriptors, current.descriptors, c.learned_min_similarity)
+        if len(ia) < c.reloc_min_inliers:
+            return None
+        K = camera_matrix(camera)
+        X, uv = anchor.world[ia], current.keypoints[ib].astype(np.float64)
+        ok, rvec, tvec, inliers = cv2.solvePnPRansac(X, uv, K, None, iterationsCount=200, reprojectionError=4.0,
+                                                     confidence=0.999, flags=cv2.SOLVEPNP_EPNP)
+        if not ok or inliers is None or len(inliers) < c.reloc_min_inliers:
+            return None
+        w2c = np.eye(4)
+        w2c[:3, :3], w2c[:3, 3] = cv2.Rodrigues(rvec)[0], tvec.ravel()
+        pose, inlier = optimize_pose(invert_pose(w2c), X, uv, np.full(len(X), 2.0), K, c.chi2_px)
+        if inlier.sum() < c.reloc_min_inliers or not np.all(np.isfinite(pose)):
+            return None
+        return self._restart_from(index, gray, camera, pose, uv[inlier], X[inlier], anchor.index, "learned")
+
+    def _learned_place(self, anchor: Anchor, xfeat: XFeatExtractor) -> tuple[np.ndarray, np.ndarray]:
+        """XFeat descriptors [n, 64] of the anchor image's keypoints that lie on one of its tracked map points
+        (within `place_radius_px`), and those points [n, 3]."""
+        found = xfeat.extract(anchor.gray)
+        has = np.isfinite(anchor.points).all(axis=1)
+        if len(found) == 0 or not has.any():
+            return np.zeros((0, 64), np.float32), np.zeros((0, 3))
+        d2 = ((found.keypoints[:, None, :] - anchor.uv[None, has, :]) ** 2).sum(-1)
+        nearest = d2.argmin(axis=1)
+        near = np.flatnonzero(d2[np.arange(len(found)), nearest] <= (2.0 * self.config.place_radius_px) ** 2)
+        return found.descriptors[near], anchor.points[has][nearest[near]]
+
+    def _xfeat(self) -> XFeatExtractor:
+        if self._xfeat_extractor is None:  # loaded on the first loss that needs it
+            self._xfeat_extractor = XFeatExtractor(top_k=self.config.learned_keypoints)
+        return self._xfeat_extractor
 
     def _reinitialise(self, index: int, gray: np.ndarray, camera: Intrinsics) -> TrackingResult | None:
         """A new map from a two-view reconstruction between the last tracked frame (the anchor, whose pose is
@@ -653,9 +718,8 @@ class VisualOdometry:
         followed = Tracks(t.ids[ok], uv[ok], t.rows[ok])
         at, found = lookup_sorted(anchor.ids, followed.ids)
         common = np.flatnonzero(found)
-        if len(common) < c.reinit_min_matches:  # the anchor's view is gone: place recognition only, and the
-            self.anchor = None  # tracks stay those of the last frame they were followed into
-            return None
+        if len(common) < c.reinit_min_matches:  # the flow lost the anchor's view: its tracks stay those of the
+            return None  # last frame they were followed into (learned matching may still find it)
         anchor.predicted = predicted
         self.tracks, self.previous_gray = followed, gray
         ones = np.ones(len(common))

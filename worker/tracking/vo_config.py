@@ -82,6 +82,12 @@ class VisualOdometryConfig(BaseModel):
                                                                      "needs, degrees (ORB-SLAM's; its pose and "
                                                                      "scale come from the anchor)")
     reinit_min_matches: int = Field(50, ge=20, description="tracks shared with the anchor needed to restart")
+    learned_relocalisation: bool = Field(True, description="while lost, match XFeat features of the last tracked "
+                                                           "frame's map points (optical flow and ORB failed)")
+    learned_reloc_frames: int = Field(30, ge=1, description="... for this many frames after it")
+    learned_keypoints: int = Field(1024, ge=64, description="XFeat keypoints per lost frame")
+    learned_min_similarity: float = Field(0.82, gt=0.0, lt=1.0, description="cosine similarity of an XFeat match "
+                                                                             "(XFeat's default)")
 
     # unknown intrinsics
     focal_guess: float = Field(0.9, gt=0.1, lt=5.0, description="focal guess as a share of max(W, H)")
