@@ -103,5 +103,6 @@ def mutual_matches(a: np.ndarray, b: np.ndarray, min_cossim: float = 0.82) -> tu
     similarity = a @ b.T
     best_b = similarity.argmax(axis=1)
     best_a = similarity.argmax(axis=0)
-    ia = np.flatnonzero((best_a[best_b] == np.arange(len(a))) & (similarity.max(axis=1) > min_cossim))
+    rows = np.arange(len(a))
+    ia = np.flatnonzero((best_a[best_b] == rows) & (similarity[rows, best_b] > min_cossim))
     return ia.astype(np.int64), best_b[ia].astype(np.int64)
