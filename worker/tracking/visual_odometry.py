@@ -657,6 +657,8 @@ class VisualOdometry:
         if index - anchor.index > c.learned_reloc_frames:
             self.anchor = None
             return None
+        if (index - anchor.index - 1) % c.learned_reloc_every:  # the network costs more than a tracked frame
+            return None
         xfeat = self._xfeat()
         if anchor.descriptors.size == 0:
             anchor.descriptors, anchor.world = self._learned_place(anchor, xfeat)

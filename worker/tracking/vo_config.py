@@ -85,6 +85,7 @@ class VisualOdometryConfig(BaseModel):
     learned_relocalisation: bool = Field(True, description="while lost, match XFeat features of the last tracked "
                                                            "frame's map points (optical flow and ORB failed)")
     learned_reloc_frames: int = Field(30, ge=1, description="... for this many frames after it")
+    learned_reloc_every: int = Field(3, ge=1, description="... on every n-th lost frame (the first one included)")
     learned_keypoints: int = Field(1024, ge=64, description="XFeat keypoints per lost frame")
     learned_min_similarity: float = Field(0.82, gt=0.0, lt=1.0, description="cosine similarity of an XFeat match "
                                                                              "(XFeat's default)")
