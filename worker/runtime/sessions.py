@@ -38,7 +38,7 @@ from worker.runtime.stats import StageStats
 from worker.serialization import pack, unpack
 
 # Pose-source events forwarded to the clients as their own messages.
-TRACKING_EVENTS = ("tracking_lost", "relocalized", "initialized")
+TRACKING_EVENTS = ("tracking_lost", "relocalized", "initialized", "initializing")
 
 log = logging.getLogger(__name__)
 
@@ -451,7 +451,8 @@ class SessionRunner(threading.Thread):
         for event in result.events:
             if event.get("type") in TRACKING_EVENTS:
                 self._publish_tracking_event(seq, event)
-                self._tracking_state = "lost" if event["type"] == "tracking_lost" else "tracking"
+                self._tracking_state = {"tracking_lost": "lost", "initializing": "initializing"}.get(
+                    event["type"], "tracking")
         self._tracking_state = self._tracking_state or "tracking"
         if not self._session.get("estimated_intrinsics") or any(
                 e.get("type") == "initialized" and e.get("intrinsics") for e in result.events):  # (re-)estimated
