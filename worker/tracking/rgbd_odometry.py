@@ -76,13 +76,13 @@ def grey_of(image: np.ndarray) -> np.ndarray:
 class _Reference:
     """A reference keyframe: its pose and the RGB-D data alignment needs (rebuilt into a pyramid on demand)."""
 
-    def __init__(self, index: int, pose: np.ndarray, grey: np.ndarray, depth: np.ndarray, reused: bool = False
-                 ) -> None:
+    def __init__(self, index: int, pose: np.ndarray, grey: np.ndarray, depth: np.ndarray, reused: bool = False,
+                 pyramid: list[PyramidLevel] | None = None) -> None:
         self.index, self.pose, self.grey, self.depth = index, pose, grey, depth
         self.reused = reused  # a place come back to (frames that see it well need no keyframe)
         valid = depth[depth > 0]
         self.median_depth = float(np.median(valid)) if valid.size else 1.0
-        self._pyramid: list[PyramidLevel] | None = None
+        self._pyramid = pyramid  # the tracked frame's own pyramid when it becomes the reference
         self._keypoints: KeypointSet | None = None
 
     def pyramid(self, K: np.ndarray, levels: int) -> list[PyramidLevel]:
@@ -315,7 +315,8 @@ class RgbdOdometry:
             if current is not None and self._come_back(index, pose, current, K):
                 return
             if np.count_nonzero(depth) > 0.2 * depth.size:
-                self.references.append(_Reference(index, pose, grey, depth))
+                pyramid = current.pyramid if current is not None else None
+                self.references.append(_Reference(index, pose, grey, depth, pyramid=pyramid))
 
     def _come_back(self, index: int, pose: np.ndarray, current: _Current, K: np.ndarray) -> bool:
         """Switch the reference to the nearest place the camera has come back to, when the frame overlaps it well;

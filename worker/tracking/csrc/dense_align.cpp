@@ -1,0 +1,249 @@
+// Dense RGB-D alignment kernels: one pyramid level's points and normals, the depth downsampling between levels,
+// and the Gauss-Newton normal equations of the photometric and the point-to-plane terms for one iteration.
+// Plain C ABI; worker/tracking/dense_native.py owns every buffer and calls these through ctypes (which releases the
+// GIL). worker/tracking/dense_reference.py is the numpy twin of each function (the test oracle) and documents the
+// maths; the arithmetic below follows it operation by operation (float32 where it works in float32).
+//
+// Conventions: images row-major [h, w]; pixel (row i, col j) has its centre at (j + 0.5, i + 0.5). K is passed
+// as (fx, fy, cx, cy). T is the 4x4 row-major float64 T_cur_ref. The update is a left perturbation exp(delta) T,
+// delta = (omega, v), so the jacobian row of a residual a . (T p) is [p x a, a].
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <utility>
+#include <vector>
+
+namespace {
+
+// The two middle values of `values` (equal for an odd count); np.median is their mean. Reorders `values`.
+std::pair<double, double> middle_pair(std::vector<double>& values) {
+    const size_t n = values.size();
+    if (n == 0) return {0.0, 0.0};
+    auto middle = values.begin() + n / 2;
+    std::nth_element(values.begin(), middle, values.end());
+    const double upper = *middle;
+    return {n % 2 ? upper : *std::max_element(values.begin(), middle), upper};
+}
+
+double median(std::vector<double>& values) {
+    const auto [lower, upper] = middle_pair(values);
+    return values.size() % 2 ? upper : (lower + upper) / 2.0;
+}
+
+// max(1.4826 * median(|r - centre|), floor) with centre = median(r): the robust (MAD) scale of the residuals.
+double robust_scale(const std::vector<double>& r, double centre, double floor, std::vector<double>& scratch) {
+    if (r.empty()) return floor;
+    scratch.resize(r.size());
+    for (size_t i = 0; i < r.size(); ++i) scratch[i] = std::fabs(r[i] - centre);
+    return std::max(1.4826 * median(scratch), floor);
+}
+
+double huber_weight(double r, double scale, double k) {
+    const double a = std::fabs(r) / std::max(scale, 1e-12);
+    return a <= k ? 1.0 : k / std::max(a, 1e-12);
+}
+
+// H += w J J^T and g += w J r for a jacobian row J = [p x a, a]; H is accumulated in its upper triangle.
+inline void accumulate(const double p[3], const double a[3], double w, double r, double* H, double* g) {
+    const double J[6] = {p[1] * a[2] - p[2] * a[1], p[2] * a[0] - p[0] * a[2], p[0] * a[1] - p[1] * a[0],
+                         a[0], a[1], a[2]};
+    for (int i = 0; i < 6; ++i) {
+        const double wi = w * J[i];
+        g[i] += wi * r;
+        for (int j = i; j < 6; ++j) H[i * 6 + j] += wi * J[j];
+    }
+}
+
+void symmetrize(double* H) {
+    for (int i = 0; i < 6; ++i)
+        for (int j = 0; j < i; ++j) H[i * 6 + j] = H[j * 6 + i];
+}
+
+inline void transform(const double* T, const double* p, double q[3]) {
+    for (int k = 0; k < 3; ++k) q[k] = T[4 * k] * p[0] + T[4 * k + 1] * p[1] + T[4 * k + 2] * p[2] + T[4 * k + 3];
+}
+
+// Bilinear sample at continuous pixel coordinates (u, v), centres at +0.5; (u, v) must lie in [0.5, w - 0.5) x
+// [0.5, h - 0.5) so that the four neighbours exist.
+inline double bilinear(const float* image, int w, double u, double v) {
+    const double x = double(float(u - 0.5)), y = double(float(v - 0.5));  // the reference samples at float32
+    const int ix = int(x), iy = int(y);
+    const double fx = x - ix, fy = y - iy;
+    const float* row = image + int64_t(iy) * w + ix;
+    const double top = row[0] + fx * (double(row[1]) - row[0]);
+    const double bottom = row[w] + fx * (double(row[w + 1]) - row[w]);
+    return top + fy * (bottom - top);
+}
+
+}  // namespace
+
+extern "C" {
+
+// Camera-frame points [h, w, 3] (float32; z = depth, 0 where unknown) of a depth map under K = (fx, fy, cx, cy).
+void dense_points(int h, int w, const float* depth, const double* K, float* points) {
+    for (int i = 0; i < h; ++i) {
+        const double y = (i + 0.5 - K[3]) / K[1];
+        for (int j = 0; j < w; ++j) {
+            const double x = (j + 0.5 - K[2]) / K[0];
+            const float d = depth[int64_t(i) * w + j];
+            float* p = points + (int64_t(i) * w + j) * 3;
+            p[0] = float(x * d);
+            p[1] = float(y * d);
+            p[2] = d;
+        }
+    }
+}
+
+// Unit normals [h, w, 3] (float32) from central differences of the point grid, facing the camera; 0 on the
+// border, at missing depth and where a neighbour's depth differs by more than edge_ratio x depth.
+void dense_normals(int h, int w, const float* points, float edge_ratio, float* normals) {
+    std::fill(normals, normals + int64_t(h) * w * 3, 0.0f);
+    for (int i = 1; i < h - 1; ++i) {
+        for (int j = 1; j < w - 1; ++j) {
+            const int64_t at = int64_t(i) * w + j;
+            const float* p = points + at * 3;
+            const float* right = p + 3;
+            const float* left = p - 3;
+            const float* down = p + int64_t(w) * 3;
+            const float* up = p - int64_t(w) * 3;
+            const float z = p[2];
+            if (!(z > 0.0f)) continue;
+            const float limit = edge_ratio * z;
+            bool good = true;
+            for (const float* q : {right, left, down, up})
+                good = good && q[2] > 0.0f && std::fabs(q[2] - z) <= limit;
+            if (!good) continue;
+            const float dx[3] = {right[0] - left[0], right[1] - left[1], right[2] - left[2]};
+            const float dy[3] = {down[0] - up[0], down[1] - up[1], down[2] - up[2]};
+            const float c[3] = {dx[1] * dy[2] - dx[2] * dy[1], dx[2] * dy[0] - dx[0] * dy[2],
+                                dx[0] * dy[1] - dx[1] * dy[0]};
+            const float norm = std::sqrt(c[0] * c[0] + c[1] * c[1] + c[2] * c[2]);
+            if (!(norm > 0.0f)) continue;
+            const float facing = c[0] * p[0] + c[1] * p[1] + c[2] * p[2];
+            const float scale = float((facing > 0.0f ? -1.0 : 1.0) / double(std::max(norm, 1e-12f)));
+            float* n = normals + at * 3;
+            for (int k = 0; k < 3; ++k) n[k] = c[k] * scale;
+        }
+    }
+}
+
+// Depth [h / 2, w / 2] from 2x2 blocks: the mean of the valid depths, 0 where fewer than two are valid or the
+// block straddles a depth edge (max - min > edge_ratio x mean).
+void dense_downsample_depth(int h, int w, const float* depth, double edge_ratio, float* out) {
+    const int oh = h / 2, ow = w / 2;
+    for (int i = 0; i < oh; ++i) {
+        for (int j = 0; j < ow; ++j) {
+            const float* row = depth + int64_t(2 * i) * w + 2 * j;
+            const float block[4] = {row[0], row[1], row[w], row[w + 1]};
+            float sum = 0.0f, hi = -INFINITY, lo = INFINITY;
+            int count = 0;
+            for (float d : block) {
+                sum += d;
+                if (d > 0.0f) {
+                    ++count;
+                    hi = std::max(hi, d);
+                    lo = std::min(lo, d);
+                }
+            }
+            const double mean = count > 0 ? double(sum) / count : 0.0;
+            const bool keep = count >= 2 && double(hi - lo) <= edge_ratio * mean;
+            out[int64_t(i) * ow + j] = keep ? float(mean) : 0.0f;
+        }
+    }
+}
+
+// The photometric term of one Gauss-Newton iteration. Reference points P [n, 3] (float64) with intensities
+// I [n] are moved by T and projected into the current image (grey, grad_x, grad_y: float32 [h, w]); those landing
+// inside (1 pixel from the border) give r = sampled - I minus its median, robust scale s = MAD (>= floor),
+// Huber weights x weight / s^2. out = [H (36), g (6), points used, scale]; points used = 0 (H, g zero) when fewer
+// than min_points land inside.
+void dense_photometric_system(int64_t n, const double* P, const double* I, const double* T, const double* K,
+                              int h, int w, const float* grey, const float* grad_x, const float* grad_y,
+                              double floor, double weight, double huber_k, int64_t min_points, double* out) {
+    std::fill(out, out + 44, 0.0);
+    std::vector<double> r, scratch, moved;  // moved: (x, y, z, u, v) of each point landing inside
+    r.reserve(n);
+    moved.reserve(5 * n);
+    for (int64_t i = 0; i < n; ++i) {
+        double p[3];
+        transform(T, P + 3 * i, p);
+        const double z = std::max(p[2], 1e-9);
+        const double u = K[0] * p[0] / z + K[2], v = K[1] * p[1] / z + K[3];
+        if (!(p[2] > 0.0 && u >= 1.0 && u < w - 1 && v >= 1.0 && v < h - 1)) continue;
+        r.push_back(bilinear(grey, w, u, v) - I[i]);
+        moved.insert(moved.end(), {p[0], p[1], p[2], u, v});
+    }
+    const int64_t m = int64_t(r.size());
+    if (m < min_points) return;
+    // r -= median(r); the median of the result is then that of the shifted middle pair (no second selection)
+    scratch.assign(r.begin(), r.end());
+    const auto [lower, upper] = middle_pair(scratch);
+    const double offset = m % 2 ? upper : (lower + upper) / 2.0;
+    for (double& value : r) value -= offset;
+    const double centre = m % 2 ? upper - offset : ((lower - offset) + (upper - offset)) / 2.0;
+    const double scale = robust_scale(r, centre, floor, scratch);
+    const double whiten = weight / (scale * scale);
+    double* H = out;
+    double* g = out + 36;
+    for (int64_t k = 0; k < m; ++k) {
+        const double* q = moved.data() + 5 * k;
+        const double gx = bilinear(grad_x, w, q[3], q[4]), gy = bilinear(grad_y, w, q[3], q[4]);
+        const double z = q[2];
+        // d(intensity)/d(point) = grad . d(pixel)/d(point)
+        const double a[3] = {gx * K[0] / z, gy * K[1] / z, -(gx * K[0] * q[0] + gy * K[1] * q[1]) / (z * z)};
+        accumulate(q, a, huber_weight(r[k], scale, huber_k) * whiten, r[k], H, g);
+    }
+    symmetrize(H);
+    out[42] = double(m);
+    out[43] = scale;
+}
+
+// The point-to-plane term of one Gauss-Newton iteration. Reference points P [n, 3] moved by T are associated with
+// the current frame's point and normal (float32 [h, w, 3]) at the pixel they project to; a pair counts when it
+// has depth and a normal and lies closer than max_association x depth. r = (p - q) . n / z, J = [p x n, n] / z,
+// robust scale s = MAD (>= floor), Huber weights x weight / s^2. out = [H (36), g (6), points used, scale,
+// pairs found]; points used = 0 (H, g zero) when fewer than min_points pairs are found.
+void dense_geometric_system(int64_t n, const double* P, const double* T, const double* K, int h, int w,
+                            const float* points, const float* normals, double max_association, double floor,
+                            double weight, double huber_k, int64_t min_points, double* out) {
+    std::fill(out, out + 45, 0.0);
+    std::vector<double> r, scratch, moved;  // moved: (x, y, z) and the normal of each pair found
+    r.reserve(n);
+    moved.reserve(6 * n);
+    for (int64_t i = 0; i < n; ++i) {
+        double p[3];
+        transform(T, P + 3 * i, p);
+        const double z = std::max(p[2], 1e-9);
+        const double u = K[0] * p[0] / z + K[2], v = K[1] * p[1] / z + K[3];
+        if (!(p[2] > 0.0 && u >= 0.0 && u < w && v >= 0.0 && v < h)) continue;
+        const int64_t at = int64_t(v) * w + int64_t(u);
+        const float* q = points + 3 * at;
+        const float* nq = normals + 3 * at;
+        if (!(q[2] > 0.0f) || std::fabs(nq[0]) + std::fabs(nq[1]) + std::fabs(nq[2]) <= 0.0f) continue;
+        const double d[3] = {p[0] - q[0], p[1] - q[1], p[2] - q[2]};
+        if (!(std::sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]) < max_association * p[2])) continue;
+        r.push_back((d[0] * nq[0] + d[1] * nq[1] + d[2] * nq[2]) / p[2]);
+        moved.insert(moved.end(), {p[0], p[1], p[2], double(nq[0]), double(nq[1]), double(nq[2])});
+    }
+    const int64_t m = int64_t(r.size());
+    out[44] = double(m);
+    if (m < min_points) return;
+    scratch.assign(r.begin(), r.end());
+    const double scale = robust_scale(r, median(scratch), floor, scratch);
+    const double whiten = weight / (scale * scale);
+    double* H = out;
+    double* g = out + 36;
+    for (int64_t k = 0; k < m; ++k) {
+        const double* q = moved.data() + 6 * k;
+        const double inv_z = 1.0 / q[2];
+        const double p[3] = {q[0], q[1], q[2]};
+        const double a[3] = {q[3] * inv_z, q[4] * inv_z, q[5] * inv_z};  // J = [p x n, n] / z
+        accumulate(p, a, huber_weight(r[k], scale, huber_k) * whiten, r[k], H, g);
+    }
+    symmetrize(H);
+    out[42] = double(m);
+    out[43] = scale;
+}
+
+}  // extern "C"
