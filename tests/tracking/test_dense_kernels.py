@@ -140,7 +140,8 @@ def test_odometry_trajectory_equals_the_reference(icl) -> None:
     np.testing.assert_allclose(trajectories[1], trajectories[0], atol=1e-6)
 
 
-def test_falls_back_to_the_reference_without_a_compiler(tmp_path) -> None:
+def test_tracking_falls_back_to_the_references_without_a_compiler(tmp_path) -> None:
+    """Dense alignment and bundle adjustment (worker.tracking.schur_native) both run their numpy references."""
     script = (
         "import logging, numpy as np\n"
         "logging.basicConfig(level=logging.WARNING)\n"
@@ -157,6 +158,15 @@ def test_falls_back_to_the_reference_without_a_compiler(tmp_path) -> None:
         "    kernels('native')\n"
         "except RuntimeError as err:\n"
         "    print('REFUSED', err)\n"
+        "from worker.tracking import schur_native\n"
+        "from worker.tracking.bundle_adjustment import Observations, bundle_adjust\n"
+        "K = np.array([[200.0, 0, 80], [0, 200.0, 60], [0, 0, 1]])\n"
+        "X = np.random.default_rng(0).uniform([-1, -1, 3], [1, 1, 5], (60, 3))\n"
+        "poses = np.stack([np.eye(4)] * 3); poses[1, 0, 3], poses[2, 0, 3] = 0.2, 0.4\n"
+        "uv = [(X - p[:3, 3]) @ K.T for p in poses]; uv = np.concatenate([u[:, :2] / u[:, 2:] for u in uv])\n"
+        "obs = Observations(np.repeat(np.arange(3), 60), np.tile(np.arange(60), 3), uv + 0.3, np.ones(180))\n"
+        "_, _, ran = bundle_adjust(poses, np.array([True, False, False]), X, obs, K)\n"
+        "assert ran and not schur_native.available()\n"
         "print('FELL BACK')\n"
     )
     env = dict(os.environ, CXX="false", FLASHMONO_EXT_DIR=str(tmp_path))
