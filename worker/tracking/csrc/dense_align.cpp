@@ -162,19 +162,19 @@ void dense_photometric_system(int64_t n, const double* P, const double* I, const
                               int h, int w, const float* grey, const float* grad_x, const float* grad_y,
                               double floor, double weight, double huber_k, int64_t min_points, double* out) {
     std::fill(out, out + 44, 0.0);
-    std::vector<double> r, scratch, moved;  // moved: (x, y, z, u, v) of each point landing inside
-    r.reserve(n);
-    moved.reserve(5 * n);
+    std::vector<double> r(n), scratch, moved(5 * n);  // moved: (x, y, z, u, v) of each point landing inside
+    int64_t m = 0;
     for (int64_t i = 0; i < n; ++i) {
         double p[3];
         transform(T, P + 3 * i, p);
         const double z = std::max(p[2], 1e-9);
         const double u = K[0] * p[0] / z + K[2], v = K[1] * p[1] / z + K[3];
         if (!(p[2] > 0.0 && u >= 1.0 && u < w - 1 && v >= 1.0 && v < h - 1)) continue;
-        r.push_back(bilinear(grey, w, u, v) - I[i]);
-        moved.insert(moved.end(), {p[0], p[1], p[2], u, v});
+        r[m] = bilinear(grey, w, u, v) - I[i];
+        double* q = moved.data() + 5 * m++;
+        q[0] = p[0], q[1] = p[1], q[2] = p[2], q[3] = u, q[4] = v;
     }
-    const int64_t m = int64_t(r.size());
+    r.resize(m);
     if (m < min_points) return;
     // r -= median(r); the median of the result is then that of the shifted middle pair (no second selection)
     scratch.assign(r.begin(), r.end());
@@ -208,9 +208,8 @@ void dense_geometric_system(int64_t n, const double* P, const double* T, const d
                             const float* points, const float* normals, double max_association, double floor,
                             double weight, double huber_k, int64_t min_points, double* out) {
     std::fill(out, out + 45, 0.0);
-    std::vector<double> r, scratch, moved;  // moved: (x, y, z) and the normal of each pair found
-    r.reserve(n);
-    moved.reserve(6 * n);
+    std::vector<double> r(n), scratch, moved(6 * n);  // moved: (x, y, z) and the normal of each pair found
+    int64_t m = 0;
     for (int64_t i = 0; i < n; ++i) {
         double p[3];
         transform(T, P + 3 * i, p);
@@ -223,10 +222,11 @@ void dense_geometric_system(int64_t n, const double* P, const double* T, const d
         if (!(q[2] > 0.0f) || std::fabs(nq[0]) + std::fabs(nq[1]) + std::fabs(nq[2]) <= 0.0f) continue;
         const double d[3] = {p[0] - q[0], p[1] - q[1], p[2] - q[2]};
         if (!(std::sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]) < max_association * p[2])) continue;
-        r.push_back((d[0] * nq[0] + d[1] * nq[1] + d[2] * nq[2]) / p[2]);
-        moved.insert(moved.end(), {p[0], p[1], p[2], double(nq[0]), double(nq[1]), double(nq[2])});
+        r[m] = (d[0] * nq[0] + d[1] * nq[1] + d[2] * nq[2]) / p[2];
+        double* s = moved.data() + 6 * m++;
+        s[0] = p[0], s[1] = p[1], s[2] = p[2], s[3] = nq[0], s[4] = nq[1], s[5] = nq[2];
     }
-    const int64_t m = int64_t(r.size());
+    r.resize(m);
     out[44] = double(m);
     if (m < min_points) return;
     scratch.assign(r.begin(), r.end());
