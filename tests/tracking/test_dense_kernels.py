@@ -15,7 +15,14 @@ import pytest
 
 from worker.data import open_source
 from worker.tracking import dense_native, dense_reference
-from worker.tracking.dense_alignment import MIN_POINTS, AlignmentSettings, PyramidLevel, align, build_pyramid
+from worker.tracking.dense_alignment import (
+    MIN_POINTS,
+    AlignmentSettings,
+    PyramidLevel,
+    align,
+    build_pyramid,
+    solve_level,
+)
 from worker.tracking.dense_alignment import _se3_exp as se3_exp
 from worker.tracking.rgbd_odometry import RgbdOdometry, grey_of
 
@@ -113,6 +120,37 @@ def test_normal_equations_equal_the_reference_on_constructed_geometry() -> None:
     exact = dense_native.geometric_system(s.geometric_points, np.eye(4), K, level.points, level.normals, 0.08,
                                           SETTINGS.geometric_floor, 1.0, MIN_POINTS)
     assert exact.used > 1000 and np.abs(exact.g).max() < 1e-9
+
+
+def _solve_both(ref_level: PyramidLevel, cur: PyramidLevel, T: np.ndarray, iterations: int):
+    """(T, state) from the compiled level loop and from the Python loop over the compiled per-iteration kernels."""
+    s = SETTINGS
+    samples = ref_level.samples(s.max_points, s.min_gradient)
+    python_state, native_state = np.array([0.0, 0, 0, 0, 1]), np.array([0.0, 0, 0, 0, 1])
+    python_T = solve_level(dense_native, samples, cur, T.copy(), s, iterations, python_state)
+    native_T = T.copy()
+    terms = (s.photometric_floor, s.photometric_weight, s.max_association, s.geometric_floor, s.geometric_weight)
+    dense_native.solve_level(samples.photometric_points, samples.intensity, samples.geometric_points, samples.depth,
+                             cur.K, cur.grey, cur.grad_x, cur.grad_y, cur.points, cur.normals, terms, MIN_POINTS,
+                             iterations, s.convergence, native_T, native_state)
+    return (python_T, python_state), (native_T, native_state)
+
+
+def test_compiled_level_loop_equals_the_python_loop(icl) -> None:
+    frames, K = icl
+    reference, current = _pyramids(frames, K, 4, 6)
+    for level, iterations in ((2, 10), (0, 3)):
+        (python_T, python_state), (native_T, native_state) = _solve_both(reference[level], current[level], np.eye(4),
+                                                                         iterations)
+        assert python_state[4] == 1 and python_state[3] > 1000
+        assert np.abs(python_T[:3, 3]).max() > 0.01  # it moved towards the ~13 cm between the frames
+        np.testing.assert_allclose(native_T, python_T, atol=1e-10)
+        np.testing.assert_allclose(native_state, python_state, rtol=1e-9)
+    # a start that sees nothing of the current frame is ill-posed in both
+    far = se3_exp(np.array([0, 0, 0, 80.0, 0, 0]))
+    (python_T, python_state), (native_T, native_state) = _solve_both(reference[1], current[1], far, 5)
+    assert python_state[4] == 0 and native_state[4] == 0
+    np.testing.assert_array_equal(native_T, far)
 
 
 def test_alignment_recovers_a_known_motion_with_either_backend() -> None:

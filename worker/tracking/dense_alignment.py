@@ -171,44 +171,60 @@ class AlignmentSettings:
     backend: Backend = "auto"
 
 
+def solve_level(ops: ModuleType, samples: ReferenceSamples, cur: PyramidLevel, T: np.ndarray,
+                s: AlignmentSettings, iterations: int, state: np.ndarray) -> np.ndarray:
+    """Gauss-Newton on one level with the per-iteration kernels of `ops`; returns T, updates state = (overlap,
+    photometric scale, geometric scale, points used, ok) in place. `dense_native.solve_level` runs this loop
+    compiled."""
+    for _ in range(iterations):
+        photo = ops.photometric_system(samples.photometric_points, samples.intensity, T, cur.K, cur.grey,
+                                       cur.grad_x, cur.grad_y, s.photometric_floor, s.photometric_weight, MIN_POINTS)
+        geo = ops.geometric_system(samples.geometric_points, T, cur.K, cur.points, cur.normals,
+                                   s.max_association, s.geometric_floor, s.geometric_weight, MIN_POINTS)
+        state[0] = geo.found / max(1, samples.geometric_points.shape[0])
+        state[1] = photo.scale if photo.used else state[1]
+        state[2] = geo.scale if geo.used else state[2]
+        count = photo.used + geo.used
+        if count < MIN_POINTS:
+            state[4] = 0.0
+            break
+        H = photo.H + geo.H
+        H += 1e-9 * np.trace(H) * np.eye(6)
+        try:
+            delta = -np.linalg.solve(H, photo.g + geo.g)
+        except np.linalg.LinAlgError:
+            state[4] = 0.0
+            break
+        if not np.all(np.isfinite(delta)):
+            state[4] = 0.0
+            break
+        T = _se3_exp(delta) @ T
+        state[3] = count
+        if np.hypot(np.linalg.norm(delta[:3]), np.linalg.norm(delta[3:]) / samples.depth) < s.convergence:
+            break
+    return T
+
+
 def align(reference: list[PyramidLevel], current: list[PyramidLevel], T_init: np.ndarray,
           settings: AlignmentSettings | None = None) -> AlignmentResult:
     """T_cur_ref refined from `T_init` by coarse-to-fine Gauss-Newton (see the module docstring)."""
     s = settings or AlignmentSettings()
     ops = kernels(s.backend)
-    T = np.asarray(T_init, np.float64).copy()
+    T = np.array(T_init, np.float64, order="C")
     levels = min(len(reference), len(current), len(s.iterations))
-    overlap, rms_i, rms_g, used, ok = 0.0, 0.0, 0.0, 0, True
+    state = np.array([0.0, 0.0, 0.0, 0.0, 1.0])  # overlap, photometric scale, geometric scale, points used, ok
     for level in reversed(range(levels)):
         ref, cur = reference[level], current[level]
         samples = ref.samples(s.max_points, s.min_gradient)
-        for _ in range(s.iterations[level]):
-            photo = ops.photometric_system(samples.photometric_points, samples.intensity, T, cur.K, cur.grey,
-                                           cur.grad_x, cur.grad_y, s.photometric_floor, s.photometric_weight,
-                                           MIN_POINTS)
-            geo = ops.geometric_system(samples.geometric_points, T, cur.K, cur.points, cur.normals,
-                                       s.max_association, s.geometric_floor, s.geometric_weight, MIN_POINTS)
-            overlap = geo.found / max(1, samples.geometric_points.shape[0])
-            rms_i = photo.scale if photo.used else rms_i
-            rms_g = geo.scale if geo.used else rms_g
-            count = photo.used + geo.used
-            if count < MIN_POINTS:
-                ok = False
-                break
-            H = photo.H + geo.H
-            H += 1e-9 * np.trace(H) * np.eye(6)
-            try:
-                delta = -np.linalg.solve(H, photo.g + geo.g)
-            except np.linalg.LinAlgError:
-                ok = False
-                break
-            if not np.all(np.isfinite(delta)):
-                ok = False
-                break
-            T = _se3_exp(delta) @ T
-            used = count
-            if np.hypot(np.linalg.norm(delta[:3]), np.linalg.norm(delta[3:]) / samples.depth) < s.convergence:
-                break
-        if not ok:
+        if ops is dense_native:  # the whole level in one compiled call: one GIL release, not two per iteration
+            terms = (s.photometric_floor, s.photometric_weight, s.max_association, s.geometric_floor,
+                     s.geometric_weight)
+            dense_native.solve_level(samples.photometric_points, samples.intensity, samples.geometric_points,
+                                     samples.depth, cur.K, cur.grey, cur.grad_x, cur.grad_y, cur.points, cur.normals,
+                                     terms, MIN_POINTS, s.iterations[level], s.convergence, T, state)
+        else:
+            T = solve_level(ops, samples, cur, T, s, s.iterations[level], state)
+        if not state[4]:
             break
-    return AlignmentResult(T, overlap, rms_i, rms_g, ok and bool(np.all(np.isfinite(T))), used)
+    ok = bool(state[4]) and bool(np.all(np.isfinite(T)))
+    return AlignmentResult(T, float(state[0]), float(state[1]), float(state[2]), ok, int(state[3]))

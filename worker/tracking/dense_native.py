@@ -26,8 +26,9 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.dense_downsample_depth.argtypes = [i32, i32, p, f64, p]
     lib.dense_photometric_system.argtypes = [i64, p, p, p, p, i32, i32, p, p, p, f64, f64, f64, i64, p]
     lib.dense_geometric_system.argtypes = [i64, p, p, p, i32, i32, p, p, f64, f64, f64, f64, i64, p]
+    lib.dense_solve_level.argtypes = [i64, p, p, i64, p, f64, p, i32, i32, p, p, p, p, p, p, i64, i32, f64, p, p]
     for fn in (lib.dense_points, lib.dense_normals, lib.dense_downsample_depth, lib.dense_photometric_system,
-               lib.dense_geometric_system):
+               lib.dense_geometric_system, lib.dense_solve_level):
         fn.restype = None
 
 
@@ -111,3 +112,23 @@ def geometric_system(P: np.ndarray, T: np.ndarray, K: np.ndarray, cur_points: np
                                   cur_points.ctypes.data, cur_normals.ctypes.data, float(max_association),
                                   float(floor), float(weight), HUBER_K, int(min_points), out.ctypes.data)
     return TermSystem(out[:36].reshape(6, 6), out[36:42], int(out[42]), float(out[43]), int(out[44]))
+
+
+def solve_level(P_photo: np.ndarray, intensity: np.ndarray, P_geo: np.ndarray, depth: float, K: np.ndarray,
+                grey: np.ndarray, grad_x: np.ndarray, grad_y: np.ndarray, cur_points: np.ndarray,
+                cur_normals: np.ndarray, terms: tuple[float, float, float, float, float], min_points: int,
+                iterations: int, convergence: float, T: np.ndarray, state: np.ndarray) -> None:
+    """Gauss-Newton on one pyramid level in one call (one GIL release): the loop of
+    `dense_alignment.solve_level` over `photometric_system` + `geometric_system`. terms = (photometric floor,
+    photometric weight, max association, geometric floor, geometric weight); T [4, 4] and state = (overlap,
+    photometric scale, geometric scale, points used, ok) float64 are updated in place."""
+    assert T.flags.c_contiguous and T.dtype == np.float64 and T.shape == (4, 4)
+    assert state.flags.c_contiguous and state.dtype == np.float64 and state.shape == (5,)
+    P_photo, intensity, P_geo = _c(P_photo, np.float64), _c(intensity, np.float64), _c(P_geo, np.float64)
+    images = [_c(a, np.float32) for a in (grey, grad_x, grad_y, cur_points, cur_normals)]
+    h, w = images[0].shape
+    weights = np.array([*terms, HUBER_K], np.float64)
+    _lib().dense_solve_level(P_photo.shape[0], P_photo.ctypes.data, intensity.ctypes.data, P_geo.shape[0],
+                             P_geo.ctypes.data, float(depth), _camera(K).ctypes.data, h, w,
+                             *(a.ctypes.data for a in images), weights.ctypes.data, int(min_points), int(iterations),
+                             float(convergence), T.ctypes.data, state.ctypes.data)

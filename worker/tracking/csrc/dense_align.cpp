@@ -246,4 +246,109 @@ void dense_geometric_system(int64_t n, const double* P, const double* T, const d
     out[43] = scale;
 }
 
+// 6x6 solve by Gaussian elimination with partial pivoting (as LAPACK's dgesv); false when a pivot is exactly 0.
+static bool solve6(double A[36], double b[6], double x[6]) {
+    for (int c = 0; c < 6; ++c) {
+        int pivot = c;
+        for (int r = c + 1; r < 6; ++r)
+            if (std::fabs(A[r * 6 + c]) > std::fabs(A[pivot * 6 + c])) pivot = r;
+        if (A[pivot * 6 + c] == 0.0) return false;
+        if (pivot != c) {
+            for (int k = 0; k < 6; ++k) std::swap(A[c * 6 + k], A[pivot * 6 + k]);
+            std::swap(b[c], b[pivot]);
+        }
+        for (int r = c + 1; r < 6; ++r) {
+            const double f = A[r * 6 + c] / A[c * 6 + c];
+            for (int k = c; k < 6; ++k) A[r * 6 + k] -= f * A[c * 6 + k];
+            b[r] -= f * b[c];
+        }
+    }
+    for (int r = 5; r >= 0; --r) {
+        double sum = b[r];
+        for (int k = r + 1; k < 6; ++k) sum -= A[r * 6 + k] * x[k];
+        x[r] = sum / A[r * 6 + r];
+    }
+    return true;
+}
+
+// T <- exp(delta) T for delta = (omega, v) (Rodrigues' formula and the left Jacobian, as dense_alignment._se3_exp).
+static void se3_left_update(const double delta[6], double* T) {
+    const double* o = delta;
+    const double theta = std::sqrt(o[0] * o[0] + o[1] * o[1] + o[2] * o[2]);
+    const double W[9] = {0, -o[2], o[1], o[2], 0, -o[0], -o[1], o[0], 0};
+    double WW[9];
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) WW[i * 3 + j] = W[i * 3] * W[j] + W[i * 3 + 1] * W[3 + j] + W[i * 3 + 2] * W[6 + j];
+    double a, b, c;
+    if (theta < 1e-10) {
+        a = 1.0, b = 0.0, c = 0.0;  // R = I + W, V = I + W / 2
+    } else {
+        a = std::sin(theta) / theta, b = (1 - std::cos(theta)) / (theta * theta), c = (1 - a) / (theta * theta);
+    }
+    double E[16] = {0};
+    for (int i = 0; i < 3; ++i) {
+        for (int j = 0; j < 3; ++j) {
+            const double I = i == j ? 1.0 : 0.0;
+            E[i * 4 + j] = theta < 1e-10 ? I + W[i * 3 + j] : I + a * W[i * 3 + j] + b * WW[i * 3 + j];
+        }
+        double t = 0.0;
+        for (int j = 0; j < 3; ++j) {
+            const double I = i == j ? 1.0 : 0.0;
+            const double V = theta < 1e-10 ? I + 0.5 * W[i * 3 + j] : I + b * W[i * 3 + j] + c * WW[i * 3 + j];
+            t += V * delta[3 + j];
+        }
+        E[i * 4 + 3] = t;
+    }
+    E[15] = 1.0;
+    double out[16];
+    for (int i = 0; i < 4; ++i)
+        for (int j = 0; j < 4; ++j)
+            out[i * 4 + j] = E[i * 4] * T[j] + E[i * 4 + 1] * T[4 + j] + E[i * 4 + 2] * T[8 + j] + E[i * 4 + 3] * T[12 + j];
+    std::copy(out, out + 16, T);
+}
+
+// Gauss-Newton on one pyramid level, at most `iterations` updates of T (in place), each from the sum of the two
+// terms' normal equations (H + 1e-9 trace(H) I) delta = -g, stopping once |(omega, v / depth)| < convergence.
+// terms = (photometric_floor, photometric_weight, max_association, geometric_floor, geometric_weight, huber_k).
+// state (in/out) = (overlap, photometric scale, geometric scale, points used, ok): what the Python loop of
+// dense_alignment.align keeps between levels; ok = 0 once a solve is ill-posed (too few points, singular or not
+// finite), which stops the level.
+void dense_solve_level(int64_t n_photo, const double* P_photo, const double* I, int64_t n_geo, const double* P_geo,
+                       double depth, const double* K, int h, int w, const float* grey, const float* grad_x,
+                       const float* grad_y, const float* points, const float* normals, const double* terms,
+                       int64_t min_points, int iterations, double convergence, double* T, double* state) {
+    double photo[44], geo[45];
+    for (int it = 0; it < iterations; ++it) {
+        dense_photometric_system(n_photo, P_photo, I, T, K, h, w, grey, grad_x, grad_y, terms[0], terms[1], terms[5],
+                                 min_points, photo);
+        dense_geometric_system(n_geo, P_geo, T, K, h, w, points, normals, terms[2], terms[3], terms[4], terms[5],
+                               min_points, geo);
+        state[0] = geo[44] / double(std::max<int64_t>(1, n_geo));
+        if (photo[42] > 0) state[1] = photo[43];
+        if (geo[42] > 0) state[2] = geo[43];
+        const double count = photo[42] + geo[42];
+        if (count < double(min_points)) {
+            state[4] = 0.0;
+            return;
+        }
+        double H[36], g[6], delta[6];
+        double trace = 0.0;
+        for (int k = 0; k < 36; ++k) H[k] = photo[k] + geo[k];
+        for (int k = 0; k < 6; ++k) trace += H[k * 7];
+        for (int k = 0; k < 6; ++k) H[k * 7] += 1e-9 * trace;
+        for (int k = 0; k < 6; ++k) g[k] = -(photo[36 + k] + geo[36 + k]);
+        bool finite = solve6(H, g, delta);
+        for (int k = 0; k < 6 && finite; ++k) finite = std::isfinite(delta[k]);
+        if (!finite) {
+            state[4] = 0.0;
+            return;
+        }
+        se3_left_update(delta, T);
+        state[3] = count;
+        const double rotation = std::sqrt(delta[0] * delta[0] + delta[1] * delta[1] + delta[2] * delta[2]);
+        const double translation = std::sqrt(delta[3] * delta[3] + delta[4] * delta[4] + delta[5] * delta[5]) / depth;
+        if (std::hypot(rotation, translation) < convergence) return;
+    }
+}
+
 }  // extern "C"
