@@ -130,9 +130,9 @@ def _solve_both(ref_level: PyramidLevel, cur: PyramidLevel, T: np.ndarray, itera
     python_T = solve_level(dense_native, samples, cur, T.copy(), s, iterations, python_state)
     native_T = T.copy()
     terms = (s.photometric_floor, s.photometric_weight, s.max_association, s.geometric_floor, s.geometric_weight)
-    dense_native.solve_level(samples.photometric_points, samples.intensity, samples.geometric_points, samples.depth,
-                             cur.K, cur.grey, cur.grad_x, cur.grad_y, cur.points, cur.normals, terms, MIN_POINTS,
-                             iterations, s.convergence, native_T, native_state)
+    level = (samples.photometric_points, samples.intensity, samples.geometric_points, samples.depth, cur.K, cur.grey,
+             cur.grad_x, cur.grad_y, cur.points, cur.normals, iterations)
+    dense_native.align_levels([level], terms, MIN_POINTS, s.convergence, native_T, native_state)
     return (python_T, python_state), (native_T, native_state)
 
 

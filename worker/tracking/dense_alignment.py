@@ -174,7 +174,7 @@ class AlignmentSettings:
 def solve_level(ops: ModuleType, samples: ReferenceSamples, cur: PyramidLevel, T: np.ndarray,
                 s: AlignmentSettings, iterations: int, state: np.ndarray) -> np.ndarray:
     """Gauss-Newton on one level with the per-iteration kernels of `ops`; returns T, updates state = (overlap,
-    photometric scale, geometric scale, points used, ok) in place. `dense_native.solve_level` runs this loop
+    photometric scale, geometric scale, points used, ok) in place. `dense_native.align_levels` runs this loop
     compiled."""
     for _ in range(iterations):
         photo = ops.photometric_system(samples.photometric_points, samples.intensity, T, cur.K, cur.grey,
@@ -213,18 +213,19 @@ def align(reference: list[PyramidLevel], current: list[PyramidLevel], T_init: np
     T = np.array(T_init, np.float64, order="C")
     levels = min(len(reference), len(current), len(s.iterations))
     state = np.array([0.0, 0.0, 0.0, 0.0, 1.0])  # overlap, photometric scale, geometric scale, points used, ok
-    for level in reversed(range(levels)):
-        ref, cur = reference[level], current[level]
-        samples = ref.samples(s.max_points, s.min_gradient)
-        if ops is dense_native:  # the whole level in one compiled call: one GIL release, not two per iteration
-            terms = (s.photometric_floor, s.photometric_weight, s.max_association, s.geometric_floor,
-                     s.geometric_weight)
-            dense_native.solve_level(samples.photometric_points, samples.intensity, samples.geometric_points,
-                                     samples.depth, cur.K, cur.grey, cur.grad_x, cur.grad_y, cur.points, cur.normals,
-                                     terms, MIN_POINTS, s.iterations[level], s.convergence, T, state)
-        else:
-            T = solve_level(ops, samples, cur, T, s, s.iterations[level], state)
-        if not state[4]:
-            break
+    if ops is dense_native:  # every level in one compiled call: one GIL release, not two per iteration
+        data = []
+        for ref, cur, iterations in zip(reference[:levels], current[:levels], s.iterations, strict=False):
+            samples = ref.samples(s.max_points, s.min_gradient)
+            data.append((samples.photometric_points, samples.intensity, samples.geometric_points, samples.depth,
+                         cur.K, cur.grey, cur.grad_x, cur.grad_y, cur.points, cur.normals, iterations))
+        terms = (s.photometric_floor, s.photometric_weight, s.max_association, s.geometric_floor, s.geometric_weight)
+        dense_native.align_levels(data, terms, MIN_POINTS, s.convergence, T, state)
+    else:
+        for level in reversed(range(levels)):
+            samples = reference[level].samples(s.max_points, s.min_gradient)
+            T = solve_level(ops, samples, current[level], T, s, s.iterations[level], state)
+            if not state[4]:
+                break
     ok = bool(state[4]) and bool(np.all(np.isfinite(T)))
     return AlignmentResult(T, float(state[0]), float(state[1]), float(state[2]), ok, int(state[3]))

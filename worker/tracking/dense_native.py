@@ -19,6 +19,16 @@ SOURCE = Path(__file__).parent / "csrc" / "dense_align.cpp"
 _PHOTOMETRIC_OUT, _GEOMETRIC_OUT = 44, 45
 
 
+class _Level(ctypes.Structure):
+    """csrc/dense_align.cpp's DenseLevel: one level's reference samples and current images."""
+
+    _fields_ = [("n_photo", ctypes.c_int64), ("P_photo", ctypes.c_void_p), ("intensity", ctypes.c_void_p),
+                ("n_geo", ctypes.c_int64), ("P_geo", ctypes.c_void_p), ("depth", ctypes.c_double),
+                ("K", ctypes.c_double * 4), ("h", ctypes.c_int64), ("w", ctypes.c_int64),
+                ("iterations", ctypes.c_int64), ("grey", ctypes.c_void_p), ("grad_x", ctypes.c_void_p),
+                ("grad_y", ctypes.c_void_p), ("points", ctypes.c_void_p), ("normals", ctypes.c_void_p)]
+
+
 def _declare(lib: ctypes.CDLL) -> None:
     p, i32, i64, f32, f64 = ctypes.c_void_p, ctypes.c_int, ctypes.c_int64, ctypes.c_float, ctypes.c_double
     lib.dense_points.argtypes = [i32, i32, p, p, p]
@@ -26,9 +36,9 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.dense_downsample_depth.argtypes = [i32, i32, p, f64, p]
     lib.dense_photometric_system.argtypes = [i64, p, p, p, p, i32, i32, p, p, p, f64, f64, f64, i64, p]
     lib.dense_geometric_system.argtypes = [i64, p, p, p, i32, i32, p, p, f64, f64, f64, f64, i64, p]
-    lib.dense_solve_level.argtypes = [i64, p, p, i64, p, f64, p, i32, i32, p, p, p, p, p, p, i64, i32, f64, p, p]
+    lib.dense_align.argtypes = [i32, p, p, i64, f64, p, p]
     for fn in (lib.dense_points, lib.dense_normals, lib.dense_downsample_depth, lib.dense_photometric_system,
-               lib.dense_geometric_system, lib.dense_solve_level):
+               lib.dense_geometric_system, lib.dense_align):
         fn.restype = None
 
 
@@ -114,21 +124,30 @@ def geometric_system(P: np.ndarray, T: np.ndarray, K: np.ndarray, cur_points: np
     return TermSystem(out[:36].reshape(6, 6), out[36:42], int(out[42]), float(out[43]), int(out[44]))
 
 
-def solve_level(P_photo: np.ndarray, intensity: np.ndarray, P_geo: np.ndarray, depth: float, K: np.ndarray,
-                grey: np.ndarray, grad_x: np.ndarray, grad_y: np.ndarray, cur_points: np.ndarray,
-                cur_normals: np.ndarray, terms: tuple[float, float, float, float, float], min_points: int,
-                iterations: int, convergence: float, T: np.ndarray, state: np.ndarray) -> None:
-    """Gauss-Newton on one pyramid level in one call (one GIL release): the loop of
-    `dense_alignment.solve_level` over `photometric_system` + `geometric_system`. terms = (photometric floor,
+def align_levels(levels: list[tuple[np.ndarray, np.ndarray, np.ndarray, float, np.ndarray, np.ndarray, np.ndarray,
+                                    np.ndarray, np.ndarray, np.ndarray, int]],
+                 terms: tuple[float, float, float, float, float], min_points: int, convergence: float,
+                 T: np.ndarray, state: np.ndarray) -> None:
+    """Gauss-Newton on every level, coarsest (last) first, in one call (one GIL release per alignment): the loop of
+    `dense_alignment.solve_level` over `photometric_system` + `geometric_system`. Each level is (P_photo,
+    intensity, P_geo, depth, K, grey, grad_x, grad_y, points, normals, iterations); terms = (photometric floor,
     photometric weight, max association, geometric floor, geometric weight); T [4, 4] and state = (overlap,
-    photometric scale, geometric scale, points used, ok) float64 are updated in place."""
+    photometric scale, geometric scale, points used, ok) float64 are updated in place; the levels stop at the
+    first ill-posed one."""
     assert T.flags.c_contiguous and T.dtype == np.float64 and T.shape == (4, 4)
     assert state.flags.c_contiguous and state.dtype == np.float64 and state.shape == (5,)
-    P_photo, intensity, P_geo = _c(P_photo, np.float64), _c(intensity, np.float64), _c(P_geo, np.float64)
-    images = [_c(a, np.float32) for a in (grey, grad_x, grad_y, cur_points, cur_normals)]
-    h, w = images[0].shape
+    table = (_Level * len(levels))()
+    keep = []  # the arrays the table points into, alive until the call returns
+    for entry, (P_photo, intensity, P_geo, depth, K, *images, iterations) in zip(table, levels, strict=True):
+        doubles = [_c(a, np.float64) for a in (P_photo, intensity, P_geo)]
+        floats = [_c(a, np.float32) for a in images]
+        keep += doubles + floats
+        entry.n_photo, entry.P_photo, entry.intensity = len(doubles[0]), doubles[0].ctypes.data, doubles[1].ctypes.data
+        entry.n_geo, entry.P_geo, entry.depth = len(doubles[2]), doubles[2].ctypes.data, float(depth)
+        entry.K[:] = _camera(K).tolist()
+        entry.h, entry.w = floats[0].shape
+        entry.iterations = int(iterations)
+        entry.grey, entry.grad_x, entry.grad_y, entry.points, entry.normals = (a.ctypes.data for a in floats)
     weights = np.array([*terms, HUBER_K], np.float64)
-    _lib().dense_solve_level(P_photo.shape[0], P_photo.ctypes.data, intensity.ctypes.data, P_geo.shape[0],
-                             P_geo.ctypes.data, float(depth), _camera(K).ctypes.data, h, w,
-                             *(a.ctypes.data for a in images), weights.ctypes.data, int(min_points), int(iterations),
-                             float(convergence), T.ctypes.data, state.ctypes.data)
+    _lib().dense_align(len(levels), ctypes.addressof(table), weights.ctypes.data, int(min_points),
+                       float(convergence), T.ctypes.data, state.ctypes.data)

@@ -303,7 +303,8 @@ static void se3_left_update(const double delta[6], double* T) {
     double out[16];
     for (int i = 0; i < 4; ++i)
         for (int j = 0; j < 4; ++j)
-            out[i * 4 + j] = E[i * 4] * T[j] + E[i * 4 + 1] * T[4 + j] + E[i * 4 + 2] * T[8 + j] + E[i * 4 + 3] * T[12 + j];
+            out[i * 4 + j] = E[i * 4] * T[j] + E[i * 4 + 1] * T[4 + j] + E[i * 4 + 2] * T[8 + j] +
+                             E[i * 4 + 3] * T[12 + j];
     std::copy(out, out + 16, T);
 }
 
@@ -313,10 +314,11 @@ static void se3_left_update(const double delta[6], double* T) {
 // state (in/out) = (overlap, photometric scale, geometric scale, points used, ok): what the Python loop of
 // dense_alignment.align keeps between levels; ok = 0 once a solve is ill-posed (too few points, singular or not
 // finite), which stops the level.
-void dense_solve_level(int64_t n_photo, const double* P_photo, const double* I, int64_t n_geo, const double* P_geo,
-                       double depth, const double* K, int h, int w, const float* grey, const float* grad_x,
-                       const float* grad_y, const float* points, const float* normals, const double* terms,
-                       int64_t min_points, int iterations, double convergence, double* T, double* state) {
+static void dense_solve_level(int64_t n_photo, const double* P_photo, const double* I, int64_t n_geo,
+                              const double* P_geo, double depth, const double* K, int h, int w, const float* grey,
+                              const float* grad_x, const float* grad_y, const float* points, const float* normals,
+                              const double* terms, int64_t min_points, int iterations, double convergence, double* T,
+                              double* state) {
     double photo[44], geo[45];
     for (int it = 0; it < iterations; ++it) {
         dense_photometric_system(n_photo, P_photo, I, T, K, h, w, grey, grad_x, grad_y, terms[0], terms[1], terms[5],
@@ -348,6 +350,36 @@ void dense_solve_level(int64_t n_photo, const double* P_photo, const double* I, 
         const double rotation = std::sqrt(delta[0] * delta[0] + delta[1] * delta[1] + delta[2] * delta[2]);
         const double translation = std::sqrt(delta[3] * delta[3] + delta[4] * delta[4] + delta[5] * delta[5]) / depth;
         if (std::hypot(rotation, translation) < convergence) return;
+    }
+}
+
+// One pyramid level's data for dense_align: the reference samples and the current frame's level (see
+// dense_solve_level for each field). Mirrored by dense_native._Level.
+struct DenseLevel {
+    int64_t n_photo;
+    const double* P_photo;
+    const double* intensity;
+    int64_t n_geo;
+    const double* P_geo;
+    double depth;
+    double K[4];
+    int64_t h, w, iterations;
+    const float* grey;
+    const float* grad_x;
+    const float* grad_y;
+    const float* points;
+    const float* normals;
+};
+
+// Coarse-to-fine alignment in one call: dense_solve_level on levels[n - 1] down to levels[0], stopping at the
+// first ill-posed level (state[4] = 0).
+void dense_align(int n, const DenseLevel* levels, const double* terms, int64_t min_points, double convergence,
+                 double* T, double* state) {
+    for (int l = n - 1; l >= 0 && state[4] != 0.0; --l) {
+        const DenseLevel& L = levels[l];
+        dense_solve_level(L.n_photo, L.P_photo, L.intensity, L.n_geo, L.P_geo, L.depth, L.K, int(L.h), int(L.w),
+                          L.grey, L.grad_x, L.grad_y, L.points, L.normals, terms, min_points, int(L.iterations),
+                          convergence, T, state);
     }
 }
 
