@@ -135,7 +135,7 @@ class RgbdOdometry:
     def __init__(self, config: RgbdOdometryConfig | None = None) -> None:
         self.config = config or RgbdOdometryConfig()
         c = self.config
-        self.settings = AlignmentSettings(iterations=tuple(reversed(c.iterations)), max_points=c.max_points,
+        self.settings = AlignmentSettings(iterations=tuple(c.iterations), max_points=c.max_points,
                                           photometric_weight=c.photometric_weight)
         self.references: deque[_Reference] = deque(maxlen=c.reference_ring)
         self.places: deque[_Place] = deque(maxlen=max(1, c.reuse_keyframes))  # engine keyframes to come back to
