@@ -432,7 +432,9 @@ class VisualOdometry:
         orb = kf.orb
         if len(has) == 0 or len(orb) == 0:
             return Place(kf.index, kf.pose.copy(), orb.keypoints[:0], orb.descriptors[:0], np.zeros((0, 3)))
-        d2 = ((orb.keypoints[:, None, :] - kf.features.keypoints[None, has, :]) ** 2).sum(-1)
+        dx = orb.keypoints[:, None, 0] - kf.features.keypoints[None, has, 0]
+        dy = orb.keypoints[:, None, 1] - kf.features.keypoints[None, has, 1]
+        d2 = dx * dx + dy * dy  # written out: no [N, M, 2] temporary
         nearest = d2.argmin(axis=1)
         radius = self.config.place_radius_px * self.extractor.level_sigmas(orb.octaves)
         near = np.flatnonzero(d2[np.arange(len(orb)), nearest] <= radius ** 2)
