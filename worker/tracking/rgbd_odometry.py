@@ -31,7 +31,14 @@ import numpy as np
 from worker.data.frame import Frame
 from worker.geometry import Intrinsics
 from worker.tracking.base import TrackingResult
-from worker.tracking.dense_alignment import AlignmentResult, AlignmentSettings, PyramidLevel, align, build_pyramid
+from worker.tracking.dense_alignment import (
+    AlignmentResult,
+    AlignmentSettings,
+    PyramidLevel,
+    align,
+    build_pyramid,
+    kernels,
+)
 from worker.tracking.feature_seed import KeypointSet, detect, pnp_seed
 from worker.tracking.focal_calibration import estimate_focal
 from worker.tracking.motion import motion_model_pose, relative_motion
@@ -137,6 +144,7 @@ class RgbdOdometry:
         c = self.config
         self.settings = AlignmentSettings(iterations=tuple(c.iterations), max_points=c.max_points,
                                           photometric_weight=c.photometric_weight)
+        kernels(self.settings.backend)  # builds (or loads) the compiled kernels now, not on the first tracked frame
         self.references: deque[_Reference] = deque(maxlen=c.reference_ring)
         self.places: deque[_Place] = deque(maxlen=max(1, c.reuse_keyframes))  # engine keyframes to come back to
         self.last_pose: np.ndarray | None = None

@@ -27,6 +27,7 @@ import numpy as np
 from worker.data.frame import Frame
 from worker.geometry import Intrinsics
 
+from . import schur_native
 from .base import TrackingResult
 from .bundle_adjustment import bundle_adjust, reprojection_chi2
 from .features import Features, OrbExtractor
@@ -53,6 +54,7 @@ class VisualOdometry:
         self.config = config or VisualOdometryConfig()
         self.extractor = OrbExtractor(self.config)
         self.recognizer = PlaceRecognizer(self.config)
+        schur_native.available()  # builds (or loads) the compiled kernel now, not at the first keyframe
         self._reset()
 
     def _reset(self) -> None:
