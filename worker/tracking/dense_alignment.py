@@ -9,10 +9,10 @@ estimated from the residuals themselves:
 The update is a left perturbation exp(delta) T of T_cur_ref (p_cur = T p_ref). Pixel centres are at +0.5 (see
 worker.geometry.camera); every threshold is relative to depth, so nothing assumes metres.
 
-The per-pixel work (a level's points and normals, each iteration's normal equations) runs in compiled kernels
-(`worker.tracking.dense_native`, without the GIL) or, where they cannot be built or `backend="reference"`, in their
-numpy twin (`worker.tracking.dense_reference`, the test oracle); this module keeps the pyramid, the choice of
-reference pixels and the Gauss-Newton loop.
+The per-pixel work (a level's points and normals, each iteration's normal equations) and the Gauss-Newton loop
+over all levels run in compiled kernels (`worker.tracking.dense_native`, one call per alignment, without the GIL)
+or, where they cannot be built or `backend="reference"`, in their numpy twins (`worker.tracking.dense_reference`
+and `solve_level`, the test oracles); this module keeps the pyramid and the choice of reference pixels.
 """
 
 from __future__ import annotations

@@ -34,6 +34,7 @@ from worker.tracking.base import TrackingResult
 from worker.tracking.dense_alignment import (
     AlignmentResult,
     AlignmentSettings,
+    Backend,
     PyramidLevel,
     align,
     build_pyramid,
@@ -92,9 +93,9 @@ class _Reference:
         self._pyramid = pyramid  # the tracked frame's own pyramid when it becomes the reference
         self._keypoints: KeypointSet | None = None
 
-    def pyramid(self, K: np.ndarray, levels: int) -> list[PyramidLevel]:
+    def pyramid(self, K: np.ndarray, levels: int, backend: Backend = "auto") -> list[PyramidLevel]:
         if self._pyramid is None:
-            self._pyramid = build_pyramid(self.grey, self.depth, K, levels)
+            self._pyramid = build_pyramid(self.grey, self.depth, K, levels, backend=backend)
         return self._pyramid
 
     def keypoints(self, K: np.ndarray, levels: int) -> KeypointSet:
@@ -178,7 +179,8 @@ class RgbdOdometry:
     def _track(self, index: int, grey: np.ndarray, depth: np.ndarray, K: np.ndarray) -> TrackingResult:
         if self.reference is None:
             return self._first(index, grey, depth)
-        current = _Current(build_pyramid(grey, depth, K, self.config.pyramid_levels), grey)
+        current = _Current(build_pyramid(grey, depth, K, self.config.pyramid_levels, backend=self.settings.backend),
+                           grey)
         if self.lost:
             return self._relocalize(index, grey, depth, current, K)
         guess = motion_model_pose(self.previous_pose, self.last_pose)
@@ -276,7 +278,7 @@ class RgbdOdometry:
         far from the motion model's guess is refused (a jump); relocalization may land anywhere near `ref`."""
         c = self.config
         T_init = np.linalg.inv(guess) @ ref.pose  # T_cur_ref
-        reference = ref.pyramid(K, c.pyramid_levels)
+        reference = ref.pyramid(K, c.pyramid_levels, self.settings.backend)
         result = align(reference, current.pyramid, T_init, self.settings)
         if relocalizing or self._doubtful(result):
             seed = pnp_seed(ref.keypoints(K, c.pyramid_levels), current.keypoints(), K)
@@ -334,7 +336,7 @@ class RgbdOdometry:
         if place is None:
             return False
         candidate = place.reference(place.pose)
-        reference = candidate.pyramid(K, c.pyramid_levels)
+        reference = candidate.pyramid(K, c.pyramid_levels, self.settings.backend)
         T_init = np.linalg.inv(pose) @ place.pose
         result = align(reference, current.pyramid, T_init, self.settings)
         if not result.ok or result.overlap < c.reuse_overlap:
