@@ -293,6 +293,8 @@ async def stream_case(stack, frames, intrinsics, messages: list[bytes], args) ->
         if killer is not None:
             killer.cancel()
         record = (await http.get(f"/v1/sessions/{sid}")).json()
+        if kill.get("at_wall"):
+            kill["phases"] = takeover_phases(stack.redis_url, sid, kill["at_wall"])
         trajectory = (await http.get(f"/v1/sessions/{sid}/trajectory", params={"which": "all"})).json()
         keyframes = (await http.get(f"/v1/sessions/{sid}/trajectory", params={"which": "keyframes"})).json()
         poses = {int(p["seq"]): np.asarray(p["pose"], np.float64).reshape(4, 4) for p in trajectory["poses"]}
@@ -325,11 +327,40 @@ async def _kill_owner(stack, http, sid: str, out: dict) -> None:
     owner = (await http.get(f"/v1/sessions/{sid}")).json().get("worker")
     victim = stack.workers[0] if len(stack.workers) == 1 else _process_of(owner, stack.workers)
     out["at"] = time.monotonic()
+    out["at_wall"] = time.time()
     out["owner"] = owner
     victim.send_signal(signal.SIGKILL)
     await asyncio.to_thread(victim.wait)
     stack.workers.remove(victim)
     stack.add_worker()
+
+
+def takeover_phases(redis_url: str, sid: str, killed_at: float) -> dict[str, Any] | None:
+    """Where the kill gap went, from the new owner's `takeover` timeline (wall times) in the session record:
+    seconds from the kill to the job's claim (lease expiry noticed), to the runner's start (lease acquired), the
+    restore, the replay of the frames after the snapshot, and the first pose stored."""
+    import redis
+
+    from worker.runtime import keys
+
+    client = redis.Redis.from_url(redis_url)
+    try:
+        raw = client.hget(keys.session(sid), "takeover")
+    finally:
+        client.close()
+    if raw is None:
+        return None
+    t = json.loads(raw)
+    marks = [("claimed", t.get("claimed_at")), ("started", t.get("started_at")), ("restored", t.get("restored_at")),
+             ("replayed", t.get("replay_done_at")), ("first_pose", t.get("first_pose_at"))]
+    phases: dict[str, Any] = {"worker": t.get("worker"), "snapshot_seq": t.get("snapshot_seq"),
+                              "frames_replayed": t.get("replayed"), "first_pose_seq": t.get("first_pose_seq")}
+    previous = killed_at
+    for name, at in marks:
+        phases[f"{name}_after_kill_s"] = None if at is None else round(at - killed_at, 3)
+        phases[f"{name}_phase_s"] = None if at is None else round(at - previous, 3)
+        previous = previous if at is None else at
+    return phases
 
 
 def _process_of(worker_id: str | None, processes: list) -> Any:
@@ -398,7 +429,8 @@ def summarize(run: LiveRun, samples: list[dict], record: dict, poses: dict, fram
         out["kill"] = {"owner": kill.get("owner"), "at_frame": kill.get("at_frame_sent"),
                        "poses_before": kill.get("poses_before"), "at_s": kill["at"] - run.start,
                        "gap_s": (after[0] - kill["at"]) if after else None,
-                       "pose_gap_s": (after[0] - before[-1]) if after and before else None}
+                       "pose_gap_s": (after[0] - before[-1]) if after and before else None,
+                       "phases": kill.get("phases")}
     return out
 
 

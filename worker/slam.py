@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -49,6 +50,7 @@ from worker.engine.snapshot_future import SnapshotFuture
 from worker.engine.stage_times import StageTimes
 from worker.engine.surfel_init import grid_from_depth, grid_from_prediction
 from worker.engine.tracking_stage import TrackingStage
+from worker.engine.trajectory import Trajectory
 from worker.geometry import Intrinsics, sim3_inverse
 from worker.loop.pose_graph import DEFAULT_SIGMAS, EdgeSigmas, Sim3PoseGraph
 from worker.serialization import pack, unpack
@@ -636,24 +638,31 @@ class SlamSystem:
         """Everything needed to continue this session, as msgpack bytes (waits for the stages' parts)."""
         return self.begin_snapshot().result()
 
-    def begin_snapshot(self) -> SnapshotFuture:
+    def begin_snapshot(self, stored_chunks: Mapping[int, int] | None = None) -> SnapshotFuture:
         """A snapshot of the session as of now, without waiting: the tracking state is packed at once, the map and
         the loop-closing state by their stages once they have done what was submitted before (see the module
-        docstring); `result()` gives the bytes that `restore` takes."""
+        docstring); `result()` gives the bytes that `restore` takes. With `stored_chunks` (chunk -> version already
+        stored) the snapshot is incremental: the trajectory's sealed frame records and every large array (keyframe
+        images, depth, the map's tensors) stay out of the bytes, and `future.chunks` (a ChunkWrite) holds the chunks
+        not stored yet and the arrays by digest, for `restore(data, chunks)`."""
         if self.backend is not None:
             self._flush_map_jobs(force=True)
-        tracking = pack(self._tracking_state())  # packed now: the next frames change what it refers to
+        trajectory, chunks = (None, None) if stored_chunks is None else self._traj.chunked_state(stored_chunks)
+        arrays = None if chunks is None else chunks.arrays
+        # packed now: the next frames change what it refers to
+        tracking = pack(self._tracking_state(trajectory), external=arrays)
         backend, loop_stage = self.backend, self.loop_stage
         parts = ["loop"] + ([] if backend is None else ["map"])
         future = SnapshotFuture(parts, lambda done: pack({"format": SNAPSHOT_FORMAT, "tracking": tracking,
                                                           "map": done.get("map"), "loop": done["loop"]}))
         if backend is not None:
-            backend.at_marker(lambda: future.deliver("map", lambda: pack(backend.state_dict())))
-        loop_stage.at_marker(lambda: future.deliver("loop", lambda: pack(loop_stage.state_dict())))
+            backend.at_marker(lambda: future.deliver("map", lambda: pack(backend.state_dict(), external=arrays)))
+        loop_stage.at_marker(lambda: future.deliver("loop", lambda: pack(loop_stage.state_dict(), external=arrays)))
+        future.chunks = chunks
         return future
 
-    def _tracking_state(self) -> dict[str, Any]:
-        """The tracking thread's part of a snapshot."""
+    def _tracking_state(self, trajectory: dict[str, Any] | None = None) -> dict[str, Any]:
+        """The tracking thread's part of a snapshot (`trajectory`: the trajectory's chunked state)."""
         return {
             "format": SNAPSHOT_FORMAT,
             "config": self.config.model_dump(mode="json"),
@@ -666,7 +675,7 @@ class SlamSystem:
             "frame_size": None if self._frame_size is None else list(self._frame_size),
             "previous_poses": None if self._previous_poses is None else list(self._previous_poses),
             "counters": dict(self.counters),
-            **self.tracking_stage.state_dict(),
+            **self.tracking_stage.state_dict(trajectory),
             "tracker": None if self.tracker is None else self.tracker.state_dict(),
             "bag": None if self.bag is None else self.bag.to_bytes(torch.float32),
             "keyframe_depth": None if self.keyframe_depth is None else self.keyframe_depth.state_dict(),
@@ -688,9 +697,14 @@ class SlamSystem:
                 K, w, h), torch.from_numpy(np.asarray(e["depth"], np.float32)), K))
 
     @classmethod
-    def restore(cls, data: bytes) -> SlamSystem:
-        """A system continuing from `snapshot()` bytes (never unpickles anything)."""
-        state = _flat_snapshot(unpack(data))
+    def restore(cls, data: bytes, chunks: Mapping[int | str, bytes] | None = None) -> SlamSystem:
+        """A system continuing from `snapshot()` bytes (never unpickles anything); `chunks` holds what an
+        incremental snapshot (`begin_snapshot(stored_chunks)`) left out: trajectory chunks by number, arrays by
+        digest."""
+        chunks = chunks or {}
+        state = _flat_snapshot(unpack(data), {k: v for k, v in chunks.items() if isinstance(k, str)})
+        state["trajectory"] = Trajectory.joined_state(state["trajectory"],
+                                                      {k: v for k, v in chunks.items() if isinstance(k, int)})
         from worker.loop.bag import HiddenStateBag
 
         config = SlamConfig.from_dict(state["config"])
@@ -724,14 +738,16 @@ class SlamSystem:
         return system
 
 
-def _flat_snapshot(state: Any) -> dict[str, Any]:
-    """A snapshot's state as one dict of format 1's keys (format 2 keeps the stages' parts packed apart)."""
+def _flat_snapshot(state: Any, arrays: Mapping[str, bytes] | None = None) -> dict[str, Any]:
+    """A snapshot's state as one dict of format 1's keys (format 2 keeps the stages' parts packed apart; `arrays`:
+    the large arrays an incremental snapshot keeps outside, by digest)."""
     if not isinstance(state, dict) or state.get("format") not in SNAPSHOT_FORMATS:
         raise ValueError("not a Flash-Mono SLAM snapshot")
     if state["format"] != SNAPSHOT_FORMAT:
         return state
-    flat = {**unpack(state["tracking"]), **unpack(state["loop"])}
-    flat["map"] = None if state["map"] is None else unpack(state["map"])
+    arrays = arrays or {}
+    flat = {**unpack(state["tracking"], external=arrays), **unpack(state["loop"], external=arrays)}
+    flat["map"] = None if state["map"] is None else unpack(state["map"], external=arrays)
     return flat
 
 

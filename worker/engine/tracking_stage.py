@@ -110,8 +110,10 @@ class TrackingStage:
             return estimate
         return estimate.scaled(width, height)
 
-    def state_dict(self) -> dict[str, Any]:
-        return {"trajectory": self.trajectory.state_dict(), "selector": self.selector.state_dict(),
+    def state_dict(self, trajectory: dict[str, Any] | None = None) -> dict[str, Any]:
+        """The stage's state; `trajectory` replaces the trajectory's full state (e.g. its chunked state)."""
+        return {"trajectory": self.trajectory.state_dict() if trajectory is None else trajectory,
+                "selector": self.selector.state_dict(),
                 "last_keyframe": self.last_keyframe, "submap_of": [[k, v] for k, v in self.submap_of.items()],
                 "pose_source": None if self.pose_source is None else self.pose_source.state_dict()}
 

@@ -3,7 +3,7 @@
 Environment (flags override): REDIS_URL (required here; `redis+cluster://host:port,...` for a Redis Cluster),
 FLASHMONO_WORKER_ID, FLASHMONO_ENGINE (slam|passthrough),
 FLASHMONO_LEASE_TTL_MS (2500: a dead worker's sessions resume elsewhere within seconds),
-FLASHMONO_SNAPSHOT_EVERY (keyframes between snapshots, 5),
+FLASHMONO_SNAPSHOT_EVERY (keyframes between snapshots, 5), FLASHMONO_SNAPSHOT_EVERY_S (or seconds, 1; 0: off),
 FLASHMONO_MAX_SESSIONS (sessions per worker, 16), FLASHMONO_TORCH_THREADS (torch intra-op threads),
 FLASHMONO_MAX_FRAME_SIDE (640), FLASHMONO_MAX_FRAME_ATTEMPTS (2), FLASHMONO_MEMORY_BUDGET_MB (0: none),
 FLASHMONO_IDLE_TIMEOUT_S (600; 0: never), FLASHMONO_TRANSIENT_TTL_S (3600), FLASHMONO_RETENTION_S (0: kept),
@@ -40,6 +40,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--engine", choices=ENGINE_KINDS, default=env("FLASHMONO_ENGINE", "slam"))
     parser.add_argument("--lease-ttl-ms", type=int, default=int(env("FLASHMONO_LEASE_TTL_MS", "2500")))
     parser.add_argument("--snapshot-every", type=int, default=int(env("FLASHMONO_SNAPSHOT_EVERY", "5")))
+    parser.add_argument("--snapshot-every-s", type=float, default=float(env("FLASHMONO_SNAPSHOT_EVERY_S", "1")),
+                        help="also snapshot this often (seconds; 0: by keyframes only): bounds a takeover's replay")
     parser.add_argument("--max-sessions", type=int, default=int(env("FLASHMONO_MAX_SESSIONS", "16")))
     parser.add_argument("--max-frame-side", type=int, default=int(env("FLASHMONO_MAX_FRAME_SIDE", "640")),
                         help="frames are downscaled to this longest side (and to the session's resolution) on decode")
@@ -86,6 +88,9 @@ def main(argv: list[str] | None = None) -> int:
         print("error: --snapshot-every, --max-sessions and --max-frame-attempts must be >= 1, --max-frame-side "
               ">= 32, --memory-budget-mb and --tracking-side >= 0", file=sys.stderr)
         return 2
+    if args.snapshot_every_s < 0:
+        print("error: --snapshot-every-s must be >= 0", file=sys.stderr)
+        return 2
     if args.transient_ttl_s < 1 or args.retention_s < 0 or args.idle_timeout_s < 0:
         print("error: --transient-ttl-s must be >= 1 (clients still read the last messages), --retention-s and "
               "--idle-timeout-s >= 0", file=sys.stderr)
@@ -100,7 +105,8 @@ def main(argv: list[str] | None = None) -> int:
         torch.set_num_threads(args.torch_threads)
     worker_id = args.worker_id or f"{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:6]}"
     config = RuntimeConfig(engine_kind=args.engine, lease_ttl_ms=args.lease_ttl_ms,
-                           snapshot_every_keyframes=args.snapshot_every, max_sessions=args.max_sessions,
+                           snapshot_every_keyframes=args.snapshot_every, snapshot_every_s=args.snapshot_every_s,
+                           max_sessions=args.max_sessions,
                            max_frame_side=args.max_frame_side, max_frame_attempts=args.max_frame_attempts,
                            memory_budget_mb=args.memory_budget_mb, idle_timeout_s=args.idle_timeout_s,
                            transient_ttl_s=args.transient_ttl_s, retention_s=args.retention_s,
