@@ -28,6 +28,7 @@ import numpy as np
 from worker.data.frame import Frame
 from worker.geometry import Intrinsics
 
+from . import schur_native
 from .base import TrackingResult
 from .bundle_adjustment import bundle_adjust, reprojection_chi2
 from .features import Features, OrbExtractor
@@ -106,6 +107,7 @@ class VisualOdometry:
         self.extractor = OrbExtractor(self.config)
         self.recognizer = PlaceRecognizer(self.config)
         self._xfeat_extractor: XFeatExtractor | None = None
+        schur_native.available()  # builds (or loads) the compiled kernel now, not at the first keyframe
         self._reset()
 
     def _reset(self) -> None:
@@ -543,7 +545,9 @@ class VisualOdometry:
         orb = kf.orb
         if len(has) == 0 or len(orb) == 0:
             return Place(kf.index, kf.pose.copy(), orb.keypoints[:0], orb.descriptors[:0], np.zeros((0, 3)))
-        d2 = ((orb.keypoints[:, None, :] - kf.features.keypoints[None, has, :]) ** 2).sum(-1)
+        dx = orb.keypoints[:, None, 0] - kf.features.keypoints[None, has, 0]
+        dy = orb.keypoints[:, None, 1] - kf.features.keypoints[None, has, 1]
+        d2 = dx * dx + dy * dy  # written out: no [N, M, 2] temporary
         nearest = d2.argmin(axis=1)
         radius = self.config.place_radius_px * self.extractor.level_sigmas(orb.octaves)
         near = np.flatnonzero(d2[np.arange(len(orb)), nearest] <= radius ** 2)
