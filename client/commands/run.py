@@ -88,9 +88,16 @@ def run_one(args: argparse.Namespace, source: str, out_dir: str) -> dict:
         bar.close()
 
 
+# How long the tracking thread may wait for the GIL when it comes back from a compiled kernel while the mapping or
+# loop-closing thread runs Python (the interpreter's default, 5 ms, is as long as a whole RGB-D alignment); the worker
+# does the same (FLASHMONO_SWITCH_INTERVAL_MS).
+SWITCH_INTERVAL_S = 0.001
+
+
 def _run(args: argparse.Namespace) -> int:
     from worker.data import DatasetError
 
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
     try:
         metrics = run_one(args, args.source, args.out)
     except (ValueError, DatasetError) as err:
