@@ -17,6 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from worker.depth.config import MultiViewDepthConfig
 from worker.tracking.rgbd_config import RgbdOdometryConfig
+from worker.tracking.seeded_config import DevicePoseConfig
 from worker.tracking.vo_config import VisualOdometryConfig
 
 log = logging.getLogger(__name__)
@@ -130,8 +131,12 @@ class InputConfig(_Section):
     """How optional per-frame inputs are used (posed and RGB-D modes)."""
 
     use_depth: bool = Field(True, description="frames carrying depth: surfel means from unprojected depth")
-    pose_mode: Literal["ignore", "prior", "fixed"] = Field(
-        "prior", description="frames carrying poses: ignore them, use them as odometry priors in PGO, or keep them")
+    pose_mode: Literal["ignore", "prior", "fixed", "seeded"] = Field(
+        "prior", description="frames carrying poses: ignore them, use them as odometry priors in PGO, keep them, or "
+        "seeded: RGB-D / visual odometry tracks from the device's motion, the device poses are pose-graph priors "
+        "(`device_poses`) and their jumps are detected")
+    device_poses: DevicePoseConfig = Field(default_factory=DevicePoseConfig,
+                                           description="pose_mode seeded: the device poses' uncertainty and jumps")
     surfel_init: Literal["model", "depth"] = Field(
         "model", description="with depth: other surfel attributes from the model, or initialised from image+depth")
     depth_scale_to_pose: bool = Field(True, description="monocular with poses: scale model depth to the poses")
