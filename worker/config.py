@@ -15,6 +15,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from worker.data.registration_config import DepthCameraConfig
 from worker.depth.config import MultiViewDepthConfig
 from worker.tracking.rgbd_config import RgbdOdometryConfig
 from worker.tracking.seeded_config import DevicePoseConfig
@@ -137,6 +138,12 @@ class InputConfig(_Section):
         "(`device_poses`) and their jumps are detected")
     device_poses: DevicePoseConfig = Field(default_factory=DevicePoseConfig,
                                            description="pose_mode seeded: the device poses' uncertainty and jumps")
+    depth_camera: DepthCameraConfig | None = Field(
+        None, description="the depth camera's intrinsics and depth-to-colour extrinsic: depth is registered to the "
+        "colour camera before use (worker.data.registration); without it, misregistration is detected and reported")
+    detect_misregistration_frames: int = Field(
+        5, ge=0, le=100, description="without depth_camera: frames with depth whose depth and colour edges are "
+        "compared to detect a misregistration (0: off)")
     surfel_init: Literal["model", "depth"] = Field(
         "model", description="with depth: other surfel attributes from the model, or initialised from image+depth")
     depth_scale_to_pose: bool = Field(True, description="monocular with poses: scale model depth to the poses")

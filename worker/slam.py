@@ -42,6 +42,7 @@ import torch
 from worker.config import SlamConfig
 from worker.data.frame import Frame, FrameResult
 from worker.engine.backend import KeyframeJob, PoseUpdateJob
+from worker.engine.depth_registration import DepthRegistration
 from worker.engine.keyframe_depth import KeyframeDepth
 from worker.engine.keyframes import MotionKeyframeSelector
 from worker.engine.loop_closer import DepthKeyframePoints, LoopCloser
@@ -119,6 +120,8 @@ class SlamSystem:
         self._last_frame: tuple[Frame, bool] | None = None  # the newest frame and whether tracking held
         self.last_frame_mapped: int | None = None  # the final frame's index when finish() mapped it too
         self.finish_events: list[dict[str, Any]] = []  # loop events finish() applied (no frame result carries them)
+        self.depth_registration = DepthRegistration(self.config.input.depth_camera,
+                                                    self.config.input.detect_misregistration_frames)
 
     # ------------------------------------------------------------------------------------------------ public API
     @property
@@ -158,8 +161,10 @@ class SlamSystem:
         self._raise_if_a_stage_failed()
         start = time.perf_counter()
         self._started = self._started or start
+        frame, registration_events = self.depth_registration.apply(frame, self.frame_intrinsics(frame))
         self._check_frame(frame)
         result = self._push_frame(frame)
+        result.events += registration_events
         self.counters["frames"] += 1
         self.counters["frontend_seconds"] += time.perf_counter() - start
         self.counters["wall_seconds"] = self._wall_offset + time.perf_counter() - self._started
