@@ -79,7 +79,7 @@ def test_keyframe_priors_reach_the_pose_graph_except_after_the_jump(drifted, see
     assert source.priors_dropped == 1 and len(priors) == len(keyframes) - 1
     dropped = next(k for k in keyframes if k >= JUMP_AT)  # the first keyframe after the jump has no prior
     assert dropped not in {p.key for p in priors}
-    assert all(p.sigmas.translation == pytest.approx(0.10) for p in priors)
+    assert all(p.sigmas.translation >= 0.10 and p.sigmas.rotation >= np.radians(2.0) for p in priors)
     # priors after the jump are re-anchored: the jump (15 cm, 4 deg) does not reach them
     poses = dict((i, p) for i, _, p in system.trajectory("keyframes"))
     after = [p for p in priors if p.key > JUMP_AT]

@@ -66,6 +66,7 @@ class Misregistration:
 
     def to_event(self) -> dict:
         return {"type": "depth_misregistered", "shift_px": [int(self.shift[0]), int(self.shift[1])],
+                "shift_dx": int(self.shift[0]), "shift_dy": int(self.shift[1]),
                 "agreement": round(self.score, 4), "agreement_unshifted": round(self.score_at_zero, 4),
                 "message": f"depth edges fit the colour edges best {self.shift[0]:+d} px across and "
                            f"{self.shift[1]:+d} px down: colour and depth are not registered; give the session "

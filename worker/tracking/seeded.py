@@ -4,13 +4,14 @@ A phone's or a dataset's poses are not the colour camera's truth: ARKit/ARCore d
 a depth camera's trajectory follows the depth camera. With them, the session's own odometry still tracks every frame
 (RGB-D odometry with depth, visual odometry without), and the device only helps:
 
-- its relative motion since the previous frame is the odometry's initial guess (instead of constant velocity),
-  unless it disagrees with the recent tracked motion by more than a jump (then the odometry's own guess is used);
+- its relative motion since the previous frame is the odometry's initial guess where the constant-velocity guess
+  misses it (a sudden motion), unless it disagrees with the recent tracked motion by more than a jump;
 - the tracked motion is compared with the device's (worker.tracking.device_check): a disagreement beyond
   `jump_translation` / `jump_rotation_deg` is a device jump: a `device_pose_jump` event, the device world is
   re-anchored so that the jump does not reach the priors (`correction`), and the next keyframe gets no prior;
 - each keyframe's device pose goes to the pose graph as an absolute prior with the stated uncertainty
-  (`device_poses.prior_translation`, `prior_rotation_deg`): loop closures weigh it against the odometry.
+  (`device_poses.prior_translation`, `prior_rotation_deg`), inflated where the device and the tracked poses
+  disagree by more (`prior_inflation`): loop closures weigh it against the odometry.
 
 The output lives in the device's world: the odometry's world is aligned to the device pose of its first frame
 (rigid with depth; for monocular visual odometry, also scaled by the device's baseline over its initialisation).
@@ -122,15 +123,20 @@ class SeededTracking:
         return self.monocular and not initialized and getattr(self.odometry, "status", "tracking") == "initializing"
 
     def _guess(self, device_motion: np.ndarray | None) -> np.ndarray | None:
-        """The device's motion in odometry units as the initial guess, unless it disagrees with the recent tracked
-        motion by more than a jump (a device jump must not mislead the alignment) or there is no odometry world."""
+        """The device's motion in odometry units as the initial guess where it tells the odometry something: when
+        the constant-velocity guess misses it by more than `seed_translation` / `seed_rotation_deg` (a sudden
+        motion), but not by more than a jump (a device jump must not mislead the alignment). Otherwise None: the
+        odometry's own guess (the two agree; a device's small per-frame bias would only leak into a partly
+        converged alignment)."""
         if device_motion is None or self.alignment is None or not self.last_tracked:
             return None
-        if self.previous_pose is not None:
-            c = self.config
-            recent = disagreement(device_motion, relative(self.previous_pose, self.last_pose))
-            if recent.exceeds(c.jump_translation, c.jump_rotation_deg):
-                return None
+        if self.previous_pose is None:
+            return _scaled(device_motion, 1.0 / self.scale)
+        c = self.config
+        recent = disagreement(device_motion, relative(self.previous_pose, self.last_pose))
+        if recent.exceeds(c.jump_translation, c.jump_rotation_deg) or not recent.exceeds(c.seed_translation,
+                                                                                        c.seed_rotation_deg):
+            return None
         return _scaled(device_motion, 1.0 / self.scale)
 
     def _check_jump(self, index: int, device: np.ndarray, device_motion: np.ndarray, tracked_motion: np.ndarray
@@ -196,11 +202,18 @@ class SeededTracking:
             self.skip_next_prior = False
             self.priors_dropped += 1
             return
-        c = self.config
         device = self.correction @ checked_device_pose(frame.pose, frame.index)
-        sigmas = EdgeSigmas(math.radians(c.prior_rotation_deg), c.prior_translation, PRIOR_LOG_SCALE_SIGMA)
-        self.publish_prior(PosePrior(int(frame.index), device, sigmas))
+        self.publish_prior(PosePrior(int(frame.index), device, self._prior_sigmas(device, pose)))
         self.priors_sent += 1
+
+    def _prior_sigmas(self, device: np.ndarray, tracked: np.ndarray) -> EdgeSigmas:
+        """The stated uncertainty of a device pose, inflated to `prior_inflation` times its disagreement with the
+        tracked pose: a prior never claims to be surer than what the two trajectories show (drifting device poses
+        weigh less and less against the odometry; accurate ones keep the stated weight and correct its drift)."""
+        c = self.config
+        gap = disagreement(device, tracked)
+        return EdgeSigmas(max(math.radians(c.prior_rotation_deg), c.prior_inflation * math.radians(gap.rotation_deg)),
+                          max(c.prior_translation, c.prior_inflation * gap.translation), PRIOR_LOG_SCALE_SIGMA)
 
     # -- snapshot ------------------------------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
