@@ -11,12 +11,12 @@ from service.presets import PresetName, preset_field_description
 
 SessionStatus = Literal["created", "streaming", "finishing", "finished", "failed", "abandoned"]
 PoseMode = Literal["prior", "fixed", "ignore", "seeded"]
-POSE_MODE_DOC = ("what the engine does with the device poses frames carry: `prior` (default) refines them (loop "
-                 "closures may move them), `fixed` keeps them exactly as sent (accurate ARKit/ARCore poses: no loop "
-                 "correction), `ignore` tracks from the images (and depth) alone, `seeded` tracks from the images "
-                 "(RGB-D or visual odometry) starting from the device's motion, with the device poses as priors in "
-                 "the pose graph; a device pose that jumps (relocalisation) gets a `device_pose_jump` message and is "
-                 "left out")
+POSE_MODE_DOC = ("what the engine does with the device poses frames carry (default: `seeded` when the frames carry "
+                 "depth, else `prior`): `prior` uses them as the odometry, refined by loop closures, `fixed` keeps "
+                 "them exactly as sent (accurate ARKit/ARCore poses: no loop correction), `ignore` tracks from the "
+                 "images (and depth) alone, `seeded` tracks from the images (RGB-D or visual odometry) starting from "
+                 "the device's motion, with the device poses as priors in the pose graph; a device pose that jumps "
+                 "(relocalisation) gets a `device_pose_jump` message and is left out")
 # A depth camera sits centimetres from the colour one: a longer translation is a unit mistake (Azure Kinect's
 # calibration is in millimetres).
 MAX_DEPTH_BASELINE_M = 1.0
@@ -149,7 +149,8 @@ class Session(BaseModel):
     revision: int = Field(description="trajectory revision; grows when a loop closure rewrites past poses")
     worker: str | None = Field(None, description="id of the worker that owns (or last owned) the session")
     preset: str | None = None
-    pose_mode: PoseMode | None = Field(None, description="as created (null: the engine's default, prior)")
+    pose_mode: PoseMode | None = Field(None, description="as created (null: the engine's default: seeded with depth, "
+                                                         "else prior)")
     skip_frames: bool = Field(False, description=SKIP_FRAMES_DOC)
     intrinsics: IntrinsicsIn | None = None
     estimated_intrinsics: IntrinsicsIn | None = Field(

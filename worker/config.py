@@ -132,10 +132,11 @@ class InputConfig(_Section):
     """How optional per-frame inputs are used (posed and RGB-D modes)."""
 
     use_depth: bool = Field(True, description="frames carrying depth: surfel means from unprojected depth")
-    pose_mode: Literal["ignore", "prior", "fixed", "seeded"] = Field(
-        "prior", description="frames carrying poses: ignore them, use them as odometry priors in PGO, keep them, or "
-        "seeded: RGB-D / visual odometry tracks from the device's motion, the device poses are pose-graph priors "
-        "(`device_poses`) and their jumps are detected")
+    pose_mode: Literal["auto", "ignore", "prior", "fixed", "seeded"] = Field(
+        "auto", description="frames carrying poses: ignore them, use them as the odometry (priors in PGO), keep them "
+        "(fixed), or seeded: RGB-D / visual odometry tracks from the device's motion, the device poses are "
+        "pose-graph priors (`device_poses`) and their jumps are detected. auto: seeded with depth, prior without "
+        "(on ICL, visual odometry does not beat the device's poses; RGB-D odometry does beat drifting ones)")
     device_poses: DevicePoseConfig = Field(default_factory=DevicePoseConfig,
                                            description="pose_mode seeded: the device poses' uncertainty and jumps")
     depth_camera: DepthCameraConfig | None = Field(

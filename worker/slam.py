@@ -13,8 +13,8 @@ One frame path: pose source -> keyframe selection -> map job -> loop closure. Th
 chosen once per session from `frontend.tracking` and the first frame (see `choose_tracking`):
 - device (frames carry `pose` and `input.pose_mode != "ignore"`, mode "posed"): the given poses are the odometry,
   used as priors in the pose graph ("prior", loop closures can still correct them) or kept as they are ("fixed");
-  with "seeded", RGB-D or visual odometry tracks from the device's motion and the device poses are keyframe priors
-  (worker.tracking.seeded);
+  with "seeded" (and "auto" with depth), RGB-D or visual odometry tracks from the device's motion and the device
+  poses are keyframe priors (worker.tracking.seeded);
 - rgbd_odometry (depth, no poses): dense photometric + geometric alignment to a reference keyframe;
 - visual_odometry (RGB only): features, PnP against a local map, windowed bundle adjustment;
 - model (mode "monocular"): the feed-forward model tracks submaps (worker.frontend.tracker), the paper's path.
@@ -539,7 +539,8 @@ class SlamSystem:
         return ModelDepth(self.model, self.config.frontend.long_side).depth
 
     def _build_pose_source(self, tracking: str):
-        if tracking == "device" and self.config.input.pose_mode == "seeded":  # odometry seeded by the device
+        pose_mode = self.config.input.pose_mode
+        if tracking == "device" and (pose_mode == "seeded" or (pose_mode == "auto" and self._with_depth)):
             from worker.tracking.seeded import seeded_tracking
 
             return seeded_tracking(self.config, self._with_depth, lambda prior: self.loop_stage.submit(prior))
