@@ -145,8 +145,8 @@ WEBSOCKET_DOC = {
                 "reason": {"type": "string"}},
                 "additionalProperties": True,
                 "description": "the pose source lost the camera (a black, textureless or blurred view, no depth, a "
-                               "sudden jump): until `relocalized`, poses hold the last good one and no keyframes are "
-                               "made; never a silent jump"},
+                               "sudden jump): until `relocalized`, poses hold the last good one (seeded sessions: they "
+                               "follow the device's motion) and no keyframes are made; never a silent jump"},
             "relocalized": {"type": "object", "properties": {
                 "type": {"const": "relocalized"}, "seq": {"type": "integer"}},
                 "additionalProperties": True,
