@@ -33,23 +33,26 @@ def register_depth(depth: np.ndarray, depth_camera: Intrinsics, color_camera: In
         raise ValueError(f"depth is {depth.shape[1]}x{depth.shape[0]} but its intrinsics are for "
                          f"{depth_camera.width}x{depth_camera.height}")
     rows, cols = np.nonzero(np.isfinite(depth) & (depth > 0))
-    z = depth[rows, cols].astype(np.float64)
-    x = (cols + 0.5 - depth_camera.cx) / depth_camera.fx * z
-    y = (rows + 0.5 - depth_camera.cy) / depth_camera.fy * z
-    T = np.asarray(depth_to_color, np.float64)
-    points = np.stack([x, y, z], axis=1) @ T[:3, :3].T + T[:3, 3]
-    zc = points[:, 2]
+    z = depth[rows, cols]  # float32 throughout: sub-millimetre at 10 m, half the memory traffic of float64
+    x = (cols.astype(np.float32) + np.float32(0.5 - depth_camera.cx)) * np.float32(1.0 / depth_camera.fx) * z
+    y = (rows.astype(np.float32) + np.float32(0.5 - depth_camera.cy)) * np.float32(1.0 / depth_camera.fy) * z
+    T = np.asarray(depth_to_color, np.float32)
+    xc, yc, zc = (T[i, 0] * x + T[i, 1] * y + T[i, 2] * z + T[i, 3] for i in range(3))  # no BLAS for 3x3
     ahead = zc > 1e-6
-    points, zc = points[ahead], zc[ahead]
-    u = np.floor(points[:, 0] / zc * color_camera.fx + color_camera.cx).astype(np.int64)
-    v = np.floor(points[:, 1] / zc * color_camera.fy + color_camera.cy).astype(np.int64)
+    xc, yc, zc = xc[ahead], yc[ahead], zc[ahead]
+    u = np.floor(xc / zc * np.float32(color_camera.fx) + np.float32(color_camera.cx)).astype(np.int64)
+    v = np.floor(yc / zc * np.float32(color_camera.fy) + np.float32(color_camera.cy)).astype(np.int64)
     inside = (u >= 0) & (u < color_camera.width) & (v >= 0) & (v < color_camera.height)
-    target, zc = v[inside] * color_camera.width + u[inside], zc[inside]
+    target = v[inside] * color_camera.width + u[inside]
+    # z-buffer in one sort: key = target pixel (high bits) | depth's float32 bits (positive floats order as their
+    # bits), so each pixel's nearest depth comes first among its keys
+    depth_bits = zc[inside].view(np.uint32).astype(np.int64)
+    keys = np.sort((target << 32) | depth_bits)
+    pixel = keys >> 32
+    first = np.ones(keys.size, bool)
+    first[1:] = pixel[1:] != pixel[:-1]
     out = np.zeros(color_camera.height * color_camera.width, np.float32)
-    if target.size:
-        order = np.lexsort((zc, target))  # by target pixel, nearest first
-        first = np.unique(target[order], return_index=True)[1]
-        out[target[order][first]] = zc[order][first]
+    out[pixel[first]] = (keys[first] & 0xFFFFFFFF).astype(np.uint32).view(np.float32)
     return out.reshape(color_camera.height, color_camera.width)
 
 
