@@ -113,3 +113,19 @@ def test_a_seeded_session_continues_from_a_snapshot(frames, drifted) -> None:
         np.testing.assert_allclose(a.pose, b.pose, atol=1e-3)  # references are snapshot as uint8 / float16
     system.close()
     restored.close()
+
+
+def test_without_depth_visual_odometry_is_seeded_in_the_device_world_and_scale(frames) -> None:
+    system = SlamSystem(_config(use_depth=False))
+    results = [system.push(frame) for frame in frames]  # true poses as the device's
+    system.finish()
+    source = system.pose_source
+    assert isinstance(source, SeededTracking) and source.monocular and source.alignment is not None
+    poses = np.stack([p for _, _, p in system.trajectory("all")])
+    truth = np.stack([f.gt_pose for f in frames])
+    np.testing.assert_allclose(poses[0], truth[0], atol=1e-6)  # the device's world, not the odometry's
+    path = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum()
+    true_path = np.linalg.norm(np.diff(truth[:, :3, 3], axis=0), axis=1).sum()
+    assert abs(path / true_path - 1.0) < 0.1  # metric: the scale comes from the device's baseline
+    assert absolute_trajectory_error(poses, truth, "se3").rmse < 0.05
+    assert all(np.all(np.isfinite(r.pose)) for r in results)
