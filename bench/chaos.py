@@ -7,6 +7,11 @@ frames the clients had acknowledged against the frames in the sessions' final tr
 but missing; duplicates cannot exist: the trajectory is keyed by seq).
 
 `python -m bench chaos [--streams 8] [--fps 10] [--outage-s 60] [--stall-s 10] [--write-results]`
+
+`--takeovers N` instead kills the worker owning one stream N times (a standby worker takes over; the killed one is
+replaced) with the production lease (2.5 s) and reports, per kill, the gap until poses resume and where it went
+(the new owner's timeline: job claimed, lease taken, restored, replayed, first pose), with the passthrough engine
+so that the runtime's own share shows.
 """
 
 from __future__ import annotations
@@ -132,8 +137,57 @@ async def run(stack: LocalStack, redis: EmbeddedRedis, streams: int, fps: float,
             "processes_alive": stack.gateway.poll() is None and all(w.poll() is None for w in stack.workers)}
 
 
+async def takeovers(stack: LocalStack, kills: int, fps: float, settle_s: float = 6.0) -> dict:
+    """Kill the owner of one stream `kills` times; per kill the pose gap and the new owner's phases."""
+    import redis as redis_client
+
+    from bench.live import _process_of, takeover_phases
+    from worker.runtime import keys
+
+    r = redis_client.Redis.from_url(stack.redis_url)
+    rows = []
+    async with AsyncFlashMonoClient(stack.base_url, timeout_s=120) as client:
+        sid = (await client.create_session(name="takeovers")).id
+        stop = asyncio.Event()
+        pose_times: list[float] = []
+        task = asyncio.create_task(_stream(client, sid, fps, stop, pose_times))
+        await asyncio.sleep(settle_s)
+        for _ in range(kills):
+            await asyncio.to_thread(stack.wait_ready, 300, len(stack.workers))
+            r.hdel(keys.session(sid), "takeover")
+            owner = r.get(keys.lease(sid)).decode()  # the lease holder: the owner right now
+            victim = _process_of(owner, stack.workers)
+            killed, killed_wall = time.monotonic(), time.time()
+            victim.send_signal(signal.SIGKILL)
+            await asyncio.to_thread(victim.wait)
+            stack.workers.remove(victim)
+            stack.add_worker()
+            deadline = killed + 120
+            while time.monotonic() < deadline and not (pose_times and pose_times[-1] > killed):
+                await asyncio.sleep(0.02)
+            gap = next((t - killed for t in pose_times if t > killed), None)
+            await asyncio.sleep(0.5)
+            rows.append({"gap_s": gap, **(takeover_phases(stack.redis_url, sid, killed_wall) or {})})
+            print(json.dumps(rows[-1]), flush=True)
+            await asyncio.sleep(settle_s)
+        stop.set()
+        outcome = await task
+        trajectory = await client.trajectory(sid)
+        seqs = {p.seq for p in trajectory.poses}
+        lost = len(set(outcome["acked"]) - seqs) + sum(1 for p in trajectory.poses if p.pose[0, 3] != p.seq)
+    r.close()
+    gaps = [row["gap_s"] for row in rows if row["gap_s"] is not None and row.get("worker")]
+    claims = [row["claimed_after_kill_s"] for row in rows if row.get("claimed_after_kill_s") is not None]
+    return {"kills": kills, "fps": fps, "takeovers": rows, "lost": lost, "acked": len(outcome["acked"]),
+            "gap_s": {"median": float(np.median(gaps)) if gaps else None, "max": max(gaps, default=None)},
+            "claimed_after_kill_s": {"median": float(np.median(claims)) if claims else None,
+                                     "max": max(claims, default=None)}}
+
+
 def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench chaos")
+    parser.add_argument("--takeovers", type=int, default=0,
+                        help="only kill the owner of one stream this many times and time each takeover")
     parser.add_argument("--streams", type=int, default=8)
     parser.add_argument("--fps", type=float, default=10.0)
     parser.add_argument("--outage-s", type=float, default=60.0)
@@ -141,6 +195,13 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--write-results", action="store_true")
     args = parser.parse_args(argv)
     load = os.getloadavg()
+    if args.takeovers:
+        env = {**WORKER_ENV, "FLASHMONO_LEASE_TTL_MS": "2500"}
+        with LocalStack(workers=2, worker_env=env) as stack:
+            result = asyncio.run(takeovers(stack, args.takeovers, args.fps))
+        result["load"] = f"{load[0]:.1f} -> {os.getloadavg()[0]:.1f}"
+        print(json.dumps(result, indent=1))
+        return 0 if result["lost"] == 0 else 1
     with tempfile.TemporaryDirectory(prefix="flashmono-chaos-") as data:
         redis = EmbeddedRedis(data_dir=Path(data) / "redis").start()
         try:

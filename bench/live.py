@@ -274,6 +274,8 @@ async def stream_case(stack, frames, intrinsics, messages: list[bytes], args) ->
         k = intrinsics
         body = {"name": "bench-live", "preset": args.preset, "skip_frames": not args.every_frame,
                 "intrinsics": {"width": k.width, "height": k.height, "fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy}}
+        if args.tracking_side:
+            body["tracking_side"] = args.tracking_side
         created = await http.post("/v1/sessions", json=body)
         created.raise_for_status()
         sid = created.json()["id"]
@@ -291,6 +293,8 @@ async def stream_case(stack, frames, intrinsics, messages: list[bytes], args) ->
         if killer is not None:
             killer.cancel()
         record = (await http.get(f"/v1/sessions/{sid}")).json()
+        if kill.get("at_wall"):
+            kill["phases"] = takeover_phases(stack.redis_url, sid, kill["at_wall"])
         trajectory = (await http.get(f"/v1/sessions/{sid}/trajectory", params={"which": "all"})).json()
         keyframes = (await http.get(f"/v1/sessions/{sid}/trajectory", params={"which": "keyframes"})).json()
         poses = {int(p["seq"]): np.asarray(p["pose"], np.float64).reshape(4, 4) for p in trajectory["poses"]}
@@ -323,11 +327,40 @@ async def _kill_owner(stack, http, sid: str, out: dict) -> None:
     owner = (await http.get(f"/v1/sessions/{sid}")).json().get("worker")
     victim = stack.workers[0] if len(stack.workers) == 1 else _process_of(owner, stack.workers)
     out["at"] = time.monotonic()
+    out["at_wall"] = time.time()
     out["owner"] = owner
     victim.send_signal(signal.SIGKILL)
     await asyncio.to_thread(victim.wait)
     stack.workers.remove(victim)
     stack.add_worker()
+
+
+def takeover_phases(redis_url: str, sid: str, killed_at: float) -> dict[str, Any] | None:
+    """Where the kill gap went, from the new owner's `takeover` timeline (wall times) in the session record:
+    seconds from the kill to the job's claim (lease expiry noticed), to the runner's start (lease acquired), the
+    restore, the replay of the frames after the snapshot, and the first pose stored."""
+    import redis
+
+    from worker.runtime import keys
+
+    client = redis.Redis.from_url(redis_url)
+    try:
+        raw = client.hget(keys.session(sid), "takeover")
+    finally:
+        client.close()
+    if raw is None:
+        return None
+    t = json.loads(raw)
+    marks = [("claimed", t.get("claimed_at")), ("started", t.get("started_at")), ("restored", t.get("restored_at")),
+             ("replayed", t.get("replay_done_at")), ("first_pose", t.get("first_pose_at"))]
+    phases: dict[str, Any] = {"worker": t.get("worker"), "snapshot_seq": t.get("snapshot_seq"),
+                              "frames_replayed": t.get("replayed"), "first_pose_seq": t.get("first_pose_seq")}
+    previous = killed_at
+    for name, at in marks:
+        phases[f"{name}_after_kill_s"] = None if at is None else round(at - killed_at, 3)
+        phases[f"{name}_phase_s"] = None if at is None else round(at - previous, 3)
+        previous = previous if at is None else at
+    return phases
 
 
 def _process_of(worker_id: str | None, processes: list) -> Any:
@@ -396,7 +429,8 @@ def summarize(run: LiveRun, samples: list[dict], record: dict, poses: dict, fram
         out["kill"] = {"owner": kill.get("owner"), "at_frame": kill.get("at_frame_sent"),
                        "poses_before": kill.get("poses_before"), "at_s": kill["at"] - run.start,
                        "gap_s": (after[0] - kill["at"]) if after else None,
-                       "pose_gap_s": (after[0] - before[-1]) if after and before else None}
+                       "pose_gap_s": (after[0] - before[-1]) if after and before else None,
+                       "phases": kill.get("phases")}
     return out
 
 
@@ -407,7 +441,8 @@ def run_offline(source: str, size, max_frames, args, out_dir: Path) -> dict[str,
     from worker.eval import read_tum
 
     start = time.perf_counter()
-    metrics = run_sequence(source, out_dir, SlamConfig.preset(args.preset), use_gt_depth=args.mode == "rgbd",
+    config = SlamConfig.preset(args.preset, tracking={"max_side": args.tracking_side or 0})
+    metrics = run_sequence(source, out_dir, config, use_gt_depth=args.mode == "rgbd",
                            max_frames=max_frames, resize=size, eval_every=max(1, args.psnr_every))
     wall = time.perf_counter() - start
     tum = read_tum(out_dir / "trajectory_all.tum")
@@ -503,6 +538,8 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--mode", choices=("rgbd", "rgb"), default="rgbd",
                         help="rgbd: send depth, no poses; rgb: images only")
     parser.add_argument("--size", default="320x240")
+    parser.add_argument("--tracking-side", type=int, default=0,
+                        help="the session's tracking resolution (long side; 0: the frames' size)")
     parser.add_argument("--fps", type=float, default=30.0, help="the client's frame rate")
     parser.add_argument("--frames", type=int, default=None, help="at most this many frames")
     parser.add_argument("--preset", default="rgbd")
@@ -524,6 +561,7 @@ def main(argv: list[str]) -> int:
     frames, intrinsics = load_frames(args.source, size, args.frames, with_depth=args.mode == "rgbd")
     messages = encode(frames, with_depth=args.mode == "rgbd")
     label = args.label or (f"{Path(args.source).name} {args.mode} {args.size} @ {args.fps:g} fps"
+                           + (f", tracked at {args.tracking_side} px" if args.tracking_side else "")
                            + (f", worker killed at {args.kill_at:.0%}" if args.kill_at is not None else ""))
     load_before = os.getloadavg()
     print(f"{label}: {len(frames)} frames, {sum(map(len, messages)) / len(messages) / 1024:.1f} KiB a message, "

@@ -16,6 +16,12 @@ PNG plot and a CSV of the per-frame rows, and prints a table by frame-count buck
 odometry (frame to frame, bench/rgbd_odometry.py) is timed on the first and the last `--open3d-window` frames as
 the CPU peer (skipped with a note when `open3d` is not installed).
 
+`--snapshot-every N` measures the worker's snapshot every N frames: the bytes an incremental snapshot write
+carries (`SlamSystem.begin_snapshot(stored_chunks)`: the snapshot, the trajectory chunks and the arrays not stored
+yet: what the worker writes to Redis) against a self-contained one (what each write carried before: everything),
+and the time to restore from it. `--kill-at F` drops the engine at frame F and takes over as a new worker would
+(restore the snapshot taken `--kill-replay` frames earlier, replay those frames, go on), reporting the recovery time.
+
 Long runs checkpoint: `--checkpoint-dir D` saves the engine snapshot (SlamSystem.snapshot) and the rows every
 `--checkpoint-every` frames; running the same command again resumes from the newest checkpoint.
 
@@ -147,6 +153,9 @@ def run(args, out_rows: list[dict], checkpoint: Path | None) -> dict[str, Any]:
         gt = {}
     torch.set_num_threads(args.threads)
     clock = StageClock(system)
+    snapshots: list[dict[str, Any]] = []
+    stored: dict[str, Any] = {}  # the trajectory chunks and arrays "stored" so far (measure_snapshot)
+    kill_snapshot, since_snapshot, kill = None, None, None
     window = args.open3d_window
     first_frames, last_frames = [], collections.deque(maxlen=window)
     surfels = out_rows[-1]["surfels"] if out_rows else 0
@@ -180,6 +189,21 @@ def run(args, out_rows: list[dict], checkpoint: Path | None) -> dict[str, Any]:
                   f"{os.getloadavg()[0]:.1f}", flush=True)
         if checkpoint is not None and args.checkpoint_every and k and k % args.checkpoint_every == 0:
             save_checkpoint(checkpoint, system, out_rows, k + 1, gt)
+        if args.snapshot_every and (k + 1) % args.snapshot_every == 0:
+            snapshots.append(measure_snapshot(system, stored, k + 1))
+            print(f"snapshot at frame {k + 1}: {json.dumps(snapshots[-1])}", flush=True)
+        if args.kill_at is not None:
+            if k + 1 == args.kill_at - args.kill_replay:  # the worker's newest stored snapshot before the kill
+                kill_snapshot = system.begin_snapshot(stored_chunks={})
+                kill_snapshot.result()
+                since_snapshot = []
+            elif since_snapshot is not None:
+                since_snapshot.append(frame)
+            if k + 1 == args.kill_at:
+                system, kill = kill_and_take_over(system, kill_snapshot, since_snapshot)
+                since_snapshot = None
+                clock = StageClock(system)
+                print(f"killed at frame {k + 1}: {json.dumps(kill)}", flush=True)
     streaming_s = time.perf_counter() - t0
     finish_s = None
     if not args.no_finish:
@@ -191,7 +215,7 @@ def run(args, out_rows: list[dict], checkpoint: Path | None) -> dict[str, Any]:
                "keyframes": int(system.counters.get("keyframes", 0)),
                "loops": int(system.counters.get("loops", 0)),
                "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-               "ate_m": final_ate(system, gt, rgb_only=not with_depth)}
+               "ate_m": final_ate(system, gt, rgb_only=not with_depth), "snapshots": snapshots, "kill": kill}
     system.close()
     if with_depth and window:
         summary["open3d"] = open3d_peer(first_frames, list(last_frames), intrinsics)
@@ -210,6 +234,65 @@ def save_checkpoint(directory: Path, system, rows: list[dict], next_frame: int, 
     os.replace(directory / "state.json.tmp", directory / "state.json")
     print(f"checkpoint at frame {next_frame}: {len(data) / 2**20:.1f} MiB in {time.perf_counter() - start:.1f} s",
           flush=True)
+
+
+def measure_snapshot(system, stored: dict[str, Any], frames: int) -> dict[str, Any]:
+    """One incremental snapshot as the worker writes it (`stored`: the trajectory chunks and arrays written
+    before, updated here), beside the self-contained size (what every write carried before), the sizes of the
+    parts kept outside (per stage: their arrays), and the time to restore from it."""
+    from worker.serialization import unpack
+    from worker.slam import SlamSystem
+
+    chunks: dict[int, tuple[int, bytes]] = stored.setdefault("chunks", {})
+    arrays: dict[str, bytes] = stored.setdefault("arrays", {})
+    start = time.perf_counter()
+    future = system.begin_snapshot(stored_chunks={i: v for i, (v, _) in chunks.items()})
+    blob = future.result()
+    ready_s = time.perf_counter() - start
+    write = future.chunks
+    chunks.update({i: (write.versions()[i], raw) for i, raw in write.new.items()})
+    new_arrays = {d: raw for d, raw in write.arrays.items() if d not in arrays}
+    arrays.clear()
+    arrays.update(write.arrays)  # what the store keeps: the arrays this snapshot names
+    parts = unpack(blob)
+    start = time.perf_counter()
+    restored = SlamSystem.restore(blob, {**{i: raw for i, (_, raw) in chunks.items()}, **arrays})
+    restore_s = time.perf_counter() - start
+    assert len(restored.trajectory("all")) == len(system.trajectory("all"))
+    restored.close()
+    return {"frame": frames, "keyframes": int(system.counters.get("keyframes", 0)),
+            "write_bytes": len(blob) + sum(map(len, write.new.values())) + sum(map(len, new_arrays.values())),
+            "self_contained_bytes": len(blob) + sum(len(raw) for _, raw in chunks.values())
+            + sum(map(len, arrays.values())),
+            "snapshot_bytes": len(blob), "trajectory_chunk_bytes": sum(len(raw) for _, raw in chunks.values()),
+            "arrays": len(arrays), "arrays_bytes": sum(map(len, arrays.values())),
+            "new_arrays_bytes": sum(map(len, new_arrays.values())), "chunks_written": len(write.new),
+            "inline_tracking_bytes": len(parts["tracking"]), "inline_map_bytes": len(parts["map"] or b""),
+            "inline_loop_bytes": len(parts["loop"]), "ready_s": round(ready_s, 3), "restore_s": round(restore_s, 3)}
+
+
+def kill_and_take_over(system, snapshot, replay: list) -> tuple[Any, dict[str, Any]]:
+    """What a new owner does after the owner died: restore the newest snapshot (with its parts), replay the frames
+    answered since, and go on; returns the new system and the times, with the replayed poses' largest difference
+    from the dead system's (the same frames tracked again)."""
+    from worker.slam import SlamSystem
+
+    before = {int(i): p for i, _, p in system.trajectory("all")}
+    system.close()
+    write = snapshot.chunks
+    start = time.perf_counter()
+    restored = SlamSystem.restore(snapshot.result(), {**write.arrays, **write.new})
+    restore_s = time.perf_counter() - start
+    start = time.perf_counter()
+    for frame in replay:
+        restored.push(frame)
+    replay_s = time.perf_counter() - start
+    after = {int(i): p for i, _, p in restored.trajectory("all")}
+    moved = max((float(np.abs(after[i][:3, 3] - before[i][:3, 3]).max()) for i in after if i in before), default=0.0)
+    return restored, {"restore_s": round(restore_s, 3), "replayed_frames": len(replay), "replay_s": round(replay_s, 3),
+                      "recovery_s": round(restore_s + replay_s, 3), "frames_kept": len(after) == len(before),
+                      "max_position_difference_m": moved, "snapshot_bytes": len(snapshot.result()),
+                      "parts_bytes": sum(map(len, write.arrays.values())) + sum(map(len, write.new.values()))}
 
 
 def final_ate(system, gt: dict[int, np.ndarray], rgb_only: bool) -> float | None:
@@ -316,6 +399,12 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--checkpoint-dir", default=None)
     parser.add_argument("--checkpoint-every", type=int, default=1000)
     parser.add_argument("--no-finish", action="store_true", help="skip finish() (the final refinement)")
+    parser.add_argument("--kill-at", type=int, default=None,
+                        help="at this frame, drop the engine and take over as a new worker would: restore the "
+                        "snapshot taken --kill-replay frames earlier, replay those frames, go on")
+    parser.add_argument("--kill-replay", type=int, default=30, help="frames between that snapshot and the kill")
+    parser.add_argument("--snapshot-every", type=int, default=0,
+                        help="measure a chunked snapshot (bytes written, restore time) every N frames (0: off)")
     parser.add_argument("--plot", default=None)
     parser.add_argument("--csv", default=None)
     parser.add_argument("--write-results", action="store_true")

@@ -53,9 +53,10 @@ class Session:
     estimated_intrinsics: dict[str, Any] | None = None  # the camera the engine uses: given, or estimated
     frames_skipped: int = 0  # skipped by the tracker under overload (newest first wins)
     skip_frames: bool = False  # whether the tracker may skip late frames (a live camera asks for it)
-    tracking_state: str | None = None  # "tracking" or "lost" at the newest processed frame
+    tracking_state: str | None = None  # "tracking", "initializing" or "lost" at the newest frame
     mapping_lag_keyframes: int | None = None  # keyframes tracked but not yet mapped
     mapping_lag_s: float | None = None  # how long the oldest of them has waited
+    tracking_side: int | None = None  # the tracking resolution's long side (None: the worker's default)
 
     @classmethod
     def from_json(cls, data: dict[str, Any]) -> Session:
@@ -86,6 +87,7 @@ class Session:
             tracking_state=data.get("tracking_state"),
             mapping_lag_keyframes=data.get("mapping_lag_keyframes"),
             mapping_lag_s=data.get("mapping_lag_s"),
+            tracking_side=data.get("tracking_side"),
         )
 
 
@@ -160,15 +162,15 @@ class LoopClosedEvent:
 @dataclass(frozen=True)
 class TrackingEvent:
     """The server's pose source changed state at frame `seq`: kind "tracking_lost" (poses hold the last good one
-    until "relocalized"), "relocalized", or "initialized" (RGB-only: the first map; earlier frames' poses were
-    re-estimated, see `data["revision"]`)."""
+    until "relocalized"), "relocalized", "initializing" (RGB-only: waiting for parallax, `data["state"]`) or
+    "initialized" (RGB-only: the first map; earlier frames' poses were re-estimated, see `data["revision"]`)."""
 
     kind: str
     seq: int
     data: dict[str, Any] = field(default_factory=dict)
 
 
-TRACKING_EVENT_TYPES = ("tracking_lost", "relocalized", "initialized")
+TRACKING_EVENT_TYPES = ("tracking_lost", "relocalized", "initialized", "initializing")
 StreamEvent = PoseEvent | LoopClosedEvent | TrackingEvent
 
 

@@ -105,6 +105,10 @@ DEPTH_CAMERA_DOC = ("RGB-D sensors whose depth is not registered to the colour i
                     "the worker compares depth and colour edges over the first frames and reports a misregistration "
                     "(a `depth_misregistered` message and the session's `warnings`)")
 
+TRACKING_SIDE_DOC = (
+    "the tracking resolution: frames whose long side is larger are tracked at this long side (the pose is the same "
+    "at any size; the map keeps the frames' working resolution), e.g. 320 to track a 640x480 camera at 30 frames/s "
+    "on a CPU; null: the worker's default (FLASHMONO_TRACKING_SIDE, else the frames as they come)")
 
 SKIP_FRAMES_DOC = (
     "true for a live camera: when tracking falls behind, a frame that waited longer than the worker's limit (100 ms) "
@@ -120,6 +124,7 @@ class SessionCreate(BaseModel):
     pose_mode: PoseMode | None = Field(default=None, description=POSE_MODE_DOC)
     depth_camera: DepthCameraIn | None = Field(default=None, description=DEPTH_CAMERA_DOC)
     skip_frames: bool = Field(default=False, description=SKIP_FRAMES_DOC)
+    tracking_side: int | None = Field(default=None, ge=64, le=4096, description=TRACKING_SIDE_DOC)
     name: str | None = Field(default=None, max_length=200)
     device_id: str | None = Field(default=None, max_length=200)
     metadata: dict[str, Any] = Field(default_factory=dict)
@@ -138,8 +143,9 @@ class Session(BaseModel):
     frames_skipped: int = Field(
         0, description="frames the tracker skipped under overload (a newer frame was waiting: newest first wins); "
         "each got a `skipped` message instead of a pose")
-    tracking_state: Literal["tracking", "lost"] | None = Field(
-        None, description="whether the newest processed frame was tracked; null before the first frame")
+    tracking_state: Literal["tracking", "initializing", "lost"] | None = Field(
+        None, description="whether the newest processed frame was tracked (initializing: RGB only, waiting for "
+        "parallax to make the first map); null before the first frame")
     mapping_lag_keyframes: int | None = Field(
         None, description="keyframes tracked but not yet in the map (the mapping stage runs behind tracking)")
     mapping_lag_s: float | None = Field(None, description="seconds the oldest of those keyframes has waited")
@@ -152,6 +158,7 @@ class Session(BaseModel):
     pose_mode: PoseMode | None = Field(None, description="as created (null: the engine's default: seeded with depth, "
                                                          "else prior)")
     skip_frames: bool = Field(False, description=SKIP_FRAMES_DOC)
+    tracking_side: int | None = Field(None, description=TRACKING_SIDE_DOC)
     intrinsics: IntrinsicsIn | None = None
     estimated_intrinsics: IntrinsicsIn | None = Field(
         None, description="the camera the engine uses at the frames' resolution: the given intrinsics, or the ones it "

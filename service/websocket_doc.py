@@ -151,6 +151,14 @@ WEBSOCKET_DOC = {
                 "type": {"const": "relocalized"}, "seq": {"type": "integer"}},
                 "additionalProperties": True,
                 "description": "tracking is back at frame `seq`, placed against an earlier keyframe"},
+            "initializing": {"type": "object", "properties": {
+                "type": {"const": "initializing"}, "seq": {"type": "integer"}, "state": {"type": "string"},
+                "reason": {"type": "string"}, "model": {"type": "string"}},
+                "additionalProperties": True,
+                "description": "RGB-only sessions: visual odometry is waiting to make its first map (`state` "
+                               "waiting_for_parallax or rotation_only: the camera only turned, so poses carry its "
+                               "orientation and hold the position; `model` homography or essential); sent when the "
+                               "state changes, `initialized` follows"},
             "initialized": {"type": "object", "properties": {
                 "type": {"const": "initialized"}, "seq": {"type": "integer"}, "revision": {"type": "integer"},
                 "frames_revised": {"type": "integer"}},
@@ -197,11 +205,11 @@ WEBSOCKET_DOC = {
     },
     "/v1/sessions/{session_id}/events": {
         "description": "A read-only feed for viewers that do not send the frames (the web viewer): the messages the "
-                       "session's stream gets (pose, loop_closed, tracking_lost, relocalized, initialized, "
-                       "device_pose_jump, depth_misregistered, error, finishing, finished) from the moment of "
-                       "connection; the trajectory endpoint has the earlier "
-                       "ones. A session already finished or failed answers one `finished`/`failed` message. Same "
-                       "authentication as the stream (read or stream scope; ?api_key= allowed).",
+                       "session's stream gets (pose, loop_closed, tracking_lost, relocalized, initializing, "
+                       "initialized, device_pose_jump, depth_misregistered, error, finishing, finished) from the "
+                       "moment of connection; the trajectory endpoint has the earlier ones. A session already "
+                       "finished or failed answers one `finished`/`failed` message. Same authentication as the "
+                       "stream (read or stream scope; ?api_key= allowed).",
         "client_messages": {},
         "server_messages": "as the stream's server_messages, without ack",
         "close_codes": {"1000": "after finished", "4401": "unknown or missing API key", "4403": "not allowed",

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -52,6 +53,7 @@ from worker.engine.snapshot_future import SnapshotFuture
 from worker.engine.stage_times import StageTimes
 from worker.engine.surfel_init import grid_from_depth, grid_from_prediction
 from worker.engine.tracking_stage import TrackingStage
+from worker.engine.trajectory import Trajectory
 from worker.geometry import Intrinsics, sim3_inverse
 from worker.loop.pose_graph import DEFAULT_SIGMAS, EdgeSigmas, Sim3PoseGraph
 from worker.serialization import pack, unpack
@@ -93,7 +95,8 @@ class SlamSystem:
         fc = self.config.frontend
         self.tracking_stage = TrackingStage(
             MotionKeyframeSelector(fc.keyframe_every, fc.keyframe_translation, fc.keyframe_rotation_deg),
-            publish_keyframe=lambda node: self.loop_stage.submit(node), timings=self.timings)
+            publish_keyframe=lambda node: self.loop_stage.submit(node), timings=self.timings,
+            max_side=self.config.tracking.max_side)
         self._traj = self.tracking_stage.trajectory
         self.backend = (MappingStage(self.config.mapping, self.config.threaded, self.config.queue_size,
                                      self.config.device, self.timings) if self.config.mapping.enabled else None)
@@ -240,11 +243,13 @@ class SlamSystem:
 
     def live_stats(self) -> dict[str, Any]:
         """What a live client watches, cheap to read while frames stream: how far mapping lags (keyframes waiting,
-        seconds the oldest has waited), what it shed, and the loop-closing stage's backlog."""
-        mapping = {"mapping_lag_keyframes": 0, "mapping_lag_s": 0.0, "keyframes_shed": {}} if self.backend is None \
-            else self.backend.stats()
-        return {"mapping_lag_keyframes": mapping["mapping_lag_keyframes"], "mapping_lag_s": mapping["mapping_lag_s"],
-                "keyframes_shed": mapping["keyframes_shed"], "loop_pending": self.loop_stage.pending}
+        seconds the oldest has waited), what it shed, what it still owes and caught up since (refinement made up
+        while idle), and the loop-closing stage's backlog."""
+        mapping = {"mapping_lag_keyframes": 0, "mapping_lag_s": 0.0, "keyframes_shed": {}, "keyframes_owed": 0,
+                   "keyframes_caught_up": 0} if self.backend is None else self.backend.stats()
+        return {**{key: mapping[key] for key in ("mapping_lag_keyframes", "mapping_lag_s", "keyframes_shed",
+                                                 "keyframes_owed", "keyframes_caught_up")},
+                "loop_pending": self.loop_stage.pending}
 
     # ------------------------------------------------------------------------------------------------- helpers
     def _new_loop_stage(self, pose_graph: Sim3PoseGraph, closer: LoopCloser | None,
@@ -364,7 +369,7 @@ class SlamSystem:
 
     def camera(self, frame: Frame) -> Intrinsics:
         """The frame's camera: given, else the pose source's estimate."""
-        intrinsics = self.frame_intrinsics(frame) or getattr(self.pose_source, "estimated_intrinsics", None)
+        intrinsics = self.frame_intrinsics(frame) or self.tracking_stage.source_intrinsics(frame.width, frame.height)
         if intrinsics is None:
             raise ValueError("no intrinsics for this session: give them with the frames or the session")
         return intrinsics
@@ -571,7 +576,7 @@ class SlamSystem:
         self-calibration, RGB-D odometry's guess), else the model's (from its points)."""
         if self.intrinsics is not None or self._frame_size is None:
             return self.intrinsics
-        from_source = getattr(self.pose_source, "estimated_intrinsics", None)
+        from_source = self.tracking_stage.source_intrinsics(*self._frame_size)
         if from_source is not None:
             return from_source
         if self.model_intrinsics is None:
@@ -645,24 +650,31 @@ class SlamSystem:
         """Everything needed to continue this session, as msgpack bytes (waits for the stages' parts)."""
         return self.begin_snapshot().result()
 
-    def begin_snapshot(self) -> SnapshotFuture:
+    def begin_snapshot(self, stored_chunks: Mapping[int, int] | None = None) -> SnapshotFuture:
         """A snapshot of the session as of now, without waiting: the tracking state is packed at once, the map and
         the loop-closing state by their stages once they have done what was submitted before (see the module
-        docstring); `result()` gives the bytes that `restore` takes."""
+        docstring); `result()` gives the bytes that `restore` takes. With `stored_chunks` (chunk -> version already
+        stored) the snapshot is incremental: the trajectory's sealed frame records and every large array (keyframe
+        images, depth, the map's tensors) stay out of the bytes, and `future.chunks` (a ChunkWrite) holds the chunks
+        not stored yet and the arrays by digest, for `restore(data, chunks)`."""
         if self.backend is not None:
             self._flush_map_jobs(force=True)
-        tracking = pack(self._tracking_state())  # packed now: the next frames change what it refers to
+        trajectory, chunks = (None, None) if stored_chunks is None else self._traj.chunked_state(stored_chunks)
+        arrays = None if chunks is None else chunks.arrays
+        # packed now: the next frames change what it refers to
+        tracking = pack(self._tracking_state(trajectory), external=arrays)
         backend, loop_stage = self.backend, self.loop_stage
         parts = ["loop"] + ([] if backend is None else ["map"])
         future = SnapshotFuture(parts, lambda done: pack({"format": SNAPSHOT_FORMAT, "tracking": tracking,
                                                           "map": done.get("map"), "loop": done["loop"]}))
         if backend is not None:
-            backend.at_marker(lambda: future.deliver("map", lambda: pack(backend.state_dict())))
-        loop_stage.at_marker(lambda: future.deliver("loop", lambda: pack(loop_stage.state_dict())))
+            backend.at_marker(lambda: future.deliver("map", lambda: pack(backend.state_dict(), external=arrays)))
+        loop_stage.at_marker(lambda: future.deliver("loop", lambda: pack(loop_stage.state_dict(), external=arrays)))
+        future.chunks = chunks
         return future
 
-    def _tracking_state(self) -> dict[str, Any]:
-        """The tracking thread's part of a snapshot."""
+    def _tracking_state(self, trajectory: dict[str, Any] | None = None) -> dict[str, Any]:
+        """The tracking thread's part of a snapshot (`trajectory`: the trajectory's chunked state)."""
         return {
             "format": SNAPSHOT_FORMAT,
             "config": self.config.model_dump(mode="json"),
@@ -675,7 +687,7 @@ class SlamSystem:
             "frame_size": None if self._frame_size is None else list(self._frame_size),
             "previous_poses": None if self._previous_poses is None else list(self._previous_poses),
             "counters": dict(self.counters),
-            **self.tracking_stage.state_dict(),
+            **self.tracking_stage.state_dict(trajectory),
             "tracker": None if self.tracker is None else self.tracker.state_dict(),
             "bag": None if self.bag is None else self.bag.to_bytes(torch.float32),
             "keyframe_depth": None if self.keyframe_depth is None else self.keyframe_depth.state_dict(),
@@ -697,9 +709,14 @@ class SlamSystem:
                 K, w, h), torch.from_numpy(np.asarray(e["depth"], np.float32)), K))
 
     @classmethod
-    def restore(cls, data: bytes) -> SlamSystem:
-        """A system continuing from `snapshot()` bytes (never unpickles anything)."""
-        state = _flat_snapshot(unpack(data))
+    def restore(cls, data: bytes, chunks: Mapping[int | str, bytes] | None = None) -> SlamSystem:
+        """A system continuing from `snapshot()` bytes (never unpickles anything); `chunks` holds what an
+        incremental snapshot (`begin_snapshot(stored_chunks)`) left out: trajectory chunks by number, arrays by
+        digest."""
+        chunks = chunks or {}
+        state = _flat_snapshot(unpack(data), {k: v for k, v in chunks.items() if isinstance(k, str)})
+        state["trajectory"] = Trajectory.joined_state(state["trajectory"],
+                                                      {k: v for k, v in chunks.items() if isinstance(k, int)})
         from worker.loop.bag import HiddenStateBag
 
         config = SlamConfig.from_dict(state["config"])
@@ -733,14 +750,16 @@ class SlamSystem:
         return system
 
 
-def _flat_snapshot(state: Any) -> dict[str, Any]:
-    """A snapshot's state as one dict of format 1's keys (format 2 keeps the stages' parts packed apart)."""
+def _flat_snapshot(state: Any, arrays: Mapping[str, bytes] | None = None) -> dict[str, Any]:
+    """A snapshot's state as one dict of format 1's keys (format 2 keeps the stages' parts packed apart; `arrays`:
+    the large arrays an incremental snapshot keeps outside, by digest)."""
     if not isinstance(state, dict) or state.get("format") not in SNAPSHOT_FORMATS:
         raise ValueError("not a Flash-Mono SLAM snapshot")
     if state["format"] != SNAPSHOT_FORMAT:
         return state
-    flat = {**unpack(state["tracking"]), **unpack(state["loop"])}
-    flat["map"] = None if state["map"] is None else unpack(state["map"])
+    arrays = arrays or {}
+    flat = {**unpack(state["tracking"], external=arrays), **unpack(state["loop"], external=arrays)}
+    flat["map"] = None if state["map"] is None else unpack(state["map"], external=arrays)
     return flat
 
 

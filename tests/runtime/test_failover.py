@@ -60,13 +60,16 @@ def test_worker_killed_mid_stream_is_replaced_without_loss_or_duplicates(stack):
                 ws.send(synthetic_frame(seq))
             ws.send(json.dumps({"type": "finish"}))
             messages = receive_until(ws, lambda m: m["type"] == "pose" and m["seq"] >= 12)
-            wait_for(lambda: r.hget(keys.snapshot(sid), "seq"))  # a snapshot exists before the crash
+            # a chunked snapshot exists before the crash: its sealed poses are in the chunks hash, not in the blob
+            wait_for(lambda: int(r.hget(keys.snapshot(sid), "seq") or 0) >= 8)
             first.send_signal(signal.SIGKILL)
             first.wait()
             processed_at_kill = int(r.hget(keys.session(sid), "frames_processed"))
             snapshot_seq = int(r.hget(keys.snapshot(sid), "seq"))
             assert 0 < processed_at_kill < FRAMES
             assert r.get(keys.lease(sid)) == b"worker-a"  # the dead worker's lease is still there, until it expires
+            manifest = json.loads(r.hget(keys.snapshot(sid), "chunks"))
+            assert manifest["sealed"] >= 1 and r.hlen(keys.snapshot_chunks(sid)) == manifest["sealed"]
             stack.add_worker(worker_id="worker-b")
             messages += receive_until(ws, lambda m: m["type"] == "finished", timeout_s=180)
         poses = [m for m in messages if m["type"] == "pose"]
@@ -76,6 +79,11 @@ def test_worker_killed_mid_stream_is_replaced_without_loss_or_duplicates(stack):
         assert messages[-1] == {"type": "finished", "frames": FRAMES}
         session = api.get(f"/v1/sessions/{sid}").json()
         assert session["status"] == "finished" and session["worker"] == "worker-b"
+        # worker-b took over from that snapshot (restored, replayed what came after it, then answered frames)
+        takeover = json.loads(r.hget(keys.session(sid), "takeover"))
+        assert takeover["worker"] == "worker-b" and takeover["snapshot_seq"] == snapshot_seq
+        assert takeover["started_at"] <= takeover["restored_at"] <= takeover["first_pose_at"]
+        assert takeover["first_pose_seq"] > snapshot_seq
         assert session["frames_received"] == session["frames_processed"] == FRAMES
         trajectory = api.get(f"/v1/sessions/{sid}/trajectory").json()["poses"]
         assert [p["seq"] for p in trajectory] == list(range(FRAMES))

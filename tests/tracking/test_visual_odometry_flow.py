@@ -149,7 +149,7 @@ def test_tracks_and_poses_stay_well_formed():
 
 def test_every_bundled_frame_is_tracked_accurately(frames):
     ate, tracked, events = _trajectory_ate(VisualOdometry(), frames)
-    assert tracked == len(frames) and [e["type"] for e in events] == ["initialized"]
+    assert tracked == len(frames) and [e["type"] for e in events if e["type"] != "initializing"] == ["initialized"]
     assert ate < 0.04  # ~3.7 m loop; the bench holds the 3 cm target on the 211-frame sequence
 
 

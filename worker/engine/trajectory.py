@@ -3,16 +3,30 @@
 Each frame stores its pose relative to its reference keyframe (the latest keyframe at or before it) as tracking
 measured it; its world pose is the keyframe's current pose times that relative pose. A pose-graph update therefore
 moves every frame with its keyframe (paper 4.2) and bumps the revision, so clients know the past was rewritten.
+
+The per-frame records are the only part that grows with the session. A chunked state (`chunked_state`) keeps them
+out of the snapshot: full runs of `chunk_frames` records are sealed into chunks written once (`ChunkWrite.new`,
+stored beside the snapshot), and the state holds the keyframe poses, the unsealed tail and a manifest of the chunks
+it needs. A loop correction moves keyframe poses only (frames keep their relative poses), so it touches no chunk;
+`revise_frames` on sealed records bumps those chunks' versions, and the next chunked state writes them again.
+`joined_state(state, chunks)` turns a chunked state back into the full one.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
 
+from worker.engine.snapshot_chunks import ChunkWrite, chunk_versions
 from worker.geometry import sim3_inverse
+from worker.serialization import pack, unpack
+
+CHUNK_FRAMES = 256  # frame records per sealed chunk
+FRAME_COLUMNS = ("index", "timestamp", "keyframe", "relative", "is_keyframe", "submap_id")
 
 
 def _inv(T: np.ndarray) -> np.ndarray:
@@ -29,14 +43,29 @@ class FrameRecord:
     submap_id: int
 
 
+def _columns(records: list[FrameRecord]) -> dict[str, np.ndarray]:
+    return {
+        "index": np.asarray([r.index for r in records], np.int64),
+        "timestamp": np.asarray([r.timestamp for r in records], np.float64),
+        "keyframe": np.asarray([r.keyframe for r in records], np.int64),
+        "relative": np.stack([r.relative for r in records]) if records else np.zeros((0, 4, 4)),
+        "is_keyframe": np.asarray([r.is_keyframe for r in records], bool),
+        "submap_id": np.asarray([r.submap_id for r in records], np.int64),
+    }
+
+
 class Trajectory:
     """Keyframe poses by keyframe id (ids are frame indices) and per-frame records, with a revision counter."""
 
-    def __init__(self) -> None:
+    def __init__(self, chunk_frames: int = CHUNK_FRAMES) -> None:
+        if chunk_frames < 1:
+            raise ValueError("chunk_frames must be at least 1")
         self.frames: list[FrameRecord] = []
         self.keyframe_poses: dict[int, np.ndarray] = {}
         self.tracked_keyframe_poses: dict[int, np.ndarray] = {}
         self.revision = 0
+        self.chunk_frames = chunk_frames
+        self.chunk_revisions: dict[int, int] = {}  # sealed chunks whose records were revised: chunk -> version
         self._last_index: int | None = None
 
     def add_keyframe(self, kf_id: int, tracked_pose: np.ndarray, reference: int | None = None) -> np.ndarray:
@@ -75,10 +104,16 @@ class Trajectory:
     def revise_frames(self, poses: dict[int, np.ndarray]) -> int:
         """Replace the tracked poses of past non-keyframes (a pose source re-estimated them, e.g. the frames
         before a monocular initialisation); returns the new revision."""
-        for record in self.frames:
+        sealed = len(self.frames) // self.chunk_frames
+        touched = set()
+        for position, record in enumerate(self.frames):
             if record.index in poses and not record.is_keyframe:
                 record.relative = _inv(self.tracked_keyframe_poses[record.keyframe]) @ np.asarray(
                     poses[record.index], np.float64)
+                touched.add(position // self.chunk_frames)
+        for chunk in touched:
+            if chunk < sealed:  # sealed chunks are rewritten at their new version; the tail is in the state anyway
+                self.chunk_revisions[chunk] = self.chunk_revisions.get(chunk, 0) + 1
         self.revision += 1
         return self.revision
 
@@ -97,7 +132,7 @@ class Trajectory:
             raise ValueError(f"trajectory kind must be 'all' or 'keyframes', got {which!r}")
         return [(r.index, r.timestamp, self.pose_of(r)) for r in self.frames if which == "all" or r.is_keyframe]
 
-    def state_dict(self) -> dict:
+    def _keyframe_state(self) -> dict[str, Any]:
         kf = sorted(self.keyframe_poses)
         return {
             "revision": self.revision,
@@ -105,16 +140,58 @@ class Trajectory:
             "keyframe_poses": np.stack([self.keyframe_poses[k] for k in kf]) if kf else np.zeros((0, 4, 4)),
             "tracked_keyframe_poses": (np.stack([self.tracked_keyframe_poses[k] for k in kf]) if kf
                                        else np.zeros((0, 4, 4))),
-            "index": np.asarray([r.index for r in self.frames], np.int64),
-            "timestamp": np.asarray([r.timestamp for r in self.frames], np.float64),
-            "keyframe": np.asarray([r.keyframe for r in self.frames], np.int64),
-            "relative": np.stack([r.relative for r in self.frames]) if self.frames else np.zeros((0, 4, 4)),
-            "is_keyframe": np.asarray([r.is_keyframe for r in self.frames], bool),
-            "submap_id": np.asarray([r.submap_id for r in self.frames], np.int64),
+            "chunk_frames": self.chunk_frames,
+            "chunk_revisions": dict(self.chunk_revisions),
         }
 
+    def state_dict(self) -> dict:
+        """The whole trajectory, every frame record included (self-contained)."""
+        return {**self._keyframe_state(), **_columns(self.frames)}
+
+    def chunked_state(self, stored: Mapping[int, int]) -> tuple[dict, ChunkWrite]:
+        """The state without the sealed records, and the chunks it needs: those not in `stored` (chunk -> version
+        already written) are packed into `ChunkWrite.new`. Its size does not grow with the frame count."""
+        size = self.chunk_frames
+        sealed = len(self.frames) // size
+        revisions = {i: v for i, v in self.chunk_revisions.items() if i < sealed}
+        manifest = {"frames": size, "sealed": sealed, "versions": revisions}
+        new = {}
+        for i in range(sealed):
+            version = revisions.get(i, 0)
+            if stored.get(i) != version:
+                new[i] = pack({"chunk": i, "version": version, **_columns(self.frames[i * size:(i + 1) * size])})
+        state = {**self._keyframe_state(), **_columns(self.frames[sealed * size:]), "chunks": manifest}
+        return state, ChunkWrite(manifest, new)
+
+    @staticmethod
+    def joined_state(state: dict, chunks: Mapping[int, bytes]) -> dict:
+        """The full state of a chunked one (`chunked_state`) with its sealed `chunks` (chunk -> bytes); a full
+        state is returned as it is. Raises ValueError when a chunk is missing or at another version."""
+        manifest = state.get("chunks")
+        if manifest is None:
+            return state
+        parts = []
+        for i, version in chunk_versions(manifest).items():
+            raw = chunks.get(i)
+            if raw is None:
+                raise ValueError(f"the snapshot needs trajectory chunk {i}, which is missing")
+            part = unpack(raw)
+            if int(part["chunk"]) != i or int(part["version"]) != version:
+                raise ValueError(f"trajectory chunk {i} is at version {part['version']} (chunk {part['chunk']}); "
+                                 f"the snapshot needs version {version}")
+            parts.append(part)
+        parts.append(state)
+        joined = {k: np.concatenate([np.asarray(p[k]) for p in parts]) for k in FRAME_COLUMNS}
+        return {**{k: v for k, v in state.items() if k != "chunks"}, **joined,
+                "chunk_frames": int(manifest["frames"])}
+
     def load_state_dict(self, d: dict) -> None:
+        """Load a full state (`state_dict`, or `joined_state` of a chunked one)."""
+        if "chunks" in d:
+            raise ValueError("a chunked trajectory state needs its chunks: load Trajectory.joined_state(state, ...)")
         self.revision = int(d["revision"])
+        self.chunk_frames = int(d.get("chunk_frames", self.chunk_frames))
+        self.chunk_revisions = {int(k): int(v) for k, v in (d.get("chunk_revisions") or {}).items()}
         self.keyframe_poses = {int(k): np.asarray(p, np.float64) for k, p in zip(d["keyframe_ids"],
                                                                               d["keyframe_poses"])}
         self.tracked_keyframe_poses = {int(k): np.asarray(p, np.float64)

@@ -25,7 +25,7 @@ log = logging.getLogger(__name__)
 # Only a finished, not yet archived session loses its Redis copies (and only once the files are in place).
 _DROP_ARCHIVED = """
 if redis.call('HGET', KEYS[1], 'status') ~= 'finished' then return 0 end
-redis.call('DEL', KEYS[2], KEYS[3], KEYS[4])
+redis.call('DEL', KEYS[2], KEYS[3], KEYS[4], KEYS[5])
 redis.call('HSET', KEYS[1], 'archived', '1')
 return 1
 """
@@ -85,6 +85,6 @@ def archive_finished(client: redis.Redis, store: BlobStore, after_s: float, limi
             continue
         store.put(session_id, snapshot, client.hgetall(keys.poses(session_id)))
         moved += drop(keys=[keys.session(session_id), keys.snapshot(session_id), keys.poses(session_id),
-                            keys.rejected(session_id)])
+                            keys.rejected(session_id), keys.snapshot_chunks(session_id)])
         log.info("session %s archived to %s", session_id, store.root)
     return moved

@@ -18,7 +18,7 @@ import redis
 
 from worker.runtime import keys
 from worker.runtime.archive import BlobStore, archive_finished
-from worker.runtime.engine import SessionEngine, close_engine, restore_engine
+from worker.runtime.engine import SessionEngine, close_engine, restore_engine, warm_up
 from worker.runtime.leases import Leases
 from worker.runtime.memory import over_budget
 from worker.runtime.outage import REDIS_DOWN, Backoff, OutageLog, wait_for_redis
@@ -26,9 +26,14 @@ from worker.runtime.partitions import PartitionReader
 from worker.runtime.record import abandon_unstarted
 from worker.runtime.requests import handle_request
 from worker.runtime.sessions import RuntimeConfig, SessionRunner, ensure_group
+from worker.runtime.snapshots import read_snapshot
 from worker.runtime.stats import StageStats
 
 log = logging.getLogger(__name__)
+
+STALE_SCAN_COUNT = 200  # pending jobs per partition looked at for the next stale deadline
+STALE_MARGIN_S = 0.01  # past a job's stale deadline: XAUTOCLAIM's idle test must pass by then
+WAITING_RETRY_MS = 50  # a claimed session whose old lease is still there is tried again this soon
 
 
 class Worker:
@@ -42,6 +47,7 @@ class Worker:
         self.stats = StageStats()
         self.runners: dict[str, SessionRunner] = {}
         self._waiting: dict[str, str] = {}  # session id -> job id claimed while the old lease had not expired yet
+        self._claimed_at: dict[str, float] = {}  # session id -> wall time its job was claimed from a silent worker
         self._stopping = threading.Event()
         self._next_claim = 0.0
         self._deferred: dict[str, str] = {}  # session id -> job id of sessions created but not streamed yet
@@ -56,6 +62,7 @@ class Worker:
     def run(self) -> None:
         if not wait_for_redis(self.client, self._stopping, f"worker {self.worker_id} start-up", log):
             return
+        warm_up(self.config.engine_kind)  # before taking sessions: a takeover must not wait for imports
         self._ensure_groups()
         self._heartbeat_once()
         threads = [threading.Thread(target=self._heartbeat_loop, name="heartbeat", daemon=True),
@@ -112,7 +119,7 @@ class Worker:
         self._reap_runners()
         if time.monotonic() >= self._next_claim:
             self._claim_stale_jobs()
-            self._next_claim = time.monotonic() + self.config.lease_ttl_ms / 2000
+            self._next_claim = self._next_stale_at()
         for session_id, job_id in list(self._waiting.items()):
             self._take(session_id, job_id)
         if self._deferred and time.monotonic() >= self._next_deferred_check:
@@ -121,7 +128,9 @@ class Worker:
         if len(self.runners) >= self.config.max_sessions or over_budget(self.config.memory_budget_mb):
             time.sleep(0.05)
             return
-        for index, (_stream, job_id, fields) in enumerate(self._jobs.read(self.client, self.worker_id)):
+        due_ms = WAITING_RETRY_MS if self._waiting else int(1000 * max(0.0, self._next_claim - time.monotonic()))
+        for index, (_stream, job_id, fields) in enumerate(self._jobs.read(self.client, self.worker_id,
+                                                                          within_ms=due_ms + 1)):
             if index == 0:
                 self._take(fields[b"session_id"].decode(), job_id.decode())
             else:  # one job per read, as from a single queue: the others go back for any worker
@@ -140,11 +149,30 @@ class Worker:
                         session_id = fields[b"session_id"].decode()
                         if session_id not in self.runners:
                             log.info("claimed the job of session %s from a silent worker", session_id)
+                            self._claimed_at[session_id] = time.time()
                             self._take(session_id, job_id.decode())
                     else:  # the entry was trimmed away
                         self.client.xack(stream, keys.GROUP, job_id)
                 if start in (b"0-0", "0-0"):
                     break
+
+    def _next_stale_at(self) -> float:
+        """When (monotonic) the next job another worker holds goes stale if that worker stays silent: its last
+        heartbeat refreshed the job, so it goes stale a lease TTL after that. The jobs loop wakes then, rather than
+        polling, so a dead worker's sessions are taken as soon as its lease can have expired."""
+        now = time.monotonic()
+        ttl_s = self.config.lease_ttl_ms / 1000
+        soonest = now + ttl_s / 2  # jobs claimed or taken meanwhile are seen within half a lease
+        pipe = self.client.pipeline(transaction=False)
+        for stream in keys.JOB_STREAMS:
+            pipe.xpending_range(stream, keys.GROUP, min="-", max="+", count=STALE_SCAN_COUNT)
+        for pending in pipe.execute():
+            for entry in pending:
+                consumer = entry["consumer"].decode() if isinstance(entry["consumer"], bytes) else entry["consumer"]
+                if consumer != self.worker_id:
+                    idle_s = entry["time_since_delivered"] / 1000
+                    soonest = min(soonest, now + max(0.0, ttl_s - idle_s) + STALE_MARGIN_S)
+        return soonest
 
     def _take(self, session_id: str, job_id: str) -> None:
         """Own the session if it still needs running and its lease is free."""
@@ -172,6 +200,7 @@ class Worker:
                            message_ids=[job_id], justid=True)
         runner = SessionRunner(self.client, self.worker_id, session_id, job_id, self.leases, self.config,
                                self.stats)
+        runner.claimed_at = self._claimed_at.pop(session_id, None)
         self.runners[session_id] = runner
         runner.start()
         log.info("session %s started on %s", session_id, self.worker_id)
@@ -276,7 +305,8 @@ class Worker:
 
     def _finished_engine(self, session_id: str) -> SessionEngine | None:
         """The engine of a finished session, restored from its snapshot (a small LRU cache)."""
-        snap = self.client.hmget(keys.snapshot(session_id), ["stream_id", "engine", "data"])
+        stored = read_snapshot(self.client, session_id)
+        snap = [None, None, None] if stored is None else [stored.stream_id, stored.engine.encode(), stored.data]
         if snap[2] is None and self.blobs is not None:  # archived: the snapshot lives in the blob store
             archived = self.blobs.snapshot(session_id) or {}
             snap = [archived.get(b"stream_id"), archived.get(b"engine"), archived.get(b"data")]
@@ -286,7 +316,7 @@ class Worker:
         if cache_key in self._finished_engines:
             self._finished_engines.move_to_end(cache_key)
             return self._finished_engines[cache_key]
-        engine = restore_engine(snap[1].decode(), snap[2])
+        engine = restore_engine(snap[1].decode(), snap[2], None if stored is None else stored.chunks)
         self._finished_engines[cache_key] = engine
         while len(self._finished_engines) > 4:
             close_engine(self._finished_engines.popitem(last=False)[1])

@@ -11,11 +11,13 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Mapping
 from typing import Any, Protocol
 
 import numpy as np
 
 from worker.data.frame import Frame, FrameResult
+from worker.engine.snapshot_chunks import ChunkWrite, chunk_versions
 from worker.geometry import Intrinsics
 from worker.serialization import pack, unpack
 
@@ -42,13 +44,17 @@ class SessionEngine(Protocol):
 
 
 def create_engine(kind: str, preset: str | None, intrinsics: Intrinsics | None,
-                  pose_mode: str | None = None, depth_camera: dict[str, Any] | None = None) -> SessionEngine:
-    """A fresh engine of `kind` for a new session; `pose_mode` (prior/fixed/ignore/seeded) overrides the preset's;
-    `depth_camera` (the session's: intrinsics + depth_to_color) registers depth to the colour camera."""
+                  pose_mode: str | None = None, tracking_side: int | None = None,
+                  depth_camera: dict[str, Any] | None = None) -> SessionEngine:
+    """A fresh engine of `kind` for a new session; `pose_mode` (prior/fixed/ignore/seeded) and `tracking_side` (the
+    tracking resolution's long side) override the preset's; `depth_camera` (the session's: intrinsics +
+    depth_to_color) registers depth to the colour camera."""
     if kind == "slam":
         from worker.slam import SlamConfig, SlamSystem
 
-        overrides: dict[str, Any] = {"input": {"pose_mode": pose_mode}} if pose_mode else {"input": {}}
+        overrides: dict[str, dict] = {"input": {"pose_mode": pose_mode}} if pose_mode else {"input": {}}
+        if tracking_side:
+            overrides["tracking"] = {"max_side": int(tracking_side)}
         if depth_camera:
             overrides["input"]["depth_camera"] = {**depth_camera["intrinsics"],
                                                   "depth_to_color": depth_camera["depth_to_color"]}
@@ -63,17 +69,30 @@ def _passthrough_delay_s() -> float:
     return float(os.environ.get("FLASHMONO_PASSTHROUGH_DELAY_MS", "0")) / 1000.0
 
 
-def restore_engine(kind: str, blob: bytes) -> SessionEngine:
-    """An engine rebuilt from `snapshot()` bytes."""
+def restore_engine(kind: str, blob: bytes, chunks: Mapping[int | str, bytes] | None = None) -> SessionEngine:
+    """An engine rebuilt from `snapshot()` bytes (and, for a chunked snapshot, the `chunks` it lists)."""
     if kind == "slam":
         from worker.slam import SlamSystem
 
-        return SlamSystem.restore(blob)
+        return SlamSystem.restore(blob, chunks)
     if kind == "passthrough":
-        engine = PassthroughEngine.restore(blob)
+        engine = PassthroughEngine.restore(blob, chunks)
         engine.delay_s = _passthrough_delay_s()
         return engine
     raise ValueError(f"unknown engine kind {kind!r}; expected one of {ENGINE_KINDS}")
+
+
+def warm_up(kind: str) -> None:
+    """Import what an engine of `kind` loads on its first session (the SLAM system, its pose sources, stages and
+    kernels), so that a worker taking over a dead worker's session does not pay for it then."""
+    if kind != "slam":
+        return
+    import importlib
+
+    for module in ("worker.slam", "worker.tracking.rgbd_odometry", "worker.tracking.visual_odometry",
+                   "worker.engine.mapping_stage", "worker.engine.loop_stage", "worker.engine.loop_closer",
+                   "worker.engine.keyframe_depth", "worker.loop.pose_graph"):
+        importlib.import_module(module)
 
 
 def engine_intrinsics(engine: SessionEngine) -> dict[str, float | int] | None:
@@ -95,6 +114,7 @@ class PassthroughEngine:
     """Deterministic engine without tracking: pose = the frame's pose (or identity), every 4th frame a keyframe."""
 
     KEYFRAME_EVERY = 4
+    CHUNK_POSES = 8  # small, so that the runtime's tests cross chunk boundaries
 
     def __init__(self, intrinsics: Intrinsics | None = None, delay_s: float = 0.0) -> None:
         self.intrinsics = intrinsics
@@ -146,18 +166,51 @@ class PassthroughEngine:
         return ("\n".join(lines) + "\n").encode()
 
     def snapshot(self) -> bytes:
-        return pack({
-            "intrinsics": self.intrinsics.to_dict() if self.intrinsics else None, "revision": self.revision,
-            "finished": self.finished, "colors": [c for c in self._colors],
-            "poses": [[i, t, p, kf] for i, t, p, kf in self._poses],
-        })
+        return pack(self._state(self._poses))
+
+    def begin_snapshot(self, stored_chunks: Mapping[int, int]) -> ReadySnapshot:
+        """A chunked snapshot (as SlamSystem's): runs of `CHUNK_POSES` poses are sealed into chunks written once."""
+        sealed = len(self._poses) // self.CHUNK_POSES
+        size = self.CHUNK_POSES
+        new = {i: pack({"chunk": i, "version": 0, "poses": self._rows(self._poses[i * size:(i + 1) * size])})
+               for i in range(sealed) if stored_chunks.get(i) != 0}
+        manifest = {"frames": size, "sealed": sealed, "versions": {}}
+        blob = pack({**self._state(self._poses[sealed * size:]), "chunks": manifest})
+        return ReadySnapshot(blob, ChunkWrite(manifest, new))
+
+    def _state(self, poses: list[tuple[int, float, np.ndarray, bool]]) -> dict[str, Any]:
+        return {"intrinsics": self.intrinsics.to_dict() if self.intrinsics else None, "revision": self.revision,
+                "finished": self.finished, "colors": [c for c in self._colors], "poses": self._rows(poses)}
+
+    @staticmethod
+    def _rows(poses: list[tuple[int, float, np.ndarray, bool]]) -> list[list[Any]]:
+        return [[i, t, p, kf] for i, t, p, kf in poses]
 
     @classmethod
-    def restore(cls, blob: bytes) -> PassthroughEngine:
+    def restore(cls, blob: bytes, chunks: Mapping[int, bytes] | None = None) -> PassthroughEngine:
         state: dict[str, Any] = unpack(blob)
         engine = cls(Intrinsics.from_dict(state["intrinsics"]) if state["intrinsics"] else None)
         engine.revision = int(state["revision"])
         engine.finished = bool(state["finished"])
         engine._colors = list(state["colors"])
-        engine._poses = [(int(i), float(t), np.asarray(p), bool(kf)) for i, t, p, kf in state["poses"]]
+        rows = []
+        for i in chunk_versions(state["chunks"]) if state.get("chunks") else []:
+            if chunks is None or i not in chunks:
+                raise ValueError(f"the snapshot needs pose chunk {i}, which is missing")
+            rows += unpack(chunks[i])["poses"]
+        engine._poses = [(int(i), float(t), np.asarray(p), bool(kf)) for i, t, p, kf in rows + state["poses"]]
         return engine
+
+
+class ReadySnapshot:
+    """A snapshot that is complete at once (the SnapshotFuture interface, for engines without stages)."""
+
+    def __init__(self, blob: bytes, chunks: ChunkWrite | None = None) -> None:
+        self._blob = blob
+        self.chunks = chunks
+
+    def done(self) -> bool:
+        return True
+
+    def result(self, timeout: float | None = None) -> bytes:
+        return self._blob

@@ -8,7 +8,8 @@ single instance ignores the braces. Per session `{id}`:
   fm:{id}:out            stream results for the gateway to forward (pose, loop_closed, error, finished)
   fm:{id}:poses          hash   seq -> msgpack {timestamp, pose, kf}; the trajectory, idempotent by seq
   fm:{id}:rejected       hash   seq -> error code of frames the worker refused (idempotent by seq)
-  fm:{id}:snap           hash   {data, seq, stream_id, keyframes}: the last engine snapshot
+  fm:{id}:snap           hash   {data, seq, stream_id, engine, chunks}: the last engine snapshot
+  fm:{id}:snapchunks     hash   chunk -> msgpack: the trajectory chunks a chunked snapshot lists (runtime.snapshots)
   fm:{id}:req            stream render/export requests for the live owner
   fm:{id}:inflight       string "<seq>:<attempts>" of the frame being processed (poison-frame quarantine)
   fm:{id}:lease          string worker id owning the session (expires unless renewed)
@@ -69,6 +70,10 @@ def rejected(session_id: str) -> str:
 
 def snapshot(session_id: str) -> str:
     return _tagged(session_id, "snap")
+
+
+def snapshot_chunks(session_id: str) -> str:
+    return _tagged(session_id, "snapchunks")
 
 
 def session_requests(session_id: str) -> str:
@@ -133,8 +138,8 @@ def reply(request_id: str) -> str:
 def all_session_keys(session_id: str) -> list[str]:
     """Every key that belongs to one session (deleted together; one hash slot)."""
     return [session(session_id), inbox(session_id), outbox(session_id), poses(session_id), rejected(session_id),
-            snapshot(session_id), session_requests(session_id), lease(session_id), inflight(session_id),
-            archiving(session_id)]
+            snapshot(session_id), snapshot_chunks(session_id), session_requests(session_id), lease(session_id),
+            inflight(session_id), archiving(session_id)]
 
 
 # --- the layout before hash tags (read by worker.runtime.migrate only) -----------------------------------------

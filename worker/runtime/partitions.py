@@ -24,17 +24,20 @@ class PartitionReader:
         self.cycle_ms = cycle_ms
         self._turn = start % len(streams)
 
-    def read(self, client: redis.Redis, consumer: str, count: int = 1) -> list[tuple[str, bytes, dict]]:
+    def read(self, client: redis.Redis, consumer: str, count: int = 1, within_ms: int | None = None
+             ) -> list[tuple[str, bytes, dict]]:
         """[(stream, entry id, fields)] new to the group: from every partition on a single instance (at most
-        `count` each), from the partition whose turn it is on a cluster; often empty."""
+        `count` each), from the partition whose turn it is on a cluster; often empty. `within_ms` shortens the
+        wait (the caller has something due sooner than a cycle)."""
+        cycle_ms = self.cycle_ms if within_ms is None else max(1, min(self.cycle_ms, within_ms))
         if is_cluster(client):
             stream = self.streams[self._turn]
             self._turn = (self._turn + 1) % len(self.streams)
             wanted = {stream: ">"}
-            block_ms = max(1, self.cycle_ms // len(self.streams))
+            block_ms = max(1, cycle_ms // len(self.streams))
         else:
             wanted = dict.fromkeys(self.streams, ">")
-            block_ms = self.cycle_ms
+            block_ms = cycle_ms
         reply = client.xreadgroup(keys.GROUP, consumer, wanted, count=count, block=block_ms)
         return [(_text(name), entry_id, fields) for name, entries in reply or [] for entry_id, fields in entries]
 

@@ -38,7 +38,7 @@ redis.call('XADD', KEYS[2], 'MAXLEN', '~', ARGV[2], '*', 'msg', ARGV[1])
 if ARGV[3] ~= '' then redis.call('XACK', KEYS[3], 'workers', ARGV[3]) end
 for i = 2, 5 do redis.call('PEXPIRE', KEYS[i], math.floor(tonumber(ARGV[4]) * 1000)) end
 if tonumber(ARGV[5]) > 0 then
-  for i = 6, 8 do redis.call('PEXPIRE', KEYS[i], math.floor(tonumber(ARGV[5]) * 1000)) end
+  for i = 6, 9 do redis.call('PEXPIRE', KEYS[i], math.floor(tonumber(ARGV[5]) * 1000)) end
   redis.call('PEXPIRE', KEYS[1], math.floor(tonumber(ARGV[5]) * 1000))
 end
 return 1
@@ -83,10 +83,11 @@ class SessionRecord:
               inbox_entry: bytes | None = None, transient_ttl_s: float = 3600.0, retention_s: float = 0.0) -> bool:
         """Set the final `fields` (status...), publish `message` and ack `inbox_entry`, together. The live-only
         keys (inbox, outbox, requests, in-flight mark) expire after `transient_ttl_s`; with `retention_s` > 0 the
-        record, trajectory, snapshot and rejections expire after it (0: kept)."""
+        record, trajectory, snapshot (and its trajectory chunks) and rejections expire after it (0: kept)."""
         sid = self.session_id
         return bool(self._close(keys=[keys.session(sid), keys.outbox(sid), keys.inbox(sid), keys.session_requests(sid),
-                                      keys.inflight(sid), keys.poses(sid), keys.snapshot(sid), keys.rejected(sid)],
+                                      keys.inflight(sid), keys.poses(sid), keys.snapshot(sid), keys.rejected(sid),
+                                      keys.snapshot_chunks(sid)],
                                 args=[message, outbox_maxlen, inbox_entry or b"", transient_ttl_s, retention_s,
                                       *_flat(fields)]))
 

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import redis
 
+from worker.engine.snapshot_chunks import ChunkWrite
 from worker.geometry import Intrinsics
 from worker.runtime import keys
 from worker.runtime.engine import SessionEngine, close_engine, create_engine, engine_intrinsics, restore_engine
@@ -32,11 +33,12 @@ from worker.runtime.quarantine import FrameAttempts
 from worker.runtime.record import SessionRecord
 from worker.runtime.requests import handle_request
 from worker.runtime.similarity import similarity_scale
+from worker.runtime.snapshots import SnapshotWriter, read_snapshot
 from worker.runtime.stats import StageStats
 from worker.serialization import pack, unpack
 
 # Pose-source events forwarded to the clients as their own messages.
-TRACKING_EVENTS = ("tracking_lost", "relocalized", "initialized")
+TRACKING_EVENTS = ("tracking_lost", "relocalized", "initialized", "initializing")
 # Notices about the input, forwarded as their own messages (tracking goes on); a misregistration is also kept in
 # the session record's `warnings`.
 INPUT_EVENTS = ("device_pose_jump", "depth_misregistered")
@@ -70,16 +72,6 @@ redis.call('XACK', KEYS[4], 'workers', ARGV[4])
 return new
 """
 
-_STORE_SNAPSHOT = """
-if redis.call('EXISTS', KEYS[4]) == 0 then return -1 end
-if redis.call('GET', KEYS[3]) ~= ARGV[1] then return -2 end
-redis.call('HSET', KEYS[1], 'data', ARGV[2], 'seq', ARGV[3], 'stream_id', ARGV[4], 'engine', ARGV[5],
-           'created_at', ARGV[6])
-redis.call('XTRIM', KEYS[2], 'MINID', ARGV[4])
-return 1
-"""
-
-
 @dataclass
 class RuntimeConfig:
     """How a worker runs sessions (environment names in worker/runtime/main.py)."""
@@ -87,10 +79,14 @@ class RuntimeConfig:
     engine_kind: str = "slam"
     lease_ttl_ms: int = 2_500
     snapshot_every_keyframes: int = 5
+    # ... or this often (seconds; 0: by keyframes only): the frames a new owner replays after a crash are those
+    # since the newest stored snapshot, so a still camera (no keyframes) must not leave it far behind either.
+    snapshot_every_s: float = 1.0
     max_sessions: int = 16
     block_ms: int = 500
     outbox_maxlen: int = 5000
     max_frame_side: int = DEFAULT_MAX_SIDE  # frames are worked on at most this long a side
+    tracking_side: int = 0  # sessions that name none track at most this long a side (0: at the working size)
     max_frame_attempts: int = 2  # workers that may die on one frame before it is quarantined
     memory_budget_mb: int = 0  # no new session while the worker's resident memory is above it (0: no limit)
     idle_timeout_s: float = 600.0  # a session without frames this long is abandoned, its slot freed (0: never)
@@ -174,13 +170,16 @@ class SessionRunner(threading.Thread):
         self._session: dict[str, Any] = {}
         self._store_result = client.register_script(_STORE_RESULT)
         self._store_rejection = client.register_script(_STORE_REJECTION)
-        self._store_snapshot = client.register_script(_STORE_SNAPSHOT)
+        self._snapshots = SnapshotWriter(client, session_id, worker_id)
         self._attempts = FrameAttempts(client, session_id, config.max_frame_attempts)
         self._record = SessionRecord(client, session_id)
         self._snapshot_in_flight: tuple[Any, int, bytes] | None = None  # (future, seq, entry id)
+        self._snapshot_begun_at = time.monotonic()
         self._consecutive_skips = 0
         self._tracking_state: str | None = None
         self._live_stats_at = 0.0
+        self.claimed_at: float | None = None  # wall time the worker claimed a silent worker's job (takeovers)
+        self._timeline: dict[str, Any] | None = None  # until the first pose: the phases of taking the session
 
     # --- control from the worker --------------------------------------------------------------------------------
     def stop(self) -> None:
@@ -192,6 +191,7 @@ class SessionRunner(threading.Thread):
 
     # --- thread body --------------------------------------------------------------------------------------------
     def run(self) -> None:
+        self._timeline = {"worker": self.worker_id, "claimed_at": self.claimed_at, "started_at": time.time()}
         try:
             self._load_session()
             self._restore_and_replay()
@@ -240,6 +240,10 @@ class SessionRunner(threading.Thread):
         if not self._record.update({"worker": self.worker_id, "updated_at": now_iso()}):
             raise SessionGone
 
+    def _tracking_side(self) -> int | None:
+        """The tracking resolution's long side: the session's, else the worker's default (None: as frames come)."""
+        return int(self._session.get("tracking_side") or 0) or self.config.tracking_side or None
+
     def _session_intrinsics(self) -> dict[str, Any] | None:
         text = self._session.get("intrinsics")
         return json.loads(text) if text and text != "null" else None
@@ -247,16 +251,19 @@ class SessionRunner(threading.Thread):
     def _restore_and_replay(self) -> None:
         ensure_group(self.client, keys.inbox(self.session_id))
         ensure_group(self.client, keys.session_requests(self.session_id))
-        snap = self.client.hgetall(keys.snapshot(self.session_id))
-        if snap:
-            self.engine = restore_engine(snap[b"engine"].decode(), snap[b"data"])
-            self._last_id = snap[b"stream_id"]
-            log.info("session %s restored from snapshot at seq %s", self.session_id, snap[b"seq"].decode())
+        snap = read_snapshot(self.client, self.session_id)
+        if snap is not None:
+            self.engine = restore_engine(snap.engine, snap.data, snap.chunks)
+            self._snapshots.restored(snap)
+            self._last_id = snap.stream_id
+            log.info("session %s restored from snapshot at seq %s", self.session_id, snap.seq)
+            self._timeline.update(restored_at=time.time(), snapshot_seq=snap.seq, replayed=0)
         else:
             intrinsics = self._session_intrinsics()
             self.engine = create_engine(self.config.engine_kind, self._session.get("preset") or None,
                                         Intrinsics.from_dict(intrinsics) if intrinsics else None,
                                         pose_mode=self._session.get("pose_mode") or None,
+                                        tracking_side=self._tracking_side(),
                                         depth_camera=json.loads(self._session.get("depth_camera") or "null"))
         self._done_seqs = {int(s) for s in self.client.hkeys(keys.poses(self.session_id))}
         self._rejected = {int(s) for s in self.client.hkeys(keys.rejected(self.session_id))}
@@ -283,6 +290,8 @@ class SessionRunner(threading.Thread):
                 self._store_finished_snapshot()
             self._publish_live_stats()  # a stream that keeps coming is caught up on here
         self._cursor = stream_id_tuple(after)
+        if self._timeline is not None:
+            self._timeline.setdefault("replay_done_at", time.time())
         self._resume_interrupted_finish()
 
     def _process_until_done(self) -> None:
@@ -392,6 +401,8 @@ class SessionRunner(threading.Thread):
     def _replay_frame(self, fields: dict[bytes, bytes]) -> None:
         """Feed an already-counted frame to a restored engine so its state catches up (no results emitted)."""
         if int(fields[b"seq"]) not in self._rejected:
+            if self._timeline is not None:
+                self._timeline["replayed"] = self._timeline.get("replayed", 0) + 1
             try:
                 self.engine.push(decode_frame(unpack(fields[b"msg"]), self._session_intrinsics(),
                                               self.config.max_frame_side))
@@ -399,6 +410,8 @@ class SessionRunner(threading.Thread):
                 log.warning("replay of seq %s failed: %s", fields[b"seq"], err)
 
     def _process_frame(self, entry_id: bytes, seq: int, fields: dict[bytes, bytes]) -> None:
+        if self._timeline is not None:
+            self._timeline.setdefault("replay_done_at", time.time())
         if not self._attempts.begin(seq):  # before anything that could take the worker down with this frame
             raise SessionGone
         t0, c0 = time.perf_counter(), time.thread_time()
@@ -428,6 +441,8 @@ class SessionRunner(threading.Thread):
                   self.config.outbox_maxlen, self.worker_id])
         self._check_store_status(status)
         self._done_seqs.add(seq)
+        if self._timeline is not None:
+            self._publish_timeline(seq)
         t3, c3 = time.perf_counter(), time.thread_time()
         self.stats.add("decode", t1 - t0)
         self.stats.add("engine", t2 - t1)
@@ -440,7 +455,8 @@ class SessionRunner(threading.Thread):
         for event in result.events:
             if event.get("type") in TRACKING_EVENTS:
                 self._publish_tracking_event(seq, event)
-                self._tracking_state = "lost" if event["type"] == "tracking_lost" else "tracking"
+                self._tracking_state = {"tracking_lost": "lost", "initializing": "initializing"}.get(
+                    event["type"], "tracking")
             elif event.get("type") in INPUT_EVENTS:
                 self._publish_tracking_event(seq, event)
                 if event["type"] == "depth_misregistered":
@@ -451,8 +467,18 @@ class SessionRunner(threading.Thread):
             self._publish_estimated_intrinsics()
         if result.is_keyframe:
             self._keyframes_since_snapshot += 1
-            if self._keyframes_since_snapshot >= self.config.snapshot_every_keyframes:
-                self._write_snapshot(seq, entry_id)
+        every_s = self.config.snapshot_every_s
+        if (self._keyframes_since_snapshot >= self.config.snapshot_every_keyframes
+                or (every_s > 0 and time.monotonic() - self._snapshot_begun_at >= every_s)):
+            self._write_snapshot(seq, entry_id)
+
+    def _publish_timeline(self, seq: int) -> None:
+        """The first pose since this worker took the session: its phases (wall times: claimed, started, restored,
+        replayed, first pose) go to the record's `takeover` field, for the kill benchmarks."""
+        timeline, self._timeline = self._timeline, None
+        timeline.update(first_pose_at=time.time(), first_pose_seq=seq)
+        if not self._record.update({"takeover": json.dumps(timeline)}):
+            raise SessionGone
 
     def _add_warning(self, text: str) -> None:
         """Keep a notice about the input in the session record (`warnings`), once."""
@@ -539,14 +565,15 @@ class SessionRunner(threading.Thread):
         stopping (`begin_snapshot`) delivers it later and `_store_finished_snapshot` stores it then; one snapshot
         at a time is in flight (a later one is asked for at the next keyframe). `wait` stores it now."""
         begin = getattr(self.engine, "begin_snapshot", None)
-        if begin is None or wait:
+        if begin is None or wait:  # self-contained: a finished session's snapshot is read without its chunks
             self._snapshot_in_flight = None  # superseded by this one
-            self._store_snapshot_blob(self.engine.snapshot(), seq, entry_id)
+            self._store_snapshot_blob(self.engine.snapshot(), None, seq, entry_id)
             self._keyframes_since_snapshot = 0
             return
         if self._snapshot_in_flight is not None:
             return
-        self._snapshot_in_flight = (begin(), seq, entry_id)
+        self._snapshot_in_flight = (begin(stored_chunks=dict(self._snapshots.stored_chunks)), seq, entry_id)
+        self._snapshot_begun_at = time.monotonic()
         self._keyframes_since_snapshot = 0
 
     def _store_finished_snapshot(self) -> None:
@@ -555,14 +582,11 @@ class SessionRunner(threading.Thread):
             return
         future, seq, entry_id = self._snapshot_in_flight
         self._snapshot_in_flight = None
-        self._store_snapshot_blob(future.result(), seq, entry_id)
+        self._store_snapshot_blob(future.result(), getattr(future, "chunks", None), seq, entry_id)
 
-    def _store_snapshot_blob(self, blob: bytes, seq: int, entry_id: bytes) -> None:
+    def _store_snapshot_blob(self, blob: bytes, chunks: ChunkWrite | None, seq: int, entry_id: bytes) -> None:
         t0 = time.perf_counter()
-        status = self._store_snapshot(
-            keys=[keys.snapshot(self.session_id), keys.inbox(self.session_id), keys.lease(self.session_id),
-                  keys.session(self.session_id)],
-            args=[self.worker_id, blob, seq, entry_id, self.config.engine_kind, now_iso()])
+        status = self._snapshots.write(blob, chunks, seq, entry_id, self.config.engine_kind, now_iso())
         self._check_store_status(status)
         self._last_id = entry_id
         self.stats.add("snapshot", time.perf_counter() - t0)

@@ -26,7 +26,9 @@ class TrackingResult:
     [H, W] float32 at the frame's resolution in the pose's units (0 = unknown), when the source has it.
     tracked: False while tracking is lost. events: dicts such as {"type": "tracking_lost", "reason": ...}.
     submap_id: the model's submap (0 for other sources). prediction: the learned model's per-pixel output for this
-    frame (its preprocessed image and surfels) when the model ran.
+    frame (its preprocessed image and surfels) when the model ran. quality: how well the pose is supported, 0 to 1
+    (visual odometry: the pose's inliers as a share of the last keyframe's tracked points; 0 for a placeholder),
+    None when the source does not say.
     """
 
     pose: np.ndarray
@@ -36,6 +38,7 @@ class TrackingResult:
     events: list[dict[str, Any]] = field(default_factory=list)
     submap_id: int = 0
     prediction: Any = None
+    quality: float | None = None
 
 
 class PoseSource(Protocol):

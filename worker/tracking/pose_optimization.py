@@ -26,9 +26,9 @@ def _gauss_newton(R, t, points, uv, info, K, huber, iterations):
         r, pc = _residuals(R, t, points, uv, K)
         e = np.sqrt((r ** 2).sum(1) * info)
         w = info * np.where(e <= huber, 1.0, huber / np.maximum(e, 1e-12)) * (pc[:, 2] > 1e-6)
-        J = projection_jacobians(pc, K)[1]
-        H = np.einsum("nik,n,nil->kl", J, w, J)
-        g = np.einsum("nik,n,ni->k", J, w, r)
+        J = projection_jacobians(pc, K)[1].reshape(-1, 6)  # rows (u, v) of each match
+        Jw = J * np.repeat(w, 2)[:, None]
+        H, g = Jw.T @ J, Jw.T @ r.ravel()
         try:
             xi = -np.linalg.solve(H + 1e-9 * np.eye(6), g)
         except np.linalg.LinAlgError:

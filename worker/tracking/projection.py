@@ -58,18 +58,18 @@ def bearings(uv: np.ndarray, K: np.ndarray) -> np.ndarray:
     return rays / np.linalg.norm(rays, axis=1, keepdims=True)
 
 
-def skew(p: np.ndarray) -> np.ndarray:
-    """[p]_x for rows p [N, 3] -> [N, 3, 3]."""
-    z = np.zeros(len(p))
-    x, y, w = p[:, 0], p[:, 1], p[:, 2]
-    return np.stack([np.stack([z, -w, y], 1), np.stack([w, z, -x], 1), np.stack([-y, x, z], 1)], 1)
-
-
 def projection_jacobians(pc: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """d(pixel)/d(camera point) [N, 2, 3] and d(pixel)/d(xi) [N, 2, 6] for camera points pc [N, 3], where the
     world-to-camera transform is updated on the left, T <- exp(xi) T with xi = (v, w): dX_c/dxi = [I | -[X_c]_x]."""
     x, y, z = pc[:, 0], pc[:, 1], np.maximum(pc[:, 2], 1e-9)
-    zero = np.zeros(len(pc))
-    J_proj = np.stack([np.stack([K[0, 0] / z, zero, -K[0, 0] * x / z ** 2], 1),
-                       np.stack([zero, K[1, 1] / z, -K[1, 1] * y / z ** 2], 1)], 1)
-    return J_proj, np.concatenate([J_proj, J_proj @ -skew(pc)], axis=2)
+    fx, fy = K[0, 0], K[1, 1]
+    inv_z = 1.0 / z
+    xz, yz = x * inv_z, y * inv_z
+    J = np.zeros((len(pc), 2, 6))
+    # translation part: J_proj itself
+    J[:, 0, 0], J[:, 0, 2] = fx * inv_z, -fx * xz * inv_z
+    J[:, 1, 1], J[:, 1, 2] = fy * inv_z, -fy * yz * inv_z
+    # rotation part: J_proj @ -[X_c]_x written out (the same entries as the product, without it)
+    J[:, 0, 3], J[:, 0, 4], J[:, 0, 5] = -fx * xz * yz, fx * (1.0 + xz * xz), -fx * yz
+    J[:, 1, 3], J[:, 1, 4], J[:, 1, 5] = -fy * (1.0 + yz * yz), fy * xz * yz, fy * xz
+    return J[:, :, :3], J

@@ -31,7 +31,15 @@ import numpy as np
 from worker.data.frame import Frame
 from worker.geometry import Intrinsics
 from worker.tracking.base import TrackingResult
-from worker.tracking.dense_alignment import AlignmentResult, AlignmentSettings, PyramidLevel, align, build_pyramid
+from worker.tracking.dense_alignment import (
+    AlignmentResult,
+    AlignmentSettings,
+    Backend,
+    PyramidLevel,
+    align,
+    build_pyramid,
+    kernels,
+)
 from worker.tracking.feature_seed import KeypointSet, detect, pnp_seed
 from worker.tracking.focal_calibration import estimate_focal
 from worker.tracking.motion import motion_model_pose, relative_motion
@@ -76,18 +84,18 @@ def grey_of(image: np.ndarray) -> np.ndarray:
 class _Reference:
     """A reference keyframe: its pose and the RGB-D data alignment needs (rebuilt into a pyramid on demand)."""
 
-    def __init__(self, index: int, pose: np.ndarray, grey: np.ndarray, depth: np.ndarray, reused: bool = False
-                 ) -> None:
+    def __init__(self, index: int, pose: np.ndarray, grey: np.ndarray, depth: np.ndarray, reused: bool = False,
+                 pyramid: list[PyramidLevel] | None = None) -> None:
         self.index, self.pose, self.grey, self.depth = index, pose, grey, depth
         self.reused = reused  # a place come back to (frames that see it well need no keyframe)
         valid = depth[depth > 0]
         self.median_depth = float(np.median(valid)) if valid.size else 1.0
-        self._pyramid: list[PyramidLevel] | None = None
+        self._pyramid = pyramid  # the tracked frame's own pyramid when it becomes the reference
         self._keypoints: KeypointSet | None = None
 
-    def pyramid(self, K: np.ndarray, levels: int) -> list[PyramidLevel]:
+    def pyramid(self, K: np.ndarray, levels: int, backend: Backend = "auto") -> list[PyramidLevel]:
         if self._pyramid is None:
-            self._pyramid = build_pyramid(self.grey, self.depth, K, levels)
+            self._pyramid = build_pyramid(self.grey, self.depth, K, levels, backend=backend)
         return self._pyramid
 
     def keypoints(self, K: np.ndarray, levels: int) -> KeypointSet:
@@ -135,8 +143,9 @@ class RgbdOdometry:
     def __init__(self, config: RgbdOdometryConfig | None = None) -> None:
         self.config = config or RgbdOdometryConfig()
         c = self.config
-        self.settings = AlignmentSettings(iterations=tuple(reversed(c.iterations)), max_points=c.max_points,
+        self.settings = AlignmentSettings(iterations=tuple(c.iterations), max_points=c.max_points,
                                           photometric_weight=c.photometric_weight)
+        kernels(self.settings.backend)  # builds (or loads) the compiled kernels now, not on the first tracked frame
         self.references: deque[_Reference] = deque(maxlen=c.reference_ring)
         self.places: deque[_Place] = deque(maxlen=max(1, c.reuse_keyframes))  # engine keyframes to come back to
         self.last_pose: np.ndarray | None = None
@@ -174,7 +183,8 @@ class RgbdOdometry:
                motion_guess: np.ndarray | None = None) -> TrackingResult:
         if self.reference is None:
             return self._first(index, grey, depth)
-        current = _Current(build_pyramid(grey, depth, K, self.config.pyramid_levels), grey)
+        current = _Current(build_pyramid(grey, depth, K, self.config.pyramid_levels, backend=self.settings.backend),
+                           grey)
         if self.lost:
             return self._relocalize(index, grey, depth, current, K)
         guess = (motion_model_pose(self.previous_pose, self.last_pose) if motion_guess is None
@@ -273,7 +283,7 @@ class RgbdOdometry:
         far from the motion model's guess is refused (a jump); relocalization may land anywhere near `ref`."""
         c = self.config
         T_init = np.linalg.inv(guess) @ ref.pose  # T_cur_ref
-        reference = ref.pyramid(K, c.pyramid_levels)
+        reference = ref.pyramid(K, c.pyramid_levels, self.settings.backend)
         result = align(reference, current.pyramid, T_init, self.settings)
         if relocalizing or self._doubtful(result):
             seed = pnp_seed(ref.keypoints(K, c.pyramid_levels), current.keypoints(), K)
@@ -320,7 +330,8 @@ class RgbdOdometry:
             if current is not None and self._come_back(index, pose, current, K):
                 return
             if np.count_nonzero(depth) > 0.2 * depth.size:
-                self.references.append(_Reference(index, pose, grey, depth))
+                pyramid = current.pyramid if current is not None else None
+                self.references.append(_Reference(index, pose, grey, depth, pyramid=pyramid))
 
     def _come_back(self, index: int, pose: np.ndarray, current: _Current, K: np.ndarray) -> bool:
         """Switch the reference to the nearest place the camera has come back to, when the frame overlaps it well;
@@ -330,7 +341,7 @@ class RgbdOdometry:
         if place is None:
             return False
         candidate = place.reference(place.pose)
-        reference = candidate.pyramid(K, c.pyramid_levels)
+        reference = candidate.pyramid(K, c.pyramid_levels, self.settings.backend)
         T_init = np.linalg.inv(pose) @ place.pose
         result = align(reference, current.pyramid, T_init, self.settings)
         if not result.ok or result.overlap < c.reuse_overlap:

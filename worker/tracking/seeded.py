@@ -116,7 +116,8 @@ class SeededTracking:
         self.last_device, self.last_index, self.last_tracked = device, frame.index, from_odometry
         depth = None if result.depth is None or not from_odometry else result.depth * np.float32(self.scale)
         return TrackingResult(pose.copy(), tracked=result.tracked, depth=depth, events=events,
-                              keyframe_hint=result.keyframe_hint if from_odometry else False)
+                              keyframe_hint=result.keyframe_hint if from_odometry else False,
+                              quality=result.quality if from_odometry else None)
 
     def _waiting_for_world(self, initialized: list[dict[str, Any]]) -> bool:
         """A monocular odometry still initialising (its poses are placeholders)."""

@@ -19,6 +19,7 @@ was initialised from and the scale makes that map's median depth 1.
 from __future__ import annotations
 
 from collections import deque
+from dataclasses import dataclass, field
 from typing import Any
 
 import cv2
@@ -27,6 +28,7 @@ import numpy as np
 from worker.data.frame import Frame
 from worker.geometry import Intrinsics
 
+from . import schur_native
 from .base import TrackingResult
 from .bundle_adjustment import bundle_adjust, reprojection_chi2
 from .features import Features, OrbExtractor
@@ -38,10 +40,61 @@ from .relocalization import Place, PlaceRecognizer
 from .self_calibration import FocalEstimator
 from .track_triangulation import triangulate_tracks
 from .tracks import Tracks, lookup_sorted
-from .two_view import TwoViewMap, two_view_from_matches
+from .two_view import TwoViewAttempt, TwoViewMap, two_view_from_matches
 from .vo_config import VisualOdometryConfig
+from .xfeat import XFeatExtractor, mutual_matches
 
-STATE_VERSION = 2
+STATE_VERSION = 3
+MIN_SHARED_FOR_SCALE = 10  # old map points a restarted map must share to take its scale from them
+
+
+@dataclass
+class Anchor:
+    """The last tracked frame of a lost map: index, pose, track ids [N] (ascending), pixels [N, 2] and the world
+    points [N, 3] its tracks measured (NaN: none)."""
+
+    index: int
+    pose: np.ndarray
+    ids: np.ndarray
+    uv: np.ndarray
+    points: np.ndarray
+    velocity: np.ndarray  # the camera motion per frame when tracking broke
+    predicted: np.ndarray  # where the motion model puts the latest frame the tracks were followed into
+    gray: np.ndarray  # its image (learned relocalisation describes its map points there)
+    descriptors: np.ndarray = field(default_factory=lambda: np.zeros((0, 64), np.float32))  # XFeat, lazily ...
+    world: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # ... of keypoints on these map points
+
+    def scale_of(self, points: np.ndarray, rows: np.ndarray) -> tuple[float, int]:
+        """Scale from a new map (`points` [n, 3] in the anchor camera's frame, on the anchor's tracks `rows` [n])
+        to the old one, and how many shared points gave it (0: the old points' median depth did)."""
+        old = self.points[rows]
+        has = np.isfinite(old).all(axis=1) & (points[:, 2] > 0)
+        if has.sum() >= MIN_SHARED_FOR_SCALE:
+            depth = to_camera(old[has], self.pose)[:, 2]
+            ratio = depth / points[has, 2]
+            ratio = ratio[ratio > 0]
+            if len(ratio) >= MIN_SHARED_FOR_SCALE:
+                return float(np.median(ratio)), len(ratio)
+        seen = self.points[np.isfinite(self.points).all(axis=1)]
+        depth = to_camera(seen, self.pose)[:, 2]
+        depth = depth[depth > 0]
+        old_median = float(np.median(depth)) if len(depth) else 1.0
+        return old_median / max(float(np.median(points[:, 2])), 1e-9), 0
+
+    def to_state(self) -> dict[str, Any]:
+        return {"index": self.index, "pose": self.pose, "ids": self.ids, "uv": self.uv, "points": self.points,
+                "velocity": self.velocity, "predicted": self.predicted, "gray": self.gray,
+                "descriptors": self.descriptors, "world": self.world}
+
+    @classmethod
+    def from_state(cls, s: dict[str, Any]) -> Anchor:
+        return cls(int(s["index"]), np.asarray(s["pose"], np.float64).reshape(4, 4),
+                   np.asarray(s["ids"], np.int64).reshape(-1), np.asarray(s["uv"], np.float32).reshape(-1, 2),
+                   np.asarray(s["points"], np.float64).reshape(-1, 3),
+                   np.asarray(s["velocity"], np.float64).reshape(4, 4),
+                   np.asarray(s["predicted"], np.float64).reshape(4, 4), np.asarray(s["gray"], np.uint8),
+                   np.asarray(s["descriptors"], np.float32).reshape(-1, 64),
+                   np.asarray(s["world"], np.float64).reshape(-1, 3))
 
 
 class VisualOdometry:
@@ -53,6 +106,8 @@ class VisualOdometry:
         self.config = config or VisualOdometryConfig()
         self.extractor = OrbExtractor(self.config)
         self.recognizer = PlaceRecognizer(self.config)
+        self._xfeat_extractor: XFeatExtractor | None = None
+        schur_native.available()  # builds (or loads) the compiled kernel now, not at the first keyframe
         self._reset()
 
     def _reset(self) -> None:
@@ -64,11 +119,16 @@ class VisualOdometry:
         self.previous_gray: np.ndarray | None = None  # the last frame tracked (flow starts from it)
         self.keyframe_gray: np.ndarray | None = None  # the last keyframe's image (tracks are refined against it)
         self.pending: list[tuple[int, np.ndarray, np.ndarray]] = []  # (index, track ids, uv) of waiting frames
+        self.pending_orientation: dict[int, np.ndarray] = {}  # frame index -> orientation held while waiting
+        self.init_state = ""  # what initialisation waits for ("rotation_only", "waiting_for_parallax", ...)
         self.pose = np.eye(4)
         self.velocity = np.eye(4)  # camera motion of the last frame (previous^-1 @ current)
         self.frames_since_keyframe = 0
         self.tracked_at_keyframe = 0
         self.lost_since: int | None = None
+        self.last_tracked = -1  # index of the last tracked frame
+        self.mapped_at_loss = 0  # tracks of map points when tracking was lost
+        self.anchor: Anchor | None = None  # the last tracked frame's tracks, while lost: a map restarts from them
         self.image_size: tuple[int, int] | None = None
         self.estimated_intrinsics: Intrinsics | None = None
         self.focal = FocalEstimator(self.config)
@@ -92,6 +152,8 @@ class VisualOdometry:
         if not np.all(np.isfinite(result.pose)):  # never hand out a NaN pose, whatever happened above
             result = self._lose(frame.index, "non-finite pose estimate")
         self.pose = result.pose
+        if result.tracked:
+            self.last_tracked = frame.index
         return result
 
     def keyframe_added(self, frame: Frame, pose: np.ndarray) -> None:
@@ -134,9 +196,9 @@ class VisualOdometry:
     def _initialise(self, index: int, gray: np.ndarray, camera: Intrinsics, uncalibrated: bool) -> TrackingResult:
         """Follow corners until a waiting frame (the reference) and this one make a two-view map; new corners join
         at every frame, and the reference is the oldest waiting frame that still shares enough tracks (the waiting
-        frames before it are posed too when the map is made)."""
+        frames before it are posed too when the map is made). While waiting, a frame holds the position and takes
+        the orientation the homography measures (a rotation without parallax is followed, not triangulated)."""
         c = self.config
-        waiting = TrackingResult(np.eye(4), tracked=True, keyframe_hint=False)
         if self.pending:
             uv, ok = self._flow(gray, None)
             self.tracks = Tracks(self.tracks.ids[ok], uv[ok], self.tracks.rows[ok])
@@ -146,9 +208,10 @@ class VisualOdometry:
         if not usable:  # the view has moved on: wait from this frame
             self._replenish(gray)
             self.pending = [(index, self.tracks.ids.copy(), self.tracks.uv.copy())]
-            return waiting
+            self.pending_orientation = {index: self.pose[:3, :3].copy()}
+            return self._waiting(index, self.pose[:3, :3], "waiting_for_matches", "too few shared tracks")
         reference = usable[0]
-        _, ref_ids, ref_uv = self.pending[reference]
+        ref_index, ref_ids, ref_uv = self.pending[reference]
         at, found = lookup_sorted(ref_ids, self.tracks.ids)
         common = np.flatnonzero(found)
         if uncalibrated and not self.focal.frozen:
@@ -158,24 +221,73 @@ class VisualOdometry:
         ones = np.ones(len(common))
         attempt = two_view_from_matches(ref_uv[at[common]], self.tracks.uv[common], K, c, ones, ones,
                                         common, common)
+        reference_orientation = self.pending_orientation.get(ref_index, np.eye(3))
         if attempt.map is None:
+            orientation = self.pose[:3, :3]
+            if attempt.model == "homography" and attempt.rotation is not None:
+                orientation = reference_orientation @ attempt.rotation
             self._replenish(gray)
             self.pending = (self.pending + [(index, self.tracks.ids.copy(), self.tracks.uv.copy())]
                             )[-c.init_max_frames:]
-            return waiting
+            self.pending_orientation[index] = orientation.copy()
+            kept = {i for i, _, _ in self.pending}
+            self.pending_orientation = {i: r for i, r in self.pending_orientation.items() if i in kept}
+            state = "rotation_only" if attempt.rotation_only else "waiting_for_parallax"
+            return self._waiting(index, orientation, state, attempt.reason, attempt.model, attempt.score_ratio)
         self.focal.freeze()
         self.pending.append((index, self.tracks.ids.copy(), self.tracks.uv.copy()))
-        return self._start_map(index, gray, attempt.map, reference, camera, uncalibrated)
+        return self._start_map(index, gray, attempt, reference, camera, uncalibrated, reference_orientation)
 
-    def _start_map(self, index: int, gray: np.ndarray, two: TwoViewMap, reference: int, camera: Intrinsics,
-                   uncalibrated: bool) -> TrackingResult:
+    def _waiting(self, index: int, orientation: np.ndarray, state: str, reason: str, model: str = "",
+                 score_ratio: float = 0.0) -> TrackingResult:
+        """A frame while the map waits to be made: the held position, the measured orientation, quality 0 (a
+        placeholder the `initialized` event revises); an `initializing` event when the waiting state changes."""
+        pose = np.eye(4)
+        pose[:3, :3], pose[:3, 3] = orientation, self.pose[:3, 3]
+        events = []
+        if state != self.init_state:
+            self.init_state = state
+            events.append({"type": "initializing", "frame": index, "state": state, "reason": reason,
+                           "model": model, "score_ratio": round(float(score_ratio), 3)})
+        return TrackingResult(rigid(pose), tracked=True, keyframe_hint=False, events=events, quality=0.0)
+
+    def _start_map(self, index: int, gray: np.ndarray, attempt: TwoViewAttempt, reference: int, camera: Intrinsics,
+                   uncalibrated: bool, reference_orientation: np.ndarray) -> TrackingResult:
         """The map of a successful two-view attempt (two.ia, two.ib: rows of the current tracks) between the
         waiting frame `reference` and this one: two keyframes, adjusted and scaled; the other waiting frames are
-        posed against it."""
+        posed against it. The world keeps the orientation the reference was given while waiting."""
+        two = attempt.map
         K = camera_matrix(camera)
         ref_index, ref_ids, ref_uv = self.pending[reference]
+        kf_b = self._two_keyframe_map(index, gray, two, ref_index, ref_ids, ref_uv)
+        self._adjust(K, fixed_count=1)
+        self._normalise_scale()
+        world = np.eye(4)
+        world[:3, :3] = reference_orientation
+        self._move_map(world, 1.0)
+        pose = kf_b.pose
+        between, previous = [], world
+        for n, (i, ids, uv) in enumerate(self.pending[:-1]):
+            fraction = (n - reference) / (len(self.pending) - 1 - reference)
+            previous = world if n == reference else self._pose_between(ids, uv, fraction, world, pose, K)
+            between.append([i, previous.tolist()])
+        self.pending, self.pending_orientation, self.init_state = [], {}, ""
+        self.velocity = invert_pose(previous) @ pose
+        self.status = "tracking"
+        event = {"type": "initialized", "frame": index, "frames": between, "points": len(self.map),
+                 "parallax_deg": round(two.parallax_deg, 3), "model": attempt.model,
+                 "score_ratio": round(attempt.score_ratio, 3)}
+        if uncalibrated:
+            event["intrinsics"] = camera.to_dict()
+        return TrackingResult(pose, tracked=True, keyframe_hint=True, depth=self._sparse_depth(kf_b, camera),
+                              events=[event], quality=1.0)
+
+    def _two_keyframe_map(self, index: int, gray: np.ndarray, two: TwoViewMap, ref_index: int, ref_ids: np.ndarray,
+                          ref_uv: np.ndarray) -> Keyframe:
+        """A new local map of the two-view points, the reference keyframe (at the origin) and this frame's."""
         m = self.map = LocalMap()
         rows = m.add_points(two.points, np.zeros((len(two.points), 32), np.uint8))
+        self.tracks.rows[:] = -1
         self.tracks.rows[two.ib] = rows
         # The reference keyframe keeps the tracks it shares with this frame; its image is gone, so it has no
         # descriptors (it is no place to relocalise from).
@@ -185,31 +297,28 @@ class VisualOdometry:
         kf_a = Keyframe(ref_index, np.eye(4), ref_features, self.tracks.rows[found].copy(),
                         self.tracks.ids[found].copy())
         m.keyframes = [kf_a]
-        kf_b = self._new_keyframe(index, two.pose_b, gray)
-        self._adjust(K, fixed_count=1)
-        self._normalise_scale()
-        pose = kf_b.pose
-        between, previous = [], np.eye(4)
-        for n, (i, ids, uv) in enumerate(self.pending[:-1]):
-            fraction = (n - reference) / (len(self.pending) - 1 - reference)
-            previous = np.eye(4) if n == reference else self._pose_between(ids, uv, fraction, pose, K)
-            between.append([i, previous.tolist()])
-        self.pending = []
-        self.velocity = invert_pose(previous) @ pose
-        self.status = "tracking"
-        event = {"type": "initialized", "frame": index, "frames": between, "points": len(m),
-                 "parallax_deg": round(two.parallax_deg, 3)}
-        if uncalibrated:
-            event["intrinsics"] = camera.to_dict()
-        return TrackingResult(pose, tracked=True, keyframe_hint=True, depth=self._sparse_depth(kf_b, camera),
-                              events=[event])
+        return self._new_keyframe(index, two.pose_b, gray)
 
-    def _pose_between(self, ids: np.ndarray, uv: np.ndarray, fraction: float, pose_b: np.ndarray, K: np.ndarray
-                      ) -> np.ndarray:
+    def _move_map(self, transform: np.ndarray, scale: float) -> None:
+        """Move the local map by the similarity x -> R (scale x) + t of `transform` (rigid 4x4): the poses stay
+        rigid, their positions scale."""
+        R, t = transform[:3, :3], transform[:3, 3]
+        m = self.map
+        m.positions = scale * m.positions @ R.T + t
+        for kf in m.keyframes:
+            pose = kf.pose.copy()
+            pose[:3, :3] = R @ kf.pose[:3, :3]
+            pose[:3, 3] = scale * R @ kf.pose[:3, 3] + t
+            kf.pose = rigid(pose)
+
+    def _pose_between(self, ids: np.ndarray, uv: np.ndarray, fraction: float, pose_a: np.ndarray, pose_b: np.ndarray,
+                      K: np.ndarray) -> np.ndarray:
         """Pose of a frame between the two initial views from its tracks of map points (guess: interpolated)."""
-        rotvec = cv2.Rodrigues(pose_b[:3, :3])[0].ravel() * fraction
-        guess = np.eye(4)
-        guess[:3, :3], guess[:3, 3] = cv2.Rodrigues(rotvec)[0], pose_b[:3, 3] * fraction
+        relative = invert_pose(pose_a) @ pose_b
+        rotvec = cv2.Rodrigues(relative[:3, :3])[0].ravel() * fraction
+        step = np.eye(4)
+        step[:3, :3], step[:3, 3] = cv2.Rodrigues(rotvec)[0], relative[:3, 3] * fraction
+        guess = pose_a @ step
         order = np.argsort(self.tracks.ids)
         at, found = lookup_sorted(self.tracks.ids[order], ids)
         rows = np.where(found, self.tracks.rows[order][at], -1)
@@ -229,20 +338,24 @@ class VisualOdometry:
         mapped_before = int(self.tracks.mapped.sum())
         found = self._follow(gray, predicted, K)
         if found is None:
-            return self._lose(index, "too few map points tracked (sudden motion, occlusion or a new view)")
+            return self._lose_or_restart(index, gray, camera,
+                                         "too few map points tracked (sudden motion, occlusion or a new view)")
         pose, tracks, inliers = found
         if inliers < max(c.min_tracked, c.min_survival * mapped_before):
-            return self._lose(index, f"{inliers} of {mapped_before} tracked points found again (a sudden change)")
+            return self._lose_or_restart(index, gray, camera,
+                                         f"{inliers} of {mapped_before} tracked points found again (a sudden change)")
         self.tracks, self.previous_gray = tracks, gray
         self.velocity = rigid(invert_pose(self.pose) @ pose)
         self.frames_since_keyframe += 1
+        quality = min(1.0, inliers / max(self.tracked_at_keyframe, 1))
         if not self._needs_keyframe(pose, inliers):
-            return TrackingResult(pose, tracked=True, keyframe_hint=False)
+            return TrackingResult(pose, tracked=True, keyframe_hint=False, quality=quality)
         kf = self._insert_keyframe(index, pose, gray, K)
         self.velocity = rigid(self.velocity @ invert_pose(pose) @ kf.pose)
         if self._covered(index, kf.pose, K, camera):
-            return TrackingResult(kf.pose, tracked=True, keyframe_hint=False)
-        return TrackingResult(kf.pose, tracked=True, keyframe_hint=True, depth=self._sparse_depth(kf, camera))
+            return TrackingResult(kf.pose, tracked=True, keyframe_hint=False, quality=quality)
+        return TrackingResult(kf.pose, tracked=True, keyframe_hint=True, depth=self._sparse_depth(kf, camera),
+                              quality=quality)
 
     def _covered(self, index: int, pose: np.ndarray, K: np.ndarray, camera: Intrinsics) -> bool:
         """Whether an engine keyframe at least `reuse_min_age` frames old lies near `pose` and sees at least
@@ -436,7 +549,9 @@ class VisualOdometry:
         orb = kf.orb
         if len(has) == 0 or len(orb) == 0:
             return Place(kf.index, kf.pose.copy(), orb.keypoints[:0], orb.descriptors[:0], np.zeros((0, 3)))
-        d2 = ((orb.keypoints[:, None, :] - kf.features.keypoints[None, has, :]) ** 2).sum(-1)
+        dx = orb.keypoints[:, None, 0] - kf.features.keypoints[None, has, 0]
+        dy = orb.keypoints[:, None, 1] - kf.features.keypoints[None, has, 1]
+        d2 = dx * dx + dy * dy  # written out: no [N, M, 2] temporary
         nearest = d2.argmin(axis=1)
         radius = self.config.place_radius_px * self.extractor.level_sigmas(orb.octaves)
         near = np.flatnonzero(d2[np.arange(len(orb)), nearest] <= radius ** 2)
@@ -461,11 +576,34 @@ class VisualOdometry:
         return depth
 
     # ---- losing and finding the way back ---------------------------------------------------------------------
+    def _lose_or_restart(self, index: int, gray: np.ndarray, camera: Intrinsics, reason: str) -> TrackingResult:
+        """Lose tracking; when a map restarts from the last tracked frame at once, this frame is tracked on it
+        (both events are reported: the old map's tracks broke here)."""
+        lost = self._lose(index, reason)
+        restarted = self._reinitialise(index, gray, camera) or self._relocalise_learned(index, gray, camera)
+        if restarted is None:
+            return lost
+        restarted.events = lost.events + restarted.events
+        return restarted
+
     def _lose(self, index: int, reason: str) -> TrackingResult:
+        """Tracking is lost: the held pose, and the last tracked frame kept as the anchor a map may restart from
+        (when the loss breaks tracking, not a restart or an initialisation)."""
+        was_tracking = self.status == "tracking"
+        if was_tracking:
+            self.mapped_at_loss = int(self.tracks.mapped.sum())
         self.status = "lost"
         self.lost_since = index
+        self.anchor = None
+        if self.config.reinit_after_loss and self.previous_gray is not None and was_tracking:
+            self._replenish(self.previous_gray)  # the anchor's corners, not only its surviving tracks
+            t = self.tracks
+            points = np.full((len(t), 3), np.nan)
+            points[t.mapped] = self.map.positions[t.rows[t.mapped]]
+            self.anchor = Anchor(self.last_tracked, self.pose.copy(), t.ids.copy(), t.uv.copy(), points,
+                                 self.velocity.copy(), self.pose.copy(), self.previous_gray)
         self.velocity = np.eye(4)
-        return TrackingResult(self.pose.copy(), tracked=False, keyframe_hint=False,
+        return TrackingResult(self.pose.copy(), tracked=False, keyframe_hint=False, quality=0.0,
                               events=[{"type": "tracking_lost", "reason": reason, "frame": index}])
 
     def _relocalise(self, index: int, gray: np.ndarray, camera: Intrinsics) -> TrackingResult:
@@ -475,36 +613,155 @@ class VisualOdometry:
         c = self.config
         K = camera_matrix(camera)
         found = self._follow(gray, self.pose, K)
-        if found is not None and found[2] >= c.recover_share * self.tracks.mapped.sum():
+        # Measured against the tracks at the loss: those followed through the lost frames are fewer.
+        if found is not None and found[2] >= c.recover_share * max(self.mapped_at_loss, self.tracks.mapped.sum()):
             pose, self.tracks, inliers = found
             self.previous_gray = gray
             event = {"type": "relocalized", "frame": index, "place": self.map.keyframes[-1].index,
                      "inliers": inliers, "lost_frames": index - (self.lost_since if self.lost_since is not None
                                                                   else index)}
-            self.status, self.lost_since, self.velocity = "tracking", None, np.eye(4)
-            return TrackingResult(pose, tracked=True, keyframe_hint=False, events=[event])
-        still_lost = TrackingResult(self.pose.copy(), tracked=False, keyframe_hint=False)
+            self.status, self.lost_since, self.velocity, self.anchor = "tracking", None, np.eye(4), None
+            return TrackingResult(pose, tracked=True, keyframe_hint=False, events=[event],
+                                  quality=min(1.0, inliers / max(self.tracked_at_keyframe, 1)))
         features = self.extractor.extract(gray)
-        if len(features) < c.min_features:
-            return still_lost
-        places = self.retired + [self._place(kf) for kf in self.map.keyframes]
-        hit = self.recognizer.relocalise(features, places, K, self.extractor.level_sigmas(features.octaves))
-        if hit is None:
-            return still_lost
+        hit = None
+        if len(features) >= c.min_features:
+            places = self.retired + [self._place(kf) for kf in self.map.keyframes]
+            hit = self.recognizer.relocalise(features, places, K, self.extractor.level_sigmas(features.octaves))
+        if hit is not None:
+            return self._restart_from(index, gray, camera, hit.pose, features.keypoints[hit.keypoints], hit.points,
+                                      hit.place, "place recognition")
+        restarted = self._reinitialise(index, gray, camera) or self._relocalise_learned(index, gray, camera)
+        return restarted or TrackingResult(self.pose.copy(), tracked=False, keyframe_hint=False, quality=0.0)
+
+    def _restart_from(self, index: int, gray: np.ndarray, camera: Intrinsics, pose: np.ndarray, uv: np.ndarray,
+                      points: np.ndarray, place: int, method: str) -> TrackingResult:
+        """A new local map from the old map's points (world [n, 3]) seen at pixels uv [n, 2] of this frame, posed
+        at `pose` (their positions, hence the scale, carry over); the old keyframes become places."""
+        self.anchor = None
         self._retire(self.map.keyframes)
         m = self.map = LocalMap()
-        rows = m.add_points(hit.points, np.zeros((len(hit.points), 32), np.uint8))
+        rows = m.add_points(points, np.zeros((len(points), 32), np.uint8))
         ids = np.arange(self.next_id, self.next_id + len(rows), dtype=np.int64)
         self.next_id += len(rows)
-        self.tracks = Tracks(ids, features.keypoints[hit.keypoints].astype(np.float32), rows)
-        kf = self._new_keyframe(index, hit.pose, gray)
+        self.tracks = Tracks(ids, np.asarray(uv, np.float32).reshape(-1, 2), rows)
+        kf = self._new_keyframe(index, pose, gray)
         self.tracked_at_keyframe = len(rows)
         self.previous_gray = gray
-        event = {"type": "relocalized", "frame": index, "place": hit.place, "inliers": len(rows),
+        event = {"type": "relocalized", "frame": index, "place": place, "inliers": len(rows), "method": method,
                  "lost_frames": index - (self.lost_since if self.lost_since is not None else index)}
         self.status, self.lost_since, self.velocity = "tracking", None, np.eye(4)
-        return TrackingResult(hit.pose, tracked=True, keyframe_hint=True, depth=self._sparse_depth(kf, camera),
-                              events=[event])
+        return TrackingResult(pose, tracked=True, keyframe_hint=True, depth=self._sparse_depth(kf, camera),
+                              events=[event], quality=1.0)
+
+    def _relocalise_learned(self, index: int, gray: np.ndarray, camera: Intrinsics) -> TrackingResult | None:
+        """XFeat descriptors of the anchor's map points (sampled at their tracked pixels) matched to XFeat
+        keypoints of this frame, verified by PnP + RANSAC and the robust refinement: the old map, hence its
+        scale, carries on past a turn too fast for optical flow and ORB (None: not found)."""
+        c = self.config
+        anchor = self.anchor
+        if not c.learned_relocalisation or anchor is None or anchor.gray.size == 0:
+            return None
+        if index - anchor.index > c.learned_reloc_frames:
+            self.anchor = None
+            return None
+        if (index - anchor.index - 1) % c.learned_reloc_every:  # the network costs more than a tracked frame
+            return None
+        xfeat = self._xfeat()
+        if anchor.descriptors.size == 0:
+            anchor.descriptors, anchor.world = self._learned_place(anchor, xfeat)
+        if len(anchor.world) < c.reloc_min_inliers:
+            return None
+        current = xfeat.extract(gray)
+        ia, ib = mutual_matches(anchor.descriptors, current.descriptors, c.learned_min_similarity)
+        if len(ia) < c.reloc_min_inliers:
+            return None
+        K = camera_matrix(camera)
+        X, uv = anchor.world[ia], current.keypoints[ib].astype(np.float64)
+        ok, rvec, tvec, inliers = cv2.solvePnPRansac(X, uv, K, None, iterationsCount=200, reprojectionError=4.0,
+                                                     confidence=0.999, flags=cv2.SOLVEPNP_EPNP)
+        if not ok or inliers is None or len(inliers) < c.reloc_min_inliers:
+            return None
+        w2c = np.eye(4)
+        w2c[:3, :3], w2c[:3, 3] = cv2.Rodrigues(rvec)[0], tvec.ravel()
+        pose, inlier = optimize_pose(invert_pose(w2c), X, uv, np.full(len(X), 2.0), K, c.chi2_px)
+        if inlier.sum() < c.reloc_min_inliers or not np.all(np.isfinite(pose)):
+            return None
+        return self._restart_from(index, gray, camera, pose, uv[inlier], X[inlier], anchor.index, "learned")
+
+    def _learned_place(self, anchor: Anchor, xfeat: XFeatExtractor) -> tuple[np.ndarray, np.ndarray]:
+        """XFeat descriptors [n, 64] of the anchor image's keypoints that lie on one of its tracked map points
+        (within `place_radius_px`), and those points [n, 3]."""
+        found = xfeat.extract(anchor.gray)
+        has = np.isfinite(anchor.points).all(axis=1)
+        if len(found) == 0 or not has.any():
+            return np.zeros((0, 64), np.float32), np.zeros((0, 3))
+        d2 = ((found.keypoints[:, None, :] - anchor.uv[None, has, :]) ** 2).sum(-1)
+        nearest = d2.argmin(axis=1)
+        near = np.flatnonzero(d2[np.arange(len(found)), nearest] <= (2.0 * self.config.place_radius_px) ** 2)
+        return found.descriptors[near], anchor.points[has][nearest[near]]
+
+    def _xfeat(self) -> XFeatExtractor:
+        if self._xfeat_extractor is None:  # loaded on the first loss that needs it
+            self._xfeat_extractor = XFeatExtractor(top_k=self.config.learned_keypoints)
+        return self._xfeat_extractor
+
+    def _reinitialise(self, index: int, gray: np.ndarray, camera: Intrinsics) -> TrackingResult | None:
+        """A new map from a two-view reconstruction between the last tracked frame (the anchor, whose pose is
+        known) and this one, placed at the anchor and scaled by the old map points the two share (else by the
+        old map's depth at the anchor); None while that fails. The anchor's tracks are followed meanwhile."""
+        c = self.config
+        anchor = self.anchor
+        if anchor is None:
+            return None
+        K = camera_matrix(camera)
+        t = self.tracks
+        predicted = rigid(anchor.predicted @ anchor.velocity)  # the motion model guides the flow while lost
+        rows = np.where(t.rows < len(self.map), t.rows, -1)
+        mapped = rows >= 0
+        guess = predicted_pixels(t.uv, self.map.positions[rows[mapped]], mapped, anchor.predicted, predicted, K)
+        uv, ok = self._flow(gray, guess)
+        if ok.sum() < 0.5 * len(t):
+            uv_plain, ok_plain = self._flow(gray, None)
+            if ok_plain.sum() > ok.sum():
+                uv, ok = uv_plain, ok_plain
+        followed = Tracks(t.ids[ok], uv[ok], t.rows[ok])
+        at, found = lookup_sorted(anchor.ids, followed.ids)
+        common = np.flatnonzero(found)
+        if len(common) < c.reinit_min_matches:  # the flow lost the anchor's view: its tracks stay those of the
+            return None  # last frame they were followed into (learned matching may still find it)
+        anchor.predicted = predicted
+        self.tracks, self.previous_gray = followed, gray
+        ones = np.ones(len(common))
+        settings = c.model_copy(update={"init_min_parallax_deg": c.reinit_min_parallax_deg,
+                                        "init_min_matches": c.reinit_min_matches,
+                                        "init_min_points": min(c.init_min_points, c.reinit_min_matches)})
+        attempt = two_view_from_matches(anchor.uv[at[common]], self.tracks.uv[common], K, settings, ones, ones,
+                                        common, common)
+        if attempt.map is None:
+            return None
+        two = attempt.map
+        if attempt.model == "homography" and two.parallax_deg < c.init_min_parallax_deg:
+            return None  # a turn in place fits a homography too, and noise then passes for a small baseline
+        scale, shared = anchor.scale_of(two.points, at[two.ib])
+        self._retire(self.map.keyframes)
+        kf = self._two_keyframe_map(index, gray, two, anchor.index, anchor.ids, anchor.uv)
+        self._adjust(K, fixed_count=1)
+        self._move_map(anchor.pose, scale)
+        self.anchor = None
+        self.tracked_at_keyframe = int(self.tracks.mapped.sum())
+        steps = max(index - anchor.index, 1)
+        relative = invert_pose(anchor.pose) @ kf.pose
+        self.velocity = np.eye(4)
+        self.velocity[:3, :3] = cv2.Rodrigues(cv2.Rodrigues(relative[:3, :3])[0] / steps)[0]
+        self.velocity[:3, 3] = relative[:3, 3] / steps
+        event = {"type": "relocalized", "frame": index, "method": "reinitialized", "place": anchor.index,
+                 "inliers": len(two.points), "model": attempt.model, "scale_from": "shared points" if shared
+                 else "scene depth", "shared_points": shared,
+                 "lost_frames": index - (self.lost_since if self.lost_since is not None else index)}
+        self.status, self.lost_since = "tracking", None
+        return TrackingResult(kf.pose, tracked=True, keyframe_hint=True, depth=self._sparse_depth(kf, camera),
+                              events=[event], quality=1.0)
 
     # ---- snapshots -------------------------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
@@ -520,7 +777,10 @@ class VisualOdometry:
             "image_size": [] if self.image_size is None else list(self.image_size),
             "focal": self.focal.state_dict(),
             "estimated_intrinsics": {} if self.estimated_intrinsics is None else self.estimated_intrinsics.to_dict(),
-            "pending": [{"index": i, "ids": ids, "uv": uv} for i, ids, uv in self.pending],
+            "pending": [{"index": i, "ids": ids, "uv": uv, "orientation": self.pending_orientation.get(i, np.eye(3))}
+                        for i, ids, uv in self.pending],
+            "init_state": self.init_state, "last_tracked": self.last_tracked, "mapped_at_loss": self.mapped_at_loss,
+            "anchor": {} if self.anchor is None else self.anchor.to_state(),
             "previous_gray": image(self.previous_gray), "keyframe_gray": image(self.keyframe_gray),
             "tracks": self.tracks.to_state(), "next_id": self.next_id,
             "map": self.map.to_state(), "retired": [p.to_state() for p in self.retired],
@@ -544,6 +804,12 @@ class VisualOdometry:
             self.estimated_intrinsics = Intrinsics.from_dict(state["estimated_intrinsics"])
         self.pending = [(int(p["index"]), np.asarray(p["ids"], np.int64).reshape(-1),
                          np.asarray(p["uv"], np.float32).reshape(-1, 2)) for p in state["pending"]]
+        self.pending_orientation = {int(p["index"]): np.asarray(p["orientation"], np.float64).reshape(3, 3)
+                                    for p in state["pending"]}
+        self.init_state = str(state["init_state"])
+        self.last_tracked = int(state["last_tracked"])
+        self.mapped_at_loss = int(state["mapped_at_loss"])
+        self.anchor = Anchor.from_state(state["anchor"]) if state["anchor"] else None
         for name in ("previous_gray", "keyframe_gray"):
             gray = np.asarray(state[name], np.uint8)
             setattr(self, name, np.ascontiguousarray(gray) if gray.size else None)

@@ -76,6 +76,19 @@ class VisualOdometryConfig(BaseModel):
     place_radius_px: float = Field(1.5, gt=0.0, description="an ORB keypoint of a keyframe stands for the map point "
                                                              "observed this close to it, pixels")
     reloc_min_inliers: int = Field(30, ge=10, description="PnP inliers needed to relocalise")
+    reinit_after_loss: bool = Field(True, description="while lost, also restart the map from a two-view "
+                                                      "reconstruction anchored at the last tracked frame")
+    reinit_min_parallax_deg: float = Field(1.0, gt=0.0, description="median triangulation angle a restarted map "
+                                                                     "needs, degrees (ORB-SLAM's; its pose and "
+                                                                     "scale come from the anchor)")
+    reinit_min_matches: int = Field(50, ge=20, description="tracks shared with the anchor needed to restart")
+    learned_relocalisation: bool = Field(True, description="while lost, match XFeat features of the last tracked "
+                                                           "frame's map points (optical flow and ORB failed)")
+    learned_reloc_frames: int = Field(30, ge=1, description="... for this many frames after it")
+    learned_reloc_every: int = Field(3, ge=1, description="... on every n-th lost frame (the first one included)")
+    learned_keypoints: int = Field(1024, ge=64, description="XFeat keypoints per lost frame")
+    learned_min_similarity: float = Field(0.82, gt=0.0, lt=1.0, description="cosine similarity of an XFeat match "
+                                                                             "(XFeat's default)")
 
     # unknown intrinsics
     focal_guess: float = Field(0.9, gt=0.1, lt=5.0, description="focal guess as a share of max(W, H)")

@@ -1,0 +1,87 @@
+"""Visual odometry finding its way back on real ICL frames (tests/data/icl_mini, every third frame of ICL-NUIM
+living room 1): a gap the optical flow cannot bridge restarts the map from the last tracked frame (two views, the
+old map's scale), and a wider one is found again by XFeat matching against that frame's map points."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from worker.data import open_source
+from worker.data.frame import Frame
+from worker.eval import absolute_trajectory_error
+from worker.serialization import pack, unpack
+from worker.tracking.base import TrackingResult
+from worker.tracking.visual_odometry import VisualOdometry
+from worker.tracking.vo_config import VisualOdometryConfig
+
+DATA = Path(__file__).resolve().parents[1] / "data" / "icl_mini"
+
+
+@pytest.fixture(scope="module")
+def frames() -> list[Frame]:
+    return list(open_source(DATA, use_gt_depth=False, use_gt_poses=False))
+
+
+def _run_with_gaps(frames: list[Frame], step: int, config: VisualOdometryConfig | None = None
+                   ) -> tuple[list[TrackingResult], list[Frame]]:
+    """The first 20 frames, then every `step`-th (renumbered, so the gaps look like fast motion)."""
+    sequence = frames[:20] + frames[20::step]
+    vo = VisualOdometry(config)
+    results = [vo.track(Frame(n, n / 10.0, f.image, f.intrinsics), f.intrinsics) for n, f in enumerate(sequence)]
+    return results, sequence
+
+
+def _ate_of_tracked(results: list[TrackingResult], sequence: list[Frame]) -> tuple[float, float]:
+    poses = np.stack([r.pose for r in results])
+    for event in (e for r in results for e in r.events if e["type"] == "initialized"):
+        for index, pose in event["frames"]:
+            poses[index] = np.asarray(pose)
+    tracked = [n for n, r in enumerate(results) if r.tracked]
+    gt = np.stack([sequence[n].gt_pose for n in tracked])
+    path = float(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1).sum())
+    return absolute_trajectory_error(poses[tracked], gt, "sim3").rmse, path
+
+
+def _methods(results: list[TrackingResult]) -> list[tuple[int, str]]:
+    return [(n, e.get("method", "")) for n, r in enumerate(results) for e in r.events if e["type"] == "relocalized"]
+
+
+def test_a_gap_the_flow_cannot_bridge_restarts_the_map_at_the_old_scale(frames):
+    results, sequence = _run_with_gaps(frames, 6)
+    restarts = [n for n, method in _methods(results) if method == "reinitialized"]
+    lost = [n for n, r in enumerate(results) if any(e["type"] == "tracking_lost" for e in r.events)]
+    assert lost and restarts and restarts[0] >= lost[0]
+    event = next(e for e in results[restarts[0]].events if e.get("method") == "reinitialized")
+    assert event["scale_from"] == "shared points" and event["shared_points"] >= 10
+    assert all(r.tracked for r in results)  # the restart frame itself is tracked on the new map
+    ate, path = _ate_of_tracked(results, sequence)
+    assert ate < 0.02 * path  # one Sim(3) fits both maps: same world, same scale
+
+
+def test_a_wide_gap_is_found_again_by_learned_matching(frames):
+    results, sequence = _run_with_gaps(frames, 16)
+    learned = [n for n, method in _methods(results) if method == "learned"]
+    assert learned
+    ate, path = _ate_of_tracked(results, sequence)
+    assert ate < 0.02 * path
+    without, _ = _run_with_gaps(frames, 16, VisualOdometryConfig(learned_relocalisation=False))
+    assert not without[learned[0]].tracked  # optical flow, the restart and ORB places do not find that frame
+
+
+def test_a_snapshot_taken_while_lost_continues_identically(frames):
+    config = VisualOdometryConfig(learned_relocalisation=False)
+    sequence = frames[:20] + frames[20::16]
+    head, tail = sequence[:22], sequence[22:]
+    vo = VisualOdometry(config)
+    for n, f in enumerate(head):
+        vo.track(Frame(n, n / 10.0, f.image, f.intrinsics), f.intrinsics)
+    assert vo.status == "lost" and vo.anchor is not None
+    restored = VisualOdometry()
+    restored.load_state_dict(unpack(pack(vo.state_dict())))
+    for n, f in enumerate(tail, start=len(head)):
+        frame = Frame(n, n / 10.0, f.image, f.intrinsics)
+        a, b = vo.track(frame, f.intrinsics), restored.track(frame, f.intrinsics)
+        assert a.tracked == b.tracked and np.allclose(a.pose, b.pose)
