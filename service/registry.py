@@ -135,7 +135,7 @@ class Registry:
             "frames_processed": 0, "frames_rejected": 0, "frames_skipped": 0, "keyframes": 0, "revision": 0,
             "worker": "", "preset": body.get("preset") or "", "pose_mode": body.get("pose_mode") or "",
             "skip_frames": int(bool(body.get("skip_frames"))), "tracking_side": body.get("tracking_side") or "",
-            "intrinsics": json.dumps(body.get("intrinsics")),
+            "intrinsics": json.dumps(body.get("intrinsics")), "depth_camera": json.dumps(body.get("depth_camera")),
             "metadata": json.dumps(body.get("metadata") or {}), "owner": owner, "last_seq": -1,
         }
         member = f"{datetime.now(UTC).timestamp() * 1e6:020.0f}:{session_id}"
@@ -347,6 +347,8 @@ def parse_session(record: dict[str, Any]) -> dict[str, Any]:
         "pose_mode": record.get("pose_mode") or None, "intrinsics": json.loads(record.get("intrinsics") or "null"),
         "estimated_intrinsics": json.loads(record.get("estimated_intrinsics") or record.get("intrinsics") or "null"),
         "metadata": json.loads(record.get("metadata") or "{}"), "error": record.get("error") or None,
+        "depth_camera": json.loads(record.get("depth_camera") or "null"),
+        "warnings": json.loads(record.get("warnings") or "[]"),
     }
     for name in _INT_FIELDS:
         out[name] = int(record.get(name) or 0)

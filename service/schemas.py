@@ -10,10 +10,16 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from service.presets import PresetName, preset_field_description
 
 SessionStatus = Literal["created", "streaming", "finishing", "finished", "failed", "abandoned"]
-PoseMode = Literal["prior", "fixed", "ignore"]
-POSE_MODE_DOC = ("what the engine does with the device poses frames carry: `prior` (default) refines them (loop "
-                 "closures may move them), `fixed` keeps them exactly as sent (accurate ARKit/ARCore poses: no loop "
-                 "correction), `ignore` tracks from the images (and depth) alone")
+PoseMode = Literal["prior", "fixed", "ignore", "seeded"]
+POSE_MODE_DOC = ("what the engine does with the device poses frames carry (default: `seeded` when the frames carry "
+                 "depth, else `prior`): `prior` uses them as the odometry, refined by loop closures, `fixed` keeps "
+                 "them exactly as sent (accurate ARKit/ARCore poses: no loop correction), `ignore` tracks from the "
+                 "images (and depth) alone, `seeded` tracks from the images (RGB-D or visual odometry) starting from "
+                 "the device's motion, with the device poses as priors in the pose graph; a device pose that jumps "
+                 "(relocalisation) gets a `device_pose_jump` message and is left out")
+# A depth camera sits centimetres from the colour one: a longer translation is a unit mistake (Azure Kinect's
+# calibration is in millimetres).
+MAX_DEPTH_BASELINE_M = 1.0
 
 
 class IntrinsicsIn(BaseModel):
@@ -37,6 +43,68 @@ class IntrinsicsIn(BaseModel):
         return self
 
 
+def _rigid_problem(T: list[list[float]]) -> str | None:
+    """Why T (4x4, rows) is not a rigid transform with its translation in metres; None when it is one."""
+    if len(T) != 4 or any(len(row) != 4 for row in T):
+        return "must be a 4x4 matrix (rows)"
+    if not all(math.isfinite(v) for row in T for v in row):
+        return "must be finite"
+    if any(abs(a - b) > 1e-6 for a, b in zip(T[3], (0.0, 0.0, 0.0, 1.0))):
+        return "its last row must be [0, 0, 0, 1]"
+    R = [row[:3] for row in T[:3]]
+    for i in range(3):
+        for j in range(3):
+            dot = sum(R[k][i] * R[k][j] for k in range(3))
+            if abs(dot - (1.0 if i == j else 0.0)) > 1e-3:
+                return "its rotation part is not a rotation (orthonormal)"
+    det = (R[0][0] * (R[1][1] * R[2][2] - R[1][2] * R[2][1]) - R[0][1] * (R[1][0] * R[2][2] - R[1][2] * R[2][0])
+           + R[0][2] * (R[1][0] * R[2][1] - R[1][1] * R[2][0]))
+    if det < 0.99:
+        return "its rotation part is a reflection (determinant -1)"
+    baseline = math.sqrt(sum(T[i][3] ** 2 for i in range(3)))
+    if baseline > MAX_DEPTH_BASELINE_M:
+        return (f"its translation is {baseline:g} long: give it in metres (a depth camera sits centimetres from the "
+                "colour one; Azure Kinect reports millimetres: divide by 1000)")
+    return None
+
+
+class DepthCameraIn(BaseModel):
+    """The depth camera of an RGB-D sensor whose depth is not registered to the colour image (Kinect v1, RealSense
+    without alignment, Azure Kinect): its pinhole intrinsics and the depth-to-colour extrinsic as the SDK reports
+    it, either `depth_to_color` (4x4, rows) or `rotation` (3x3, rows) + `translation` (3), in metres. The worker then
+    moves every depth pixel into the colour image before use."""
+
+    model_config = ConfigDict(extra="forbid")
+    intrinsics: IntrinsicsIn = Field(description="of the depth image (scaled to the depth PNGs' size when it differs)")
+    depth_to_color: list[list[float]] | None = Field(
+        None, description="4x4 rigid transform taking depth-camera points to colour-camera points, rows, metres")
+    rotation: list[list[float]] | None = Field(None, description="3x3, rows (with `translation`)")
+    translation: list[float] | None = Field(None, description="3, metres (with `rotation`)")
+
+    @model_validator(mode="after")
+    def _one_rigid_extrinsic(self) -> DepthCameraIn:
+        if self.depth_to_color is not None and (self.rotation is not None or self.translation is not None):
+            raise ValueError("give depth_to_color or rotation + translation, not both")
+        if self.depth_to_color is None:
+            if self.rotation is None or self.translation is None:
+                raise ValueError("give the depth-to-colour extrinsic: depth_to_color (4x4), or rotation (3x3) and "
+                                 "translation (3)")
+            if len(self.rotation) != 3 or any(len(row) != 3 for row in self.rotation) or len(self.translation) != 3:
+                raise ValueError("rotation must be 3x3 and translation 3 long")
+            self.depth_to_color = [[*self.rotation[i], self.translation[i]] for i in range(3)] + [[0.0, 0.0, 0.0,
+                                                                                                   1.0]]
+            self.rotation = self.translation = None
+        problem = _rigid_problem(self.depth_to_color)
+        if problem:
+            raise ValueError(f"depth-to-colour extrinsic {problem}")
+        return self
+
+
+DEPTH_CAMERA_DOC = ("RGB-D sensors whose depth is not registered to the colour image: the depth camera's intrinsics "
+                    "and depth-to-colour extrinsic; depth is registered to the colour camera before use. Without it, "
+                    "the worker compares depth and colour edges over the first frames and reports a misregistration "
+                    "(a `depth_misregistered` message and the session's `warnings`)")
+
 TRACKING_SIDE_DOC = (
     "the tracking resolution: frames whose long side is larger are tracked at this long side (the pose is the same "
     "at any size; the map keeps the frames' working resolution), e.g. 320 to track a 640x480 camera at 30 frames/s "
@@ -54,6 +122,7 @@ class SessionCreate(BaseModel):
     intrinsics: IntrinsicsIn | None = None
     preset: PresetName | None = Field(default=None, description=preset_field_description())
     pose_mode: PoseMode | None = Field(default=None, description=POSE_MODE_DOC)
+    depth_camera: DepthCameraIn | None = Field(default=None, description=DEPTH_CAMERA_DOC)
     skip_frames: bool = Field(default=False, description=SKIP_FRAMES_DOC)
     tracking_side: int | None = Field(default=None, ge=64, le=4096, description=TRACKING_SIDE_DOC)
     name: str | None = Field(default=None, max_length=200)
@@ -86,7 +155,8 @@ class Session(BaseModel):
     revision: int = Field(description="trajectory revision; grows when a loop closure rewrites past poses")
     worker: str | None = Field(None, description="id of the worker that owns (or last owned) the session")
     preset: str | None = None
-    pose_mode: PoseMode | None = Field(None, description="as created (null: the engine's default, prior)")
+    pose_mode: PoseMode | None = Field(None, description="as created (null: the engine's default: seeded with depth, "
+                                                         "else prior)")
     skip_frames: bool = Field(False, description=SKIP_FRAMES_DOC)
     tracking_side: int | None = Field(None, description=TRACKING_SIDE_DOC)
     intrinsics: IntrinsicsIn | None = None
@@ -96,6 +166,10 @@ class Session(BaseModel):
         "user's camera")
     metadata: dict[str, Any] = Field(default_factory=dict)
     error: str | None = Field(None, description="why the session failed")
+    depth_camera: DepthCameraIn | None = Field(None, description="as created (the extrinsic as a 4x4 depth_to_color)")
+    warnings: list[str] = Field(
+        default_factory=list, description="what the worker noticed about the input, e.g. depth not registered to "
+        "the colour image")
 
 
 class SessionList(BaseModel):

@@ -145,8 +145,8 @@ WEBSOCKET_DOC = {
                 "reason": {"type": "string"}},
                 "additionalProperties": True,
                 "description": "the pose source lost the camera (a black, textureless or blurred view, no depth, a "
-                               "sudden jump): until `relocalized`, poses hold the last good one and no keyframes are "
-                               "made; never a silent jump"},
+                               "sudden jump): until `relocalized`, poses hold the last good one (seeded sessions: they "
+                               "follow the device's motion) and no keyframes are made; never a silent jump"},
             "relocalized": {"type": "object", "properties": {
                 "type": {"const": "relocalized"}, "seq": {"type": "integer"}},
                 "additionalProperties": True,
@@ -166,6 +166,22 @@ WEBSOCKET_DOC = {
                 "description": "RGB-only sessions: visual odometry made its first map at frame `seq`; the frames "
                                "before it, sent at the first frame's pose, were re-estimated: GET the trajectory "
                                "for revision `revision`"},
+            "device_pose_jump": {"type": "object", "properties": {
+                "type": {"const": "device_pose_jump"}, "seq": {"type": "integer"},
+                "translation": {"type": "number", "description": "how far the device's motion into this frame is "
+                                                                 "from the tracked motion (pose units)"},
+                "rotation_deg": {"type": "number"}},
+                "additionalProperties": True,
+                "description": "pose_mode seeded: the device pose of frame `seq` jumped (ARKit/ARCore relocalising, a "
+                               "glitch); the session's poses do not follow the jump and the next keyframe gets no "
+                               "device prior"},
+            "depth_misregistered": {"type": "object", "properties": {
+                "type": {"const": "depth_misregistered"}, "seq": {"type": "integer"},
+                "shift_dx": {"type": "integer"}, "shift_dy": {"type": "integer"}, "message": {"type": "string"}},
+                "additionalProperties": True,
+                "description": "sessions without depth_camera: over the first frames, depth edges fit colour edges "
+                               "best shifted by (shift_dx, shift_dy) pixels: colour and depth are not registered "
+                               "(also in the session's warnings); create the session with depth_camera"},
             "error": {"type": "object", "required": ["type", "code", "message"], "properties": {
                 "type": {"const": "error"}, "seq": {"type": "integer", "description": "the frame it is about"},
                 "message": {"type": "string"},
@@ -190,10 +206,10 @@ WEBSOCKET_DOC = {
     "/v1/sessions/{session_id}/events": {
         "description": "A read-only feed for viewers that do not send the frames (the web viewer): the messages the "
                        "session's stream gets (pose, loop_closed, tracking_lost, relocalized, initializing, "
-                       "initialized, error, finishing, finished) from the moment of connection; the trajectory "
-                       "endpoint has the earlier ones. A session already finished or failed answers one "
-                       "`finished`/`failed` message. Same authentication as the stream (read or stream scope; "
-                       "?api_key= allowed).",
+                       "initialized, device_pose_jump, depth_misregistered, error, finishing, finished) from the "
+                       "moment of connection; the trajectory endpoint has the earlier ones. A session already "
+                       "finished or failed answers one `finished`/`failed` message. Same authentication as the "
+                       "stream (read or stream scope; ?api_key= allowed).",
         "client_messages": {},
         "server_messages": "as the stream's server_messages, without ack",
         "close_codes": {"1000": "after finished", "4401": "unknown or missing API key", "4403": "not allowed",

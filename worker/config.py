@@ -15,8 +15,10 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from worker.data.registration_config import DepthCameraConfig
 from worker.depth.config import MultiViewDepthConfig
 from worker.tracking.rgbd_config import RgbdOdometryConfig
+from worker.tracking.seeded_config import DevicePoseConfig
 from worker.tracking.vo_config import VisualOdometryConfig
 
 log = logging.getLogger(__name__)
@@ -133,8 +135,19 @@ class InputConfig(_Section):
     """How optional per-frame inputs are used (posed and RGB-D modes)."""
 
     use_depth: bool = Field(True, description="frames carrying depth: surfel means from unprojected depth")
-    pose_mode: Literal["ignore", "prior", "fixed"] = Field(
-        "prior", description="frames carrying poses: ignore them, use them as odometry priors in PGO, or keep them")
+    pose_mode: Literal["auto", "ignore", "prior", "fixed", "seeded"] = Field(
+        "auto", description="frames carrying poses: ignore them, use them as the odometry (priors in PGO), keep them "
+        "(fixed), or seeded: RGB-D / visual odometry tracks from the device's motion, the device poses are "
+        "pose-graph priors (`device_poses`) and their jumps are detected. auto: seeded with depth, prior without "
+        "(on ICL, visual odometry does not beat the device's poses; RGB-D odometry does beat drifting ones)")
+    device_poses: DevicePoseConfig = Field(default_factory=DevicePoseConfig,
+                                           description="pose_mode seeded: the device poses' uncertainty and jumps")
+    depth_camera: DepthCameraConfig | None = Field(
+        None, description="the depth camera's intrinsics and depth-to-colour extrinsic: depth is registered to the "
+        "colour camera before use (worker.data.registration); without it, misregistration is detected and reported")
+    detect_misregistration_frames: int = Field(
+        5, ge=0, le=100, description="without depth_camera: frames with depth whose depth and colour edges are "
+        "compared to detect a misregistration (0: off)")
     surfel_init: Literal["model", "depth"] = Field(
         "model", description="with depth: other surfel attributes from the model, or initialised from image+depth")
     depth_scale_to_pose: bool = Field(True, description="monocular with poses: scale model depth to the poses")

@@ -13,6 +13,8 @@ One frame path: pose source -> keyframe selection -> map job -> loop closure. Th
 chosen once per session from `frontend.tracking` and the first frame (see `choose_tracking`):
 - device (frames carry `pose` and `input.pose_mode != "ignore"`, mode "posed"): the given poses are the odometry,
   used as priors in the pose graph ("prior", loop closures can still correct them) or kept as they are ("fixed");
+  with "seeded" (and "auto" with depth), RGB-D or visual odometry tracks from the device's motion and the device
+  poses are keyframe priors (worker.tracking.seeded);
 - rgbd_odometry (depth, no poses): dense photometric + geometric alignment to a reference keyframe;
 - visual_odometry (RGB only): features, PnP against a local map, windowed bundle adjustment;
 - model (mode "monocular"): the feed-forward model tracks submaps (worker.frontend.tracker), the paper's path.
@@ -41,6 +43,7 @@ import torch
 from worker.config import SlamConfig
 from worker.data.frame import Frame, FrameResult
 from worker.engine.backend import KeyframeJob, PoseUpdateJob
+from worker.engine.depth_registration import DepthRegistration
 from worker.engine.keyframe_depth import KeyframeDepth
 from worker.engine.keyframes import MotionKeyframeSelector
 from worker.engine.loop_closer import DepthKeyframePoints, LoopCloser
@@ -120,6 +123,8 @@ class SlamSystem:
         self._last_frame: tuple[Frame, bool] | None = None  # the newest frame and whether tracking held
         self.last_frame_mapped: int | None = None  # the final frame's index when finish() mapped it too
         self.finish_events: list[dict[str, Any]] = []  # loop events finish() applied (no frame result carries them)
+        self.depth_registration = DepthRegistration(self.config.input.depth_camera,
+                                                    self.config.input.detect_misregistration_frames)
 
     # ------------------------------------------------------------------------------------------------ public API
     @property
@@ -159,8 +164,10 @@ class SlamSystem:
         self._raise_if_a_stage_failed()
         start = time.perf_counter()
         self._started = self._started or start
+        frame, registration_events = self.depth_registration.apply(frame, self.frame_intrinsics(frame))
         self._check_frame(frame)
         result = self._push_frame(frame)
+        result.events += registration_events
         self.counters["frames"] += 1
         self.counters["frontend_seconds"] += time.perf_counter() - start
         self.counters["wall_seconds"] = self._wall_offset + time.perf_counter() - self._started
@@ -537,6 +544,11 @@ class SlamSystem:
         return ModelDepth(self.model, self.config.frontend.long_side).depth
 
     def _build_pose_source(self, tracking: str):
+        pose_mode = self.config.input.pose_mode
+        if tracking == "device" and (pose_mode == "seeded" or (pose_mode == "auto" and self._with_depth)):
+            from worker.tracking.seeded import seeded_tracking
+
+            return seeded_tracking(self.config, self._with_depth, lambda prior: self.loop_stage.submit(prior))
         if tracking == "device":
             return DevicePoses()
         if tracking == "model":

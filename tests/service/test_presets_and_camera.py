@@ -40,7 +40,7 @@ def test_pose_mode_is_recorded_and_validated(api):
     assert refused.status_code == 422 and refused.json()["detail"][0]["loc"] == ["body", "pose_mode"]
 
 
-@pytest.mark.parametrize("pose_mode, expected", [("fixed", "fixed"), (None, "prior")])
+@pytest.mark.parametrize("pose_mode, expected", [("fixed", "fixed"), ("seeded", "seeded"), (None, "auto")])
 def test_pose_mode_reaches_the_engine(pose_mode, expected):
     engine = create_engine("slam", "test", None, pose_mode=pose_mode)
     try:

@@ -11,6 +11,9 @@ with per-frame bias magnitudes b_rot (degrees) and b_trans (metres) along fixed 
 once from the seed: a gyro-like heading bias and a velocity bias) and zero-mean Gaussian noise n whose norm has an
 RMS of the given per-frame noise. A rotation error turns every later motion, so the position error grows faster
 than linearly, as it does for real visual odometry. Deterministic for a seed.
+
+A jump (ARKit/ARCore relocalising: `jump_frame` >= 0) moves the drifted poses of that frame and every later one by a
+fixed world-frame offset of `jump_translation` metres and `jump_rotation_deg` degrees about seeded axes.
 """
 
 from __future__ import annotations
@@ -35,10 +38,13 @@ class PoseDrift:
     rotation_noise_deg: float = 0.0
     translation_noise: float = 0.0
     seed: int = 0
+    jump_frame: int = -1
+    jump_translation: float = 0.0
+    jump_rotation_deg: float = 0.0
 
     def __post_init__(self) -> None:
         for name, value in asdict(self).items():
-            if name != "seed" and (not math.isfinite(value) or value < 0):
+            if name not in ("seed", "jump_frame") and (not math.isfinite(value) or value < 0):
                 raise ValueError(f"drift {name} must be a finite value >= 0, got {value}")
 
     def to_dict(self) -> dict:
@@ -65,6 +71,11 @@ class DriftInjector:
         self._trans_axis = _unit(rng.standard_normal(3))
         self._previous_true: np.ndarray | None = None
         self._previous_drifted: np.ndarray | None = None
+        self._frames = 0
+        jump_axes = np.random.default_rng(drift.seed + 1).standard_normal((2, 3))
+        self._jump = se3_exp(torch.from_numpy(np.concatenate([
+            drift.jump_translation * _unit(jump_axes[0]),
+            math.radians(drift.jump_rotation_deg) * _unit(jump_axes[1])]))).numpy()
 
     def apply(self, pose: np.ndarray) -> np.ndarray:
         """The drifted version of the next true c2w pose."""
@@ -75,7 +86,9 @@ class DriftInjector:
             motion = relative_transform(torch.from_numpy(self._previous_true), torch.from_numpy(pose)).numpy()
             drifted = self._previous_drifted @ motion @ self._error()
         self._previous_true, self._previous_drifted = pose.copy(), drifted
-        return drifted.copy()
+        jumped = 0 <= self.drift.jump_frame <= self._frames
+        self._frames += 1
+        return self._jump @ drifted if jumped else drifted.copy()
 
     def _error(self) -> np.ndarray:
         d = self.drift

@@ -1,11 +1,12 @@
 """The loop-closing stage (paper 4.2, ORB-SLAM's LoopClosing in our terms): keyframes in, pose corrections out.
 
 It owns the keyframe pose graph, the loop closer (detection + relocalization) and the keyframe points used to
-verify loops, and works in its own thread on two kinds of input, in order: `GraphKeyframe` (a new keyframe's node
-and odometry edge, from tracking) and `LoopQuery` (a keyframe's image and depth, from tracking when the frames
-carry depth, from mapping once it has built a keyframe's multi-view depth). A verified loop adds its edges and
-re-optimises the graph; the optimised keyframe poses go out as a `LoopCorrection` that the tracking thread takes
-with `take_corrections()` and publishes as a new trajectory revision: tracking never waits for loop closure.
+verify loops, and works in its own thread on its inputs, in order: `GraphKeyframe` (a new keyframe's node
+and odometry edge, from tracking), `PosePrior` (a device's pose of that keyframe, from seeded tracking) and
+`LoopQuery` (a keyframe's image and depth, from tracking when the frames carry depth, from mapping once it has
+built a keyframe's multi-view depth). A verified loop adds its edges and re-optimises the graph; the optimised
+keyframe poses go out as a `LoopCorrection` that the tracking thread takes with `take_corrections()` and
+publishes as a new trajectory revision: tracking never waits for loop closure.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from worker.engine.loop_closer import DepthKeyframePoints, LoopCloser
 from worker.engine.stage_thread import QueuedStage, StageThread
 from worker.engine.stage_times import StageTimes
 from worker.geometry import Intrinsics, se3_part
-from worker.loop.pose_graph import Sim3PoseGraph
+from worker.loop.pose_graph import PosePrior, Sim3PoseGraph
 
 
 @dataclass
@@ -92,7 +93,12 @@ class LoopClosingStage(QueuedStage):
         return out
 
     # -- work (the stage's thread) -------------------------------------------------------------------------------
-    def _process(self, item: GraphKeyframe | LoopQuery | CameraUpdate) -> None:
+    def _process(self, item: GraphKeyframe | LoopQuery | CameraUpdate | PosePrior) -> None:
+        if isinstance(item, PosePrior):  # a device's pose of a keyframe (seeded tracking), after its node
+            if item.key in self.pose_graph.nodes:
+                self.pose_graph.add_prior(item.key, item.pose, item.sigmas)
+                self.pose_graph.flush()
+            return
         if isinstance(item, CameraUpdate):
             if self.depth_points is not None:
                 self.depth_points.reproject(item.K)

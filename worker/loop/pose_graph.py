@@ -5,6 +5,8 @@ H = T_i^-1 T_j (the pose of j in the frame of i) and penalises log(H^-1 T_i^-1 T
 information matrix. Three kinds of edges exist: sequential (consecutive keyframes inside one submap),
 inter-submap (through the overlap frame) and loop. Loop edges get a robust kernel by default so a single wrong
 loop is down-weighted instead of bending the whole trajectory; a prior pins the first keyframe (the gauge).
+Absolute priors (`PosePrior`, e.g. a device's pose of a keyframe with its stated uncertainty) pull single nodes
+towards measured world poses, through the same robust kernel as loop edges.
 
 `optimize()` hands the nodes and edges added since the last call to iSAM2 (worker.loop.incremental), which
 re-eliminates only the part of the graph they touch; `optimize_full()` is the batch Levenberg-Marquardt solve over
@@ -81,6 +83,24 @@ class PoseGraphEdge:
         return cls(int(d["i"]), int(d["j"]), np.asarray(d["relative"], np.float64), str(d["kind"]), float(d["weight"]))
 
 
+@dataclass(frozen=True)
+class PosePrior:
+    """An absolute measurement of node `key`'s world pose (4x4 c2w) with standard deviations `sigmas`."""
+
+    key: int
+    pose: np.ndarray
+    sigmas: EdgeSigmas
+
+    def to_dict(self) -> dict:
+        s = self.sigmas
+        return {"key": self.key, "pose": np.asarray(self.pose, np.float64),
+                "sigmas": [s.rotation, s.translation, s.log_scale]}
+
+    @classmethod
+    def from_dict(cls, d: Mapping) -> PosePrior:
+        return cls(int(d["key"]), np.asarray(d["pose"], np.float64), EdgeSigmas(*(float(v) for v in d["sigmas"])))
+
+
 @dataclass
 class PoseGraphResult:
     """Optimised poses by key, with the cost before/after, LM iterations (iSAM2 updates for an incremental
@@ -153,6 +173,7 @@ class Sim3PoseGraph:
         self.relinearize_threshold = relinearize_threshold
         self.nodes: dict[int, np.ndarray] = {}
         self.edges: list[PoseGraphEdge] = []
+        self.priors: list[PosePrior] = []
         self._lock = threading.RLock()
         self._noises = {kind: self._noise_model(kind) for kind in EDGE_KINDS}
         self._drop_solver()
@@ -188,6 +209,17 @@ class Sim3PoseGraph:
         rel = relative_transform(torch.from_numpy(self.nodes[int(i)]), torch.from_numpy(self.nodes[int(j)]))
         return self.add_edge(i, j, rel, kind, weight)
 
+    def add_prior(self, key: int, pose: np.ndarray | torch.Tensor, sigmas: EdgeSigmas) -> PosePrior:
+        """Measure node `key`'s world pose directly (an absolute prior with standard deviations `sigmas`)."""
+        with self._lock:
+            if int(key) not in self.nodes:
+                raise ValueError(f"pose graph has no node {key}")
+            prior = PosePrior(int(key), _as_matrix(pose), sigmas)
+            if not np.all(np.isfinite(prior.pose)):
+                raise ValueError(f"prior on node {key} is not finite")
+            self.priors.append(prior)
+            return prior
+
     def edges_of_kind(self, kind: str) -> list[PoseGraphEdge]:
         return [e for e in self.edges if e.kind == kind]
 
@@ -205,6 +237,16 @@ class Sim3PoseGraph:
             noise = self._noises[edge.kind] if edge.weight == 1.0 else self._noise_model(edge.kind, edge.weight)
             graph.add(gtsam.BetweenFactorSimilarity3(edge.i, edge.j, meas, noise))
 
+    def _add_prior_factors(self, graph: gtsam.NonlinearFactorGraph, priors: list[PosePrior]) -> None:
+        measured = sim3_batch_to_gtsam(np.stack([p.pose for p in priors])) if priors else []
+        for prior, meas in zip(priors, measured):
+            noise = gtsam.noiseModel.Diagonal.Sigmas(prior.sigmas.vector())
+            if self.robust is not None:
+                estimator = (gtsam.noiseModel.mEstimator.Cauchy if self.robust == "cauchy"
+                             else gtsam.noiseModel.mEstimator.Huber).Create(self.robust_k)
+                noise = gtsam.noiseModel.Robust.Create(estimator, noise)
+            graph.add(gtsam.PriorFactorSimilarity3(prior.key, meas, noise))
+
     def _values(self, keys: list[int]) -> gtsam.Values:
         values = gtsam.Values()
         if keys:
@@ -214,7 +256,7 @@ class Sim3PoseGraph:
 
     def _isolated(self, anchor: int) -> dict[int, None]:
         """Nodes that are neither the anchor nor on an edge."""
-        connected = {anchor, *(e.i for e in self.edges), *(e.j for e in self.edges)}
+        connected = {anchor, *(e.i for e in self.edges), *(e.j for e in self.edges), *(p.key for p in self.priors)}
         return dict.fromkeys(k for k in self.nodes if k not in connected)
 
     def _anchor_of(self, fixed: int | None) -> int:
@@ -232,6 +274,7 @@ class Sim3PoseGraph:
         prior = gtsam.noiseModel.Isotropic.Sigma(7, self.prior_sigma)
         graph.add(gtsam.PriorFactorSimilarity3(anchor, values.atSimilarity3(anchor), prior))
         self._add_edge_factors(graph, self.edges)
+        self._add_prior_factors(graph, self.priors)
         return graph, values
 
     def _result(self, values: gtsam.Values, initial_error: float, final_error: float, iterations: int,
@@ -294,6 +337,7 @@ class Sim3PoseGraph:
         self._solver: IncrementalSolver | None = None
         self._anchor: int | None = None
         self._edges_sent = 0
+        self._priors_sent = 0
         self._pending: dict[int, None] = {}  # nodes added since the solver was seeded, not yet handed to it
 
     def _seed_solver(self, anchor: int, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> None:
@@ -302,19 +346,24 @@ class Sim3PoseGraph:
         self._solver.solve(graph, values, max_updates=1)
         self._anchor = anchor
         self._edges_sent = len(self.edges)
+        self._priors_sent = len(self.priors)
         self._pending = {}
 
     def _new_factors(self) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
         """The edges not yet in iSAM2 and the pending nodes they reach (a node without an edge would leave
         Gauss-Newton's system singular: it waits for its first edge)."""
         edges = self.edges[self._edges_sent:]
+        priors = self.priors[self._priors_sent:]
         factors = gtsam.NonlinearFactorGraph()
         self._add_edge_factors(factors, edges)
-        reached = {k for e in edges for k in (e.i, e.j) if k in self._pending}
+        self._add_prior_factors(factors, priors)
+        reached = {k for e in edges for k in (e.i, e.j) if k in self._pending} | {
+            p.key for p in priors if p.key in self._pending}
         keys = [k for k in self._pending if k in reached]
         for key in keys:
             del self._pending[key]
         self._edges_sent = len(self.edges)
+        self._priors_sent = len(self.priors)
         return factors, self._values(keys)
 
     def _optimize_incremental(self, max_iterations: int, update: bool) -> PoseGraphResult | None:
@@ -343,7 +392,7 @@ class Sim3PoseGraph:
         with self._lock:
             if self._solver is None:
                 return False
-            if len(self.edges) > self._edges_sent:
+            if len(self.edges) > self._edges_sent or len(self.priors) > self._priors_sent:
                 self._solver.solve(*self._new_factors(), max_updates=1)
             return True
 
@@ -353,7 +402,7 @@ class Sim3PoseGraph:
             keys = sorted(self.nodes)
             return {"keys": np.asarray(keys, np.int64),
                     "poses": np.stack([self.nodes[k] for k in keys]) if keys else np.zeros((0, 4, 4)),
-                    "edges": [e.to_dict() for e in self.edges]}
+                    "edges": [e.to_dict() for e in self.edges], "priors": [p.to_dict() for p in self.priors]}
 
     def load_state_dict(self, state: Mapping) -> None:
         """Restore nodes and edges. iSAM2 is rebuilt by the next `optimize`, a batch solve that seeds it."""
@@ -362,6 +411,7 @@ class Sim3PoseGraph:
         with self._lock:
             self.nodes = {int(k): poses[n] for n, k in enumerate(keys)}
             self.edges = [PoseGraphEdge.from_dict(d) for d in state["edges"]]
+            self.priors = [PosePrior.from_dict(d) for d in state.get("priors", [])]
             self._drop_solver()
 
 

@@ -39,6 +39,9 @@ from worker.serialization import pack, unpack
 
 # Pose-source events forwarded to the clients as their own messages.
 TRACKING_EVENTS = ("tracking_lost", "relocalized", "initialized", "initializing")
+# Notices about the input, forwarded as their own messages (tracking goes on); a misregistration is also kept in
+# the session record's `warnings`.
+INPUT_EVENTS = ("device_pose_jump", "depth_misregistered")
 
 log = logging.getLogger(__name__)
 
@@ -260,7 +263,8 @@ class SessionRunner(threading.Thread):
             self.engine = create_engine(self.config.engine_kind, self._session.get("preset") or None,
                                         Intrinsics.from_dict(intrinsics) if intrinsics else None,
                                         pose_mode=self._session.get("pose_mode") or None,
-                                        tracking_side=self._tracking_side())
+                                        tracking_side=self._tracking_side(),
+                                        depth_camera=json.loads(self._session.get("depth_camera") or "null"))
         self._done_seqs = {int(s) for s in self.client.hkeys(keys.poses(self.session_id))}
         self._rejected = {int(s) for s in self.client.hkeys(keys.rejected(self.session_id))}
         self._done_seqs |= self._rejected
@@ -453,6 +457,10 @@ class SessionRunner(threading.Thread):
                 self._publish_tracking_event(seq, event)
                 self._tracking_state = {"tracking_lost": "lost", "initializing": "initializing"}.get(
                     event["type"], "tracking")
+            elif event.get("type") in INPUT_EVENTS:
+                self._publish_tracking_event(seq, event)
+                if event["type"] == "depth_misregistered":
+                    self._add_warning(str(event.get("message", "depth is not registered to the colour image")))
         self._tracking_state = self._tracking_state or "tracking"
         if not self._session.get("estimated_intrinsics") or any(
                 e.get("type") == "initialized" and e.get("intrinsics") for e in result.events):  # (re-)estimated
@@ -471,6 +479,16 @@ class SessionRunner(threading.Thread):
         timeline.update(first_pose_at=time.time(), first_pose_seq=seq)
         if not self._record.update({"takeover": json.dumps(timeline)}):
             raise SessionGone
+
+    def _add_warning(self, text: str) -> None:
+        """Keep a notice about the input in the session record (`warnings`), once."""
+        warnings = json.loads(self._session.get("warnings") or "[]")
+        if text in warnings:
+            return
+        value = json.dumps(warnings + [text])
+        if not self._record.update({"warnings": value}):
+            raise SessionGone
+        self._session["warnings"] = value
 
     def _publish_estimated_intrinsics(self) -> None:
         """Once the engine knows the camera (given, or estimated from monocular frames), put it in the session

@@ -161,7 +161,10 @@ class RgbdOdometry:
     def reference(self) -> _Reference | None:
         return self.references[-1] if self.references else None
 
-    def track(self, frame: Frame, intrinsics: Intrinsics | None) -> TrackingResult:
+    def track(self, frame: Frame, intrinsics: Intrinsics | None, motion_guess: np.ndarray | None = None
+              ) -> TrackingResult:
+        """Track `frame`; `motion_guess` (previous^-1 @ current, e.g. a device's relative motion) replaces the
+        constant-velocity guess when given."""
         if frame.depth is None:
             raise ValueError(f"frame {frame.index} has no depth: RGB-D odometry needs depth on every frame")
         if intrinsics is None and self.estimated_intrinsics is None:
@@ -171,19 +174,21 @@ class RgbdOdometry:
         grey = grey_of(frame.image)
         depth = np.nan_to_num(np.asarray(frame.depth, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
         depth[depth < 0] = 0.0
-        result = self._track(frame.index, grey, depth, K)
+        result = self._track(frame.index, grey, depth, K, motion_guess)
         if self.calibrating and result.tracked:
             return self._calibration_step(frame, grey, depth, result)
         return result
 
-    def _track(self, index: int, grey: np.ndarray, depth: np.ndarray, K: np.ndarray) -> TrackingResult:
+    def _track(self, index: int, grey: np.ndarray, depth: np.ndarray, K: np.ndarray,
+               motion_guess: np.ndarray | None = None) -> TrackingResult:
         if self.reference is None:
             return self._first(index, grey, depth)
         current = _Current(build_pyramid(grey, depth, K, self.config.pyramid_levels, backend=self.settings.backend),
                            grey)
         if self.lost:
             return self._relocalize(index, grey, depth, current, K)
-        guess = motion_model_pose(self.previous_pose, self.last_pose)
+        guess = (motion_model_pose(self.previous_pose, self.last_pose) if motion_guess is None
+                 else self.last_pose @ motion_guess)
         pose, reason = self._align_to(self.reference, current, guess, K)
         if pose is None:
             self.lost = True

@@ -136,8 +136,11 @@ class VisualOdometry:
         self.engine_keyframes: deque[tuple[int, np.ndarray]] = deque(maxlen=max(1, self.config.reuse_keyframes))
 
     # ---- PoseSource ------------------------------------------------------------------------------------------
-    def track(self, frame: Frame, intrinsics: Intrinsics | None) -> TrackingResult:
-        """Track the next frame (see the module docstring); bad frames lose tracking, they never raise."""
+    def track(self, frame: Frame, intrinsics: Intrinsics | None, motion_guess: np.ndarray | None = None
+              ) -> TrackingResult:
+        """Track the next frame (see the module docstring); bad frames lose tracking, they never raise.
+        `motion_guess` (previous^-1 @ current in this odometry's units, e.g. a device's relative motion) replaces
+        the constant-velocity guess when given."""
         camera = self._camera(frame, intrinsics)
         gray = cv2.cvtColor(frame.image, cv2.COLOR_RGB2GRAY)
         if self.status == "initializing":
@@ -145,7 +148,7 @@ class VisualOdometry:
         elif self.status == "lost":
             result = self._relocalise(frame.index, gray, camera)
         else:
-            result = self._track(frame.index, gray, camera)
+            result = self._track(frame.index, gray, camera, motion_guess)
         if not np.all(np.isfinite(result.pose)):  # never hand out a NaN pose, whatever happened above
             result = self._lose(frame.index, "non-finite pose estimate")
         self.pose = result.pose
@@ -327,10 +330,11 @@ class VisualOdometry:
         return pose if inlier.sum() >= self.config.min_tracked and np.all(np.isfinite(pose)) else guess
 
     # ---- tracking --------------------------------------------------------------------------------------------
-    def _track(self, index: int, gray: np.ndarray, camera: Intrinsics) -> TrackingResult:
+    def _track(self, index: int, gray: np.ndarray, camera: Intrinsics, motion_guess: np.ndarray | None = None
+               ) -> TrackingResult:
         c = self.config
         K = camera_matrix(camera)
-        predicted = rigid(self.pose @ self.velocity)
+        predicted = rigid(self.pose @ (self.velocity if motion_guess is None else motion_guess))
         mapped_before = int(self.tracks.mapped.sum())
         found = self._follow(gray, predicted, K)
         if found is None:

@@ -1,0 +1,131 @@
+"""pose_mode "seeded": device poses seed RGB-D odometry and enter the pose graph as keyframe priors; a device jump
+(ARKit relocalising) is caught, reported and kept out of the trajectory and the priors; a snapshot continues."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from worker.config import SlamConfig
+from worker.data import open_source
+from worker.engine.drift import PoseDrift
+from worker.eval import absolute_trajectory_error
+from worker.slam import SlamSystem
+from worker.tracking.seeded import SeededTracking
+
+DATA = Path(__file__).parents[1] / "data" / "icl_mini"
+SIZE = (160, 120)
+JUMP_AT = 14  # the device relocalises here: 15 cm and 4 degrees
+
+
+def _config(**input_overrides) -> SlamConfig:
+    return SlamConfig.preset("rgbd", threaded=False, mapping={"enabled": False},
+                             input={"pose_mode": "seeded", **input_overrides})
+
+
+def _run(frames, device_poses: list[np.ndarray], config: SlamConfig):
+    system = SlamSystem(config)
+    results = []
+    for frame, device in zip(frames, device_poses):
+        frame.pose = device.copy()
+        results.append(system.push(frame))
+    system.finish()
+    return system, results
+
+
+def _ate(poses, frames) -> float:
+    return absolute_trajectory_error(np.stack(poses), np.stack([f.gt_pose for f in frames]), "sim3").rmse
+
+
+@pytest.fixture(scope="module")
+def frames():
+    return list(open_source(str(DATA), max_frames=30, resize=SIZE, use_gt_depth=True, use_gt_poses=True))
+
+
+@pytest.fixture(scope="module")
+def drifted(frames) -> list[np.ndarray]:
+    """Device poses that drift (0.3 deg and 4 mm per frame, compounded) and jump at frame JUMP_AT."""
+    drift = PoseDrift(0.3, 0.004, 0.1, 0.001, seed=3, jump_frame=JUMP_AT, jump_translation=0.15,
+                      jump_rotation_deg=4.0)
+    return list(drift.apply_to_trajectory(np.stack([f.gt_pose for f in frames])))
+
+
+@pytest.fixture(scope="module")
+def seeded_run(frames, drifted):
+    return _run(frames, drifted, _config())
+
+
+def test_a_device_jump_is_caught_reported_and_kept_out_of_the_trajectory(frames, drifted, seeded_run) -> None:
+    system, results = seeded_run
+    assert isinstance(system.pose_source, SeededTracking) and system.mode == "posed"
+    jumps = [(r.index, e) for r in results for e in r.events if e["type"] == "device_pose_jump"]
+    assert [i for i, _ in jumps] == [JUMP_AT]
+    assert jumps[0][1]["translation"] > 0.1 and jumps[0][1]["rotation_deg"] > 3.0
+    device_steps = [np.linalg.norm(b[:3, 3] - a[:3, 3]) for a, b in zip(drifted, drifted[1:])]
+    tracked_steps = [np.linalg.norm(b.pose[:3, 3] - a.pose[:3, 3]) for a, b in zip(results, results[1:])]
+    true_steps = [np.linalg.norm(b.gt_pose[:3, 3] - a.gt_pose[:3, 3]) for a, b in zip(frames, frames[1:])]
+    assert abs(device_steps[JUMP_AT - 1] - true_steps[JUMP_AT - 1]) > 0.1  # the device's poses jump there ...
+    assert max(abs(t - g) for t, g in zip(tracked_steps, true_steps)) < 0.02  # ... the session's do not
+    assert all(np.all(np.isfinite(r.pose)) for r in results)
+
+
+def test_keyframe_priors_reach_the_pose_graph_except_after_the_jump(drifted, seeded_run) -> None:
+    system, results = seeded_run
+    source = system.pose_source
+    keyframes = [r.index for r in results if r.is_keyframe]
+    priors = system.pose_graph.priors
+    assert source.priors_dropped == 1 and len(priors) == len(keyframes) - 1
+    dropped = next(k for k in keyframes if k >= JUMP_AT)  # the first keyframe after the jump has no prior
+    assert dropped not in {p.key for p in priors}
+    assert all(p.sigmas.translation >= 0.10 and p.sigmas.rotation >= np.radians(2.0) for p in priors)
+    # priors after the jump are re-anchored: the jump (15 cm, 4 deg) does not reach them
+    poses = dict((i, p) for i, _, p in system.trajectory("keyframes"))
+    after = [p for p in priors if p.key > JUMP_AT]
+    assert after
+    for prior in after:
+        off = np.linalg.norm(prior.pose[:3, 3] - poses[prior.key][:3, 3])
+        raw_off = np.linalg.norm(drifted[prior.key][:3, 3] - poses[prior.key][:3, 3])
+        assert off < raw_off - 0.08, (off, raw_off)
+
+
+def test_seeded_tracking_beats_the_drifted_device_poses(frames, drifted, seeded_run) -> None:
+    system, results = seeded_run
+    seeded = _ate([r.pose for r in results], frames)
+    device = _ate(drifted, frames)
+    assert seeded < 0.5 * device, (seeded, device)
+    prior_system, prior_results = _run(frames, drifted, _config().model_copy(
+        update={"input": _config().input.model_copy(update={"pose_mode": "prior"})}))
+    assert seeded < 0.5 * _ate([r.pose for r in prior_results], frames)  # device poses taken as they are
+
+
+def test_a_seeded_session_continues_from_a_snapshot(frames, drifted) -> None:
+    system = SlamSystem(_config())
+    for frame, device in list(zip(frames, drifted))[:10]:
+        frame.pose = device.copy()
+        system.push(frame)
+    restored = SlamSystem.restore(system.snapshot())
+    assert isinstance(restored.pose_source, SeededTracking)
+    for frame, device in list(zip(frames, drifted))[10:16]:
+        frame.pose = device.copy()
+        a, b = system.push(frame), restored.push(frame)
+        np.testing.assert_allclose(a.pose, b.pose, atol=1e-3)  # references are snapshot as uint8 / float16
+    system.close()
+    restored.close()
+
+
+def test_without_depth_visual_odometry_is_seeded_in_the_device_world_and_scale(frames) -> None:
+    system = SlamSystem(_config(use_depth=False))
+    results = [system.push(frame) for frame in frames]  # true poses as the device's
+    system.finish()
+    source = system.pose_source
+    assert isinstance(source, SeededTracking) and source.monocular and source.alignment is not None
+    poses = np.stack([p for _, _, p in system.trajectory("all")])
+    truth = np.stack([f.gt_pose for f in frames])
+    np.testing.assert_allclose(poses[0], truth[0], atol=1e-6)  # the device's world, not the odometry's
+    path = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum()
+    true_path = np.linalg.norm(np.diff(truth[:, :3, 3], axis=0), axis=1).sum()
+    assert abs(path / true_path - 1.0) < 0.1  # metric: the scale comes from the device's baseline
+    assert absolute_trajectory_error(poses, truth, "se3").rmse < 0.05
+    assert all(np.all(np.isfinite(r.pose)) for r in results)

@@ -1,0 +1,250 @@
+"""Seeded tracking: device poses seed and constrain tracking, they never replace it (`input.pose_mode: seeded`).
+
+A phone's or a dataset's poses are not the colour camera's truth: ARKit/ARCore drift and jump when they relocalise,
+a depth camera's trajectory follows the depth camera. With them, the session's own odometry still tracks every frame
+(RGB-D odometry with depth, visual odometry without), and the device only helps:
+
+- its relative motion since the previous frame is the odometry's initial guess where the constant-velocity guess
+  misses it (a sudden motion), unless it disagrees with the recent tracked motion by more than a jump;
+- the tracked motion is compared with the device's (worker.tracking.device_check): a disagreement beyond
+  `jump_translation` / `jump_rotation_deg` is a device jump: a `device_pose_jump` event, the device world is
+  re-anchored so that the jump does not reach the priors (`correction`), and the next keyframe gets no prior;
+- each keyframe's device pose goes to the pose graph as an absolute prior with the stated uncertainty
+  (`device_poses.prior_translation`, `prior_rotation_deg`), inflated where the device and the tracked poses
+  disagree by more (`prior_inflation`): loop closures weigh it against the odometry.
+
+The output lives in the device's world: the odometry's world is aligned to the device pose of its first frame
+(rigid with depth; for monocular visual odometry, also scaled by the device's baseline over its initialisation).
+While the odometry has no world yet (monocular initialisation) or is lost, poses follow the device's motion from
+the last output (never a jump, never a held pose while the device still moves).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from worker.data.frame import Frame
+from worker.geometry import Intrinsics
+from worker.loop.pose_graph import EdgeSigmas, PosePrior
+from worker.tracking.base import TrackingResult
+from worker.tracking.device_check import checked_device_pose, disagreement, relative
+from worker.tracking.seeded_config import DevicePoseConfig
+
+log = logging.getLogger(__name__)
+
+# Log-scale standard deviation of a device prior: device poses are metric.
+PRIOR_LOG_SCALE_SIGMA = 1e-3
+
+
+def _scaled(pose: np.ndarray, scale: float) -> np.ndarray:
+    out = np.array(pose, np.float64)
+    out[:3, 3] *= scale
+    return out
+
+
+class SeededTracking:
+    """A pose source (RGB-D or visual odometry) seeded and checked by the frames' device poses (module docstring).
+
+    odometry: the inner source, whose `track` takes a `motion_guess`; monocular: its units are not metric (the
+    scale is found from the device's baseline); publish_prior: where keyframe priors go (the loop-closing stage).
+    """
+
+    name = "seeded"
+
+    def __init__(self, odometry, config: DevicePoseConfig | None = None, monocular: bool = False,
+                 publish_prior: Callable[[PosePrior], None] | None = None) -> None:
+        self.odometry = odometry
+        self.config = config or DevicePoseConfig()
+        self.monocular = monocular
+        self.publish_prior = publish_prior
+        self.alignment: np.ndarray | None = None  # session world <- odometry world (rigid), once it has one
+        self.scale = 1.0  # session units per odometry unit
+        self.correction = np.eye(4)  # session world <- device world: absorbs the device's jumps
+        self.last_device: np.ndarray | None = None  # device pose of the last frame (device world)
+        self.last_index: int | None = None
+        self.last_pose: np.ndarray | None = None  # output of the last frame
+        self.previous_pose: np.ndarray | None = None  # output of the frame before
+        self.last_tracked = False  # whether the last output came from the odometry
+        # (output, device pose) of the frames before the odometry has a world (monocular initialisation)
+        self.waiting: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self.skip_next_prior = False
+        self.jumps = 0
+        self.priors_sent = 0
+        self.priors_dropped = 0
+
+    # -- what the engine reads from a pose source ---------------------------------------------------------------
+    @property
+    def estimated_intrinsics(self) -> Intrinsics | None:
+        return getattr(self.odometry, "estimated_intrinsics", None)
+
+    @property
+    def calibrating(self) -> bool:
+        return bool(getattr(self.odometry, "calibrating", False))
+
+    # -- tracking ------------------------------------------------------------------------------------------------
+    def track(self, frame: Frame, intrinsics: Intrinsics | None) -> TrackingResult:
+        device = checked_device_pose(frame.pose, frame.index)
+        device_motion = None if self.last_device is None else relative(self.last_device, device)
+        if not self.monocular and frame.depth is None:  # nothing to align: follow the device for this frame
+            result = TrackingResult(np.eye(4), tracked=False, keyframe_hint=False)
+        else:
+            result = self.odometry.track(frame, intrinsics, motion_guess=self._guess(device_motion))
+        events = [e for e in result.events if e.get("type") != "initialized"]
+        initialized = [e for e in result.events if e.get("type") == "initialized"]
+        if initialized and self.monocular:
+            self._align_monocular(initialized[-1], device, result.pose)
+        elif self.alignment is None and result.tracked and not self.monocular:
+            self.alignment = self.correction @ device @ np.linalg.inv(result.pose)
+        events += [self._in_session(e) for e in initialized]
+        from_odometry = self.alignment is not None and result.tracked and not self._waiting_for_world(initialized)
+        if from_odometry:
+            pose = self.to_session(result.pose)
+        elif self.last_pose is not None and device_motion is not None:
+            pose = self.last_pose @ device_motion
+        else:
+            pose = self.correction @ device
+        if from_odometry and self.last_tracked and device_motion is not None:
+            events += self._check_jump(frame.index, device, device_motion, relative(self.last_pose, pose))
+        if self.monocular and self.alignment is None:
+            self.waiting[frame.index] = (pose.copy(), device)
+        self.previous_pose, self.last_pose = self.last_pose, pose
+        self.last_device, self.last_index, self.last_tracked = device, frame.index, from_odometry
+        depth = None if result.depth is None or not from_odometry else result.depth * np.float32(self.scale)
+        return TrackingResult(pose.copy(), tracked=result.tracked, depth=depth, events=events,
+                              keyframe_hint=result.keyframe_hint if from_odometry else False,
+                              quality=result.quality if from_odometry else None)
+
+    def _waiting_for_world(self, initialized: list[dict[str, Any]]) -> bool:
+        """A monocular odometry still initialising (its poses are placeholders)."""
+        return self.monocular and not initialized and getattr(self.odometry, "status", "tracking") == "initializing"
+
+    def _guess(self, device_motion: np.ndarray | None) -> np.ndarray | None:
+        """The device's motion in odometry units as the initial guess where it tells the odometry something: when
+        the constant-velocity guess misses it by more than `seed_translation` / `seed_rotation_deg` (a sudden
+        motion), but not by more than a jump (a device jump must not mislead the alignment). Otherwise None: the
+        odometry's own guess (the two agree; a device's small per-frame bias would only leak into a partly
+        converged alignment)."""
+        if device_motion is None or self.alignment is None or not self.last_tracked:
+            return None
+        if self.previous_pose is None:
+            return _scaled(device_motion, 1.0 / self.scale)
+        c = self.config
+        recent = disagreement(device_motion, relative(self.previous_pose, self.last_pose))
+        if recent.exceeds(c.jump_translation, c.jump_rotation_deg) or not recent.exceeds(c.seed_translation,
+                                                                                        c.seed_rotation_deg):
+            return None
+        return _scaled(device_motion, 1.0 / self.scale)
+
+    def _check_jump(self, index: int, device: np.ndarray, device_motion: np.ndarray, tracked_motion: np.ndarray
+                    ) -> list[dict[str, Any]]:
+        """A `device_pose_jump` event when the device's motion disagrees with the tracked one; the device world
+        is then re-anchored so that this frame's device pose continues the tracked motion."""
+        c = self.config
+        gap = disagreement(device_motion, tracked_motion)
+        if not gap.exceeds(c.jump_translation, c.jump_rotation_deg):
+            return []
+        self.correction = self.correction @ self.last_device @ tracked_motion @ np.linalg.inv(device)
+        self.skip_next_prior = True
+        self.jumps += 1
+        log.warning("frame %d: the device pose jumped (%.3f, %.1f deg from the tracked motion): re-anchored, its "
+                    "keyframe prior dropped", index, gap.translation, gap.rotation_deg)
+        return [{"type": "device_pose_jump", "frame": int(index), "translation": round(gap.translation, 4),
+                 "rotation_deg": round(gap.rotation_deg, 3), "action": "prior dropped, device re-anchored"}]
+
+    def _align_monocular(self, event: dict[str, Any], device: np.ndarray, odometry_pose: np.ndarray) -> None:
+        """Visual odometry made its map: its world is the reference frame's camera (identity pose) at an arbitrary
+        scale. Aligned to the reference frame's output so far, scaled by the device's baseline since it."""
+        frames = {int(i): np.asarray(p, np.float64) for i, p in event.get("frames", [])}
+        reference = next((i for i, p in frames.items() if np.allclose(p, np.eye(4), atol=1e-9)), None)
+        if reference is None or reference not in self.waiting:
+            reference = min(self.waiting) if self.waiting else None
+        if reference is None:
+            anchor, anchor_device = (self.last_pose, self.last_device) if self.last_pose is not None else (
+                self.correction @ device, device)
+        else:
+            anchor, anchor_device = self.waiting[reference]
+        baseline = float(np.linalg.norm(relative(anchor_device, device)[:3, 3]))
+        odometry_anchor = frames.get(reference, np.eye(4))
+        travelled = float(np.linalg.norm(relative(odometry_anchor, odometry_pose)[:3, 3]))
+        self.scale = baseline / travelled if baseline > 1e-6 and travelled > 1e-9 else 1.0
+        self.alignment = anchor @ np.linalg.inv(_scaled(odometry_anchor, self.scale))
+        self.waiting = {}
+        log.info("seeded visual odometry: world aligned at frame %s, %.4f units per odometry unit", reference,
+                 self.scale)
+
+    def _in_session(self, event: dict[str, Any]) -> dict[str, Any]:
+        """An `initialized` event with its re-estimated frames in the session's world."""
+        if not event.get("frames") or self.alignment is None:
+            return dict(event)
+        frames = [[int(i), self.to_session(np.asarray(p, np.float64)).tolist()] for i, p in event["frames"]]
+        return {**event, "frames": frames}
+
+    def to_session(self, odometry_pose: np.ndarray) -> np.ndarray:
+        """An odometry pose in the session's (device) world."""
+        return self.alignment @ _scaled(odometry_pose, self.scale)
+
+    def to_odometry(self, session_pose: np.ndarray) -> np.ndarray:
+        """A session pose in the odometry's world and units."""
+        return _scaled(np.linalg.inv(self.alignment) @ np.asarray(session_pose, np.float64), 1.0 / self.scale)
+
+    def keyframe_added(self, frame: Frame, pose: np.ndarray) -> None:
+        """The odometry may keep the keyframe as a place; the device's pose of it goes to the pose graph as a prior
+        (none right after a jump)."""
+        if self.alignment is not None:
+            self.odometry.keyframe_added(frame, self.to_odometry(pose))
+        if self.publish_prior is None or frame.pose is None:
+            return
+        if self.skip_next_prior:
+            self.skip_next_prior = False
+            self.priors_dropped += 1
+            return
+        device = self.correction @ checked_device_pose(frame.pose, frame.index)
+        self.publish_prior(PosePrior(int(frame.index), device, self._prior_sigmas(device, pose)))
+        self.priors_sent += 1
+
+    def _prior_sigmas(self, device: np.ndarray, tracked: np.ndarray) -> EdgeSigmas:
+        """The stated uncertainty of a device pose, inflated to `prior_inflation` times its disagreement with the
+        tracked pose: a prior never claims to be surer than what the two trajectories show (drifting device poses
+        weigh less and less against the odometry; accurate ones keep the stated weight and correct its drift)."""
+        c = self.config
+        gap = disagreement(device, tracked)
+        return EdgeSigmas(max(math.radians(c.prior_rotation_deg), c.prior_inflation * math.radians(gap.rotation_deg)),
+                          max(c.prior_translation, c.prior_inflation * gap.translation), PRIOR_LOG_SCALE_SIGMA)
+
+    # -- snapshot ------------------------------------------------------------------------------------------------
+    def state_dict(self) -> dict[str, Any]:
+        return {"odometry": self.odometry.state_dict(), "alignment": self.alignment, "scale": self.scale,
+                "correction": self.correction, "last_device": self.last_device, "last_index": self.last_index,
+                "last_pose": self.last_pose, "previous_pose": self.previous_pose, "last_tracked": self.last_tracked,
+                "waiting": [[i, p, d] for i, (p, d) in self.waiting.items()], "skip_next_prior": self.skip_next_prior,
+                "counts": [self.jumps, self.priors_sent, self.priors_dropped]}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        def matrix(value) -> np.ndarray | None:
+            return None if value is None else np.asarray(value, np.float64)
+
+        self.odometry.load_state_dict(state["odometry"])
+        self.alignment, self.scale = matrix(state["alignment"]), float(state["scale"])
+        self.correction = matrix(state["correction"])
+        self.last_device, self.last_index = matrix(state["last_device"]), state["last_index"]
+        self.last_pose, self.previous_pose = matrix(state["last_pose"]), matrix(state["previous_pose"])
+        self.last_tracked = bool(state["last_tracked"])
+        self.waiting = {int(i): (matrix(p), matrix(d)) for i, p, d in state["waiting"]}
+        self.skip_next_prior = bool(state["skip_next_prior"])
+        self.jumps, self.priors_sent, self.priors_dropped = (int(v) for v in state["counts"])
+
+
+def seeded_tracking(config, with_depth: bool, publish_prior: Callable[[PosePrior], None] | None) -> SeededTracking:
+    """The seeded source of a session (a SlamConfig): RGB-D odometry with depth, else visual odometry."""
+    if with_depth:
+        from worker.tracking.rgbd_odometry import RgbdOdometry
+
+        return SeededTracking(RgbdOdometry(config.tracking.rgbd), config.input.device_poses, False, publish_prior)
+    from worker.tracking.visual_odometry import VisualOdometry
+
+    return SeededTracking(VisualOdometry(config.tracking.visual), config.input.device_poses, True, publish_prior)

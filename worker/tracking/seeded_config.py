@@ -1,0 +1,27 @@
+"""Settings of seeded tracking (`worker.tracking.seeded.SeededTracking`): how far device poses are trusted."""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class DevicePoseConfig(BaseModel):
+    """The stated uncertainty of a device's poses and the thresholds that call a device motion a jump."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+    prior_translation: float = Field(
+        0.10, gt=0, le=100, description="standard deviation (pose units, metres for ARKit/ARCore) of a device pose "
+        "as an absolute prior on its keyframe in the pose graph")
+    prior_rotation_deg: float = Field(2.0, gt=0, le=180, description="... and of its orientation, in degrees")
+    prior_inflation: float = Field(
+        10.0, ge=0, description="a keyframe prior's standard deviations are at least this times the device pose's "
+        "distance and angle from the tracked pose (0: the stated ones only)")
+    seed_translation: float = Field(
+        0.01, gt=0, description="the device's motion into a frame replaces the odometry's constant-velocity guess "
+        "when the two differ by more than this (pose units) ...")
+    seed_rotation_deg: float = Field(1.0, gt=0, le=180, description="... or by more than this rotation")
+    jump_translation: float = Field(
+        0.05, gt=0, description="a frame's device motion that differs from the tracked motion by more than this "
+        "(pose units) is a jump (relocalisation, glitch): it is not used and the next keyframe gets no prior")
+    jump_rotation_deg: float = Field(3.0, gt=0, le=180, description="... or by more than this rotation")
