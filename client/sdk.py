@@ -100,11 +100,12 @@ class FlashMonoClient:
                        pose_mode: str | None = None, skip_frames: bool | None = None,
                        tracking_side: int | None = None) -> Session:
         """A new session; intrinsics as {fx, fy, cx, cy, width, height}, an Intrinsics or [fx, fy, cx, cy].
-        pose_mode: "fixed" keeps the device poses frames carry exactly as sent ("prior", the default, refines them;
-        "ignore" tracks without them). skip_frames: True for a live camera: the tracker
-        skips frames that fell behind a newer one, with a `skipped` message; False (the server's default) tracks every
-        frame however late. tracking_side: track frames at most this long a side (e.g. 320 for a 640x480 camera
-        at 30 frames/s; None: the server's default)."""
+        pose_mode: "seeded" tracks from the images starting from the device poses frames carry, with them as priors
+        (the default with depth), "prior" uses them as the odometry refined by loop closures (the default without
+        depth), "fixed" keeps them exactly as sent, "ignore" tracks without them. skip_frames: True for a live camera:
+        the tracker skips frames that fell behind a newer one, with a `skipped` message; False (the server's default)
+        tracks every frame however late. tracking_side: track frames at most this long a side (e.g. 320 for a
+        640x480 camera at 30 frames/s; None: the server's default)."""
         return self._call(rest.create_session(intrinsics, preset, name, device_id, metadata, pose_mode,
                                               skip_frames, tracking_side))
 

@@ -115,8 +115,8 @@ class MappingConfig(_Section):
         0, ge=0, le=1000, description="refinement at finish(): passes over every keyframe whose image is held "
         "(window + archive), one iteration per keyframe per pass, in a seeded random order")
     final_refine_budget_s: float = Field(
-        25.0, ge=0, description="finish(): the final refinement stops after this many seconds whatever its passes "
-        "(0 = no bound), so finishing a long session stays bounded")
+        25.0, ge=0, description="finish(): the final refinement stops once finish() has taken this many seconds "
+        "(draining the stages included) whatever its passes (0 = no bound), so finishing a session stays bounded")
     idle_refine: bool = Field(
         True, description="a threaded mapping stage with an empty queue refines the keyframes whose refinement load "
         "shedding cut, oldest first (the live map catches up when the camera slows down)")

@@ -178,6 +178,7 @@ class SlamSystem:
         final refinement, stop the stages' threads."""
         if self._finished:
             return
+        started = time.perf_counter()
         if self.backend is not None:
             self._map_last_frame()
             self._queue_depth_jobs(force=True)
@@ -189,7 +190,9 @@ class SlamSystem:
             self.backend.wait_idle()
         if self.backend is not None:
             if self.config.mapping.final_refine_passes:
-                self.backend.refine_all(self.config.mapping.final_refine_passes)
+                budget = self.config.mapping.final_refine_budget_s  # counted from the start of finish(): drain too
+                left = None if not budget else max(0.0, budget - (time.perf_counter() - started))
+                self.backend.refine_all(self.config.mapping.final_refine_passes, budget_s=left)
         self.close()
         if self._started is not None:
             self.counters["wall_seconds"] = self._wall_offset + time.perf_counter() - self._started

@@ -180,3 +180,21 @@ def test_refinement_shed_while_mapping_lagged_is_caught_up_when_the_stage_is_idl
     assert _keyframe_psnr(caught_up, frames) > _keyframe_psnr(in_debt, frames) + 0.5
     caught_up.close()
     in_debt.close()
+
+
+def test_finish_counts_its_drain_against_the_final_refinement_budget(frames) -> None:
+    """finish() is bounded as a whole: when draining the stages used up `final_refine_budget_s`, the final
+    refinement does not run at all (its passes would otherwise take their own budget on top)."""
+    config = live_config(mapping={"final_refine_passes": 50, "final_refine_budget_s": 1e-6}, threaded=False)
+    system = SlamSystem(config)
+    for frame in frames:
+        system.push(frame)
+    system.finish()
+    assert system.timings.counts["map_final_refine"] == 1
+    assert system.timings.seconds["map_final_refine"] < 0.5  # 50 passes would take seconds
+    unbounded = SlamSystem(live_config(mapping={"final_refine_passes": 2, "final_refine_budget_s": 0},
+                                       threaded=False))
+    for frame in frames:
+        unbounded.push(frame)
+    unbounded.finish()
+    assert unbounded.timings.seconds["map_final_refine"] > system.timings.seconds["map_final_refine"]
