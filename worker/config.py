@@ -124,6 +124,9 @@ class MappingConfig(_Section):
     merge_only_backlog: int = Field(
         6, ge=1, description="load shedding: with more keyframes than this waiting, keyframes are merged into the "
         "map without refinement (finish() refines them)")
+    exposure: bool = Field(
+        False, description="estimate each keyframe's affine exposure (gain and bias per channel) in fusion and "
+        "refinement and keep it out of the map's colours: renders show exposure-normalised colours")
 
 
 class InputConfig(_Section):

@@ -1,0 +1,62 @@
+"""Per-keyframe affine exposure: a photo is `gain * radiance + bias`, per colour channel.
+
+Auto-exposure and white balance change between a camera's frames; a map trained on the raw photos bakes those
+changes into its colours (blotches where keyframes disagree). The map instead keeps exposure-normalised colours:
+each keyframe has an exposure (gain [3], bias [3]: a [6] tensor, identity = gain 1, bias 0), the refinement
+compares `apply_exposure(render, exposure)` to the keyframe's photo, and renders at a given pose use the
+normalised colours (identity exposure). The first keyframe's exposure stays the identity (it fixes the map's
+colour scale).
+
+An exposure is estimated in closed form: per channel, the ridge regression of the photo on the render over the
+pixels the map covers, pulled toward the identity with a weight of `prior` times the pixel count (it decides the
+exposure when few pixels are covered or the covered ones have no contrast).
+"""
+
+from __future__ import annotations
+
+import torch
+
+GAIN_RANGE = (0.2, 5.0)
+BIAS_RANGE = (-0.5, 0.5)
+SATURATED = 0.005  # photo values this close to 0 or 1 are clipped
+
+
+def identity_exposure(device: torch.device | str = "cpu") -> torch.Tensor:
+    """[6] float32: gain (1, 1, 1) then bias (0, 0, 0)."""
+    return torch.tensor([1.0, 1.0, 1.0, 0.0, 0.0, 0.0], device=device)
+
+
+def apply_exposure(image: torch.Tensor, exposure: torch.Tensor) -> torch.Tensor:
+    """The photo a camera with `exposure` takes of normalised colours `image` [..., 3]."""
+    return image * exposure[:3] + exposure[3:]
+
+
+def remove_exposure(image: torch.Tensor, exposure: torch.Tensor) -> torch.Tensor:
+    """Normalised colours [..., 3] of a photo taken with `exposure` (the inverse of `apply_exposure`)."""
+    return (image - exposure[3:]) / exposure[:3]
+
+
+def fit_exposure(render: torch.Tensor, photo: torch.Tensor, mask: torch.Tensor, prior: float = 0.002
+                 ) -> torch.Tensor | None:
+    """[6] exposure minimising, per channel, sum over `mask` of (gain * render + bias - photo)^2 +
+    prior * count * ((gain - 1)^2 + bias^2); None when `mask` selects no pixel.
+
+    render, photo: [H, W, 3] in [0, 1]; mask: [H, W] bool (pixels the render covers). A channel's saturated photo
+    values (within SATURATED of 0 or 1: clipped, so not affine in the radiance) take no part. Gains are kept in
+    GAIN_RANGE and biases in BIAS_RANGE.
+    """
+    if not bool(mask.any()):
+        return None
+    r = render.detach()[mask].to(torch.float64)  # [n, 3]
+    t = photo.detach()[mask].to(torch.float64)
+    w = ((t > SATURATED) & (t < 1 - SATURATED)).to(torch.float64)
+    n = w.sum(0)
+    lam = prior * n
+    s_rr, s_r, s_rt, s_t = (w * r * r).sum(0), (w * r).sum(0), (w * r * t).sum(0), (w * t).sum(0)
+    # Normal equations [[s_rr + lam, s_r], [s_r, n + lam]] [gain, bias] = [s_rt + lam, s_t], per channel.
+    a, b, d = s_rr + lam, s_r, n + lam
+    det = (a * d - b * b).clamp_min(1e-12)
+    gain = torch.where(n > 0, ((s_rt + lam) * d - b * s_t) / det, 1.0)
+    bias = torch.where(n > 0, (a * s_t - b * (s_rt + lam)) / det, 0.0)
+    exposure = torch.cat([gain.clamp(*GAIN_RANGE), bias.clamp(*BIAS_RANGE)])
+    return exposure.to(render.device, torch.float32)
