@@ -47,6 +47,10 @@ class FrontendConfig(_Section):
         0.10, gt=0, description="monocular: a keyframe once the camera moved this fraction of the scene depth")
     keyframe_translation: float = Field(0.2, gt=0, description="posed mode: or when it moved this far (pose units)")
     keyframe_rotation_deg: float = Field(15.0, gt=0, description="or turned this much")
+    keyframe_blur_ratio: float = Field(
+        0.5, ge=0, lt=1, description="a due keyframe waits (up to keyframe_blur_delay frames) while the frame's "
+        "sharpness (variance of the Laplacian) is below this fraction of the recent frames' median; 0 = never")
+    keyframe_blur_delay: int = Field(2, ge=0, le=16, description="frames a keyframe may wait for a sharper frame")
     min_confidence: float = Field(1.5, ge=1.0, description="per-pixel confidence below which surfels are dropped")
     min_kept_fraction: float = Field(
         0.0, ge=0.0, le=1.0, description="monocular: when fewer pixels pass min_confidence, keep this fraction "

@@ -89,7 +89,8 @@ class SlamSystem:
         self.loop_stage = self._new_loop_stage(self._new_pose_graph(), closer=None, depth_points=None)
         fc = self.config.frontend
         self.tracking_stage = TrackingStage(
-            MotionKeyframeSelector(fc.keyframe_every, fc.keyframe_translation, fc.keyframe_rotation_deg),
+            MotionKeyframeSelector(fc.keyframe_every, fc.keyframe_translation, fc.keyframe_rotation_deg,
+                                   fc.keyframe_blur_ratio, fc.keyframe_blur_delay),
             publish_keyframe=lambda node: self.loop_stage.submit(node), timings=self.timings)
         self._traj = self.tracking_stage.trajectory
         self.backend = (MappingStage(self.config.mapping, self.config.threaded, self.config.queue_size,

@@ -47,6 +47,7 @@ class TrackingStage:
         """The pose source's result for `frame` and its pose (float64 4x4, checked finite)."""
         with self.timings.measure(self.timing_stage):
             tracking = self.pose_source.track(frame, intrinsics)
+        self.selector.observe(frame.image)
         pose = np.asarray(tracking.pose, np.float64)
         if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):  # a bug in the source: never passed on
             raise RuntimeError(f"frame {frame.index}: the pose source returned a non-finite pose")
