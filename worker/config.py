@@ -148,9 +148,11 @@ class InputConfig(_Section):
     mvs_frames_after: int = Field(
         4, ge=0, le=64, description="mvs: frames a keyframe waits for, so that it has neighbours on both sides")
     mvs_buffer_frames: int = Field(16, ge=2, le=256, description="mvs: recent frames kept as neighbour candidates")
-    mvs_fill: Literal["none", "model"] = Field(
-        "none", description="mvs: pixels without a confident depth get no surfel (none) or the learned model's "
-        "single-view depth scaled to the confident pixels (model; one model pass per keyframe)")
+    mvs_fill: Literal["none", "model", "propagate"] = Field(
+        "none", description="mvs: pixels without a confident depth get no surfel (none), the learned model's "
+        "single-view depth scaled to the confident pixels (model; one model pass per keyframe), or a depth "
+        "propagated from confident pixels of similar colour on the same plane (propagate: worker.depth.hole_fill; "
+        "those surfels start less opaque)")
 
 
 class TrackingConfig(_Section):

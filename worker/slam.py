@@ -458,7 +458,7 @@ class SlamSystem:
         if mvs:
             fill = self._model_depth_filler() if cfg.input.mvs_fill == "model" else None
             self.keyframe_depth = KeyframeDepth(cfg.depth, cfg.input.mvs_buffer_frames, cfg.input.mvs_frames_after,
-                                                fill)
+                                                fill, propagate=cfg.input.mvs_fill == "propagate")
         self.tracking_stage.pose_source = self._build_pose_source(tracking)
         self.tracking_stage.timing_stage = "frontend_inference" if tracking == "model" else "frontend_tracking"
         log.info("session tracking: %s (mode %s), surfels from %s", tracking, self.mode, self.depth_source)
