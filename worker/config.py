@@ -131,6 +131,9 @@ class MappingConfig(_Section):
     exposure: bool = Field(
         False, description="estimate each keyframe's affine exposure (gain and bias per channel) in fusion and "
         "refinement and keep it out of the map's colours: renders show exposure-normalised colours")
+    exposure_prior: float = Field(
+        0.002, ge=0, description="exposure: pull toward the identity (gain 1, bias 0), as a fraction of the pixels "
+        "the fit uses")
 
 
 class InputConfig(_Section):

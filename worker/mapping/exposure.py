@@ -15,10 +15,13 @@ exposure when few pixels are covered or the covered ones have no contrast).
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 
 GAIN_RANGE = (0.2, 5.0)
 BIAS_RANGE = (-0.5, 0.5)
 SATURATED = 0.005  # photo values this close to 0 or 1 are clipped
+BLOCK = 8  # exposures are fitted on block x block averages
+MIN_BLOCKS_ACROSS = 30
 
 
 def identity_exposure(device: torch.device | str = "cpu") -> torch.Tensor:
@@ -36,20 +39,29 @@ def remove_exposure(image: torch.Tensor, exposure: torch.Tensor) -> torch.Tensor
     return (image - exposure[3:]) / exposure[:3]
 
 
-def fit_exposure(render: torch.Tensor, photo: torch.Tensor, mask: torch.Tensor, prior: float = 0.002
-                 ) -> torch.Tensor | None:
+def fit_exposure(render: torch.Tensor, photo: torch.Tensor, mask: torch.Tensor, prior: float = 0.002,
+                 block: int = BLOCK) -> torch.Tensor | None:
     """[6] exposure minimising, per channel, sum over `mask` of (gain * render + bias - photo)^2 +
-    prior * count * ((gain - 1)^2 + bias^2); None when `mask` selects no pixel.
+    prior * count * ((gain - 1)^2 + bias^2).
 
     render, photo: [H, W, 3] in [0, 1]; mask: [H, W] bool (pixels the render covers). A channel's saturated photo
-    values (within SATURATED of 0 or 1: clipped, so not affine in the radiance) take no part. Gains are kept in
+    values (within SATURATED of 0 or 1: clipped, so not affine in the radiance) take no part; None when no pixel
+    is left. Gains are kept in
     GAIN_RANGE and biases in BIAS_RANGE.
+
+    The fit runs on `block` x `block` averages (blocks the mask covers entirely): a render is smoother than the
+    photo, and regressing a sharp photo on a smoother render inflates the gain (and lowers the bias) even when the
+    exposures are equal; block averages of both have the same sharpness. A block takes part only where each of its
+    pixels does.
     """
-    if not bool(mask.any()):
+    photo = photo.detach().to(render.dtype)
+    usable = mask[..., None] & (photo > SATURATED) & (photo < 1 - SATURATED)  # [H, W, 3]
+    usable = _blocks(usable.to(render.dtype), block) > 0.999  # blocks whose every pixel is usable
+    if not bool(usable.any()):
         return None
-    r = render.detach()[mask].to(torch.float64)  # [n, 3]
-    t = photo.detach()[mask].to(torch.float64)
-    w = ((t > SATURATED) & (t < 1 - SATURATED)).to(torch.float64)
+    r = _blocks(render.detach(), block).reshape(-1, 3).to(torch.float64)
+    t = _blocks(photo, block).reshape(-1, 3).to(torch.float64)
+    w = usable.reshape(-1, 3).to(torch.float64)
     n = w.sum(0)
     lam = prior * n
     s_rr, s_r, s_rt, s_t = (w * r * r).sum(0), (w * r).sum(0), (w * r * t).sum(0), (w * t).sum(0)
@@ -60,3 +72,12 @@ def fit_exposure(render: torch.Tensor, photo: torch.Tensor, mask: torch.Tensor, 
     bias = torch.where(n > 0, (a * s_t - b * (s_rt + lam)) / det, 0.0)
     exposure = torch.cat([gain.clamp(*GAIN_RANGE), bias.clamp(*BIAS_RANGE)])
     return exposure.to(render.device, torch.float32)
+
+
+def _blocks(image: torch.Tensor, block: int) -> torch.Tensor:
+    """[H, W, C] averaged over block x block tiles (fewer pixels per tile in small images: at least
+    MIN_BLOCKS_ACROSS tiles along the shorter side)."""
+    block = max(1, min(block, min(image.shape[:2]) // MIN_BLOCKS_ACROSS))
+    if block == 1:
+        return image
+    return F.avg_pool2d(image.permute(2, 0, 1)[None], block)[0].permute(1, 2, 0)
