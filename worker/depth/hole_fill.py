@@ -35,6 +35,7 @@ class HoleFillSettings:
     min_spread: float = 0.25  # the support's smallest standard deviation, as a fraction of the window radius
     max_offset: float = 2.0  # the pixel's Mahalanobis distance from the support's centre (standard deviations)
     depth_margin: float = 1.5
+    work_side: int = 160  # larger images are filled at a reduced size (longer side about this; radii scale)
 
 
 @dataclass
@@ -59,9 +60,29 @@ def fill_depth(depth: np.ndarray, image: np.ndarray, settings: HoleFillSettings 
     if image.shape[:2] != depth.shape or image.ndim != 3 or image.dtype != np.uint8:
         raise ValueError(f"image must be uint8 [H, W, 3] of the depth's size, got {image.dtype} {image.shape}")
     valid = np.isfinite(depth) & (depth > 0)
-    filled = np.zeros(depth.shape, bool)
+    depth = np.where(valid, depth, 0).astype(np.float32)
     if valid.sum() < 3 or valid.all():
-        return FilledDepth(np.where(valid, depth, 0).astype(np.float32), filled)
+        return FilledDepth(depth, np.zeros(depth.shape, bool))
+    H, W = depth.shape
+    factor = max(1, round(max(H, W) / settings.work_side))
+    if factor == 1:
+        return _fill(depth, valid, image, settings, seed)
+    # Fill a reduced copy (a pixel keeps a depth where its block's centre had one), then give the full-size holes
+    # the reduced fill's depth; confident pixels keep theirs.
+    size = (W // factor, H // factor)
+    small = cv2.resize(depth, size, interpolation=cv2.INTER_NEAREST)
+    small_image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+    reduced = _fill(small, small > 0, small_image, settings, seed)
+    up = cv2.resize(np.where(reduced.filled, reduced.depth, 0).astype(np.float32), (W, H),
+                    interpolation=cv2.INTER_NEAREST)
+    filled = ~valid & (up > 0)
+    return FilledDepth(np.where(filled, up, depth).astype(np.float32), filled)
+
+
+def _fill(depth: np.ndarray, valid: np.ndarray, image: np.ndarray, settings: HoleFillSettings, seed: int
+          ) -> FilledDepth:
+    """`fill_depth` at this size."""
+    filled = np.zeros(depth.shape, bool)
     near, far = np.percentile(depth[valid], [1, 99])
     q_lo, q_hi = 1.0 / (settings.depth_margin * far), settings.depth_margin / near
     colours = image.astype(np.float32) / 255.0
