@@ -274,6 +274,8 @@ async def stream_case(stack, frames, intrinsics, messages: list[bytes], args) ->
         k = intrinsics
         body = {"name": "bench-live", "preset": args.preset, "skip_frames": not args.every_frame,
                 "intrinsics": {"width": k.width, "height": k.height, "fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy}}
+        if args.tracking_side:
+            body["tracking_side"] = args.tracking_side
         created = await http.post("/v1/sessions", json=body)
         created.raise_for_status()
         sid = created.json()["id"]
@@ -407,7 +409,8 @@ def run_offline(source: str, size, max_frames, args, out_dir: Path) -> dict[str,
     from worker.eval import read_tum
 
     start = time.perf_counter()
-    metrics = run_sequence(source, out_dir, SlamConfig.preset(args.preset), use_gt_depth=args.mode == "rgbd",
+    config = SlamConfig.preset(args.preset, tracking={"max_side": args.tracking_side or 0})
+    metrics = run_sequence(source, out_dir, config, use_gt_depth=args.mode == "rgbd",
                            max_frames=max_frames, resize=size, eval_every=max(1, args.psnr_every))
     wall = time.perf_counter() - start
     tum = read_tum(out_dir / "trajectory_all.tum")
@@ -503,6 +506,8 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--mode", choices=("rgbd", "rgb"), default="rgbd",
                         help="rgbd: send depth, no poses; rgb: images only")
     parser.add_argument("--size", default="320x240")
+    parser.add_argument("--tracking-side", type=int, default=0,
+                        help="the session's tracking resolution (long side; 0: the frames' size)")
     parser.add_argument("--fps", type=float, default=30.0, help="the client's frame rate")
     parser.add_argument("--frames", type=int, default=None, help="at most this many frames")
     parser.add_argument("--preset", default="rgbd")
@@ -524,6 +529,7 @@ def main(argv: list[str]) -> int:
     frames, intrinsics = load_frames(args.source, size, args.frames, with_depth=args.mode == "rgbd")
     messages = encode(frames, with_depth=args.mode == "rgbd")
     label = args.label or (f"{Path(args.source).name} {args.mode} {args.size} @ {args.fps:g} fps"
+                           + (f", tracked at {args.tracking_side} px" if args.tracking_side else "")
                            + (f", worker killed at {args.kill_at:.0%}" if args.kill_at is not None else ""))
     load_before = os.getloadavg()
     print(f"{label}: {len(frames)} frames, {sum(map(len, messages)) / len(messages) / 1024:.1f} KiB a message, "

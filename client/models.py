@@ -56,6 +56,7 @@ class Session:
     tracking_state: str | None = None  # "tracking" or "lost" at the newest processed frame
     mapping_lag_keyframes: int | None = None  # keyframes tracked but not yet mapped
     mapping_lag_s: float | None = None  # how long the oldest of them has waited
+    tracking_side: int | None = None  # the tracking resolution's long side (None: the worker's default)
 
     @classmethod
     def from_json(cls, data: dict[str, Any]) -> Session:
@@ -86,6 +87,7 @@ class Session:
             tracking_state=data.get("tracking_state"),
             mapping_lag_keyframes=data.get("mapping_lag_keyframes"),
             mapping_lag_s=data.get("mapping_lag_s"),
+            tracking_side=data.get("tracking_side"),
         )
 
 

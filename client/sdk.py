@@ -97,14 +97,16 @@ class FlashMonoClient:
 
     def create_session(self, *, intrinsics: Any = None, preset: str | None = None, name: str | None = None,
                        device_id: str | None = None, metadata: dict[str, Any] | None = None,
-                       pose_mode: str | None = None, skip_frames: bool | None = None) -> Session:
+                       pose_mode: str | None = None, skip_frames: bool | None = None,
+                       tracking_side: int | None = None) -> Session:
         """A new session; intrinsics as {fx, fy, cx, cy, width, height}, an Intrinsics or [fx, fy, cx, cy].
         pose_mode: "fixed" keeps the device poses frames carry exactly as sent ("prior", the default, refines them;
         "ignore" tracks without them). skip_frames: True for a live camera: the tracker
         skips frames that fell behind a newer one, with a `skipped` message; False (the server's default) tracks every
-        frame however late."""
+        frame however late. tracking_side: track frames at most this long a side (e.g. 320 for a 640x480 camera
+        at 30 frames/s; None: the server's default)."""
         return self._call(rest.create_session(intrinsics, preset, name, device_id, metadata, pose_mode,
-                                                        skip_frames))
+                                              skip_frames, tracking_side))
 
     def presets(self) -> dict[str, Any]:
         """GET /v1/presets: {presets: [{name, purpose, input}], input_modes}."""

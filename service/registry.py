@@ -85,7 +85,7 @@ return 1
 INGEST_ACCEPTED, NO_SESSION, NOT_ACCEPTING, SEQ_NOT_INCREASING, QUEUE_FULL, SIZE_MISMATCH = 0, -1, -2, -3, -4, -5
 _INT_FIELDS = ("frames_received", "frames_processed", "frames_rejected", "frames_skipped", "keyframes", "revision")
 _FLOAT_FIELDS = ("mapping_lag_s",)
-_OPTIONAL_INT_FIELDS = ("mapping_lag_keyframes",)
+_OPTIONAL_INT_FIELDS = ("mapping_lag_keyframes", "tracking_side")
 
 
 def now_iso() -> str:
@@ -134,7 +134,7 @@ class Registry:
             "status": "created", "created_at": created, "updated_at": created, "frames_received": 0,
             "frames_processed": 0, "frames_rejected": 0, "frames_skipped": 0, "keyframes": 0, "revision": 0,
             "worker": "", "preset": body.get("preset") or "", "pose_mode": body.get("pose_mode") or "",
-            "skip_frames": int(bool(body.get("skip_frames"))),
+            "skip_frames": int(bool(body.get("skip_frames"))), "tracking_side": body.get("tracking_side") or "",
             "intrinsics": json.dumps(body.get("intrinsics")),
             "metadata": json.dumps(body.get("metadata") or {}), "owner": owner, "last_seq": -1,
         }

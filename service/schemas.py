@@ -37,6 +37,11 @@ class IntrinsicsIn(BaseModel):
         return self
 
 
+TRACKING_SIDE_DOC = (
+    "the tracking resolution: frames whose long side is larger are tracked at this long side (the pose is the same "
+    "at any size; the map keeps the frames' working resolution), e.g. 320 to track a 640x480 camera at 30 frames/s "
+    "on a CPU; null: the worker's default (FLASHMONO_TRACKING_SIDE, else the frames as they come)")
+
 SKIP_FRAMES_DOC = (
     "true for a live camera: when tracking falls behind, a frame that waited longer than the worker's limit (100 ms) "
     "while a newer one is waiting gets a `skipped` message instead of a pose (newest first wins, a few in a row at "
@@ -50,6 +55,7 @@ class SessionCreate(BaseModel):
     preset: PresetName | None = Field(default=None, description=preset_field_description())
     pose_mode: PoseMode | None = Field(default=None, description=POSE_MODE_DOC)
     skip_frames: bool = Field(default=False, description=SKIP_FRAMES_DOC)
+    tracking_side: int | None = Field(default=None, ge=64, le=4096, description=TRACKING_SIDE_DOC)
     name: str | None = Field(default=None, max_length=200)
     device_id: str | None = Field(default=None, max_length=200)
     metadata: dict[str, Any] = Field(default_factory=dict)
@@ -81,6 +87,7 @@ class Session(BaseModel):
     preset: str | None = None
     pose_mode: PoseMode | None = Field(None, description="as created (null: the engine's default, prior)")
     skip_frames: bool = Field(False, description=SKIP_FRAMES_DOC)
+    tracking_side: int | None = Field(None, description=TRACKING_SIDE_DOC)
     intrinsics: IntrinsicsIn | None = None
     estimated_intrinsics: IntrinsicsIn | None = Field(
         None, description="the camera the engine uses at the frames' resolution: the given intrinsics, or the ones it "

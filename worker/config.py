@@ -119,6 +119,9 @@ class MappingConfig(_Section):
     final_refine_budget_s: float = Field(
         25.0, ge=0, description="finish(): the final refinement stops after this many seconds whatever its passes "
         "(0 = no bound), so finishing a long session stays bounded")
+    idle_refine: bool = Field(
+        True, description="a threaded mapping stage with an empty queue refines the keyframes whose refinement load "
+        "shedding cut, oldest first (the live map catches up when the camera slows down)")
     voxel_cap: int = Field(
         64, ge=0, description="surfels per world voxel at most; a revisited voxel takes new surfels only from a "
         "clearly finer view (0 = no cap)")
@@ -163,6 +166,9 @@ class TrackingConfig(_Section):
 
     rgbd: RgbdOdometryConfig = Field(default_factory=RgbdOdometryConfig)
     visual: VisualOdometryConfig = Field(default_factory=VisualOdometryConfig)
+    max_side: int = Field(
+        0, ge=0, le=8192, description="the tracking resolution: frames whose long side is larger are tracked at this "
+        "long side (aspect kept; mapping keeps the full frame); 0 = as they come")
 
 
 class SlamConfig(_Section):
@@ -252,6 +258,6 @@ PRESETS: dict[str, dict[str, Any]] = {
     # Unit tests: tiny images, few iterations, single-threaded and deterministic.
     "test": {"frontend": {"long_side": 64, "submap_size": 4, "keyframe_every": 2},
              "loop": {"exclusion_frames": 12, "pgo_iterations": 30},
-             "mapping": {"refine_keyframes": 2, "refine_iterations": 3},
+             "mapping": {"refine_keyframes": 2, "refine_iterations": 3, "idle_refine": False},
              "threaded": False, "queue_size": 4, "num_threads": 1},
 }

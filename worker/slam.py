@@ -91,7 +91,8 @@ class SlamSystem:
         self.tracking_stage = TrackingStage(
             MotionKeyframeSelector(fc.keyframe_every, fc.keyframe_translation, fc.keyframe_rotation_deg,
                                    fc.keyframe_blur_ratio, fc.keyframe_blur_delay),
-            publish_keyframe=lambda node: self.loop_stage.submit(node), timings=self.timings)
+            publish_keyframe=lambda node: self.loop_stage.submit(node), timings=self.timings,
+            max_side=self.config.tracking.max_side)
         self._traj = self.tracking_stage.trajectory
         self.backend = (MappingStage(self.config.mapping, self.config.threaded, self.config.queue_size,
                                      self.config.device, self.timings) if self.config.mapping.enabled else None)
@@ -234,11 +235,13 @@ class SlamSystem:
 
     def live_stats(self) -> dict[str, Any]:
         """What a live client watches, cheap to read while frames stream: how far mapping lags (keyframes waiting,
-        seconds the oldest has waited), what it shed, and the loop-closing stage's backlog."""
-        mapping = {"mapping_lag_keyframes": 0, "mapping_lag_s": 0.0, "keyframes_shed": {}} if self.backend is None \
-            else self.backend.stats()
-        return {"mapping_lag_keyframes": mapping["mapping_lag_keyframes"], "mapping_lag_s": mapping["mapping_lag_s"],
-                "keyframes_shed": mapping["keyframes_shed"], "loop_pending": self.loop_stage.pending}
+        seconds the oldest has waited), what it shed, what it still owes and caught up since (refinement made up
+        while idle), and the loop-closing stage's backlog."""
+        mapping = {"mapping_lag_keyframes": 0, "mapping_lag_s": 0.0, "keyframes_shed": {}, "keyframes_owed": 0,
+                   "keyframes_caught_up": 0} if self.backend is None else self.backend.stats()
+        return {**{key: mapping[key] for key in ("mapping_lag_keyframes", "mapping_lag_s", "keyframes_shed",
+                                                 "keyframes_owed", "keyframes_caught_up")},
+                "loop_pending": self.loop_stage.pending}
 
     # ------------------------------------------------------------------------------------------------- helpers
     def _new_loop_stage(self, pose_graph: Sim3PoseGraph, closer: LoopCloser | None,
@@ -358,7 +361,7 @@ class SlamSystem:
 
     def camera(self, frame: Frame) -> Intrinsics:
         """The frame's camera: given, else the pose source's estimate."""
-        intrinsics = self.frame_intrinsics(frame) or getattr(self.pose_source, "estimated_intrinsics", None)
+        intrinsics = self.frame_intrinsics(frame) or self.tracking_stage.source_intrinsics(frame.width, frame.height)
         if intrinsics is None:
             raise ValueError("no intrinsics for this session: give them with the frames or the session")
         return intrinsics
@@ -560,7 +563,7 @@ class SlamSystem:
         self-calibration, RGB-D odometry's guess), else the model's (from its points)."""
         if self.intrinsics is not None or self._frame_size is None:
             return self.intrinsics
-        from_source = getattr(self.pose_source, "estimated_intrinsics", None)
+        from_source = self.tracking_stage.source_intrinsics(*self._frame_size)
         if from_source is not None:
             return from_source
         if self.model_intrinsics is None:

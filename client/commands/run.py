@@ -29,6 +29,10 @@ def add_run_options(parser: argparse.ArgumentParser) -> None:
                         "metrics.json and intrinsics.json)")
     parser.add_argument("--pingpong", type=int, default=1, metavar="N",
                         help="play a dataset folder forward and back N sweeps (a long session revisiting places)")
+    parser.add_argument("--finish-budget", type=float, default=0.0, metavar="SECONDS",
+                        help="bound the final refinement at the end of the run (default 0: no bound, an offline run "
+                        "completes its passes, at most passes x held keyframe images iterations; live sessions keep "
+                        "the config's mapping.final_refine_budget_s)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -45,7 +49,14 @@ def load_config(args: argparse.Namespace):
             raise ValueError(f"cannot read config overrides {args.config}: {err}") from err
         if not isinstance(overrides, dict):
             raise ValueError("--config must hold a JSON object")
-    return SlamConfig.preset(default_preset(args), **overrides)
+    config = SlamConfig.preset(default_preset(args), **overrides)
+    budget = getattr(args, "finish_budget", None)
+    if budget is not None and "final_refine_budget_s" not in overrides.get("mapping", {}):
+        if budget < 0:
+            raise ValueError("--finish-budget must be >= 0 seconds")
+        config = config.model_copy(update={"mapping": config.mapping.model_copy(
+            update={"final_refine_budget_s": budget})})
+    return config
 
 
 def default_preset(args: argparse.Namespace) -> str:

@@ -71,3 +71,21 @@ def test_a_session_by_default_gets_a_pose_for_every_frame(stack):
     with httpx.Client(base_url=stack.base_url, timeout=30) as api:
         session = api.get(f"/v1/sessions/{sid}").json()
     assert session["frames_skipped"] == 0 and session["skip_frames"] is False
+
+
+def test_a_session_names_its_tracking_resolution_and_a_bad_one_is_refused(stack):
+    with httpx.Client(base_url=stack.base_url, timeout=30) as api:
+        created = api.post("/v1/sessions", json={"name": "vga", "tracking_side": 320})
+        assert created.status_code == 201, created.text
+        assert api.get(f"/v1/sessions/{created.json()['id']}").json()["tracking_side"] == 320
+        assert api.post("/v1/sessions", json={"name": "plain"}).json()["tracking_side"] is None
+        refused = api.post("/v1/sessions", json={"name": "tiny", "tracking_side": 8})
+        assert refused.status_code == 422 and "tracking_side" in refused.text
+
+
+def test_the_engine_of_a_session_tracks_at_its_tracking_resolution():
+    from worker.runtime.engine import create_engine
+
+    engine = create_engine("slam", "test", None, tracking_side=320)
+    assert engine.config.tracking.max_side == 320
+    assert create_engine("slam", "test", None).config.tracking.max_side == 0

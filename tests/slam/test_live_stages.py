@@ -4,6 +4,7 @@ so, finish() drains every stage, and a snapshot taken while mapping lags restore
 from __future__ import annotations
 
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -115,3 +116,67 @@ def test_keyframes_made_after_an_optimisation_follow_the_newest_corrected_one() 
     np.testing.assert_allclose(moved[4], at(2.5))  # rigidly with keyframe 2: no jump between 2 and 4
     np.testing.assert_allclose(moved[6], at(3.5))
     assert set(moved) == set(current)
+
+
+def test_a_tracking_resolution_tracks_large_frames_small_and_maps_them_whole() -> None:
+    """Frames twice the tracking resolution: the pose source sees them at half size (intrinsics scaled), the poses
+    match tracking the frames at that size, and the map still receives the full frames."""
+    source = Path(__file__).parents[1] / "data" / "icl_mini"
+    large = list(open_source(source, max_frames=8, resize=(160, 120), use_gt_depth=True))
+    small = list(open_source(source, max_frames=8, resize=(80, 60), use_gt_depth=True))
+    seen: list[tuple[int, int, float]] = []
+    system = SlamSystem(live_config(tracking={"max_side": 80}, threaded=False))
+    reference = SlamSystem(live_config(threaded=False))
+    for big, little in zip(large, small, strict=True):
+        result = system.push(big)
+        source_frame = system.tracking_stage._tracked_frame
+        seen.append((source_frame.width, source_frame.height, source_frame.intrinsics.fx))
+        expected = reference.push(little)
+        assert np.allclose(result.pose[:3, 3], expected.pose[:3, 3], atol=0.02)
+    assert {s[:2] for s in seen} == {(80, 60)}
+    assert abs(seen[0][2] - large[0].intrinsics.fx / 2) < 1e-6
+    system.finish()
+    reference.finish()
+    assert system.num_gaussians > 2 * reference.num_gaussians  # surfels from 4x the pixels
+
+
+def _keyframe_psnr(system: SlamSystem, frames: list[Frame]) -> float:
+    """Mean PSNR of the map rendered at its keyframes against their images."""
+    by_index = {f.index: f for f in frames}
+    values = []
+    for index, _, pose in system.trajectory("keyframes"):
+        frame = by_index[index]
+        rgb, _ = system.render_view(pose, frame.intrinsics.matrix(), frame.width, frame.height)
+        mse = np.mean((rgb.astype(np.float64) - frame.image.astype(np.float64)) ** 2)
+        values.append(10 * np.log10(255.0**2 / max(mse, 1e-9)))
+    return float(np.mean(values))
+
+
+def _stalled_then_idle(frames: list[Frame], idle_refine: bool) -> SlamSystem:
+    """Every keyframe waits behind a stalled mapping stage (so all but the newest are merged without refinement),
+    then the stage is left alone until it owes nothing (or 120 s)."""
+    config = live_config(mapping={"shed_backlog": 1, "merge_only_backlog": 1, "idle_refine": idle_refine,
+                                  "archived_images": 64},
+                         queue_size=64)
+    system = SlamSystem(config)
+    with system.backend.lock:
+        push_all_within(system, frames)
+    system.backend.wait_idle()
+    deadline = time.monotonic() + 120
+    while idle_refine and system.stats()["keyframes_owed"] and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return system
+
+
+def test_refinement_shed_while_mapping_lagged_is_caught_up_when_the_stage_is_idle(frames) -> None:
+    """Keyframes merged without refinement under load are owed their refinement; the idle stage pays it back,
+    oldest first, and the map then renders those keyframes better than a stage that keeps its debt."""
+    caught_up = _stalled_then_idle(frames, idle_refine=True)
+    in_debt = _stalled_then_idle(frames, idle_refine=False)
+    stats, debt_stats = caught_up.stats(), in_debt.stats()
+    assert stats["keyframes_shed"]["merge_only"] > 0 and stats["keyframes_owed"] == 0
+    assert stats["keyframes_caught_up"] >= stats["keyframes_shed"]["merge_only"]
+    assert debt_stats["keyframes_caught_up"] == 0 and debt_stats["keyframes_shed"]["merge_only"] > 0
+    assert _keyframe_psnr(caught_up, frames) > _keyframe_psnr(in_debt, frames) + 0.5
+    caught_up.close()
+    in_debt.close()

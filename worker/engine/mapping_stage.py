@@ -5,8 +5,10 @@ depth) -> hand the keyframe to loop closing -> voxelize -> prune -> fuse -> refi
 closures move the map. Tracking never waits for it: `submit` never blocks, and the stage sheds work when it falls
 behind (`MappingConfig.shed_backlog`, `merge_only_backlog`, `SlamConfig.queue_size`): fewer refinement iterations,
 then merge only (finish() refines the whole map), then the oldest waiting keyframes are left out of the map. What it
-shed and how far it lags (keyframes, seconds) is in `stats()`. All map access goes through one lock, so renders and
-exports from other threads see the map between two refinement steps, never in the middle of one.
+shed and how far it lags (keyframes, seconds) is in `stats()`. The refinement it shed is owed: whenever its queue is
+empty (`MappingConfig.idle_refine`), the stage refines the oldest keyframe it owes, with its window of that time, so
+the live map catches up when the camera slows down or comes back to mapped places. All map access goes through one
+lock, so renders and exports from other threads see the map between two refinement steps, never in the middle of one.
 """
 
 from __future__ import annotations
@@ -47,7 +49,10 @@ class MappingStage(QueuedStage):
         self.on_keyframe_built: Callable[[KeyframeJob], None] | None = None
         self._waiting: deque[tuple[int, float]] = deque()  # (kf_id, submit time) of keyframe jobs not yet done
         self._waiting_lock = threading.Lock()
-        self._stage = StageThread("mapping", self._process, threaded)
+        self._owed: dict[int, int] = {}  # keyframe -> refinement iterations shed, oldest first
+        self.caught_up = 0
+        self._stage = StageThread("mapping", self._process, threaded,
+                                  idle=self._catch_up if cfg.idle_refine else None)
 
     # -- submission (the tracking thread) ------------------------------------------------------------------------
     def submit(self, job: KeyframeJob | PoseUpdateJob) -> None:
@@ -67,7 +72,8 @@ class MappingStage(QueuedStage):
     def stats(self) -> dict[str, Any]:
         backlog, seconds = self.lag()
         return {"mapping_lag_keyframes": backlog, "mapping_lag_s": seconds, "keyframes_mapped": self.keyframes_mapped,
-                "keyframes_shed": dict(self.shed), "mapping_busy_s": self.busy_seconds}
+                "keyframes_shed": dict(self.shed), "mapping_busy_s": self.busy_seconds,
+                "keyframes_caught_up": self.caught_up, "keyframes_owed": len(self._owed)}
 
     # -- work (the stage's thread) -------------------------------------------------------------------------------
     def _process(self, job: KeyframeJob | PoseUpdateJob) -> None:
@@ -101,8 +107,11 @@ class MappingStage(QueuedStage):
             job.build = None
         if self.on_keyframe_built is not None:
             self.on_keyframe_built(job)
+        iterations = self._refine_iterations(backlog)
         with self.lock:
-            self._map_keyframe(job, self._refine_iterations(backlog))
+            self._map_keyframe(job, iterations)
+            if self.cfg.idle_refine and iterations < self.cfg.refine_iterations:
+                self._owed[job.kf_id] = self.cfg.refine_iterations - iterations
 
     def _refine_iterations(self, backlog: int) -> int:
         """This keyframe's refinement iterations after load shedding."""
@@ -129,10 +138,24 @@ class MappingStage(QueuedStage):
                 self.map.refine(iterations)
         self.keyframes_mapped += 1
 
+    def _catch_up(self) -> bool:
+        """Idle work: refine the oldest keyframe whose refinement was shed; False when none is owed."""
+        start = time.perf_counter()
+        with self.lock:
+            if not self._owed:
+                return False
+            kf_id = next(iter(self._owed))
+            with self.timings.measure("map_catch_up"):
+                self.map.refine_around(kf_id, self._owed.pop(kf_id))
+        self.caught_up += 1
+        self.busy_seconds += time.perf_counter() - start
+        return True
+
     def refine_all(self, passes: int) -> None:
         """The end-of-run refinement: every surfel against every keyframe image the map still holds, `passes`
         times over those keyframes."""
         with self.lock, self.timings.measure("map_final_refine"):
+            self._owed.clear()  # the whole map's refinement supersedes the keyframes' own
             self.map.refine_global(passes * self.map.held_images)
 
     # -- reads ---------------------------------------------------------------------------------------------------
@@ -151,10 +174,11 @@ class MappingStage(QueuedStage):
     def state_dict(self) -> dict:
         with self.lock:
             return {"map": self.map.state_dict(), "keyframes_mapped": self.keyframes_mapped,
-                    "shed": dict(self.shed)}
+                    "shed": dict(self.shed), "owed": [[k, v] for k, v in self._owed.items()]}
 
     def load_state_dict(self, d: dict) -> None:
         with self.lock:
             self.map.load_state_dict(d["map"])
             self.keyframes_mapped = int(d["keyframes_mapped"])
             self.shed.update({k: int(v) for k, v in (d.get("shed") or {}).items() if k in self.shed})
+            self._owed = {int(k): int(v) for k, v in d.get("owed") or []}

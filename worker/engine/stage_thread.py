@@ -3,8 +3,10 @@
 A stage (mapping, loop closing) receives work items from the stage before it. `submit` never blocks the producer:
 the queue is unbounded and each stage bounds its own backlog by shedding work (it sees its backlog through
 `pending`). `at_marker(fn)` runs `fn` in the stage's thread once every item submitted before it is done: a
-consistent cut of the pipeline (snapshots) without stopping the producer. With `threaded=False` every item runs
-inline, in submission order: deterministic runs for tests and offline evaluation.
+consistent cut of the pipeline (snapshots) without stopping the producer. A threaded stage may have `idle` work: a
+small step run whenever its queue is empty (it returns False when there is nothing to do, and the thread then waits
+for the next item). With `threaded=False` every item runs inline, in submission order, and idle work never runs:
+deterministic runs for tests and offline evaluation.
 """
 
 from __future__ import annotations
@@ -33,9 +35,11 @@ class _Marker:
 class StageThread:
     """One input queue and the thread that serves it with `handle(item)` (see the module docstring)."""
 
-    def __init__(self, name: str, handle: Callable[[Any], None], threaded: bool) -> None:
+    def __init__(self, name: str, handle: Callable[[Any], None], threaded: bool,
+                 idle: Callable[[], bool] | None = None) -> None:
         self.name = name
         self._handle = handle
+        self._idle = idle
         self._error: BaseException | None = None
         self._queue: queue.Queue | None = None
         self._thread: threading.Thread | None = None
@@ -93,7 +97,7 @@ class StageThread:
         assert self._queue is not None
         _lower_priority(BACKGROUND_NICE)
         while True:
-            item = self._queue.get()
+            item = self._next_item()
             try:
                 if item is _STOP:
                     return
@@ -109,6 +113,22 @@ class StageThread:
                     with self._count_lock:
                         self._items -= 1
                 self._queue.task_done()
+
+    def _next_item(self) -> Any:
+        """The next queued item; while there is none, the idle work's steps (until it has nothing to do)."""
+        assert self._queue is not None
+        while self._idle is not None and self._error is None:
+            try:
+                return self._queue.get_nowait()
+            except queue.Empty:
+                pass
+            try:
+                if not self._idle():
+                    break
+            except BaseException as err:  # noqa: BLE001 - reported to the producer on its next call
+                log.exception("%s stage: idle work failed", self.name)
+                self._error = err
+        return self._queue.get()
 
 
 class QueuedStage:

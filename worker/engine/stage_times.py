@@ -22,6 +22,7 @@ STAGES: dict[str, tuple[str, str, str]] = {
     "map_merge": ("backend", "merge & voxelization (fusion, pruning)", "frame"),
     "map_refine": ("backend", "refine", "frame"),
     "map_loop_correction": ("backend", "GS loop correction", "event"),
+    "map_catch_up": ("backend", "refinement shed earlier, caught up while idle", "event"),
     "map_final_refine": ("backend", "final refinement (at finish)", "event"),
 }
 

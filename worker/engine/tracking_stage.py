@@ -5,7 +5,9 @@ odometry or the model) -> the keyframe decision (the source's hint, else the mot
 which ties every frame to its reference keyframe. A new keyframe goes to the loop-closing stage as a pose-graph node
 with its odometry edge (`publish_keyframe`); loop corrections come back through `apply_correction`, which moves the
 keyframes (those made after the optimisation follow the newest optimised one) and bumps the revision, so the
-published poses never jump. The stage never waits for mapping or loop closing.
+published poses never jump. The stage never waits for mapping or loop closing. Frames larger than `max_side` (the
+tracking resolution; 0: as they come) are tracked at that size: the pose does not depend on it, mapping keeps the
+full frame.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
+import cv2
 import numpy as np
 import torch
 
@@ -29,8 +32,9 @@ class TrackingStage:
     """Pose source -> keyframe decision -> trajectory (see the module docstring)."""
 
     def __init__(self, selector: MotionKeyframeSelector, publish_keyframe: Callable[[GraphKeyframe], None],
-                 timings: StageTimes | None = None) -> None:
+                 timings: StageTimes | None = None, max_side: int = 0) -> None:
         self.selector = selector
+        self.max_side = max_side
         self.publish_keyframe = publish_keyframe
         self.timings = timings or StageTimes()
         self.pose_source = None  # chosen by the system from the first frame
@@ -38,6 +42,7 @@ class TrackingStage:
         self.trajectory = Trajectory()
         self.last_keyframe: int | None = None
         self.submap_of: dict[int, int] = {}
+        self._tracked_frame: Frame | None = None  # the newest frame as the pose source saw it
 
     @property
     def revision(self) -> int:
@@ -46,8 +51,12 @@ class TrackingStage:
     def track(self, frame: Frame, intrinsics: Intrinsics | None) -> tuple[TrackingResult, np.ndarray]:
         """The pose source's result for `frame` and its pose (float64 4x4, checked finite)."""
         with self.timings.measure(self.timing_stage):
-            tracking = self.pose_source.track(frame, intrinsics)
-        self.selector.observe(frame.image)
+            small = at_most(frame, self.max_side)
+            if small is not frame and intrinsics is not None:
+                intrinsics = intrinsics.scaled(small.width, small.height)
+            tracking = self.pose_source.track(small, intrinsics)
+        self._tracked_frame = small
+        self.selector.observe(small.image)
         pose = np.asarray(tracking.pose, np.float64)
         if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):  # a bug in the source: never passed on
             raise RuntimeError(f"frame {frame.index}: the pose source returned a non-finite pose")
@@ -77,7 +86,9 @@ class TrackingStage:
         self.publish_keyframe(node)
         self.submap_of[kf_id] = submap_id
         self.last_keyframe = kf_id
-        self.pose_source.keyframe_added(frame, tracked_pose)
+        tracked = self._tracked_frame
+        self.pose_source.keyframe_added(tracked if tracked is not None and tracked.index == frame.index
+                                        else at_most(frame, self.max_side), tracked_pose)
         return world
 
     def add_frame(self, frame: Frame, tracked_pose: np.ndarray, is_keyframe: bool, submap_id: int) -> np.ndarray:
@@ -93,6 +104,13 @@ class TrackingStage:
         revision = self.trajectory.update_keyframes(moved)
         return revision, {k: p for k, p in moved.items() if not np.allclose(p, old[k], atol=1e-9)}
 
+    def source_intrinsics(self, width: int, height: int) -> Intrinsics | None:
+        """The pose source's camera estimate (self-calibration), at `width` x `height`; None when it has none."""
+        estimate = getattr(self.pose_source, "estimated_intrinsics", None)
+        if estimate is None or (estimate.width, estimate.height) == (width, height):
+            return estimate
+        return estimate.scaled(width, height)
+
     def state_dict(self) -> dict[str, Any]:
         return {"trajectory": self.trajectory.state_dict(), "selector": self.selector.state_dict(),
                 "last_keyframe": self.last_keyframe, "submap_of": [[k, v] for k, v in self.submap_of.items()],
@@ -105,6 +123,22 @@ class TrackingStage:
         self.submap_of = {int(k): int(v) for k, v in state["submap_of"]}
         if state.get("pose_source") and self.pose_source is not None:
             self.pose_source.load_state_dict(state["pose_source"])
+
+
+def at_most(frame: Frame, max_side: int) -> Frame:
+    """`frame` brought down (aspect kept) so that its long side is at most `max_side` (0: as it is): area-averaged
+    colour, nearest depth (averaging would mix valid depth with holes), intrinsics scaled."""
+    longest = max(frame.width, frame.height)
+    if max_side <= 0 or longest <= max_side:
+        return frame
+    width = max(1, round(frame.width * max_side / longest))
+    height = max(1, round(frame.height * max_side / longest))
+    image = cv2.resize(frame.image, (width, height), interpolation=cv2.INTER_AREA)
+    depth = None if frame.depth is None else cv2.resize(frame.depth, (width, height),
+                                                          interpolation=cv2.INTER_NEAREST)
+    intrinsics = None if frame.intrinsics is None else frame.intrinsics.scaled(width, height)
+    return Frame(frame.index, frame.timestamp, image, intrinsics=intrinsics, depth=depth, pose=frame.pose,
+                 gt_pose=frame.gt_pose)
 
 
 def follow_corrections(current: dict[int, np.ndarray], corrected: dict[int, np.ndarray]) -> dict[int, np.ndarray]:

@@ -250,6 +250,18 @@ class GaussianMap:
         trainable = torch.isin(self._surfels.keyframe_ids, torch.tensor(window, device=self.device))
         return self._refine(trainable, window, iterations, self._scene_scale(window))
 
+    def refine_around(self, kf_id: int, iterations: int) -> RefineReport:
+        """Refine the surfels of keyframe `kf_id` and of the `config.window - 1` held keyframes before it against
+        those keyframes' images: the window `refine` had when `kf_id` was new (catching up refinement that load
+        shedding skipped). Nothing when `kf_id` is not in the map or its image is no longer held."""
+        ids = self.keyframe_ids
+        if kf_id not in self._keyframes or not self._keyframes[kf_id].held or len(self._surfels) == 0:
+            return RefineReport()
+        before = [k for k in ids[:ids.index(kf_id)] if self._keyframes[k].held]
+        window = before[-(self.config.window - 1):] + [kf_id] if self.config.window > 1 else [kf_id]
+        trainable = torch.isin(self._surfels.keyframe_ids, torch.tensor(window, device=self.device))
+        return self._refine(trainable, window, int(iterations), self._scene_scale(window))
+
     def _random_archived(self, count: int, exclude: list[int]) -> list[int]:
         """Up to `count` held keyframes outside `exclude`, drawn with a seed fixed by the map's keyframe count."""
         pool = [k for k in self.keyframe_ids if k not in exclude and self._keyframes[k].held]

@@ -42,12 +42,15 @@ class SessionEngine(Protocol):
 
 
 def create_engine(kind: str, preset: str | None, intrinsics: Intrinsics | None,
-                  pose_mode: str | None = None) -> SessionEngine:
-    """A fresh engine of `kind` for a new session; `pose_mode` (prior/fixed/ignore) overrides the preset's."""
+                  pose_mode: str | None = None, tracking_side: int | None = None) -> SessionEngine:
+    """A fresh engine of `kind` for a new session; `pose_mode` (prior/fixed/ignore) and `tracking_side` (the
+    tracking resolution's long side) override the preset's."""
     if kind == "slam":
         from worker.slam import SlamConfig, SlamSystem
 
-        overrides = {"input": {"pose_mode": pose_mode}} if pose_mode else {}
+        overrides: dict[str, dict] = {"input": {"pose_mode": pose_mode}} if pose_mode else {}
+        if tracking_side:
+            overrides["tracking"] = {"max_side": int(tracking_side)}
         return SlamSystem(SlamConfig.preset(preset or "default", **overrides), intrinsics=intrinsics)
     if kind == "passthrough":
         return PassthroughEngine(intrinsics=intrinsics, delay_s=_passthrough_delay_s())

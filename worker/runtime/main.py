@@ -8,7 +8,9 @@ FLASHMONO_MAX_SESSIONS (sessions per worker, 16), FLASHMONO_TORCH_THREADS (torch
 FLASHMONO_MAX_FRAME_SIDE (640), FLASHMONO_MAX_FRAME_ATTEMPTS (2), FLASHMONO_MEMORY_BUDGET_MB (0: none),
 FLASHMONO_IDLE_TIMEOUT_S (600; 0: never), FLASHMONO_TRANSIENT_TTL_S (3600), FLASHMONO_RETENTION_S (0: kept),
 FLASHMONO_BLOB_DIR (none), FLASHMONO_ARCHIVE_AFTER_S (3600), FLASHMONO_SKIP_AFTER_MS (100: a frame that waited
-longer while a newer one is waiting is skipped, newest first wins; 0: never), FLASHMONO_MAX_CONSECUTIVE_SKIPS (5).
+longer while a newer one is waiting is skipped, newest first wins; 0: never), FLASHMONO_MAX_CONSECUTIVE_SKIPS (5),
+FLASHMONO_TRACKING_SIDE (0: sessions that name no tracking resolution track at their working size),
+FLASHMONO_SWITCH_INTERVAL_MS (1).
 """
 
 from __future__ import annotations
@@ -61,6 +63,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--max-consecutive-skips", type=int,
                         default=int(env("FLASHMONO_MAX_CONSECUTIVE_SKIPS", "5")),
                         help="frames skipped in a row at most (tracking keeps its continuity)")
+    parser.add_argument("--tracking-side", type=int, default=int(env("FLASHMONO_TRACKING_SIDE", "0")),
+                        help="sessions that name no tracking resolution track frames at most this long a side "
+                             "(0: at their working size)")
+    parser.add_argument("--switch-interval-ms", type=float,
+                        default=float(env("FLASHMONO_SWITCH_INTERVAL_MS", "1")),
+                        help="the interpreter's thread switch interval: how long the tracking thread may wait for the "
+                             "GIL while a mapping or loop thread runs Python (the interpreter's default is 5)")
     parser.add_argument("--torch-threads", type=int, default=int(env("FLASHMONO_TORCH_THREADS", "0")))
     parser.add_argument("--log-level", default=env("FLASHMONO_LOG_LEVEL", "INFO"))
     return parser
@@ -73,14 +82,18 @@ def main(argv: list[str] | None = None) -> int:
         print("error: REDIS_URL (or --redis-url) is required for a worker", file=sys.stderr)
         return 2
     if min(args.snapshot_every, args.max_sessions, args.max_frame_attempts) < 1 or args.max_frame_side < 32 \
-            or args.memory_budget_mb < 0:
+            or args.memory_budget_mb < 0 or args.tracking_side < 0:
         print("error: --snapshot-every, --max-sessions and --max-frame-attempts must be >= 1, --max-frame-side "
-              ">= 32 and --memory-budget-mb >= 0", file=sys.stderr)
+              ">= 32, --memory-budget-mb and --tracking-side >= 0", file=sys.stderr)
         return 2
     if args.transient_ttl_s < 1 or args.retention_s < 0 or args.idle_timeout_s < 0:
         print("error: --transient-ttl-s must be >= 1 (clients still read the last messages), --retention-s and "
               "--idle-timeout-s >= 0", file=sys.stderr)
         return 2
+    if args.switch_interval_ms <= 0:
+        print("error: --switch-interval-ms must be > 0", file=sys.stderr)
+        return 2
+    sys.setswitchinterval(args.switch_interval_ms / 1000.0)
     if args.torch_threads > 0:
         import torch
 
@@ -92,7 +105,8 @@ def main(argv: list[str] | None = None) -> int:
                            memory_budget_mb=args.memory_budget_mb, idle_timeout_s=args.idle_timeout_s,
                            transient_ttl_s=args.transient_ttl_s, retention_s=args.retention_s,
                            blob_dir=args.blob_dir, archive_after_s=args.archive_after_s,
-                           skip_after_ms=args.skip_after_ms, max_consecutive_skips=args.max_consecutive_skips)
+                           skip_after_ms=args.skip_after_ms, max_consecutive_skips=args.max_consecutive_skips,
+                           tracking_side=args.tracking_side)
     # No silent retries inside redis-py: a lost connection surfaces to the worker's loops, which wait the outage
     # out and resume each session from its snapshot (a retried XREADGROUP could lose the entries of its reply).
     # REDIS_URL may name a Redis Cluster (redis+cluster://host:port,...): see worker.runtime.connection

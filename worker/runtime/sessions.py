@@ -88,6 +88,7 @@ class RuntimeConfig:
     block_ms: int = 500
     outbox_maxlen: int = 5000
     max_frame_side: int = DEFAULT_MAX_SIDE  # frames are worked on at most this long a side
+    tracking_side: int = 0  # sessions that name none track at most this long a side (0: at the working size)
     max_frame_attempts: int = 2  # workers that may die on one frame before it is quarantined
     memory_budget_mb: int = 0  # no new session while the worker's resident memory is above it (0: no limit)
     idle_timeout_s: float = 600.0  # a session without frames this long is abandoned, its slot freed (0: never)
@@ -237,6 +238,10 @@ class SessionRunner(threading.Thread):
         if not self._record.update({"worker": self.worker_id, "updated_at": now_iso()}):
             raise SessionGone
 
+    def _tracking_side(self) -> int | None:
+        """The tracking resolution's long side: the session's, else the worker's default (None: as frames come)."""
+        return int(self._session.get("tracking_side") or 0) or self.config.tracking_side or None
+
     def _session_intrinsics(self) -> dict[str, Any] | None:
         text = self._session.get("intrinsics")
         return json.loads(text) if text and text != "null" else None
@@ -253,7 +258,8 @@ class SessionRunner(threading.Thread):
             intrinsics = self._session_intrinsics()
             self.engine = create_engine(self.config.engine_kind, self._session.get("preset") or None,
                                         Intrinsics.from_dict(intrinsics) if intrinsics else None,
-                                        pose_mode=self._session.get("pose_mode") or None)
+                                        pose_mode=self._session.get("pose_mode") or None,
+                                        tracking_side=self._tracking_side())
         self._done_seqs = {int(s) for s in self.client.hkeys(keys.poses(self.session_id))}
         self._rejected = {int(s) for s in self.client.hkeys(keys.rejected(self.session_id))}
         self._done_seqs |= self._rejected
