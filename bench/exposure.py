@@ -2,7 +2,8 @@
 
 The first `--frames` ICL frames (320x240, posed RGB-D, `pose_mode: fixed`, the `rgbd` preset, inline stages) have
 their colours changed as an auto-exposure would: frame t is `gain(t) * image + bias(t)` (gain 1 + `--amplitude`
-sin(2 pi t / `--period`), a little different per channel, clipped to [0, 255]); frame 0 keeps its colours. The map
+sin(2 pi t / `--period`) x (1, 1.15, 0.85) per channel, bias a tenth of that, clipped to [0, 255]); frame 0 keeps
+its colours. The map
 is built with exposure estimation off, then on; held-out non-keyframes (every 5th) are rendered at their poses and
 scored against the *original* frames (the colours of frame 0's exposure, which the map's normalised colours should
 show), and against the frames as the camera gave them. With exposure on, each keyframe's estimated gain is compared
@@ -27,10 +28,10 @@ from bench.render import machine
 
 
 def exposure_at(t: int, amplitude: float, period: float) -> tuple[np.ndarray, np.ndarray]:
-    """(gain [3], bias [3]) applied to frame t."""
-    phase = 2 * math.pi * t / period
-    gain = 1 + amplitude * np.array([math.sin(phase), math.sin(phase + 0.3), math.sin(phase - 0.3)])
-    bias = 0.1 * amplitude * np.array([math.sin(phase)] * 3)
+    """(gain [3], bias [3]) applied to frame t (the identity at t = 0, whose colours the map keeps)."""
+    wave = math.sin(2 * math.pi * t / period)
+    gain = 1 + amplitude * wave * np.array([1.0, 1.15, 0.85])
+    bias = 0.1 * amplitude * wave * np.ones(3)
     return gain, bias
 
 
