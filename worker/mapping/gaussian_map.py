@@ -5,8 +5,9 @@ viewmat = its inverse), so rendered depth is in world units; a keyframe's own ca
 world-unit depth divided by its scale s.
 
 With `refine.exposure`, each keyframe has an affine exposure (worker.mapping.exposure): estimated against the map
-when the keyframe is added (its new surfels get exposure-normalised colours) and re-estimated by every refinement
-that renders it; the first keyframe's stays the identity. Renders use the normalised colours.
+when the keyframe is added (its new surfels get exposure-normalised colours) and re-estimated by every window
+refinement that renders it (the final global refinement applies them as they are); the first keyframe's stays the
+identity. Renders use the normalised colours.
 """
 
 from __future__ import annotations
@@ -96,18 +97,20 @@ class _Keyframe:
         """Whether this keyframe can still be a refinement target."""
         return self.image is not None or self.archived is not None
 
-    def refine_view(self, estimate_exposure: bool = False) -> RefineView:
-        """This keyframe as a refinement target (it must be held); with its exposure to estimate when asked."""
+    def refine_view(self, exposure: str = "identity") -> RefineView:
+        """This keyframe as a refinement target (it must be held), seen with the identity exposure, its own
+        ("fixed") or its own re-estimated ("estimate")."""
         if self.archived is not None:
             image, depth = self.archived.unpack(self.K.device)
         else:
             assert self.image is not None
             image, depth = self.image, self.depth
         viewmat, scale = rigid_viewmat(self.pose)
-        exposure = None
-        if estimate_exposure:
-            exposure = identity_exposure(self.K.device) if self.exposure is None else self.exposure
-        return RefineView(viewmat.to(self.K.device, torch.float32), self.K, image, depth, scale, exposure)
+        own = None
+        if exposure != "identity":
+            own = identity_exposure(self.K.device) if self.exposure is None else self.exposure
+        return RefineView(viewmat.to(self.K.device, torch.float32), self.K, image, depth, scale, own,
+                          estimate_exposure=exposure == "estimate")
 
     def archive(self) -> None:
         """Compact storage once out of the refinement window (see worker.mapping.keyframe_archive)."""
@@ -279,7 +282,10 @@ class GaussianMap:
         a fresh optimiser and a new seeded random order of the views. Measured on ICL (36 keyframes, 8 passes):
         a restart every 2 passes 28.9 dB, every 4 passes 28.7, every pass 28.1; one 300-iteration run 28.3.
         It stops after `budget_s` seconds (default `config.final_refine_budget_s`; math.inf: no bound) whatever
-        `iterations` asks: a long session's end costs the same as a short one's."""
+        `iterations` asks: a long session's end costs the same as a short one's. Keyframe exposures (with
+        `refine.exposure`) are applied as the online refinement left them, not re-estimated: re-fitted in the
+        global pass, where every view trains the colours in turn, they drifted with the colours (a simulated
+        auto-exposure on ICL: 26.6 -> 23.1 dB against the normalised colours; frozen: see bench/RESULTS.md)."""
         held = [kf_id for kf_id in self.keyframe_ids if self._keyframes[kf_id].held]
         if not held or len(self._surfels) == 0 or iterations <= 0:
             return RefineReport()
@@ -294,7 +300,7 @@ class GaussianMap:
             order = [held[i] for i in torch.randperm(len(held), generator=generator).tolist()]
             trainable = torch.ones(len(self._surfels), dtype=torch.bool, device=self.device)
             part = self._refine(trainable, order, min(chunk, int(iterations) - start), self._scene_scale(held),
-                                deadline)
+                                deadline, estimate_exposure=False)
             report.losses += part.losses
             report.views += [held.index(order[i]) for i in part.views]
         return report
@@ -305,11 +311,13 @@ class GaussianMap:
         return sum(kf.held for kf in self._keyframes.values())
 
     def _refine(self, trainable: torch.Tensor, kf_ids: list[int], iterations: int, scene_scale: float,
-                deadline: float | None = None) -> RefineReport:
-        """Refine against the keyframes `kf_ids` (their exposures too, the first keyframe's excepted)."""
+                deadline: float | None = None, estimate_exposure: bool = True) -> RefineReport:
+        """Refine against the keyframes `kf_ids` (their exposures too, the first keyframe's excepted, unless
+        `estimate_exposure` is False: then they are applied as they are)."""
         anchor = self.keyframe_ids[0]
-        estimate = self.config.refine.exposure
-        views = [self._keyframes[k].refine_view(estimate and k != anchor) for k in kf_ids]
+        mode = "estimate" if estimate_exposure else "fixed"
+        views = [self._keyframes[k].refine_view(mode if self.config.refine.exposure and k != anchor else "identity")
+                 for k in kf_ids]
         with torch.enable_grad():
             refined, report = refine_surfels(self._surfels, trainable, views, iterations, self.config.refine,
                                              scene_scale, deadline)

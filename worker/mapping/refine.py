@@ -65,6 +65,7 @@ class RefineView:
     depth: torch.Tensor | None = None
     depth_scale: float = 1.0
     exposure: torch.Tensor | None = None
+    estimate_exposure: bool = True  # False: `exposure` is applied as it is
 
 
 @dataclass
@@ -174,8 +175,10 @@ def _optimise(params: _RawParams, fixed: Surfels, views: list[RefineView], depth
         render = rasterize(current, view.viewmat, view.K, W, H)
         rgb = render.rgb
         if settings.exposure and view.exposure is not None:
-            exposure = _estimate_exposure(render, view.image, report.exposures.get(index, view.exposure), settings)
-            report.exposures[index] = exposure
+            exposure = view.exposure
+            if view.estimate_exposure:
+                exposure = _estimate_exposure(render, view.image, report.exposures.get(index, exposure), settings)
+                report.exposures[index] = exposure
             rgb = apply_exposure(rgb, exposure)
         loss = photometric_loss(rgb, view.image, settings.lambda_ssim, settings.ssim_downsample)
         if view.depth is not None and settings.lambda_depth > 0 and depth_scales[index] is not None:
