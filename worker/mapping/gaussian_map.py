@@ -6,8 +6,8 @@ world-unit depth divided by its scale s.
 
 With `refine.exposure`, each keyframe has an affine exposure (worker.mapping.exposure): estimated against the map
 when the keyframe is added (its new surfels get exposure-normalised colours) and re-estimated by every window
-refinement that renders it (the final global refinement applies them as they are); the first keyframe's stays the
-identity. Renders use the normalised colours.
+refinement that renders it (the final global refinement applies them as they are); the first keyframe's stays
+the identity. Renders use the normalised colours.
 """
 
 from __future__ import annotations
@@ -283,9 +283,8 @@ class GaussianMap:
         a restart every 2 passes 28.9 dB, every 4 passes 28.7, every pass 28.1; one 300-iteration run 28.3.
         It stops after `budget_s` seconds (default `config.final_refine_budget_s`; math.inf: no bound) whatever
         `iterations` asks: a long session's end costs the same as a short one's. Keyframe exposures (with
-        `refine.exposure`) are applied as the online refinement left them, not re-estimated: re-fitted in the
-        global pass, where every view trains the colours in turn, they drifted with the colours (a simulated
-        auto-exposure on ICL: 26.6 -> 23.1 dB against the normalised colours; frozen: see bench/RESULTS.md)."""
+        `refine.exposure`) are applied as the online refinement left them: re-fitted here, where every view trains
+        the colours in turn, they drifted with the colours (bench/RESULTS.md, issue 21)."""
         held = [kf_id for kf_id in self.keyframe_ids if self._keyframes[kf_id].held]
         if not held or len(self._surfels) == 0 or iterations <= 0:
             return RefineReport()
