@@ -49,6 +49,10 @@ class FrontendConfig(_Section):
         0.10, gt=0, description="monocular: a keyframe once the camera moved this fraction of the scene depth")
     keyframe_translation: float = Field(0.2, gt=0, description="posed mode: or when it moved this far (pose units)")
     keyframe_rotation_deg: float = Field(15.0, gt=0, description="or turned this much")
+    keyframe_blur_ratio: float = Field(
+        0.5, ge=0, lt=1, description="a due keyframe waits (up to keyframe_blur_delay frames) while the frame's "
+        "sharpness (variance of the Laplacian) is below this fraction of the recent frames' median; 0 = never")
+    keyframe_blur_delay: int = Field(2, ge=0, le=16, description="frames a keyframe may wait for a sharper frame")
     min_confidence: float = Field(1.5, ge=1.0, description="per-pixel confidence below which surfels are dropped")
     min_kept_fraction: float = Field(
         0.0, ge=0.0, le=1.0, description="monocular: when fewer pixels pass min_confidence, keep this fraction "
@@ -129,6 +133,12 @@ class MappingConfig(_Section):
     merge_only_backlog: int = Field(
         6, ge=1, description="load shedding: with more keyframes than this waiting, keyframes are merged into the "
         "map without refinement (finish() refines them)")
+    exposure: bool = Field(
+        False, description="estimate each keyframe's affine exposure (gain and bias per channel) in fusion and "
+        "refinement and keep it out of the map's colours: renders show exposure-normalised colours")
+    exposure_prior: float = Field(
+        0.002, ge=0, description="exposure: pull toward the identity (gain 1, bias 0), as a fraction of the pixels "
+        "the fit uses")
 
 
 class InputConfig(_Section):
@@ -157,9 +167,11 @@ class InputConfig(_Section):
     mvs_frames_after: int = Field(
         4, ge=0, le=64, description="mvs: frames a keyframe waits for, so that it has neighbours on both sides")
     mvs_buffer_frames: int = Field(16, ge=2, le=256, description="mvs: recent frames kept as neighbour candidates")
-    mvs_fill: Literal["none", "model"] = Field(
-        "none", description="mvs: pixels without a confident depth get no surfel (none) or the learned model's "
-        "single-view depth scaled to the confident pixels (model; one model pass per keyframe)")
+    mvs_fill: Literal["none", "model", "propagate"] = Field(
+        "none", description="mvs: pixels without a confident depth get no surfel (none), the learned model's "
+        "single-view depth scaled to the confident pixels (model; one model pass per keyframe), or a depth "
+        "propagated from confident pixels of similar colour on the same plane (propagate: worker.depth.hole_fill; "
+        "those surfels start less opaque)")
 
 
 class TrackingConfig(_Section):

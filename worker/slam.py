@@ -94,7 +94,8 @@ class SlamSystem:
         self.loop_stage = self._new_loop_stage(self._new_pose_graph(), closer=None, depth_points=None)
         fc = self.config.frontend
         self.tracking_stage = TrackingStage(
-            MotionKeyframeSelector(fc.keyframe_every, fc.keyframe_translation, fc.keyframe_rotation_deg),
+            MotionKeyframeSelector(fc.keyframe_every, fc.keyframe_translation, fc.keyframe_rotation_deg,
+                                   fc.keyframe_blur_ratio, fc.keyframe_blur_delay),
             publish_keyframe=lambda node: self.loop_stage.submit(node), timings=self.timings,
             max_side=self.config.tracking.max_side)
         self._traj = self.tracking_stage.trajectory
@@ -472,7 +473,7 @@ class SlamSystem:
         if mvs:
             fill = self._model_depth_filler() if cfg.input.mvs_fill == "model" else None
             self.keyframe_depth = KeyframeDepth(cfg.depth, cfg.input.mvs_buffer_frames, cfg.input.mvs_frames_after,
-                                                fill)
+                                                fill, propagate=cfg.input.mvs_fill == "propagate")
         self.tracking_stage.pose_source = self._build_pose_source(tracking)
         self.tracking_stage.timing_stage = "frontend_inference" if tracking == "model" else "frontend_tracking"
         log.info("session tracking: %s (mode %s), surfels from %s", tracking, self.mode, self.depth_source)

@@ -4,7 +4,10 @@ The engine keeps the last frames' images here; each keyframe waits until `frames
 (neighbours on both sides see around different occluders), then its neighbours are chosen by baseline and view
 angle among the kept frames (worker.depth.select_neighbours) at their current poses, and a `KeyframeJob` is made
 whose surfel grid the backend thread builds from the plane-sweep depth (worker.depth.estimate_depth): confident
-pixels become surfels, the others none (or, with a `fill`, the learned model's depth brought to their scale).
+pixels become surfels, the others none, or, with a `fill`, the learned model's depth brought to their scale, or,
+with `propagate`, depth propagated from confident pixels of the same surface (worker.depth.hole_fill): those
+surfels start at `PROPAGATED_OPACITY` of the usual opacity, so the refinement can fade and prune them where the
+photos disagree, and the refinement's depth term sees the confident pixels only.
 """
 
 from __future__ import annotations
@@ -19,11 +22,17 @@ import numpy as np
 import torch
 
 from worker.depth import MultiViewDepthConfig, estimate_depth, scale_to_confident, select_neighbours
+from worker.depth.hole_fill import HoleFillSettings, fill_depth
 from worker.engine.backend import KeyframeJob
 from worker.engine.surfel_init import grid_from_depth
 from worker.geometry import se3_part
 
 log = logging.getLogger(__name__)
+
+# Surfels on propagated depth start at this fraction of the usual initial opacity (a lower confidence).
+PROPAGATED_OPACITY = 0.6
+# Depth is propagated only where multi-view stereo covers at least this fraction of the keyframe.
+MIN_COVERAGE_TO_PROPAGATE = 0.05
 
 
 @dataclass
@@ -55,11 +64,15 @@ class KeyframeDepth:
     """The frame ring and the keyframes waiting for their multi-view depth (see the module docstring)."""
 
     def __init__(self, config: MultiViewDepthConfig, buffer_frames: int, frames_after: int,
-                 fill: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
+                 fill: Callable[[np.ndarray], np.ndarray] | None = None,
+                 propagate: bool = False, propagation: HoleFillSettings | None = None) -> None:
         """`fill(image) -> depth`: another depth (the model's) for the pixels stereo leaves without one, brought to
-        the stereo depth's scale; None leaves them without surfels."""
+        the stereo depth's scale; else `propagate`: depth propagated into them from confident pixels of the same
+        surface (with `propagation`'s settings); neither leaves them without surfels."""
         self.config = config
         self.fill = fill
+        self.propagation = (propagation or HoleFillSettings()) if propagate else None
+        self.fill_stats: list[float] = []  # fraction of each keyframe's pixels given a propagated depth
         self.buffer_frames = buffer_frames
         self.frames_after = frames_after
         self.images: OrderedDict[int, np.ndarray] = OrderedDict()
@@ -113,12 +126,21 @@ class KeyframeDepth:
             if estimate.coverage > 0.2:
                 self.recent_hint = depth_hint(estimate.depth, margin=3.0)
             confident = estimate.depth / scale  # world units -> the keyframe camera's (Sim(3) pose)
-            surfel_depth = confident
-            if self.fill is not None and estimate.coverage > 0.05:
+            surfel_depth, propagated = confident, None
+            if self.fill is not None and estimate.coverage > MIN_COVERAGE_TO_PROPAGATE:
                 filled = scale_to_confident(self.fill(ref_image), confident, estimate.confidence)
                 surfel_depth = np.where(confident > 0, confident, filled).astype(np.float32)
+            elif self.propagation is not None and estimate.coverage > MIN_COVERAGE_TO_PROPAGATE:
+                result = fill_depth(confident, ref_image, self.propagation)
+                surfel_depth, propagated = result.depth, torch.from_numpy(result.filled)
+                self.fill_stats.append(result.fill_fraction)
+                log.debug("keyframe %d: %.0f%% of the pixels given a propagated depth", kf.kf_id,
+                          100 * result.fill_fraction)
             # The refinement's depth term sees the confident depth only.
             grid = grid_from_depth(image, torch.from_numpy(surfel_depth), Kt, fill_holes=False)
+            if propagated is not None:
+                grid["opacities"] = torch.where(propagated, grid["opacities"] * PROPAGATED_OPACITY,
+                                                grid["opacities"])
             return Kt, grid, torch.from_numpy(confident)
 
         return KeyframeJob(kf.kf_id, world_pose, Kt, image, grid={}, depth=None, build=build)

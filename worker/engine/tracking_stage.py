@@ -56,6 +56,7 @@ class TrackingStage:
                 intrinsics = intrinsics.scaled(small.width, small.height)
             tracking = self.pose_source.track(small, intrinsics)
         self._tracked_frame = small
+        self.selector.observe(small.image)
         pose = np.asarray(tracking.pose, np.float64)
         if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):  # a bug in the source: never passed on
             raise RuntimeError(f"frame {frame.index}: the pose source returned a non-finite pose")

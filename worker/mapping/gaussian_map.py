@@ -3,6 +3,11 @@
 Keyframe poses are camera-to-world Sim(3) matrices [sR|t]. Renders use the rigid part [R|t] (world->camera
 viewmat = its inverse), so rendered depth is in world units; a keyframe's own camera-frame depth equals the
 world-unit depth divided by its scale s.
+
+With `refine.exposure`, each keyframe has an affine exposure (worker.mapping.exposure): estimated against the map
+when the keyframe is added (its new surfels get exposure-normalised colours) and re-estimated by every window
+refinement that renders it (the final global refinement applies them as they are); the first keyframe's stays
+the identity. Renders use the normalised colours.
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ import torch
 
 from worker.geometry import make_sim3, sim3_decompose, sim3_inverse
 
+from .exposure import fit_exposure, identity_exposure, remove_exposure
 from .fusion import FusionThresholds, attribute_errors, densify_mask, prune_mask
 from .keyframe_archive import ArchivedKeyframe
 from .loop_correction import correct_map
@@ -24,6 +30,9 @@ from .rasterize import RenderResult, rasterize, visible_mask
 from .refine import RefineReport, RefineSettings, RefineView, refine_surfels
 from .surfels import Surfels
 from .voxel_grid import capped_mask, voxel_keys
+
+# A new keyframe's exposure is fitted to the map's render when the map covers at least this fraction of its view.
+MIN_EXPOSURE_COVERAGE = 0.05
 
 
 @dataclass
@@ -81,21 +90,27 @@ class _Keyframe:
     image: torch.Tensor | None  # [H,W,3] float32 in [0,1] while in the window; None once archived or dropped
     depth: torch.Tensor | None  # [H,W] float32 camera-frame z (0 = unknown)
     archived: ArchivedKeyframe | None = None  # image and depth, compact, once out of the window
+    exposure: torch.Tensor | None = None  # [6] gain, bias (worker.mapping.exposure); None = the identity
 
     @property
     def held(self) -> bool:
         """Whether this keyframe can still be a refinement target."""
         return self.image is not None or self.archived is not None
 
-    def refine_view(self) -> RefineView:
-        """This keyframe as a refinement target (it must be held)."""
+    def refine_view(self, exposure: str = "identity") -> RefineView:
+        """This keyframe as a refinement target (it must be held), seen with the identity exposure, its own
+        ("fixed") or its own re-estimated ("estimate")."""
         if self.archived is not None:
             image, depth = self.archived.unpack(self.K.device)
         else:
             assert self.image is not None
             image, depth = self.image, self.depth
         viewmat, scale = rigid_viewmat(self.pose)
-        return RefineView(viewmat.to(self.K.device, torch.float32), self.K, image, depth, scale)
+        own = None
+        if exposure != "identity":
+            own = identity_exposure(self.K.device) if self.exposure is None else self.exposure
+        return RefineView(viewmat.to(self.K.device, torch.float32), self.K, image, depth, scale, own,
+                          estimate_exposure=exposure == "estimate")
 
     def archive(self) -> None:
         """Compact storage once out of the refinement window (see worker.mapping.keyframe_archive)."""
@@ -190,8 +205,13 @@ class GaussianMap:
         # whole map's): the merge costs what the view holds, not what the map holds.
         in_view = self._in_view(viewmat, kf.K, kf.width, kf.height)
         local = self._surfels.select(in_view)
+        normalised = kf.image
+        if self.config.refine.exposure and self._keyframes:
+            kf.exposure = self._initial_exposure(local, viewmat, kf)
+            normalised = remove_exposure(kf.image, kf.exposure).clamp(0, 1)
+            surfels_cam.colors = remove_exposure(surfels_cam.colors, kf.exposure).clamp(0, 1)
         if len(local):
-            attribution = attribute_errors(local, viewmat, kf.K, kf.image, kf.depth, th, scale)
+            attribution = attribute_errors(local, viewmat, kf.K, normalised, kf.depth, th, scale)
             remove = prune_mask(attribution, th)
             pruned = int(remove.sum())
             accumulation = attribution.render.alpha
@@ -218,6 +238,11 @@ class GaussianMap:
         self._archive_old_images()
         return FusionStats(pruned=pruned, added=len(new), skipped=len(surfels_cam) - len(new))
 
+    def keyframe_exposure(self, kf_id: int) -> torch.Tensor:
+        """[6] affine exposure (gain, bias per channel) of a keyframe (the identity unless estimated)."""
+        exposure = self._keyframes[int(kf_id)].exposure
+        return identity_exposure(self.device) if exposure is None else exposure.clone()
+
     def refine(self, iterations: int | None = None) -> RefineReport:
         """Refine the surfels of the last `config.window` keyframes against those keyframes' images."""
         iterations = self.config.iterations if iterations is None else int(iterations)
@@ -225,9 +250,8 @@ class GaussianMap:
         if not window or len(self._surfels) == 0:
             return RefineReport()
         window = self._random_archived(self.config.archived_views_per_refine, exclude=window) + window
-        views = [self._keyframes[kf_id].refine_view() for kf_id in window]
         trainable = torch.isin(self._surfels.keyframe_ids, torch.tensor(window, device=self.device))
-        return self._refine(trainable, views, iterations, self._scene_scale(window))
+        return self._refine(trainable, window, iterations, self._scene_scale(window))
 
     def refine_around(self, kf_id: int, iterations: int) -> RefineReport:
         """Refine the surfels of keyframe `kf_id` and of the `config.window - 1` held keyframes before it against
@@ -238,9 +262,8 @@ class GaussianMap:
             return RefineReport()
         before = [k for k in ids[:ids.index(kf_id)] if self._keyframes[k].held]
         window = before[-(self.config.window - 1):] + [kf_id] if self.config.window > 1 else [kf_id]
-        views = [self._keyframes[k].refine_view() for k in window]
         trainable = torch.isin(self._surfels.keyframe_ids, torch.tensor(window, device=self.device))
-        return self._refine(trainable, views, int(iterations), self._scene_scale(window))
+        return self._refine(trainable, window, int(iterations), self._scene_scale(window))
 
     def _random_archived(self, count: int, exclude: list[int]) -> list[int]:
         """Up to `count` held keyframes outside `exclude`, drawn with a seed fixed by the map's keyframe count."""
@@ -259,7 +282,9 @@ class GaussianMap:
         a fresh optimiser and a new seeded random order of the views. Measured on ICL (36 keyframes, 8 passes):
         a restart every 2 passes 28.9 dB, every 4 passes 28.7, every pass 28.1; one 300-iteration run 28.3.
         It stops after `budget_s` seconds (default `config.final_refine_budget_s`; math.inf: no bound) whatever
-        `iterations` asks: a long session's end costs the same as a short one's."""
+        `iterations` asks: a long session's end costs the same as a short one's. Keyframe exposures (with
+        `refine.exposure`) are applied as the online refinement left them: re-fitted here, where every view trains
+        the colours in turn, they drifted with the colours (bench/RESULTS.md, issue 21)."""
         held = [kf_id for kf_id in self.keyframe_ids if self._keyframes[kf_id].held]
         if not held or len(self._surfels) == 0 or iterations <= 0:
             return RefineReport()
@@ -272,10 +297,9 @@ class GaussianMap:
             if deadline is not None and time.perf_counter() >= deadline:
                 break
             order = [held[i] for i in torch.randperm(len(held), generator=generator).tolist()]
-            views = [self._keyframes[kf_id].refine_view() for kf_id in order]
             trainable = torch.ones(len(self._surfels), dtype=torch.bool, device=self.device)
-            part = self._refine(trainable, views, min(chunk, int(iterations) - start), self._scene_scale(held),
-                                deadline)
+            part = self._refine(trainable, order, min(chunk, int(iterations) - start), self._scene_scale(held),
+                                deadline, estimate_exposure=False)
             report.losses += part.losses
             report.views += [held.index(order[i]) for i in part.views]
         return report
@@ -285,11 +309,19 @@ class GaussianMap:
         """Keyframes whose image is held for refinement (window + archive)."""
         return sum(kf.held for kf in self._keyframes.values())
 
-    def _refine(self, trainable: torch.Tensor, views: list[RefineView], iterations: int, scene_scale: float,
-                deadline: float | None = None) -> RefineReport:
+    def _refine(self, trainable: torch.Tensor, kf_ids: list[int], iterations: int, scene_scale: float,
+                deadline: float | None = None, estimate_exposure: bool = True) -> RefineReport:
+        """Refine against the keyframes `kf_ids` (their exposures too, the first keyframe's excepted, unless
+        `estimate_exposure` is False: then they are applied as they are)."""
+        anchor = self.keyframe_ids[0]
+        mode = "estimate" if estimate_exposure else "fixed"
+        views = [self._keyframes[k].refine_view(mode if self.config.refine.exposure and k != anchor else "identity")
+                 for k in kf_ids]
         with torch.enable_grad():
             refined, report = refine_surfels(self._surfels, trainable, views, iterations, self.config.refine,
                                              scene_scale, deadline)
+        for index, exposure in report.exposures.items():
+            self._keyframes[kf_ids[index]].exposure = exposure
         keep = refined.opacities >= self.config.min_opacity
         self._surfels = refined.select(keep) if not bool(keep.all()) else refined
         return report
@@ -325,6 +357,7 @@ class GaussianMap:
                 "image": None if kf.image is None else (kf.image.clamp(0, 1) * 255).round().byte().cpu().numpy(),
                 "depth": None if kf.depth is None else kf.depth.cpu().numpy(),
                 "archived": None if kf.archived is None else kf.archived.to_dict(),
+                "exposure": None if kf.exposure is None else kf.exposure.cpu().numpy(),
             })
         return {
             "version": 1,
@@ -349,9 +382,11 @@ class GaussianMap:
                 depth = None if entry["depth"] is None else torch.from_numpy(np.array(entry["depth"])).to(
                     self.device, torch.float32)
                 archived = entry.get("archived")
+                exposure = entry.get("exposure")
                 keyframes[int(entry["id"])] = _Keyframe(
                     pose, K, int(entry["width"]), int(entry["height"]), image, depth,
-                    None if archived is None else ArchivedKeyframe.from_dict(archived))
+                    None if archived is None else ArchivedKeyframe.from_dict(archived),
+                    None if exposure is None else torch.from_numpy(np.array(exposure, np.float32)).to(self.device))
         except (KeyError, TypeError) as err:
             raise ValueError(f"malformed GaussianMap state: {err}") from err
         self._surfels = surfels.to(dtype=torch.float32)
@@ -382,6 +417,22 @@ class GaussianMap:
                 raise ValueError(f"depth must be [H, W] = {(H, W)}, got {tuple(depth.shape)}")
             depth = torch.nan_to_num(depth, nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0).to(self.device)
         return _Keyframe(pose, K.to(self.device), W, H, image.to(self.device), depth)
+
+    def _initial_exposure(self, local: Surfels, viewmat: torch.Tensor, kf: _Keyframe) -> torch.Tensor:
+        """A new keyframe's exposure: fitted to the map's render where the map covers enough of the view, else
+        the previous keyframe's (exposure changes slowly)."""
+        settings = self.config.refine
+        previous = self._keyframes[self.keyframe_ids[-1]].exposure
+        fallback = identity_exposure(self.device) if previous is None else previous.clone()
+        if len(local) == 0:
+            return fallback
+        with torch.no_grad():
+            render = rasterize(local, viewmat, kf.K, kf.width, kf.height)
+        covered = render.alpha >= settings.exposure_min_alpha
+        if float(covered.float().mean()) < MIN_EXPOSURE_COVERAGE:
+            return fallback
+        fitted = fit_exposure(render.rgb, kf.image, covered, settings.exposure_prior)
+        return fallback if fitted is None else fitted
 
     def _archive_old_images(self) -> None:
         """Keyframes that left the window: archive their images, thinning to at most `archived_images`."""

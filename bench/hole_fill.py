@@ -1,0 +1,113 @@
+"""Hole filling of multi-view depth (worker.depth.hole_fill) on ICL, and the holes left in held-out renders.
+
+ICL: 211 frames at 320x240 with ground-truth poses; every 6th frame is a keyframe whose neighbours
+`select_neighbours` picks (as `python -m bench mvs` does, depth range from 200 random pixels' depth). Per keyframe:
+the confident multi-view depth, then `fill_depth`; reported: the fraction of pixels filled, the L1 error of the
+filled pixels against ICL's depth (and their median relative error), the coverage and the largest hole (the largest
+4-connected region without depth, % of the image) before and after, and the fill's time.
+
+Renders: `--renders DIR [DIR ...]` reads `flashmono run` output folders (renders/NNNNN.png: render | ground truth)
+and reports the largest hole in each held-out render (pixels the render leaves black, all channels <= 2, where the
+ground truth is not), % of the image, mean and worst over the frames.
+
+Usage: python -m bench hole_fill [-- --every 6 --renders /tmp/run_a /tmp/run_b]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from bench.mvs import _K, DATA, _range_from_points
+from bench.render import machine
+
+
+def largest_hole(empty: np.ndarray) -> float:
+    """The largest 4-connected region of `empty` (bool [H, W]) as a fraction of the image."""
+    if not empty.any():
+        return 0.0
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(empty.astype(np.uint8), connectivity=4)
+    return float(stats[1:, cv2.CC_STAT_AREA].max()) / empty.size
+
+
+def bench_icl(args) -> list[str]:
+    from worker.data import open_source
+    from worker.depth import MultiViewDepthConfig, estimate_depth, select_neighbours
+    from worker.depth.hole_fill import fill_depth
+
+    config = MultiViewDepthConfig()
+    frames = list(open_source(args.data, resize=(320, 240), use_gt_depth=True, use_gt_poses=True))
+    K = _K(frames[0].intrinsics)
+    rng = np.random.default_rng(0)
+    rows = []
+    for k in range(0, len(frames), args.every):
+        frame = frames[k]
+        depth_range, scene_depth = _range_from_points(frame.depth, rng)
+        others = [i for i in range(len(frames)) if i != k]
+        chosen = select_neighbours(frame.pose, [frames[i].pose for i in others], config, scene_depth)
+        neighbours = [(frames[others[i]].image, frames[others[i]].pose) for i in chosen]
+        stereo = estimate_depth(frame.image, K, frame.pose, neighbours, depth_range, config).depth
+        start = time.perf_counter()
+        result = fill_depth(stereo, frame.image)
+        ms = 1000 * (time.perf_counter() - start)
+        gt = frame.depth
+        filled = result.filled & (gt > 0)
+        row = {"filled": result.fill_fraction, "cov_before": float((stereo > 0).mean()),
+               "cov_after": float((result.depth > 0).mean()), "hole_before": largest_hole(stereo <= 0),
+               "hole_after": largest_hole(result.depth <= 0), "ms": ms,
+               "l1": float(np.abs(result.depth[filled] - gt[filled]).mean()) if filled.any() else float("nan"),
+               "rel": float(np.median(np.abs(result.depth[filled] - gt[filled]) / gt[filled])) if filled.any()
+               else float("nan"),
+               "stereo_l1": float(np.abs(stereo[(stereo > 0) & (gt > 0)] - gt[(stereo > 0) & (gt > 0)]).mean())}
+        rows.append(row)
+        print(f"  kf {k:>3}: filled {100 * row['filled']:5.1f} %  L1 filled {100 * row['l1']:5.2f} cm "
+              f"(stereo {100 * row['stereo_l1']:5.2f})  coverage {100 * row['cov_before']:5.1f} -> "
+              f"{100 * row['cov_after']:5.1f} %  largest hole {100 * row['hole_before']:5.1f} -> "
+              f"{100 * row['hole_after']:5.1f} %  {ms:6.1f} ms", flush=True)
+    l1 = [r["l1"] for r in rows if np.isfinite(r["l1"])]
+    mean = {key: statistics.mean(r[key] for r in rows) for key in ("filled", "cov_before", "cov_after",
+                                                                  "hole_before", "hole_after", "stereo_l1")}
+    return [f"ICL keyframes {len(rows)}: filled {100 * mean['filled']:.1f} % of the pixels; filled pixels' depth L1 "
+            f"{100 * statistics.mean(l1):.2f} cm (median relative error "
+            f"{100 * statistics.median(r['rel'] for r in rows if np.isfinite(r['rel'])):.1f} %; confident stereo "
+            f"{100 * mean['stereo_l1']:.2f} cm); coverage {100 * mean['cov_before']:.1f} -> "
+            f"{100 * mean['cov_after']:.1f} %; largest hole mean {100 * mean['hole_before']:.1f} -> "
+            f"{100 * mean['hole_after']:.1f} % (worst {100 * max(r['hole_before'] for r in rows):.1f} -> "
+            f"{100 * max(r['hole_after'] for r in rows):.1f} %); fill time median "
+            f"{statistics.median(r['ms'] for r in rows):.0f} ms"]
+
+
+def render_holes(folder: Path) -> str:
+    """Largest black region of each held-out render of a `flashmono run` output folder."""
+    holes = []
+    for path in sorted((folder / "renders").glob("*.png")):
+        side = cv2.imread(str(path))
+        w = side.shape[1] // 2
+        render, truth = side[:, :w], side[:, w:]
+        holes.append(largest_hole((render.max(-1) <= 2) & (truth.max(-1) > 2)))
+    if not holes:
+        return f"{folder}: no renders"
+    return (f"{folder}: {len(holes)} held-out renders, largest hole mean {100 * statistics.mean(holes):.2f} % "
+            f"(worst {100 * max(holes):.2f} %) of the image")
+
+
+def main(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(prog="python -m bench hole_fill", description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, default=DATA, help="ICL living room folder (Open3D/ICL format)")
+    parser.add_argument("--every", type=int, default=6, help="every n-th frame is a keyframe")
+    parser.add_argument("--renders", type=Path, nargs="*", default=[], help="flashmono run output folders")
+    parser.add_argument("--no-icl", action="store_true")
+    args = parser.parse_args(argv)
+    print(f"machine: {machine()}")
+    lines = [] if args.no_icl or not args.data.exists() else bench_icl(args)
+    lines += [render_holes(folder) for folder in args.renders]
+    print(f"load average at the end: {os.getloadavg()[0]:.1f}")
+    for line in lines:
+        print(line)
+    return 0
