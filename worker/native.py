@@ -87,6 +87,13 @@ class NativeLibrary:
         """True when the library compiled (or was cached) and loaded."""
         return self.load() is not None
 
+    def require(self, what: str) -> ctypes.CDLL:
+        """The loaded library; RuntimeError naming `what` and why when it is unavailable."""
+        library = self.load()
+        if library is None:
+            raise RuntimeError(f"compiled {what} unavailable: {self._error}")
+        return library
+
     @property
     def library(self) -> ctypes.CDLL | None:
         """The library once loaded (None before `load()` or after a failure)."""

@@ -44,9 +44,7 @@ def load_error() -> str | None:
 
 
 def _lib() -> ctypes.CDLL:
-    if not _native.available():
-        raise RuntimeError(f"compiled MVS kernels unavailable: {_native.error}")
-    return _native.library
+    return _native.require("MVS kernels")
 
 
 def _c(a: np.ndarray, dtype) -> np.ndarray:

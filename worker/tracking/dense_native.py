@@ -56,9 +56,7 @@ def load_error() -> str | None:
 
 
 def _lib() -> ctypes.CDLL:
-    if not _native.available():
-        raise RuntimeError(f"compiled dense-alignment kernels unavailable: {_native.error}")
-    return _native.library
+    return _native.require("dense-alignment kernels")
 
 
 def _c(a: np.ndarray, dtype) -> np.ndarray:

@@ -36,10 +36,9 @@ def load_error() -> str | None:
 def subtract_pairs(S: np.ndarray, pair_i: np.ndarray, pair_j: np.ndarray, pair_a: np.ndarray, pair_b: np.ndarray,
                    Y: np.ndarray, W: np.ndarray) -> None:
     """S [6 F, 6 F] (C-contiguous float64, in place) -= Y[i] W[j]^T in block (a, b) for each pair (i, j, a, b)."""
-    if not _native.available():
-        raise RuntimeError(f"compiled Schur kernel unavailable: {_native.error}")
+    library = _native.require("Schur kernel")
     assert S.flags.c_contiguous and S.dtype == np.float64
     index = [np.ascontiguousarray(a, np.int64) for a in (pair_i, pair_j, pair_a, pair_b)]
     Y, W = np.ascontiguousarray(Y, np.float64), np.ascontiguousarray(W, np.float64)
-    _native.library.schur_subtract_pairs(len(index[0]), *(a.ctypes.data for a in index), Y.ctypes.data,
-                                         W.ctypes.data, S.shape[0] // 6, S.ctypes.data)
+    library.schur_subtract_pairs(len(index[0]), *(a.ctypes.data for a in index), Y.ctypes.data, W.ctypes.data,
+                                 S.shape[0] // 6, S.ctypes.data)
