@@ -4,10 +4,9 @@ source then falls back to its numpy reference."""
 from __future__ import annotations
 
 import ctypes
-import os
-import subprocess
-import sys
 from pathlib import Path
+
+from native_fallback import run_without_compiler
 
 from worker import native
 
@@ -59,9 +58,6 @@ def test_depth_falls_back_to_the_reference_without_a_compiler(tmp_path):
         "assert est.coverage > 0.5, est.coverage\n"
         "print('FELL BACK', mvs_cpu.load_error())\n"
     )
-    env = dict(os.environ, CXX="false", FLASHMONO_EXT_DIR=str(tmp_path))
-    result = subprocess.run([sys.executable, "-c", script], cwd=REPO, env=env, capture_output=True, text=True,
-                            timeout=120)
-    assert result.returncode == 0, result.stderr
+    result = run_without_compiler(script, tmp_path)
     assert "FELL BACK" in result.stdout
     assert "compiled MVS kernels unavailable" in result.stderr

@@ -4,12 +4,11 @@ from __future__ import annotations
 
 import os
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import torch
+from native_fallback import run_without_compiler
 from test_rasterize import (  # noqa: F401 (single_thread is a fixture)
     SMALL_K,
     camera,
@@ -231,9 +230,6 @@ def test_falls_back_to_reference_when_the_compiler_fails(tmp_path):
         "assert torch.equal(a.rgb, b.rgb)\n"
         "print('FELL BACK', raster_cpu.load_error())\n"
     )
-    env = dict(os.environ, CXX="false", FLASHMONO_EXT_DIR=str(tmp_path))
-    result = subprocess.run([sys.executable, "-c", script], cwd=REPO, env=env, capture_output=True, text=True,
-                            timeout=120)
-    assert result.returncode == 0, result.stderr
+    result = run_without_compiler(script, tmp_path)
     assert "FELL BACK" in result.stdout
     assert "compiled CPU rasterizer unavailable" in result.stderr

@@ -5,13 +5,11 @@ the odometry's trajectory with either backend; the fallback to the reference whe
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from native_fallback import run_without_compiler
 
 from worker.data import open_source
 from worker.tracking import dense_native, dense_reference
@@ -207,9 +205,6 @@ def test_tracking_falls_back_to_the_references_without_a_compiler(tmp_path) -> N
         "assert ran and not schur_native.available()\n"
         "print('FELL BACK')\n"
     )
-    env = dict(os.environ, CXX="false", FLASHMONO_EXT_DIR=str(tmp_path))
-    result = subprocess.run([sys.executable, "-c", script], cwd=REPO, env=env, capture_output=True, text=True,
-                            timeout=120)
-    assert result.returncode == 0, result.stderr
+    result = run_without_compiler(script, tmp_path)
     assert "FELL BACK" in result.stdout and "REFUSED compiled dense-alignment kernels unavailable" in result.stdout
     assert "using the numpy reference" in result.stderr
