@@ -50,7 +50,7 @@ def build_gaussian_map(cfg: MappingConfig, device: str):
                                     depth_error=cfg.prune_depth_error if cfg.prune else math.inf,
                                     tau_accum=cfg.tau_accum),
         refine=RefineSettings(lambda_ssim=cfg.ssim_weight, lambda_depth=cfg.depth_weight, exposure=cfg.exposure,
-                              exposure_prior=cfg.exposure_prior),
+                              exposure_prior=cfg.exposure_prior, exposure_threshold=cfg.exposure_threshold),
         archived_images=cfg.archived_images,
         archived_views_per_refine=cfg.archived_views_per_refine,
         voxel_cap=cfg.voxel_cap,

@@ -9,7 +9,9 @@ colour scale).
 
 An exposure is estimated in closed form: per channel, the ridge regression of the photo on the render over the
 pixels the map covers, pulled toward the identity with a weight of `prior` times the pixel count (it decides the
-exposure when few pixels are covered or the covered ones have no contrast).
+exposure when few pixels are covered or the covered ones have no contrast), then shrunk toward the identity by a
+threshold (`shrink_exposure`): changes of a few per cent are what view-dependent shading alone makes between two
+views of a surface, and normalising them away compounds from keyframe to keyframe (bench/RESULTS.md, issue 21).
 """
 
 from __future__ import annotations
@@ -40,8 +42,22 @@ def remove_exposure(image: torch.Tensor, exposure: torch.Tensor) -> torch.Tensor
     return (image - exposure[3:]) / exposure[:3]
 
 
+def shrink_exposure(exposure: torch.Tensor, threshold: float) -> torch.Tensor:
+    """`exposure` [6] pulled toward the identity by the non-negative garrote: a log gain l becomes
+    l - threshold^2 / l, or 0 when |l| <= threshold (a bias b likewise, with threshold / 2): changes within the
+    threshold vanish, large ones stay nearly whole, and the result is continuous in the fit."""
+    if threshold <= 0:
+        return exposure
+    log_gain = torch.log(exposure[:3])
+    return torch.cat([torch.exp(_garrote(log_gain, threshold)), _garrote(exposure[3:], threshold / 2)])
+
+
+def _garrote(x: torch.Tensor, threshold: float) -> torch.Tensor:
+    return torch.where(x.abs() > threshold, x - threshold**2 / torch.where(x == 0, 1.0, x), torch.zeros_like(x))
+
+
 def fit_exposure(render: torch.Tensor, photo: torch.Tensor, mask: torch.Tensor, prior: float = 0.002,
-                 block: int = BLOCK, bias_prior: float = BIAS_PRIOR) -> torch.Tensor | None:
+                 block: int = BLOCK, bias_prior: float = BIAS_PRIOR, threshold: float = 0.0) -> torch.Tensor | None:
     """[6] exposure minimising, per channel, sum over `mask` of (gain * render + bias - photo)^2 +
     count * (prior * (gain - 1)^2 + bias_prior * bias^2).
 
@@ -51,8 +67,8 @@ def fit_exposure(render: torch.Tensor, photo: torch.Tensor, mask: torch.Tensor, 
 
     render, photo: [H, W, 3] in [0, 1]; mask: [H, W] bool (pixels the render covers). A channel's saturated photo
     values (within SATURATED of 0 or 1: clipped, so not affine in the radiance) take no part; None when no pixel
-    is left. Gains are kept in
-    GAIN_RANGE and biases in BIAS_RANGE.
+    is left. Gains are kept in GAIN_RANGE and biases in BIAS_RANGE, then shrunk toward the identity by
+    `threshold` (`shrink_exposure`).
 
     The fit runs on `block` x `block` averages (blocks the mask covers entirely): a render is smoother than the
     photo, and regressing a sharp photo on a smoother render inflates the gain (and lowers the bias) even when the
@@ -76,7 +92,7 @@ def fit_exposure(render: torch.Tensor, photo: torch.Tensor, mask: torch.Tensor, 
     gain = torch.where(n > 0, ((s_rt + lam) * d - b * s_t) / det, 1.0)
     bias = torch.where(n > 0, (a * s_t - b * (s_rt + lam)) / det, 0.0)
     exposure = torch.cat([gain.clamp(*GAIN_RANGE), bias.clamp(*BIAS_RANGE)])
-    return exposure.to(render.device, torch.float32)
+    return shrink_exposure(exposure, threshold).to(render.device, torch.float32)
 
 
 def _blocks(image: torch.Tensor, block: int) -> torch.Tensor:

@@ -4,10 +4,13 @@ Keyframe poses are camera-to-world Sim(3) matrices [sR|t]. Renders use the rigid
 viewmat = its inverse), so rendered depth is in world units; a keyframe's own camera-frame depth equals the
 world-unit depth divided by its scale s.
 
-With `refine.exposure`, each keyframe has an affine exposure (worker.mapping.exposure): estimated against the map
-when the keyframe is added (its new surfels get exposure-normalised colours) and re-estimated by every window
-refinement that renders it (the final global refinement applies them as they are); the first keyframe's stays
-the identity. Renders use the normalised colours.
+With `refine.exposure`, each keyframe has an affine exposure (worker.mapping.exposure), always estimated in closed
+form against the render of the *rest* of the map (never against its own surfels, whose colours and its exposure
+explain its photo alike): when the keyframe is added (its new surfels get exposure-normalised colours), again
+before a catch-up refinement of it and before the final global refinement (`estimate_exposure`), where the map
+around it has been refined; refinements apply the exposures as they are. The first keyframe's stays the identity
+(the gauge: the map's colour scale), and estimates are shrunk toward the identity (`refine.exposure_threshold`).
+Renders use the normalised colours.
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ import torch
 
 from worker.geometry import make_sim3, sim3_decompose, sim3_inverse
 
-from .exposure import fit_exposure, identity_exposure, remove_exposure
+from .exposure import apply_exposure, fit_exposure, identity_exposure, remove_exposure
 from .fusion import FusionThresholds, attribute_errors, densify_mask, prune_mask
 from .keyframe_archive import ArchivedKeyframe
 from .loop_correction import correct_map
@@ -31,7 +34,7 @@ from .refine import RefineReport, RefineSettings, RefineView, refine_surfels
 from .surfels import Surfels
 from .voxel_grid import capped_mask, voxel_keys
 
-# A new keyframe's exposure is fitted to the map's render when the map covers at least this fraction of its view.
+# A keyframe's exposure is fitted to the map's render when the map covers at least this fraction of its view.
 MIN_EXPOSURE_COVERAGE = 0.05
 
 
@@ -97,9 +100,8 @@ class _Keyframe:
         """Whether this keyframe can still be a refinement target."""
         return self.image is not None or self.archived is not None
 
-    def refine_view(self, exposure: str = "identity") -> RefineView:
-        """This keyframe as a refinement target (it must be held), seen with the identity exposure, its own
-        ("fixed") or its own re-estimated ("estimate")."""
+    def refine_view(self, with_exposure: bool = False) -> RefineView:
+        """This keyframe as a refinement target (it must be held), seen with its exposure or none (identity)."""
         if self.archived is not None:
             image, depth = self.archived.unpack(self.K.device)
         else:
@@ -107,10 +109,9 @@ class _Keyframe:
             image, depth = self.image, self.depth
         viewmat, scale = rigid_viewmat(self.pose)
         own = None
-        if exposure != "identity":
+        if with_exposure:
             own = identity_exposure(self.K.device) if self.exposure is None else self.exposure
-        return RefineView(viewmat.to(self.K.device, torch.float32), self.K, image, depth, scale, own,
-                          estimate_exposure=exposure == "estimate")
+        return RefineView(viewmat.to(self.K.device, torch.float32), self.K, image, depth, scale, own)
 
     def archive(self) -> None:
         """Compact storage once out of the refinement window (see worker.mapping.keyframe_archive)."""
@@ -207,7 +208,10 @@ class GaussianMap:
         local = self._surfels.select(in_view)
         normalised = kf.image
         if self.config.refine.exposure and self._keyframes:
-            kf.exposure = self._initial_exposure(local, viewmat, kf)
+            previous = self._keyframes[self.keyframe_ids[-1]].exposure  # exposure changes slowly
+            fitted = self._fit_exposure(local, viewmat, kf, kf.image)
+            kf.exposure = fitted if fitted is not None else (
+                identity_exposure(self.device) if previous is None else previous.clone())
             normalised = remove_exposure(kf.image, kf.exposure).clamp(0, 1)
             surfels_cam.colors = remove_exposure(surfels_cam.colors, kf.exposure).clamp(0, 1)
         if len(local):
@@ -243,6 +247,30 @@ class GaussianMap:
         exposure = self._keyframes[int(kf_id)].exposure
         return identity_exposure(self.device) if exposure is None else exposure.clone()
 
+    def estimate_exposure(self, kf_id: int) -> bool:
+        """Re-estimate a held keyframe's exposure (with `refine.exposure`; the first keyframe's excepted) against
+        the render of the map without its own surfels, and re-normalise its surfels' colours to the new exposure
+        (they keep explaining its photo). False when nothing changed: exposure off, the first keyframe, not held,
+        or the rest of the map covers too little of its view."""
+        kf = self._keyframes.get(int(kf_id))
+        if not self.config.refine.exposure or kf is None or not kf.held or int(kf_id) == self.keyframe_ids[0]:
+            return False
+        viewmat, _ = rigid_viewmat(kf.pose)
+        viewmat = viewmat.to(self.device, torch.float32)
+        own = self._surfels.keyframe_ids == int(kf_id)
+        others = self._surfels.select(self._in_view(viewmat, kf.K, kf.width, kf.height) & ~own)
+        image = kf.image if kf.image is not None else kf.archived.unpack(self.device)[0]
+        fitted = self._fit_exposure(others, viewmat, kf, image)
+        if fitted is None:
+            return False
+        old = identity_exposure(self.device) if kf.exposure is None else kf.exposure
+        if bool(own.any()):
+            colors = self._surfels.colors.clone()
+            colors[own] = remove_exposure(apply_exposure(colors[own], old), fitted).clamp(0, 1)
+            self._surfels.colors = colors
+        kf.exposure = fitted
+        return True
+
     def refine(self, iterations: int | None = None) -> RefineReport:
         """Refine the surfels of the last `config.window` keyframes against those keyframes' images."""
         iterations = self.config.iterations if iterations is None else int(iterations)
@@ -260,6 +288,7 @@ class GaussianMap:
         ids = self.keyframe_ids
         if kf_id not in self._keyframes or not self._keyframes[kf_id].held or len(self._surfels) == 0:
             return RefineReport()
+        self.estimate_exposure(kf_id)  # the map around it may have been refined since it was added
         before = [k for k in ids[:ids.index(kf_id)] if self._keyframes[k].held]
         window = before[-(self.config.window - 1):] + [kf_id] if self.config.window > 1 else [kf_id]
         trainable = torch.isin(self._surfels.keyframe_ids, torch.tensor(window, device=self.device))
@@ -283,13 +312,15 @@ class GaussianMap:
         a restart every 2 passes 28.9 dB, every 4 passes 28.7, every pass 28.1; one 300-iteration run 28.3.
         It stops after `budget_s` seconds (default `config.final_refine_budget_s`; math.inf: no bound) whatever
         `iterations` asks: a long session's end costs the same as a short one's. Keyframe exposures (with
-        `refine.exposure`) are applied as the online refinement left them: re-fitted here, where every view trains
-        the colours in turn, they drifted with the colours (bench/RESULTS.md, issue 21)."""
+        `refine.exposure`) are re-estimated first, oldest first (`estimate_exposure`: keyframes merged without
+        refinement kept the fit made when they arrived), and applied as they are."""
         held = [kf_id for kf_id in self.keyframe_ids if self._keyframes[kf_id].held]
         if not held or len(self._surfels) == 0 or iterations <= 0:
             return RefineReport()
         budget = self.config.final_refine_budget_s if budget_s is None else budget_s
         deadline = None if budget is None or math.isinf(budget) else time.perf_counter() + float(budget)
+        for kf_id in held:
+            self.estimate_exposure(kf_id)
         chunk = max(1, restart_every or 2 * len(held))
         generator = torch.Generator().manual_seed(seed)
         report = RefineReport()
@@ -299,7 +330,7 @@ class GaussianMap:
             order = [held[i] for i in torch.randperm(len(held), generator=generator).tolist()]
             trainable = torch.ones(len(self._surfels), dtype=torch.bool, device=self.device)
             part = self._refine(trainable, order, min(chunk, int(iterations) - start), self._scene_scale(held),
-                                deadline, estimate_exposure=False)
+                                deadline)
             report.losses += part.losses
             report.views += [held.index(order[i]) for i in part.views]
         return report
@@ -310,18 +341,12 @@ class GaussianMap:
         return sum(kf.held for kf in self._keyframes.values())
 
     def _refine(self, trainable: torch.Tensor, kf_ids: list[int], iterations: int, scene_scale: float,
-                deadline: float | None = None, estimate_exposure: bool = True) -> RefineReport:
-        """Refine against the keyframes `kf_ids` (their exposures too, the first keyframe's excepted, unless
-        `estimate_exposure` is False: then they are applied as they are)."""
-        anchor = self.keyframe_ids[0]
-        mode = "estimate" if estimate_exposure else "fixed"
-        views = [self._keyframes[k].refine_view(mode if self.config.refine.exposure and k != anchor else "identity")
-                 for k in kf_ids]
+                deadline: float | None = None) -> RefineReport:
+        """Refine against the keyframes `kf_ids`, each seen with its exposure (with `refine.exposure`)."""
+        views = [self._keyframes[k].refine_view(self.config.refine.exposure) for k in kf_ids]
         with torch.enable_grad():
             refined, report = refine_surfels(self._surfels, trainable, views, iterations, self.config.refine,
                                              scene_scale, deadline)
-        for index, exposure in report.exposures.items():
-            self._keyframes[kf_ids[index]].exposure = exposure
         keep = refined.opacities >= self.config.min_opacity
         self._surfels = refined.select(keep) if not bool(keep.all()) else refined
         return report
@@ -418,21 +443,21 @@ class GaussianMap:
             depth = torch.nan_to_num(depth, nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0).to(self.device)
         return _Keyframe(pose, K.to(self.device), W, H, image.to(self.device), depth)
 
-    def _initial_exposure(self, local: Surfels, viewmat: torch.Tensor, kf: _Keyframe) -> torch.Tensor:
-        """A new keyframe's exposure: fitted to the map's render where the map covers enough of the view, else
-        the previous keyframe's (exposure changes slowly)."""
+    def _fit_exposure(self, surfels: Surfels, viewmat: torch.Tensor, kf: _Keyframe,
+                      image: torch.Tensor) -> torch.Tensor | None:
+        """The exposure of `image` (keyframe `kf`'s photo) fitted to the render of `surfels` (normalised colours)
+        at its pose; None when they cover less than MIN_EXPOSURE_COVERAGE of the view."""
         settings = self.config.refine
-        previous = self._keyframes[self.keyframe_ids[-1]].exposure
-        fallback = identity_exposure(self.device) if previous is None else previous.clone()
-        if len(local) == 0:
-            return fallback
+        if len(surfels) == 0:
+            return None
         with torch.no_grad():
-            render = rasterize(local, viewmat, kf.K, kf.width, kf.height)
+            render = rasterize(surfels, viewmat, kf.K, kf.width, kf.height)
         covered = render.alpha >= settings.exposure_min_alpha
         if float(covered.float().mean()) < MIN_EXPOSURE_COVERAGE:
-            return fallback
-        fitted = fit_exposure(render.rgb, kf.image, covered, settings.exposure_prior)
-        return fallback if fitted is None else fitted
+            return None
+        colours = render.rgb / render.alpha.clamp_min(1e-6)[..., None]  # what is drawn, not its black background
+        return fit_exposure(colours, image, covered, settings.exposure_prior,
+                            threshold=settings.exposure_threshold)
 
     def _archive_old_images(self) -> None:
         """Keyframes that left the window: archive their images, thinning to at most `archived_images`."""

@@ -4,9 +4,10 @@ Parameters are optimised in raw (pre-activation) form: means, log scales, logit 
 and colours (clamped to [0,1] after each step). Surfels outside the window are rendered as fixed context. Each
 iteration renders one keyframe of the window (newest first, then round robin) and minimises
 (1 - lambda) L1 + lambda (1 - SSIM) + lambda_depth * depth L1 (when that keyframe has a reference depth; normalised
-by the median reference depth). With `RefineSettings.exposure`, each view that carries an exposure (see
-worker.mapping.exposure) has it re-estimated against each of its renders, and the loss compares the render under
-that exposure to the photo: the map learns exposure-normalised colours.
+by the median reference depth). With `RefineSettings.exposure`, the loss compares each view's render under its
+exposure (see worker.mapping.exposure; estimated by the map, in closed form, never here) to the photo: the map
+learns exposure-normalised colours. The exposures stay fixed while the colours train: a view's exposure and the
+colours of the surfels only it sees explain its photo alike, so re-fitting one against the other lets both drift.
 
 Cost: only the surfels that some window view can draw (the rasterizer's own culling rule) take part, so the
 rendered images and the gradients are those of the whole map while the rest of the map costs nothing per
@@ -25,9 +26,9 @@ from dataclasses import dataclass, field
 import torch
 
 from . import raster_cpu
-from .exposure import apply_exposure, fit_exposure
+from .exposure import apply_exposure
 from .losses import depth_l1, photometric_loss
-from .rasterize import RenderResult, rasterize, visible_mask
+from .rasterize import rasterize, visible_mask
 from .surfels import Surfels
 
 _OPACITY_EPS = 1e-4
@@ -45,9 +46,10 @@ class RefineSettings:
     lr_quats: float = 1e-3
     lr_colors: float = 0.01
     ssim_downsample: int = 2  # SSIM on factor x factor block averages (factor^2 cheaper); 1 = full resolution
-    exposure: bool = False  # estimate each view's affine exposure (views whose `exposure` is not None)
-    exposure_prior: float = 0.002  # pull toward the identity exposure, as a fraction of the covered pixels
-    exposure_min_alpha: float = 0.95  # pixels the render covers at least this much take part in the estimate
+    exposure: bool = False  # per-keyframe affine exposure (applied to views whose `exposure` is not None)
+    exposure_prior: float = 0.002  # estimates: pull toward the identity, as a fraction of the covered pixels
+    exposure_min_alpha: float = 0.5  # estimates: pixels the render covers at least this much take part
+    exposure_threshold: float = 0.03  # estimates: log-gain changes within this are shrunk away (shrink_exposure)
 
 
 @dataclass
@@ -55,8 +57,8 @@ class RefineView:
     """One keyframe as seen by the refinement: rigid world-to-camera matrix, K, target image and optional depth.
 
     `depth_scale` converts rendered depth (world units) to the reference depth's units (reference = render / scale).
-    `exposure`: the keyframe's affine exposure [6] (worker.mapping.exposure), re-estimated by the refinement when
-    its settings ask for it; None = the identity, fixed (the map's first keyframe).
+    `exposure`: the keyframe's affine exposure [6] (worker.mapping.exposure), applied to its renders when the
+    settings ask for it; None = the identity.
     """
 
     viewmat: torch.Tensor
@@ -65,17 +67,14 @@ class RefineView:
     depth: torch.Tensor | None = None
     depth_scale: float = 1.0
     exposure: torch.Tensor | None = None
-    estimate_exposure: bool = True  # False: `exposure` is applied as it is
 
 
 @dataclass
 class RefineReport:
-    """Losses per iteration, the index (into the views) each iteration rendered and the exposures estimated (view
-    index -> [6] exposure)."""
+    """Losses per iteration and the index (into the views) each iteration rendered."""
 
     losses: list[float] = field(default_factory=list)
     views: list[int] = field(default_factory=list)
-    exposures: dict[int, torch.Tensor] = field(default_factory=dict)
 
 
 class _RawParams(torch.nn.Module):
@@ -175,11 +174,7 @@ def _optimise(params: _RawParams, fixed: Surfels, views: list[RefineView], depth
         render = rasterize(current, view.viewmat, view.K, W, H)
         rgb = render.rgb
         if settings.exposure and view.exposure is not None:
-            exposure = view.exposure
-            if view.estimate_exposure:
-                exposure = _estimate_exposure(render, view.image, report.exposures.get(index, exposure), settings)
-                report.exposures[index] = exposure
-            rgb = apply_exposure(rgb, exposure)
+            rgb = apply_exposure(rgb, view.exposure)
         loss = photometric_loss(rgb, view.image, settings.lambda_ssim, settings.ssim_downsample)
         if view.depth is not None and settings.lambda_depth > 0 and depth_scales[index] is not None:
             covered = render.alpha.detach() > 0.5
@@ -192,14 +187,6 @@ def _optimise(params: _RawParams, fixed: Surfels, views: list[RefineView], depth
             params.colors.clamp_(0.0, 1.0)
         report.losses.append(float(loss.detach()))
         report.views.append(index)
-
-
-def _estimate_exposure(render: RenderResult, photo: torch.Tensor, previous: torch.Tensor,
-                       settings: RefineSettings) -> torch.Tensor:
-    """The exposure fitted to this render of the photo (`previous` where the render covers no pixel)."""
-    covered = render.alpha.detach() >= settings.exposure_min_alpha
-    fitted = fit_exposure(render.rgb, photo, covered, settings.exposure_prior)
-    return previous if fitted is None else fitted
 
 
 @contextlib.contextmanager
