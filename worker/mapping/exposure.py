@@ -7,11 +7,13 @@ compares `apply_exposure(render, exposure)` to the keyframe's photo, and renders
 normalised colours (identity exposure). The first keyframe's exposure stays the identity (it fixes the map's
 colour scale).
 
-An exposure is estimated in closed form: per channel, the ridge regression of the photo on the render over the
-pixels the map covers, pulled toward the identity with a weight of `prior` times the pixel count (it decides the
-exposure when few pixels are covered or the covered ones have no contrast), then shrunk toward the identity by a
-threshold (`shrink_exposure`): changes of a few per cent are what view-dependent shading alone makes between two
-views of a surface, and normalising them away compounds from keyframe to keyframe (bench/RESULTS.md, issue 21).
+An exposure is estimated in closed form (`fit_exposure`): per channel, the gain is the median over image blocks of
+photo / render (the bias is left at 0: cameras change exposure by a factor), then shrunk toward the identity by a
+threshold (`shrink_exposure`). Both guard against view-dependent shading, which a per-keyframe gain cannot tell from
+exposure: on ICL (constant exposure) glossy and oblique surfaces seen from a new view differ by up to 12 % in blue
+from the view that mapped them, while the median block differs by at most 2 %; and a gain fitted to those changes
+normalises the keyframe's new surfels with it, so the next keyframe's fit starts from shifted colours and the error
+compounds (blue gain 0.88 after eight ICL keyframes with a mean fit; bench/RESULTS.md, issue 21).
 """
 
 from __future__ import annotations
@@ -20,11 +22,11 @@ import torch
 import torch.nn.functional as F
 
 GAIN_RANGE = (0.2, 5.0)
-BIAS_RANGE = (-0.5, 0.5)
 SATURATED = 0.005  # photo values this close to 0 or 1 are clipped
-BLOCK = 8  # exposures are fitted on block x block averages
+BLOCK = 8  # exposures are fitted on block x block sums
 MIN_BLOCKS_ACROSS = 30
-BIAS_PRIOR = 1.0  # pull of the bias toward 0, as a fraction of the pixels (see fit_exposure)
+MIN_BLOCK_FILL = 0.5  # a block takes part when at least this fraction of its pixels is usable
+MIN_BLOCKS = 16  # a channel with fewer usable blocks keeps the identity gain
 
 
 def identity_exposure(device: torch.device | str = "cpu") -> torch.Tensor:
@@ -57,41 +59,33 @@ def _garrote(x: torch.Tensor, threshold: float) -> torch.Tensor:
 
 
 def fit_exposure(render: torch.Tensor, photo: torch.Tensor, mask: torch.Tensor, prior: float = 0.002,
-                 block: int = BLOCK, bias_prior: float = BIAS_PRIOR, threshold: float = 0.0) -> torch.Tensor | None:
-    """[6] exposure minimising, per channel, sum over `mask` of (gain * render + bias - photo)^2 +
-    count * (prior * (gain - 1)^2 + bias_prior * bias^2).
+                 block: int = BLOCK, threshold: float = 0.0) -> torch.Tensor | None:
+    """[6] exposure (gain per channel, bias 0) of `photo` against `render`: per channel, the median over
+    `block` x `block` tiles of sum(photo) / sum(render) over the tile's usable pixels, weighed against the identity
+    with weight `prior`, kept in GAIN_RANGE and shrunk toward the identity by `threshold` (`shrink_exposure`).
 
-    The bias is held near 0 much more firmly than the gain: over the narrow range of colours a view often holds,
-    a gain change and a bias change explain the photo almost alike (on ICL with a simulated auto-exposure, equal
-    priors traded 0.1 of gain for 0.1 of bias), and cameras change exposure mostly by a factor.
-
-    render, photo: [H, W, 3] in [0, 1]; mask: [H, W] bool (pixels the render covers). A channel's saturated photo
-    values (within SATURATED of 0 or 1: clipped, so not affine in the radiance) take no part; None when no pixel
-    is left. Gains are kept in GAIN_RANGE and biases in BIAS_RANGE, then shrunk toward the identity by
-    `threshold` (`shrink_exposure`).
-
-    The fit runs on `block` x `block` averages (blocks the mask covers entirely): a render is smoother than the
-    photo, and regressing a sharp photo on a smoother render inflates the gain (and lowers the bias) even when the
-    exposures are equal; block averages of both have the same sharpness. A block takes part only where each of its
-    pixels does.
+    render, photo: [H, W, 3] in [0, 1]; mask: [H, W] bool (pixels the render covers). A pixel is usable where the
+    mask holds and the photo is not saturated (within SATURATED of 0 or 1: clipped, so not proportional to the
+    radiance); a tile takes part where at least MIN_BLOCK_FILL of its pixels are usable. The tile sums compare
+    the photo and the (smoother) render at the same sharpness; the median leaves out the minority of tiles that
+    view-dependent shading (gloss, oblique surfaces) or occlusion edges change. None when no channel has
+    MIN_BLOCKS tiles; a channel with fewer keeps the identity gain.
     """
     photo = photo.detach().to(render.dtype)
-    usable = mask[..., None] & (photo > SATURATED) & (photo < 1 - SATURATED)  # [H, W, 3]
-    usable = _blocks(usable.to(render.dtype), block) > 0.999  # blocks whose every pixel is usable
-    if not bool(usable.any()):
+    usable = (mask[..., None] & (photo > SATURATED) & (photo < 1 - SATURATED)).to(render.dtype)  # [H, W, 3]
+    fill = _blocks(usable, block)
+    render_sum, photo_sum = _blocks(render.detach() * usable, block), _blocks(photo * usable, block)
+    tiles = (fill >= MIN_BLOCK_FILL) & (render_sum > 1e-3 * fill)  # [h, w, 3]
+    counts = tiles.reshape(-1, 3).sum(0)
+    if not bool((counts >= MIN_BLOCKS).any()):
         return None
-    r = _blocks(render.detach(), block).reshape(-1, 3).to(torch.float64)
-    t = _blocks(photo, block).reshape(-1, 3).to(torch.float64)
-    w = usable.reshape(-1, 3).to(torch.float64)
-    n = w.sum(0)
-    lam, lam_bias = prior * n, bias_prior * n
-    s_rr, s_r, s_rt, s_t = (w * r * r).sum(0), (w * r).sum(0), (w * r * t).sum(0), (w * t).sum(0)
-    # Normal equations [[s_rr + lam, s_r], [s_r, n + lam_bias]] [gain, bias] = [s_rt + lam, s_t], per channel.
-    a, b, d = s_rr + lam, s_r, n + lam_bias
-    det = (a * d - b * b).clamp_min(1e-12)
-    gain = torch.where(n > 0, ((s_rt + lam) * d - b * s_t) / det, 1.0)
-    bias = torch.where(n > 0, (a * s_t - b * (s_rt + lam)) / det, 0.0)
-    exposure = torch.cat([gain.clamp(*GAIN_RANGE), bias.clamp(*BIAS_RANGE)])
+    ratios = (photo_sum / render_sum.clamp_min(1e-12)).reshape(-1, 3)
+    gain = torch.ones(3, dtype=render.dtype, device=render.device)
+    for c in range(3):
+        if counts[c] >= MIN_BLOCKS:
+            gain[c] = ratios[tiles.reshape(-1, 3)[:, c], c].median()
+    gain = ((gain + prior) / (1 + prior)).clamp(*GAIN_RANGE)
+    exposure = torch.cat([gain, torch.zeros_like(gain)])
     return shrink_exposure(exposure, threshold).to(render.device, torch.float32)
 
 

@@ -47,9 +47,9 @@ class RefineSettings:
     lr_colors: float = 0.01
     ssim_downsample: int = 2  # SSIM on factor x factor block averages (factor^2 cheaper); 1 = full resolution
     exposure: bool = False  # per-keyframe affine exposure (applied to views whose `exposure` is not None)
-    exposure_prior: float = 0.002  # estimates: pull toward the identity, as a fraction of the covered pixels
+    exposure_prior: float = 0.002  # estimates: weight of the identity gain against the fitted one
     exposure_min_alpha: float = 0.95  # estimates: pixels the render covers at least this much take part
-    exposure_threshold: float = 0.05  # estimates: log-gain changes within this are shrunk away (shrink_exposure)
+    exposure_threshold: float = 0.03  # estimates: log-gain changes within this are shrunk away (shrink_exposure)
 
 
 @dataclass
