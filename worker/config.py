@@ -134,7 +134,7 @@ class MappingConfig(_Section):
         6, ge=1, description="load shedding: with more keyframes than this waiting, keyframes are merged into the "
         "map without refinement (finish() refines them)")
     exposure: bool = Field(
-        False, description="estimate each keyframe's exposure (a gain per colour channel) against the rest of the "
+        True, description="estimate each keyframe's exposure (a gain per colour channel) against the rest of the "
         "map when it is merged, before its catch-up refinement and before the final refinement, and keep it out of "
         "the map's colours: renders show exposure-normalised colours")
     exposure_prior: float = Field(

@@ -206,16 +206,18 @@ class GaussianMap:
         # whole map's): the merge costs what the view holds, not what the map holds.
         in_view = self._in_view(viewmat, kf.K, kf.width, kf.height)
         local = self._surfels.select(in_view)
-        normalised = kf.image
+        attribution = attribute_errors(local, viewmat, kf.K, kf.image, kf.depth, th, scale) if len(local) else None
         if self.config.refine.exposure and self._keyframes:
             previous = self._keyframes[self.keyframe_ids[-1]].exposure  # exposure changes slowly
-            fitted = self._fit_exposure(local, viewmat, kf, kf.image)
+            fitted = None if attribution is None else self._fit_exposure(attribution.render, kf.image)
             kf.exposure = fitted if fitted is not None else (
                 identity_exposure(self.device) if previous is None else previous.clone())
-            normalised = remove_exposure(kf.image, kf.exposure).clamp(0, 1)
-            surfels_cam.colors = remove_exposure(surfels_cam.colors, kf.exposure).clamp(0, 1)
-        if len(local):
-            attribution = attribute_errors(local, viewmat, kf.K, normalised, kf.depth, th, scale)
+            if not torch.equal(kf.exposure, identity_exposure(self.device)):  # prune on normalised colours
+                normalised = remove_exposure(kf.image, kf.exposure).clamp(0, 1)
+                surfels_cam.colors = remove_exposure(surfels_cam.colors, kf.exposure).clamp(0, 1)
+                if attribution is not None:
+                    attribution = attribute_errors(local, viewmat, kf.K, normalised, kf.depth, th, scale)
+        if attribution is not None:
             remove = prune_mask(attribution, th)
             pruned = int(remove.sum())
             accumulation = attribution.render.alpha
@@ -259,8 +261,12 @@ class GaussianMap:
         viewmat = viewmat.to(self.device, torch.float32)
         own = self._surfels.keyframe_ids == int(kf_id)
         others = self._surfels.select(self._in_view(viewmat, kf.K, kf.width, kf.height) & ~own)
+        if len(others) == 0:
+            return False
+        with torch.no_grad():
+            render = rasterize(others, viewmat, kf.K, kf.width, kf.height)
         image = kf.image if kf.image is not None else kf.archived.unpack(self.device)[0]
-        fitted = self._fit_exposure(others, viewmat, kf, image)
+        fitted = self._fit_exposure(render, image)
         if fitted is None:
             return False
         old = identity_exposure(self.device) if kf.exposure is None else kf.exposure
@@ -443,15 +449,10 @@ class GaussianMap:
             depth = torch.nan_to_num(depth, nan=0.0, posinf=0.0, neginf=0.0).clamp_min(0).to(self.device)
         return _Keyframe(pose, K.to(self.device), W, H, image.to(self.device), depth)
 
-    def _fit_exposure(self, surfels: Surfels, viewmat: torch.Tensor, kf: _Keyframe,
-                      image: torch.Tensor) -> torch.Tensor | None:
-        """The exposure of `image` (keyframe `kf`'s photo) fitted to the render of `surfels` (normalised colours)
-        at its pose; None when they cover less than MIN_EXPOSURE_COVERAGE of the view."""
+    def _fit_exposure(self, render: RenderResult, image: torch.Tensor) -> torch.Tensor | None:
+        """The exposure of a keyframe's photo `image` fitted to a render (normalised colours) at its pose; None
+        when the render covers less than MIN_EXPOSURE_COVERAGE of the view."""
         settings = self.config.refine
-        if len(surfels) == 0:
-            return None
-        with torch.no_grad():
-            render = rasterize(surfels, viewmat, kf.K, kf.width, kf.height)
         covered = render.alpha >= settings.exposure_min_alpha
         if float(covered.float().mean()) < MIN_EXPOSURE_COVERAGE:
             return None
