@@ -29,7 +29,7 @@ from worker.geometry.gtsam_bridge import sim3_to_gtsam
 
 from .incremental import IncrementalSolver
 
-EDGE_KINDS = ("sequential", "inter_submap", "loop")
+EDGE_KINDS = ("sequential", "inter_submap", "loop", "new_map")
 DIVERGED_COST_RATIO = 1.05  # an incremental solve ending this much above its starting cost is redone in batch
 
 
@@ -53,6 +53,9 @@ DEFAULT_SIGMAS: dict[str, EdgeSigmas] = {
     "sequential": EdgeSigmas(0.01, 0.02, 0.01),
     "inter_submap": EdgeSigmas(0.01, 0.02, 0.01),
     "loop": EdgeSigmas(0.02, 0.04, 0.02),
+    # Between the last keyframe of a lost map and the first of the map begun after it: the new map was only placed
+    # at the last pose with the old scene depth, so the edge holds it there until a loop gives the true Sim(3).
+    "new_map": EdgeSigmas(1.0, 10.0, 1.0),
 }
 
 

@@ -82,6 +82,10 @@ class VisualOdometryConfig(BaseModel):
                                                                      "needs, degrees (ORB-SLAM's; its pose and "
                                                                      "scale come from the anchor)")
     reinit_min_matches: int = Field(50, ge=20, description="tracks shared with the anchor needed to restart")
+    new_map_after_lost: int = Field(2, ge=0, description="lost frames (nothing above found the old map) after which "
+                                                         "a new map starts from a two-view initialisation, placed at "
+                                                         "the last pose with the old map's scene depth until a loop "
+                                                         "joins the two (ORB-SLAM3's new map in its atlas; 0: never)")
     learned_relocalisation: bool = Field(True, description="while lost, match XFeat features of the last tracked "
                                                            "frame's map points (optical flow and ORB failed)")
     learned_reloc_frames: int = Field(30, ge=1, description="... for this many frames after it")
