@@ -287,7 +287,9 @@ class VisualOdometry:
         self.pending, self.pending_orientation, self.init_state = [], {}, ""
         self.velocity = invert_pose(previous) @ pose
         self.status = "tracking"
-        event = {"type": "initialized", "frame": index, "frames": between, "points": len(self.map),
+        # After a loss the waiting frames were reported lost, against the old map's keyframes: they stay so.
+        event = {"type": "initialized", "frame": index, "frames": between if self.maps_started == 1 else [],
+                 "points": len(self.map),
                  "parallax_deg": round(two.parallax_deg, 3), "model": attempt.model,
                  "score_ratio": round(attempt.score_ratio, 3)}
         if uncalibrated:
