@@ -154,7 +154,12 @@ def measure(source: Path, modes: list[str], target_width: int, max_frames: int |
             continue
         out = out_root / f"{probe.name}_{mode}"
         start = time.perf_counter()
-        metrics = run_mode(source, mode, size, max_frames, stride, out)
+        try:
+            metrics = run_mode(source, mode, size, max_frames, stride, out)
+        except (ValueError, RuntimeError) as err:  # e.g. a frame without a pose in posed mode: the next mode goes on
+            print(f"| {probe.name} | {mode} | failed: {err} |", flush=True)
+            rows.append({"mode": mode, "error": str(err)})
+            continue
         metrics["wall_s"] = time.perf_counter() - start
         metrics["load_after"] = os.getloadavg()
         metrics["motion"] = motion
