@@ -4,7 +4,8 @@
 
 Per sequence it prints the motion (frames, path length, rotation per frame), then per mode ATE (Sim(3)-aligned, also
 as a share of the path length, the driving figure), PSNR / depth L1 on the held-out frames, frames/s, and what tracking
-reported (frames with `tracking_lost` / `relocalized` / input events, counted from every frame's result). The RGB-only
+reported (frames with `tracking_lost` / `relocalized` / input events, read from every frame's result, and the frames
+from each loss to its relocalisation). The RGB-only
 row also runs the visual odometry alone (as bench/visual_odometry.py does): frames tracked, where it lost and came
 back, and its own ATE, since the full system's trajectory hides a frame that stood still while the image moved.
 
@@ -57,25 +58,41 @@ def resized(width: int, height: int, target_width: int) -> tuple[int, int]:
 
 
 @contextlib.contextmanager
-def frame_events() -> Iterator[Counter]:
-    """Count, while the block runs, the frames whose SlamSystem result carries each event type (the offline run keeps
-    only metrics; its per-frame results are read here by wrapping SlamSystem.push)."""
+def frame_events() -> Iterator[list[tuple[int, str]]]:
+    """Collect, while the block runs, (frame position, event type) of every event in the SlamSystem's frame results
+    (the offline run keeps only metrics; its per-frame results are read here by wrapping SlamSystem.push)."""
     from worker.slam import SlamSystem
 
-    counts: Counter = Counter()
+    seen: list[tuple[int, str]] = []
     push = SlamSystem.push
+    position = iter(range(1 << 62))
 
-    def counting_push(self, frame):
+    def recording_push(self, frame):
         result = push(self, frame)
-        for kind in {event.get("type") for event in result.events}:
-            counts[kind] += 1
+        at = next(position)
+        seen.extend((at, kind) for kind in dict.fromkeys(event.get("type") for event in result.events))
         return result
 
-    SlamSystem.push = counting_push
+    SlamSystem.push = recording_push
     try:
-        yield counts
+        yield seen
     finally:
         SlamSystem.push = push
+
+
+def lost_spans(events: list[tuple[int, str]], frames: int) -> list[tuple[int, int]]:
+    """(first, last) frame positions of each stretch from a `tracking_lost` to the frame before the next
+    `relocalized` (or the last frame): the frames whose pose is held, not tracked."""
+    spans, start = [], None
+    for at, kind in sorted(events):
+        if kind == "tracking_lost" and start is None:
+            start = at
+        elif kind == "relocalized" and start is not None:
+            spans.append((start, at - 1))
+            start = None
+    if start is not None:
+        spans.append((start, frames - 1))
+    return spans
 
 
 def run_mode(source: Path, mode: str, size: tuple[int, int], max_frames: int | None, stride: int,
@@ -86,10 +103,13 @@ def run_mode(source: Path, mode: str, size: tuple[int, int], max_frames: int | N
 
     depth, posed = MODES[mode]
     config = SlamConfig.preset("rgbd", mapping={"final_refine_budget_s": 0})
-    with frame_events() as counts:
+    with frame_events() as events:
         metrics = run_sequence(source, out, config, use_gt_depth=depth, use_gt_poses=posed, max_frames=max_frames,
                                stride=stride, resize=size)
+    counts = Counter(kind for _, kind in events)
     metrics["frame_events"] = {kind: counts.get(kind, 0) for kind in EVENT_TYPES}
+    metrics["lost_spans"] = lost_spans(events, metrics["num_frames"])
+    metrics["events"] = events
     return metrics
 
 
@@ -175,6 +195,11 @@ def _print_row(name: str, mode: str, m: dict, motion: dict | None) -> None:
     ate = m.get("ate_rmse")
     share = f"{100 * ate / motion['path_m']:.2f} %" if ate is not None and motion and motion["path_m"] > 0 else "-"
     events = ", ".join(f"{k} {v}" for k, v in m["frame_events"].items() if v) or "none"
+    spans = m["lost_spans"]
+    if spans:
+        held = sum(b - a + 1 for a, b in spans)
+        longest = max(spans, key=lambda s: s[1] - s[0])
+        events += f"; {held} frames held in {len(spans)} losses (longest {longest[0]}-{longest[1]})"
     line = (f"| {name} | {mode} | {m['num_frames']} | {m['num_keyframes']} | {_cm(ate)} | {share} | "
             f"{m['psnr']:.2f} | {_cm(m['depth_l1'])} | {m['fps']:.2f} / {m['fps_streaming']:.1f} | {events} |")
     print(line, flush=True)
