@@ -82,7 +82,7 @@ def frame_events() -> Iterator[list[tuple[int, str]]]:
 
 def lost_spans(events: list[tuple[int, str]], frames: int) -> list[tuple[int, int]]:
     """(first, last) frame positions of each stretch from a `tracking_lost` to the frame before the next
-    `relocalized` (or the last frame): the frames whose pose is held, not tracked."""
+    `relocalized` (or the last frame): the frames tracking did not place (their pose is held, or the device's)."""
     spans, start = [], None
     for at, kind in sorted(events):
         if kind == "tracking_lost" and start is None:
@@ -199,7 +199,7 @@ def _print_row(name: str, mode: str, m: dict, motion: dict | None) -> None:
     if spans:
         held = sum(b - a + 1 for a, b in spans)
         longest = max(spans, key=lambda s: s[1] - s[0])
-        events += f"; {held} frames held in {len(spans)} losses (longest {longest[0]}-{longest[1]})"
+        events += f"; {held} frames lost in {len(spans)} losses (longest {longest[0]}-{longest[1]})"
     line = (f"| {name} | {mode} | {m['num_frames']} | {m['num_keyframes']} | {_cm(ate)} | {share} | "
             f"{m['psnr']:.2f} | {_cm(m['depth_l1'])} | {m['fps']:.2f} / {m['fps_streaming']:.1f} | {events} |")
     print(line, flush=True)
