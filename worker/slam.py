@@ -285,8 +285,6 @@ class SlamSystem:
         elif size != self._frame_size:
             raise ValueError(f"frame {frame.index} is {size[0]}x{size[1]}, the session's frames are "
                              f"{self._frame_size[0]}x{self._frame_size[1]}")
-        if self.tracking == "device" and frame.pose is None:
-            raise ValueError(f"frame {frame.index} has no pose, but this session runs in posed mode")
         if self.tracking == "rgbd_odometry" and frame.depth is None:
             raise ValueError(f"frame {frame.index} has no depth, but this session tracks by RGB-D odometry")
 

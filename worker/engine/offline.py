@@ -68,65 +68,68 @@ def run_sequence(
         total = None
     given_intrinsics = None if unknown_intrinsics else src.intrinsics
     system = SlamSystem(config, intrinsics=given_intrinsics)
-    frames: list[Frame] = []  # every frame; the image and depth only of every `hold_every`-th (see MAX_HELD_FRAMES)
-    hold_every = 1 if total is None else max(1, -(-total // MAX_HELD_FRAMES))
-    results = []
-    injector = None if drift is None else drift.injector()
-    start = time.perf_counter()
-    for k, frame in enumerate(src):
-        if injector is not None and frame.pose is not None:
-            frame.pose = injector.apply(frame.pose)
-        if unknown_intrinsics:
-            frame.intrinsics = None
-        results.append(system.push(frame))
-        _wait_for_mapping(system, config.queue_size // 2)
-        frames.append(frame if k % hold_every == 0 else _without_pixels(frame))
-        if progress is not None:
-            progress(k + 1, total)
-    tracked_s = time.perf_counter() - start
-    lag_at_last_pose = system.live_stats()
-    system.finish()
-    runtime = time.perf_counter() - start
-    if not frames:
-        raise ValueError(f"{source} yielded no frames")
+    try:  # the stages' threads stop on an error too (else the process aborts at exit)
+        frames: list[Frame] = []  # every frame; the image and depth only of every `hold_every`-th (see MAX_HELD_FRAMES)
+        hold_every = 1 if total is None else max(1, -(-total // MAX_HELD_FRAMES))
+        results = []
+        injector = None if drift is None else drift.injector()
+        start = time.perf_counter()
+        for k, frame in enumerate(src):
+            if injector is not None and frame.pose is not None:
+                frame.pose = injector.apply(frame.pose)
+            if unknown_intrinsics:
+                frame.intrinsics = None
+            results.append(system.push(frame))
+            _wait_for_mapping(system, config.queue_size // 2)
+            frames.append(frame if k % hold_every == 0 else _without_pixels(frame))
+            if progress is not None:
+                progress(k + 1, total)
+        tracked_s = time.perf_counter() - start
+        lag_at_last_pose = system.live_stats()
+        system.finish()
+        runtime = time.perf_counter() - start
+        if not frames:
+            raise ValueError(f"{source} yielded no frames")
 
-    all_poses = system.trajectory("all")
-    _write_trajectory(out / "trajectory_all.tum", all_poses)
-    _write_trajectory(out / "trajectory_keyframes.tum", system.trajectory("keyframes"))
-    intrinsics = system.estimated_intrinsics()
-    (out / "intrinsics.json").write_text(json.dumps(
-        {**(intrinsics.to_dict() if intrinsics else {}), "estimated": given_intrinsics is None}, indent=1))
-    metrics: dict[str, Any] = {
-        "sequence": src.name, "dataset": _dataset_name(source), "method": "Flash-Mono",
-        "mode": system.mode, "preset": config.name, "num_frames": len(frames),
-        "num_keyframes": sum(r.is_keyframe for r in results), "loops": int(system.counters["loops"]),
-        "frames_tracked": int(system.counters["frames_tracked"]),
-        "events": _event_counts(results),
-        "revision": system.revision, "runtime_s": runtime, "fps": len(frames) / runtime,
-        # the rate poses come out while the frames stream (mapping runs behind, shedding work when it must: what it
-        # shed and how far it lagged at the last pose are below; finish() then drains it and refines)
-        "fps_streaming": len(frames) / max(1e-9, tracked_s),
-        "finish_s": runtime - tracked_s,
-        "mapping_lag_at_last_pose": {"keyframes": lag_at_last_pose["mapping_lag_keyframes"],
-                                     "seconds": lag_at_last_pose["mapping_lag_s"]},
-        "keyframes_shed": system.live_stats()["keyframes_shed"],
-        "use_gt_depth": use_gt_depth, "use_gt_poses": use_gt_poses, "tracking": system.tracking,
-        "depth_source": system.depth_source,
-        "intrinsics": intrinsics.to_dict() if intrinsics else None, "intrinsics_estimated": given_intrinsics is None,
-        "drift": None if drift is None else drift.to_dict(),
-        "runtime_breakdown": system.timings.breakdown(len(frames)),
-        "eval_frames_held_every": hold_every,
-    }
-    metrics.update(_trajectory_metrics(frames, all_poses, drift, [r.tracked for r in results]))
-    if system.backend is not None:
-        (out / "map.ply").write_bytes(system.export_ply())
-        metrics["num_gaussians"] = system.num_gaussians
-        metrics.update(_render_metrics(system, frames, results, all_poses, intrinsics, out, eval_every, hold_every))
-    else:
-        metrics.update({"num_gaussians": 0, "psnr": None, "ssim": None, "lpips": None, "depth_l1": None,
-                        "lpips_note": "mapping disabled"})
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
-    system.close()
+        all_poses = system.trajectory("all")
+        _write_trajectory(out / "trajectory_all.tum", all_poses)
+        _write_trajectory(out / "trajectory_keyframes.tum", system.trajectory("keyframes"))
+        intrinsics = system.estimated_intrinsics()
+        (out / "intrinsics.json").write_text(json.dumps(
+            {**(intrinsics.to_dict() if intrinsics else {}), "estimated": given_intrinsics is None}, indent=1))
+        metrics: dict[str, Any] = {
+            "sequence": src.name, "dataset": _dataset_name(source), "method": "Flash-Mono",
+            "mode": system.mode, "preset": config.name, "num_frames": len(frames),
+            "num_keyframes": sum(r.is_keyframe for r in results), "loops": int(system.counters["loops"]),
+            "frames_tracked": int(system.counters["frames_tracked"]),
+            "events": _event_counts(results),
+            "revision": system.revision, "runtime_s": runtime, "fps": len(frames) / runtime,
+            # the rate poses come out while the frames stream (mapping runs behind, shedding work when it must: what it
+            # shed and how far it lagged at the last pose are below; finish() then drains it and refines)
+            "fps_streaming": len(frames) / max(1e-9, tracked_s),
+            "finish_s": runtime - tracked_s,
+            "mapping_lag_at_last_pose": {"keyframes": lag_at_last_pose["mapping_lag_keyframes"],
+                                         "seconds": lag_at_last_pose["mapping_lag_s"]},
+            "keyframes_shed": system.live_stats()["keyframes_shed"],
+            "use_gt_depth": use_gt_depth, "use_gt_poses": use_gt_poses, "tracking": system.tracking,
+            "depth_source": system.depth_source,
+            "intrinsics": intrinsics.to_dict() if intrinsics else None,
+            "intrinsics_estimated": given_intrinsics is None,
+            "drift": None if drift is None else drift.to_dict(),
+            "runtime_breakdown": system.timings.breakdown(len(frames)),
+            "eval_frames_held_every": hold_every,
+        }
+        metrics.update(_trajectory_metrics(frames, all_poses, drift, [r.tracked for r in results]))
+        if system.backend is not None:
+            (out / "map.ply").write_bytes(system.export_ply())
+            metrics["num_gaussians"] = system.num_gaussians
+            metrics.update(_render_metrics(system, frames, results, all_poses, intrinsics, out, eval_every, hold_every))
+        else:
+            metrics.update({"num_gaussians": 0, "psnr": None, "ssim": None, "lpips": None, "depth_l1": None,
+                            "lpips_note": "mapping disabled"})
+        (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
+    finally:
+        system.close()
     return metrics
 
 
