@@ -30,7 +30,8 @@ from worker.geometry import Intrinsics
 
 from . import schur_native
 from .base import TrackingResult
-from .bundle_adjustment import bundle_adjust, reprojection_chi2
+from .bundle_adjustment import Observations, bundle_adjust, reprojection_chi2
+from .covisibility import LocalWindow, covisible_window
 from .features import Features, OrbExtractor
 from .local_map import Keyframe, LocalMap
 from .optical_flow import detect_corners, predicted_pixels, refine_points, track_points
@@ -260,7 +261,7 @@ class VisualOdometry:
         K = camera_matrix(camera)
         ref_index, ref_ids, ref_uv = self.pending[reference]
         kf_b = self._two_keyframe_map(index, gray, two, ref_index, ref_ids, ref_uv)
-        self._adjust(K, fixed_count=1)
+        self._adjust(K, LocalWindow(np.array([1]), np.array([0])))
         self._normalise_scale()
         world = np.eye(4)
         world[:3, :3] = reference_orientation
@@ -479,21 +480,29 @@ class VisualOdometry:
 
     def _insert_keyframe(self, index: int, pose: np.ndarray, gray: np.ndarray, K: np.ndarray) -> Keyframe:
         kf = self._new_keyframe(index, pose, gray)
-        self._triangulate(K)
         c = self.config
-        gone = self.map.slide(c.window + c.fixed_keyframes)
+        self._triangulate(K, self.map.keyframes[-(c.window + c.fixed_keyframes + 1):])
+        gone = self.map.slide(c.map_keyframes if c.covisibility_ba else c.window + c.fixed_keyframes)
         self._retire(gone)
         self._remap(self.map.forget_unobserved())
-        if len(self.map.keyframes) >= 3:
-            self._adjust(K, fixed_count=max(c.fixed_keyframes, len(self.map.keyframes) - c.window))
+        count = len(self.map.keyframes)
+        if count >= 3:
+            if c.covisibility_ba:
+                window = covisible_window([k.point_ids for k in self.map.keyframes], count - 1, c.window,
+                                          c.covisible_fixed, min_fixed=c.fixed_keyframes)
+            else:
+                held = min(max(c.fixed_keyframes, count - c.window), count - 1)
+                window = LocalWindow(np.arange(held, count), np.arange(held))
+            self._adjust(K, window)
         self.tracked_at_keyframe = int(self.tracks.mapped.sum())
         return kf
 
-    def _triangulate(self, K: np.ndarray) -> None:
-        """Map points from the candidate tracks of the newest keyframe (see `triangulate_tracks`)."""
+    def _triangulate(self, K: np.ndarray, keyframes: list[Keyframe]) -> None:
+        """Map points from the candidate tracks of the newest keyframe seen first by one of `keyframes` (oldest
+        first, the newest last; see `triangulate_tracks`)."""
         m, t = self.map, self.tracks
         candidate = t.rows < 0
-        new = triangulate_tracks(m.keyframes, t.ids[candidate], t.uv[candidate], K, self.config.chi2_px,
+        new = triangulate_tracks(keyframes, t.ids[candidate], t.uv[candidate], K, self.config.chi2_px,
                                  self.config.min_parallax_deg)
         rows = m.add_points(new.points, np.zeros((len(new.points), 32), np.uint8))
         for keyframe in m.keyframes:
@@ -508,26 +517,32 @@ class VisualOdometry:
         """Follow the map's renumbering of points in the tracks (a track whose point went becomes a candidate)."""
         self.tracks.rows = remap[self.tracks.rows]
 
-    def _adjust(self, K: np.ndarray, fixed_count: int) -> None:
-        """Windowed bundle adjustment with the first `fixed_count` keyframes held; observations it finds wrong are
-        dropped (and the tracks they came from when the newest keyframe made them), and points nobody sees."""
+    def _adjust(self, K: np.ndarray, window: LocalWindow) -> None:
+        """Bundle adjustment of the window's free keyframes and the points they observe, its fixed keyframes held;
+        observations it finds wrong are dropped (and the tracks they came from when the newest keyframe made
+        them), and points nobody sees."""
         m = self.map
+        slots = window.slots
         obs = m.observations(self.extractor.level_sigmas)
+        keep = np.isin(obs.keyframe, slots)
+        obs = Observations(np.searchsorted(slots, obs.keyframe[keep]), obs.point[keep], obs.uv[keep],
+                           obs.sigma[keep])
         if len(obs.point) == 0:
             return
-        fixed = np.zeros(len(m.keyframes), bool)
-        fixed[: min(fixed_count, len(m.keyframes) - 1)] = True
-        poses = np.stack([kf.pose for kf in m.keyframes])
+        fixed = ~np.isin(slots, window.free)
+        poses = np.stack([m.keyframes[k].pose for k in slots])
         poses, m.positions, _ = bundle_adjust(poses, fixed, m.positions, obs, K, self.config.ba_iterations,
                                               self.config.huber_sigmas)
-        for kf, pose in zip(m.keyframes, poses, strict=True):
-            kf.pose = pose
+        for slot, pose in zip(slots, poses, strict=True):
+            m.keyframes[slot].pose = pose
         bad = reprojection_chi2(poses, m.positions, obs, K) > self.config.chi2_px
-        for slot, kf in enumerate(m.keyframes):
-            bad_rows = obs.point[bad & (obs.keyframe == slot)]
+        for n, slot in enumerate(slots):
+            kf = m.keyframes[slot]
+            bad_rows = obs.point[bad & (obs.keyframe == n)]
             if len(bad_rows):
                 kf.point_ids[np.isin(kf.point_ids, bad_rows)] = -1
-        bad_newest = obs.point[bad & (obs.keyframe == len(m.keyframes) - 1)]
+        newest = len(m.keyframes) - 1
+        bad_newest = obs.point[bad & (obs.keyframe == np.searchsorted(slots, newest))] if newest in slots else []
         if len(bad_newest):
             self.tracks = self.tracks.subset(~np.isin(self.tracks.rows, bad_newest))
         self._remap(m.forget_unobserved())
@@ -746,7 +761,7 @@ class VisualOdometry:
         scale, shared = anchor.scale_of(two.points, at[two.ib])
         self._retire(self.map.keyframes)
         kf = self._two_keyframe_map(index, gray, two, anchor.index, anchor.ids, anchor.uv)
-        self._adjust(K, fixed_count=1)
+        self._adjust(K, LocalWindow(np.array([1]), np.array([0])))
         self._move_map(anchor.pose, scale)
         self.anchor = None
         self.tracked_at_keyframe = int(self.tracks.mapped.sum())
