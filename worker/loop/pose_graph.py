@@ -29,7 +29,9 @@ from worker.geometry.gtsam_bridge import sim3_to_gtsam
 
 from .incremental import IncrementalSolver
 
-EDGE_KINDS = ("sequential", "inter_submap", "loop")
+# restart: across the seam of a monocular map restarted after a loss (its scale is a guess); map_join: the Sim(3)
+# that joins such a map to an older one where it recognised an older keyframe.
+EDGE_KINDS = ("sequential", "inter_submap", "loop", "restart", "map_join")
 DIVERGED_COST_RATIO = 1.05  # an incremental solve ending this much above its starting cost is redone in batch
 
 
@@ -53,6 +55,8 @@ DEFAULT_SIGMAS: dict[str, EdgeSigmas] = {
     "sequential": EdgeSigmas(0.01, 0.02, 0.01),
     "inter_submap": EdgeSigmas(0.01, 0.02, 0.01),
     "loop": EdgeSigmas(0.02, 0.04, 0.02),
+    "restart": EdgeSigmas(0.02, 0.1, 0.5),
+    "map_join": EdgeSigmas(0.02, 0.04, 0.02),
 }
 
 

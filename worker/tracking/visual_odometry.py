@@ -34,6 +34,7 @@ from .bundle_adjustment import Observations, bundle_adjust, reprojection_chi2
 from .covisibility import LocalWindow, covisible_window
 from .features import Features, OrbExtractor
 from .local_map import Keyframe, LocalMap
+from .map_join import link_maps, moved_points, moved_pose, similarity, similarity_inverse, similarity_scale
 from .optical_flow import detect_corners, predicted_pixels, refine_points, track_points
 from .pose_optimization import optimize_pose
 from .projection import camera_matrix, invert_pose, rigid, to_camera
@@ -98,6 +99,14 @@ class Anchor:
                    np.asarray(s["world"], np.float64).reshape(-1, 3))
 
 
+@dataclass
+class JoinState:
+    """A map restarted after a loss, not joined to an older map yet: its first frame and the keyframes tried."""
+
+    since: int
+    tried: int = 0
+
+
 class VisualOdometry:
     """PoseSource for RGB-only streams (see the module docstring)."""
 
@@ -135,6 +144,12 @@ class VisualOdometry:
         self.focal = FocalEstimator(self.config)
         # (frame index, pose) of the engine's keyframes, to come back to
         self.engine_keyframes: deque[tuple[int, np.ndarray]] = deque(maxlen=max(1, self.config.reuse_keyframes))
+        # Maps: the current one's id, how many were made, and the similarity from the map's coordinates to the
+        # poses handed out (it changes when a restarted map joins an older one, so that poses never jump).
+        self.map_id = 0
+        self.maps_made = 1
+        self.output = np.eye(4)
+        self.join: JoinState | None = None
 
     # ---- PoseSource ------------------------------------------------------------------------------------------
     def track(self, frame: Frame, intrinsics: Intrinsics | None, motion_guess: np.ndarray | None = None
@@ -144,6 +159,9 @@ class VisualOdometry:
         the constant-velocity guess when given."""
         camera = self._camera(frame, intrinsics)
         gray = cv2.cvtColor(frame.image, cv2.COLOR_RGB2GRAY)
+        if motion_guess is not None and not self._output_is_identity():  # output units -> the map's
+            motion_guess = np.array(motion_guess, np.float64)
+            motion_guess[:3, 3] /= similarity_scale(self.output)
         if self.status == "initializing":
             result = self._initialise(frame.index, gray, camera, intrinsics is None)
         elif self.status == "lost":
@@ -155,6 +173,21 @@ class VisualOdometry:
         self.pose = result.pose
         if result.tracked:
             self.last_tracked = frame.index
+        return self._to_output(result)
+
+    def _output_is_identity(self) -> bool:
+        return bool(np.array_equal(self.output, np.eye(4)))
+
+    def _to_output(self, result: TrackingResult) -> TrackingResult:
+        """The result in the output's coordinates (the map's, until a restarted map joined an older one)."""
+        if self._output_is_identity():
+            return result
+        result.pose = moved_pose(self.output, result.pose)
+        if result.depth is not None:
+            result.depth = result.depth * np.float32(similarity_scale(self.output))
+        for event in result.events:
+            if event.get("frames"):
+                event["frames"] = [[i, moved_pose(self.output, np.asarray(p)).tolist()] for i, p in event["frames"]]
         return result
 
     def keyframe_added(self, frame: Frame, pose: np.ndarray) -> None:
@@ -353,10 +386,11 @@ class VisualOdometry:
             return TrackingResult(pose, tracked=True, keyframe_hint=False, quality=quality)
         kf = self._insert_keyframe(index, pose, gray, K)
         self.velocity = rigid(self.velocity @ invert_pose(pose) @ kf.pose)
+        events = self._join_maps(index, kf, K) if self.join is not None else []
         if self._covered(index, kf.pose, K, camera):
-            return TrackingResult(kf.pose, tracked=True, keyframe_hint=False, quality=quality)
+            return TrackingResult(kf.pose, tracked=True, keyframe_hint=False, quality=quality, events=events)
         return TrackingResult(kf.pose, tracked=True, keyframe_hint=True, depth=self._sparse_depth(kf, camera),
-                              quality=quality)
+                              quality=quality, events=events)
 
     def _covered(self, index: int, pose: np.ndarray, K: np.ndarray, camera: Intrinsics) -> bool:
         """Whether an engine keyframe at least `reuse_min_age` frames old lies near `pose` and sees at least
@@ -366,6 +400,7 @@ class VisualOdometry:
         points = self.map.positions[t.rows[t.mapped]]
         if c.reuse_keyframes <= 0 or len(points) < c.min_tracked:
             return False
+        pose, points = moved_pose(self.output, pose), moved_points(self.output, points)  # the engine's poses
         depth = to_camera(points, pose)[:, 2]
         median = float(np.median(depth[depth > 0])) if np.any(depth > 0) else 1.0
         for kf_index, kf_pose in self.engine_keyframes:
@@ -557,21 +592,68 @@ class VisualOdometry:
             kf.pose = kf.pose.copy()
             kf.pose[:3, 3] = origin + s * (kf.pose[:3, 3] - origin)
 
-    def _place(self, kf: Keyframe) -> Place:
-        """The keyframe's ORB keypoints that lie on one of its map points' observations (within the relocalisation
-        tolerance), with those points."""
+    def _place_rows(self, kf: Keyframe) -> tuple[np.ndarray, np.ndarray]:
+        """The keyframe's ORB keypoints (indices) that lie on one of its map points' observations (within the
+        relocalisation tolerance), and those points' rows."""
         has = np.flatnonzero(kf.point_ids >= 0)
         orb = kf.orb
         if len(has) == 0 or len(orb) == 0:
-            return Place(kf.index, kf.pose.copy(), orb.keypoints[:0], orb.descriptors[:0], np.zeros((0, 3)))
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
         dx = orb.keypoints[:, None, 0] - kf.features.keypoints[None, has, 0]
         dy = orb.keypoints[:, None, 1] - kf.features.keypoints[None, has, 1]
         d2 = dx * dx + dy * dy  # written out: no [N, M, 2] temporary
         nearest = d2.argmin(axis=1)
         radius = self.config.place_radius_px * self.extractor.level_sigmas(orb.octaves)
         near = np.flatnonzero(d2[np.arange(len(orb)), nearest] <= radius ** 2)
+        return near, kf.point_ids[has[nearest[near]]]
+
+    def _place(self, kf: Keyframe) -> Place:
+        """The keyframe's ORB keypoints that lie on one of its map points' observations, with those points."""
+        near, rows = self._place_rows(kf)
+        orb = kf.orb
         return Place(kf.index, kf.pose.copy(), orb.keypoints[near], orb.descriptors[near],
-                     self.map.positions[kf.point_ids[has[nearest[near]]]].copy())
+                     self.map.positions[rows].copy(), map_id=self.map_id, output=self.output.copy())
+
+    # ---- joining a restarted map to an older one -------------------------------------------------------------
+    def _join_maps(self, index: int, kf: Keyframe, K: np.ndarray) -> list[dict[str, Any]]:
+        """Try to join the restarted map to an older one at keyframe `kf` (see `map_join`): on a link, the map
+        (keyframes, points, its remembered places) moves into the older map's frame, scale included, and the
+        output transform takes the inverse move, so that poses handed out do not jump; the `maps_merged` event
+        carries the Sim(3) edge for the pose graph (`relative`: this frame in the place's frame, each in the units
+        of the poses handed out at the time) and `correction` (the similarity that takes the new map's output
+        poses into the older map's)."""
+        c, join = self.config, self.join
+        join.tried += 1
+        if join.tried > c.join_max_keyframes:
+            self.join = None
+            return []
+        places = [p for p in self.retired if p.map_id != self.map_id]
+        near, rows = self._place_rows(kf)
+        points = np.full((len(kf.orb), 3), np.nan)
+        points[near] = self.map.positions[rows]
+        link = link_maps(self.recognizer, kf.orb, points, kf.pose, places, K,
+                         self.extractor.level_sigmas(kf.orb.octaves), c.reloc_min_inliers, c.join_min_pairs,
+                         c.join_max_spread)
+        if link is None:
+            return []
+        S, s = link.transform, link.scale
+        before = self.output
+        # Each camera with its output units (1 / the output scale of its time, in the older map's units).
+        place_camera = link.place.pose @ similarity(np.eye(3), np.zeros(3), 1.0 / similarity_scale(link.place.output))
+        kf_camera = S @ kf.pose @ similarity(np.eye(3), np.zeros(3), 1.0 / similarity_scale(before))
+        relative = similarity_inverse(place_camera) @ kf_camera
+        correction = link.place.output @ S @ similarity_inverse(before)
+        self._move_map(similarity(S[:3, :3] / s, S[:3, 3], 1.0), s)
+        for place in self.retired:
+            if place.map_id == self.map_id:
+                place.pose, place.points = moved_pose(S, place.pose), moved_points(S, place.points)
+                place.output, place.map_id = place.output @ similarity_inverse(S), link.place.map_id
+        self.output = before @ similarity_inverse(S)
+        self.velocity[:3, 3] *= s
+        self.map_id, self.join = link.place.map_id, None
+        return [{"type": "maps_merged", "frame": index, "place": link.place.index, "since": join.since,
+                 "scale": similarity_scale(correction), "pairs": link.pairs, "spread": round(link.spread, 4),
+                 "relative": relative.tolist(), "correction": correction.tolist()}]
 
     def _retire(self, keyframes: list[Keyframe]) -> None:
         places = (self._place(kf) for kf in keyframes)
@@ -655,6 +737,9 @@ class VisualOdometry:
         at `pose` (their positions, hence the scale, carry over); the old keyframes become places."""
         self.anchor = None
         self._retire(self.map.keyframes)
+        place_map = next((p.map_id for p in self.retired if p.index == place), self.map_id)
+        if place_map != self.map_id:  # back in an older map's frame: its points carry that map's coordinates
+            self.map_id, self.join = place_map, None
         m = self.map = LocalMap()
         rows = m.add_points(points, np.zeros((len(points), 32), np.uint8))
         ids = np.arange(self.next_id, self.next_id + len(rows), dtype=np.int64)
@@ -760,6 +845,8 @@ class VisualOdometry:
             return None  # a turn in place fits a homography too, and noise then passes for a small baseline
         scale, shared = anchor.scale_of(two.points, at[two.ib])
         self._retire(self.map.keyframes)
+        if c.join_maps:  # a map of its own until a place of the old one is recognised
+            self.map_id, self.maps_made, self.join = self.maps_made, self.maps_made + 1, JoinState(index)
         kf = self._two_keyframe_map(index, gray, two, anchor.index, anchor.ids, anchor.uv)
         self._adjust(K, LocalWindow(np.array([1]), np.array([0])))
         self._move_map(anchor.pose, scale)
@@ -775,8 +862,9 @@ class VisualOdometry:
                  else "scene depth", "shared_points": shared,
                  "lost_frames": index - (self.lost_since if self.lost_since is not None else index)}
         self.status, self.lost_since = "tracking", None
+        joined = self._join_maps(index, kf, K) if self.join is not None else []  # the old map's last places
         return TrackingResult(kf.pose, tracked=True, keyframe_hint=True, depth=self._sparse_depth(kf, camera),
-                              events=[event], quality=1.0)
+                              events=[event, *joined], quality=1.0)
 
     # ---- snapshots -------------------------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
@@ -800,6 +888,8 @@ class VisualOdometry:
             "tracks": self.tracks.to_state(), "next_id": self.next_id,
             "map": self.map.to_state(), "retired": [p.to_state() for p in self.retired],
             "engine_keyframes": [{"index": i, "pose": p} for i, p in self.engine_keyframes],
+            "map_id": self.map_id, "maps_made": self.maps_made, "output": self.output,
+            "join": {} if self.join is None else {"since": self.join.since, "tried": self.join.tried},
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -834,3 +924,7 @@ class VisualOdometry:
         self.retired = [Place.from_state(p) for p in state["retired"]]
         self.engine_keyframes.extend((int(k["index"]), np.asarray(k["pose"], np.float64).reshape(4, 4))
                                      for k in state.get("engine_keyframes", []))
+        self.map_id, self.maps_made = int(state.get("map_id", 0)), int(state.get("maps_made", 1))
+        self.output = np.asarray(state.get("output", np.eye(4)), np.float64).reshape(4, 4)
+        join = state.get("join") or {}
+        self.join = JoinState(int(join["since"]), int(join["tried"])) if join else None

@@ -89,6 +89,14 @@ class VisualOdometryConfig(BaseModel):
                                                                      "needs, degrees (ORB-SLAM's; its pose and "
                                                                      "scale come from the anchor)")
     reinit_min_matches: int = Field(50, ge=20, description="tracks shared with the anchor needed to restart")
+    join_maps: bool = Field(True, description="a map restarted after a loss is joined to the older map, scale "
+                                              "included, when one of its keyframes recognises an older keyframe "
+                                              "(a Sim(3) edge: `maps_merged`)")
+    join_max_keyframes: int = Field(40, ge=1, description="... tried at this many keyframes of the new map at most")
+    join_min_pairs: int = Field(10, ge=3, description="... measured by at least this many of the place's points that "
+                                                      "lie on the new map's points too (their depth ratio)")
+    join_max_spread: float = Field(0.15, gt=0.0, description="... when the depth ratios of the shared points agree "
+                                                             "(median absolute deviation of their log)")
     learned_relocalisation: bool = Field(True, description="while lost, match XFeat features of the last tracked "
                                                            "frame's map points (optical flow and ORB failed)")
     learned_reloc_frames: int = Field(30, ge=1, description="... for this many frames after it")
