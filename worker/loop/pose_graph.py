@@ -55,7 +55,7 @@ DEFAULT_SIGMAS: dict[str, EdgeSigmas] = {
     "sequential": EdgeSigmas(0.01, 0.02, 0.01),
     "inter_submap": EdgeSigmas(0.01, 0.02, 0.01),
     "loop": EdgeSigmas(0.02, 0.04, 0.02),
-    "restart": EdgeSigmas(0.02, 0.1, 0.5),
+    "restart": EdgeSigmas(0.02, 0.5, 1.0),
     "map_join": EdgeSigmas(0.02, 0.04, 0.02),
 }
 
