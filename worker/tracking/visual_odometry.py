@@ -39,6 +39,7 @@ from .optical_flow import detect_corners, predicted_pixels, refine_points, track
 from .pose_optimization import optimize_pose
 from .projection import camera_matrix, invert_pose, rigid, to_camera
 from .relocalization import Place, PlaceRecognizer
+from .reobservation import nearest_keypoints, search_by_projection
 from .self_calibration import FocalEstimator
 from .track_triangulation import triangulate_tracks
 from .tracks import Tracks, lookup_sorted
@@ -517,6 +518,8 @@ class VisualOdometry:
         kf = self._new_keyframe(index, pose, gray)
         c = self.config
         self._triangulate(K, self.map.keyframes[-(c.window + c.fixed_keyframes + 1):])
+        if c.reobserve_points:
+            self._reobserve(kf, K)
         gone = self.map.slide(c.map_keyframes if c.covisibility_ba else c.window + c.fixed_keyframes)
         self._retire(gone)
         self._remap(self.map.forget_unobserved())
@@ -547,6 +550,45 @@ class VisualOdometry:
         t.rows[found] = rows[at[found]]
         if len(new.inconsistent):
             self.tracks = t.subset(~np.isin(t.ids, new.inconsistent))
+
+    def _reobserve(self, kf: Keyframe, K: np.ndarray) -> None:
+        """Describe the points the tracks measure at the new keyframe `kf` (ORB), then match the described points
+        no track follows to its ORB features (`reobservation`): a candidate track on the keypoint takes the point,
+        and away from every track a new track starts there; `kf` observes them."""
+        c, m, t = self.config, self.map, self.tracks
+        radius = c.place_radius_px * self.extractor.level_sigmas(kf.orb.octaves)
+        mapped = np.flatnonzero(t.mapped)
+        bare = mapped[~m.descriptors[t.rows[mapped]].any(axis=1)]
+        nearest, near = nearest_keypoints(t.uv[bare].astype(np.float64), kf.orb, radius)
+        m.descriptors[t.rows[bare[near]]] = kf.orb.descriptors[nearest[near]]
+        followed = np.zeros(len(m), bool)
+        followed[t.rows[mapped]] = True
+        candidates = np.flatnonzero(~followed & m.descriptors.any(axis=1))
+        rows, keypoints = search_by_projection(m.positions, m.descriptors, candidates, kf.pose, K, self.image_size,
+                                               kf.orb, c.reobserve_radius_px, c.reobserve_max_hamming, c.match_ratio)
+        if len(rows) == 0 or len(t) == 0:
+            return
+        uv = kf.orb.keypoints[keypoints].astype(np.float32)
+        d2 = ((uv[:, None, :] - t.uv[None, :, :]) ** 2).sum(-1)
+        closest = d2.argmin(axis=1)
+        distance = np.sqrt(d2[np.arange(len(uv)), closest])
+        taken = np.flatnonzero((distance <= c.reobserve_snap_px) & (t.rows[closest] < 0))
+        take = np.zeros(len(uv), bool)
+        take[taken[np.unique(closest[taken], return_index=True)[1]]] = True  # one point per track
+        t.rows[closest[take]] = rows[take]
+        order = np.argsort(kf.track_ids)
+        at, found = lookup_sorted(kf.track_ids[order], t.ids[closest[take]])
+        kf.point_ids[order[at[found]]] = rows[take][found]
+        fresh = distance > c.corner_min_distance * max(self.image_size)
+        if fresh.any():
+            ids = np.arange(self.next_id, self.next_id + int(fresh.sum()), dtype=np.int64)
+            self.next_id += len(ids)
+            self.tracks = Tracks(np.r_[t.ids, ids], np.concatenate([t.uv, uv[fresh]]), np.r_[t.rows, rows[fresh]])
+            f = kf.features
+            kf.features = Features(np.concatenate([f.keypoints, uv[fresh]]),
+                                   np.concatenate([f.descriptors, np.zeros((len(ids), 32), np.uint8)]),
+                                   np.concatenate([f.octaves, np.zeros(len(ids), f.octaves.dtype)]))
+            kf.point_ids, kf.track_ids = np.r_[kf.point_ids, rows[fresh]], np.r_[kf.track_ids, ids]
 
     def _remap(self, remap: np.ndarray) -> None:
         """Follow the map's renumbering of points in the tracks (a track whose point went becomes a candidate)."""

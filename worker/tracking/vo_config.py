@@ -71,6 +71,13 @@ class VisualOdometryConfig(BaseModel):
                                                     "observe their points (ORB-SLAM's local mapping); off: the last "
                                                     "`window` keyframes move, the `fixed_keyframes` before them hold")
     map_keyframes: int = Field(16, ge=3, description="keyframes the local map keeps for the covisibility window")
+    reobserve_points: bool = Field(False, description="a new keyframe's ORB features are matched to the local map's "
+                                                      "points no track follows (search by projection): a place seen "
+                                                      "again joins the covisibility window")
+    reobserve_radius_px: float = Field(4.0, gt=0.0, description="... within this many pixels of the projection")
+    reobserve_max_hamming: int = Field(50, ge=1, le=256, description="... at this descriptor distance at most")
+    reobserve_snap_px: float = Field(2.0, ge=0.0, description="... a candidate track this close to the keypoint "
+                                                              "takes the point (else a new track starts there)")
     # 4 held keyframes gave 0.53 % of the path on the synthetic street (ICL 1.68 cm), 2 gave 0.15 % (ICL 1.73 cm).
     covisible_fixed: int = Field(2, ge=1, description="keyframes held still around the covisible ones, at the most")
     huber_sigmas: float = Field(2.45, gt=0.0, description="Huber kernel width, in pixel sigmas")
