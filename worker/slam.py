@@ -103,7 +103,8 @@ class SlamSystem:
                                      self.config.device, self.timings) if self.config.mapping.enabled else None)
         if self.backend is not None:
             self.backend.on_keyframe_built = self._keyframe_depth_built
-        self.counters: dict[str, float] = {"frames": 0, "keyframes": 0, "loops": 0, "frontend_seconds": 0.0,
+        self.counters: dict[str, float] = {"frames": 0, "frames_tracked": 0, "keyframes": 0, "loops": 0,
+                                           "frontend_seconds": 0.0,
                                            "wall_seconds": 0.0, "path_given": 0.0, "path_tracked": 0.0}
         self._frame_size: tuple[int, int] | None = None
         self._finished = False
@@ -322,6 +323,7 @@ class SlamSystem:
             with self.timings.measure("frontend_inference"):
                 prediction = self._model.predict(frame, intrinsics)
             self._accumulate_path(pose, prediction[1].pose_world.numpy())
+        self.counters["frames_tracked"] += int(tracking.tracked)
         if self.keyframe_depth is not None and tracking.tracked:  # a lost frame's held pose is not its own
             self.keyframe_depth.add_frame(frame.index, frame.image)
         is_kf = self.tracking_stage.is_keyframe(tracking, pose)
@@ -345,7 +347,8 @@ class SlamSystem:
         if self.backend is not None:
             self._queue_depth_jobs()
             self._flush_map_jobs()
-        return FrameResult(frame.index, frame.timestamp, world, is_kf, tracking.submap_id, self.revision, events)
+        return FrameResult(frame.index, frame.timestamp, world, is_kf, tracking.submap_id, self.revision, events,
+                           tracked=tracking.tracked)
 
     def _apply_tracking_event(self, event: dict[str, Any]) -> dict[str, Any]:
         """Act on a pose source's event; returns it as clients get it. `initialized` (monocular odometry) carries

@@ -84,7 +84,7 @@ class TrackingStage:
             node.relative = (sim3_inverse(torch.from_numpy(self.trajectory.tracked_keyframe_poses[previous]))
                              @ torch.from_numpy(np.asarray(tracked_pose, np.float64))).numpy()
             node.kind = edge_kind or ("sequential" if self.submap_of.get(previous, submap_id) == submap_id
-                                      else "inter_submap")
+                                      else getattr(self.pose_source, "submap_seam", "inter_submap"))
         self.publish_keyframe(node)
         self.submap_of[kf_id] = submap_id
         self.last_keyframe = kf_id

@@ -38,7 +38,7 @@ from worker.runtime.stats import StageStats
 from worker.serialization import pack, unpack
 
 # Pose-source events forwarded to the clients as their own messages.
-TRACKING_EVENTS = ("tracking_lost", "relocalized", "initialized", "initializing")
+TRACKING_EVENTS = ("tracking_lost", "relocalized", "initialized", "initializing", "new_map")
 # Notices about the input, forwarded as their own messages (tracking goes on); a misregistration is also kept in
 # the session record's `warnings`.
 INPUT_EVENTS = ("device_pose_jump", "depth_misregistered")
@@ -456,7 +456,8 @@ class SessionRunner(threading.Thread):
         for event in result.events:
             if event.get("type") in TRACKING_EVENTS:
                 self._publish_tracking_event(seq, event)
-                self._tracking_state = {"tracking_lost": "lost", "initializing": "initializing"}.get(
+                self._tracking_state = {"tracking_lost": "lost", "initializing": "initializing",
+                                        "new_map": "initializing"}.get(
                     event["type"], "tracking")
             elif event.get("type") in INPUT_EVENTS + MAP_EVENTS:
                 self._publish_tracking_event(seq, event)

@@ -112,6 +112,7 @@ class VisualOdometry:
     """PoseSource for RGB-only streams (see the module docstring)."""
 
     name = "visual_odometry"
+    submap_seam = "new_map"  # the pose-graph edge kind between a lost map and the new map begun after it
 
     def __init__(self, config: VisualOdometryConfig | None = None) -> None:
         self.config = config or VisualOdometryConfig()
@@ -140,6 +141,9 @@ class VisualOdometry:
         self.last_tracked = -1  # index of the last tracked frame
         self.mapped_at_loss = 0  # tracks of map points when tracking was lost
         self.anchor: Anchor | None = None  # the last tracked frame's tracks, while lost: a map restarts from them
+        self.maps_started = 1  # maps begun by an initialisation: the first, and each new map after a loss
+        self.map_origin = np.eye(4)  # where the next initialised map's reference keyframe is placed ...
+        self.map_depth = 1.0  # ... and the median scene depth it is given (the old map's, after a loss)
         self.image_size: tuple[int, int] | None = None
         self.estimated_intrinsics: Intrinsics | None = None
         self.focal = FocalEstimator(self.config)
@@ -164,7 +168,12 @@ class VisualOdometry:
             motion_guess = np.array(motion_guess, np.float64)
             motion_guess[:3, 3] /= similarity_scale(self.output)
         if self.status == "initializing":
-            result = self._initialise(frame.index, gray, camera, intrinsics is None)
+            # after a loss, the old map's places are looked for while the new map waits to be made
+            found = self._recognise_place(frame.index, gray, camera) if self.maps_started > 1 and self.retired else None
+            if found is not None:
+                self.maps_started -= 1  # back on the old map: the new one was never made
+                self.pending, self.pending_orientation, self.init_state = [], {}, ""
+            result = found or self._initialise(frame.index, gray, camera, intrinsics is None)
         elif self.status == "lost":
             result = self._relocalise(frame.index, gray, camera)
         else:
@@ -174,6 +183,7 @@ class VisualOdometry:
         self.pose = result.pose
         if result.tracked:
             self.last_tracked = frame.index
+        result.submap_id = self.maps_started - 1
         return self._to_output(result)
 
     def _output_is_identity(self) -> bool:
@@ -284,6 +294,9 @@ class VisualOdometry:
             self.init_state = state
             events.append({"type": "initializing", "frame": index, "state": state, "reason": reason,
                            "model": model, "score_ratio": round(float(score_ratio), 3)})
+        if self.maps_started > 1:  # after a loss the frame has no pose: the last one is held, and said so
+            return TrackingResult(self.pose.copy(), tracked=False, keyframe_hint=False, events=events, quality=0.0)
+        # before the first map the pose is a placeholder the world starts from (the `initialized` event revises it)
         return TrackingResult(rigid(pose), tracked=True, keyframe_hint=False, events=events, quality=0.0)
 
     def _start_map(self, index: int, gray: np.ndarray, attempt: TwoViewAttempt, reference: int, camera: Intrinsics,
@@ -298,8 +311,8 @@ class VisualOdometry:
         self._adjust(K, LocalWindow(np.array([1]), np.array([0])))
         self._normalise_scale()
         world = np.eye(4)
-        world[:3, :3] = reference_orientation
-        self._move_map(world, 1.0)
+        world[:3, :3], world[:3, 3] = reference_orientation, self.map_origin[:3, 3]
+        self._move_map(world, self.map_depth)
         pose = kf_b.pose
         between, previous = [], world
         for n, (i, ids, uv) in enumerate(self.pending[:-1]):
@@ -309,7 +322,9 @@ class VisualOdometry:
         self.pending, self.pending_orientation, self.init_state = [], {}, ""
         self.velocity = invert_pose(previous) @ pose
         self.status = "tracking"
-        event = {"type": "initialized", "frame": index, "frames": between, "points": len(self.map),
+        # After a loss the waiting frames were reported lost, against the old map's keyframes: they stay so.
+        event = {"type": "initialized", "frame": index, "frames": between if self.maps_started == 1 else [],
+                 "points": len(self.map),
                  "parallax_deg": round(two.parallax_deg, 3), "model": attempt.model,
                  "score_ratio": round(attempt.score_ratio, 3)}
         if uncalibrated:
@@ -762,16 +777,58 @@ class VisualOdometry:
             self.status, self.lost_since, self.velocity, self.anchor = "tracking", None, np.eye(4), None
             return TrackingResult(pose, tracked=True, keyframe_hint=False, events=[event],
                                   quality=min(1.0, inliers / max(self.tracked_at_keyframe, 1)))
-        features = self.extractor.extract(gray)
-        hit = None
-        if len(features) >= c.min_features:
-            places = self.retired + [self._place(kf) for kf in self.map.keyframes]
-            hit = self.recognizer.relocalise(features, places, K, self.extractor.level_sigmas(features.octaves))
-        if hit is not None:
-            return self._restart_from(index, gray, camera, hit.pose, features.keypoints[hit.keypoints], hit.points,
-                                      hit.place, "place recognition")
+        recognised = self._recognise_place(index, gray, camera)
+        if recognised is not None:
+            return recognised
         restarted = self._reinitialise(index, gray, camera) or self._relocalise_learned(index, gray, camera)
-        return restarted or TrackingResult(self.pose.copy(), tracked=False, keyframe_hint=False, quality=0.0)
+        if restarted is not None:
+            return restarted
+        lost_for = index - (self.lost_since if self.lost_since is not None else index)
+        if c.new_map_after_lost and lost_for >= c.new_map_after_lost and self._textured(gray):
+            return self._begin_new_map(index, gray, camera, lost_for)
+        return TrackingResult(self.pose.copy(), tracked=False, keyframe_hint=False, quality=0.0)
+
+    def _recognise_place(self, index: int, gray: np.ndarray, camera: Intrinsics) -> TrackingResult | None:
+        """Place recognition over the remembered keyframes (ORB, verified by PnP): a hit starts a new local map
+        from the place's points seen in this frame (their positions, hence the scale, carry over); None: no hit."""
+        features = self.extractor.extract(gray)
+        if len(features) < self.config.min_features:
+            return None
+        places = self.retired + [self._place(kf) for kf in self.map.keyframes]
+        hit = self.recognizer.relocalise(features, places, camera_matrix(camera),
+                                         self.extractor.level_sigmas(features.octaves))
+        if hit is None:
+            return None
+        return self._restart_from(index, gray, camera, hit.pose, features.keypoints[hit.keypoints], hit.points,
+                                  hit.place, "place recognition")
+
+    def _textured(self, gray: np.ndarray) -> bool:
+        """Whether the frame has the features an initialisation needs, and at least 30 % of the last keyframe's (a
+        covered lens or a blurred frame begins no map)."""
+        keyframes = self.map.keyframes
+        usual = len(keyframes[-1].features.keypoints) if keyframes else 0
+        return len(self.extractor.extract(gray)) >= max(self.config.init_min_matches, 0.3 * usual)
+
+    def _begin_new_map(self, index: int, gray: np.ndarray, camera: Intrinsics, lost_for: int) -> TrackingResult:
+        """Give up finding the old map from here: its keyframes become places, and a new map initialises from
+        this frame on, placed at the last pose with the old map's median scene depth (a guess: the two share no
+        point) until a loop or relocalisation joins them. A `new_map` event says so."""
+        depth = self._median_depth(self.map.keyframes[-1]) if self.map.keyframes else self.map_depth
+        self._retire(self.map.keyframes)
+        self.map, self.tracks, self.anchor = LocalMap(), Tracks.empty(), None
+        self.pending, self.pending_orientation, self.init_state = [], {}, ""
+        self.previous_gray = self.keyframe_gray = None
+        self.velocity = np.eye(4)
+        self.frames_since_keyframe = self.tracked_at_keyframe = 0
+        self.map_origin, self.map_depth = self.pose.copy(), depth
+        self.maps_started += 1
+        if self.config.join_maps:  # joined to an older map once one of its keyframes recognises an older place
+            self.map_id, self.maps_made, self.join = self.maps_made, self.maps_made + 1, JoinState(index)
+        self.status, self.lost_since = "initializing", None
+        result = self._initialise(index, gray, camera, uncalibrated=False)
+        result.events = [{"type": "new_map", "frame": index, "map": self.maps_started, "lost_frames": lost_for,
+                          "scene_depth": round(depth, 4)}] + list(result.events or [])
+        return result
 
     def _restart_from(self, index: int, gray: np.ndarray, camera: Intrinsics, pose: np.ndarray, uv: np.ndarray,
                       points: np.ndarray, place: int, method: str) -> TrackingResult:
@@ -930,6 +987,7 @@ class VisualOdometry:
             "tracks": self.tracks.to_state(), "next_id": self.next_id,
             "map": self.map.to_state(), "retired": [p.to_state() for p in self.retired],
             "engine_keyframes": [{"index": i, "pose": p} for i, p in self.engine_keyframes],
+            "maps_started": self.maps_started, "map_origin": self.map_origin, "map_depth": self.map_depth,
             "map_id": self.map_id, "maps_made": self.maps_made, "output": self.output,
             "join": {} if self.join is None else {"since": self.join.since, "tried": self.join.tried},
         }
@@ -966,6 +1024,9 @@ class VisualOdometry:
         self.retired = [Place.from_state(p) for p in state["retired"]]
         self.engine_keyframes.extend((int(k["index"]), np.asarray(k["pose"], np.float64).reshape(4, 4))
                                      for k in state.get("engine_keyframes", []))
+        self.maps_started = int(state.get("maps_started", 1))
+        self.map_origin = np.asarray(state.get("map_origin", np.eye(4)), np.float64).reshape(4, 4)
+        self.map_depth = float(state.get("map_depth", 1.0))
         self.map_id, self.maps_made = int(state.get("map_id", 0)), int(state.get("maps_made", 1))
         self.output = np.asarray(state.get("output", np.eye(4)), np.float64).reshape(4, 4)
         join = state.get("join") or {}

@@ -96,6 +96,10 @@ class VisualOdometryConfig(BaseModel):
                                                                      "needs, degrees (ORB-SLAM's; its pose and "
                                                                      "scale come from the anchor)")
     reinit_min_matches: int = Field(50, ge=20, description="tracks shared with the anchor needed to restart")
+    new_map_after_lost: int = Field(2, ge=0, description="lost frames (nothing above found the old map) after which "
+                                                         "a new map starts from a two-view initialisation, placed at "
+                                                         "the last pose with the old map's scene depth until a loop "
+                                                         "joins the two (ORB-SLAM3's new map in its atlas; 0: never)")
     join_maps: bool = Field(True, description="a map restarted after a loss is joined to the older map, scale "
                                               "included, when one of its keyframes recognises an older keyframe "
                                               "(a Sim(3) edge: `maps_merged`)")
