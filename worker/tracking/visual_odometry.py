@@ -5,15 +5,20 @@ by the motion model) and re-matched against the last keyframe's image, so that s
 to frame. The map starts from a two-view reconstruction of the first tracks with enough parallax; each frame's pose
 then comes from the tracks that measure map points (robust refinement from the constant-velocity guess, PnP + RANSAC
 when that fails). Keyframes are taken when tracks drop or the baseline grows: they add new corners, triangulate the
-candidate tracks that gained enough parallax since the oldest keyframe that saw them, and run a windowed bundle
-adjustment in which the oldest keyframes stay fixed, so scale carries over without rescaling. A lost frame first
-tries to take up the last tracked frame's tracks (a short loss), then place recognition with the ORB features the
-keyframes keep. When the camera comes back, a keyframe VO takes for its own map is not offered to the engine
-(`keyframe_hint=False`) if an engine keyframe at least `reuse_min_age` frames old lies near and sees most of the
-frame's tracked map points: a place walked through again keeps the keyframes of its first visit.
+candidate tracks that gained enough parallax since the oldest keyframe that saw them, and run a local bundle
+adjustment over the keyframes sharing the most points with the new one, those that also see their points held
+fixed (`covisibility`), so scale carries over without rescaling. A lost frame first tries to take up the last
+tracked frame's tracks (a short loss), then place recognition with the ORB features the keyframes keep, then a map
+restarted from two views. A restarted map is joined to the older one, scale included, when one of its keyframes
+recognises an older keyframe (`map_join`: the map moves, the poses handed out do not jump, and the `maps_merged`
+event carries the Sim(3) edge for the pose graph). When the camera comes back, a keyframe VO takes for its own map
+is not offered to the engine (`keyframe_hint=False`) if an engine keyframe at least `reuse_min_age` frames old lies
+near and sees most of the frame's tracked map points: a place walked through again keeps the keyframes of its first
+visit.
 
 Poses are camera-to-world rigid 4x4 matrices (a Sim(3) with s = 1); the world is the camera of the frame the map
-was initialised from and the scale makes that map's median depth 1.
+was initialised from and the scale makes that map's median depth 1. Poses handed out are the map's moved by the
+output similarity (the identity until a restarted map is joined to an older one).
 """
 
 from __future__ import annotations
