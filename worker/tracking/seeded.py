@@ -96,7 +96,8 @@ class SeededTracking:
             result = TrackingResult(np.eye(4), tracked=False, keyframe_hint=False)
         else:
             result = self.odometry.track(frame, intrinsics, motion_guess=self._guess(device_motion))
-        events = [e for e in result.events if e.get("type") != "initialized"]
+        # A monocular join (maps_merged) measures in odometry units; the device's poses place this world instead.
+        events = [e for e in result.events if e.get("type") not in ("initialized", "maps_merged")]
         initialized = [e for e in result.events if e.get("type") == "initialized"]
         if initialized and self.monocular:
             self._align_monocular(initialized[-1], device, result.pose)
