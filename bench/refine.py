@@ -55,31 +55,40 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--iterations", type=int, default=20)
     parser.add_argument("--window", type=int, default=5)
     parser.add_argument("--threads", type=int, default=min(2, os.cpu_count() or 1))
+    parser.add_argument("--device", default="cpu", help="cpu, or cuda (rasterizer: gsplat when it imports)")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
 
     from worker.engine.surfel_init import grid_from_depth
-    from worker.mapping import GaussianMap, MapConfig, raster_cpu, rasterize, voxelize
+    from worker.mapping import GaussianMap, MapConfig, raster_cpu, raster_gsplat, rasterize, voxelize
     from worker.mapping.gaussian_map import rigid_viewmat
     from worker.mapping.losses import psnr
 
-    backend = "compiled cpu" if raster_cpu.available() else "pure-torch reference"
+    if args.device == "cuda":
+        backend = "gsplat (CUDA)" if raster_gsplat.available() else "pure-torch reference (CUDA)"
+    else:
+        backend = "compiled cpu" if raster_cpu.available() else "pure-torch reference"
     frames = _load_keyframes(args.keyframes, args.stride)
-    gmap = GaussianMap(MapConfig(window=args.window, iterations=args.iterations))
+    gmap = GaussianMap(MapConfig(window=args.window, iterations=args.iterations, device=args.device))
+    sync = torch.cuda.synchronize if args.device == "cuda" else (lambda: None)
     rows = []
     for f in frames:
+        f = {k: v.to(args.device) if torch.is_tensor(v) and k != "pose" else v for k, v in f.items()}
         g = grid_from_depth(f["image"], f["depth"], f["K"])
         vox = voxelize(g["means"], g["quats"], g["scales"], g["opacities"], g["colors"], valid=g["valid"],
                        keyframe_id=f["id"], merged_scale_factor=2.0)
         t0 = time.perf_counter()
         stats = gmap.add_keyframe(f["id"], f["pose"], f["K"], f["image"], vox.surfels, depth=f["depth"])
         t_add = time.perf_counter() - t0
+        sync()
         viewmat, _ = rigid_viewmat(f["pose"])
+        viewmat = viewmat.to(args.device)
         H, W = f["image"].shape[:2]
         with torch.no_grad():
             before = psnr(rasterize(gmap.surfels, viewmat.float(), f["K"], W, H).rgb, f["image"])
         t0, c0 = time.perf_counter(), time.process_time()
         gmap.refine()
+        sync()
         t_refine, c_refine = time.perf_counter() - t0, time.process_time() - c0
         with torch.no_grad():
             after = psnr(rasterize(gmap.surfels, viewmat.float(), f["K"], W, H).rgb, f["image"])
@@ -93,7 +102,8 @@ def main(argv: list[str]) -> int:
               f"{t_refine:.2f} s wall, {c_refine:.2f} s CPU | PSNR {before:.2f} -> {after:.2f} dB", flush=True)
     steady = rows[1:] or rows
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    print(f"rasterizer backend: {backend}; threads {args.threads}; 320x240; load average at the end {load:.1f}")
+    print(f"rasterizer backend: {backend}; device {args.device}; threads {args.threads}; 320x240; "
+          f"load average at the end {load:.1f}")
     print(f"median add_keyframe {statistics.median(r['add_s'] for r in steady):.2f} s, median refine("
           f"{args.iterations}) {statistics.median(r['refine_s'] for r in steady):.2f} s "
           f"({1000 * statistics.median(r['refine_s'] for r in steady) / args.iterations:.0f} ms/iteration wall, "

@@ -11,7 +11,9 @@ fixed intrinsics) of the ICL frames: its ATE over the frames it registered and i
                                     [--uncalibrated]
 
 More cases: room10004, room10005 (fast turns), icl_gaps6 / icl_gaps16 (icl_mini's first 20 frames, then every 6th
-or 16th: gaps the optical flow cannot bridge).
+or 16th: gaps the optical flow cannot bridge), room_gap (room 10003 without frames 30-33: the map restarts at a wrong
+scale and is joined to the old one when the camera comes back to its start; `maps_merged` corrections are applied to
+the restarted map's frames as the engine's pose graph does).
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ import numpy as np
 from worker.data import open_source
 from worker.data.frame import Frame
 from worker.eval import absolute_trajectory_error
+from worker.tracking.map_join import moved_pose
 from worker.tracking.visual_odometry import VisualOdometry
 
 DEFAULT_DATA = Path("/work/shared/data/icl_livingroom1_micro")
@@ -57,6 +60,11 @@ def _cases(names: list[str], data: Path, frames: int) -> list[tuple[str, list]]:
             picked = mini[:20] + mini[20::step]
             out.append((f"tests/data/icl_mini, 20 frames then every {step}th",
                         [Frame(n, n / 10.0, f.image, f.intrinsics, gt_pose=f.gt_pose) for n, f in enumerate(picked)]))
+        elif name == "room_gap":
+            room = list(open_source(SYNTHETIC["room"], use_gt_depth=False))
+            picked = room[:30] + room[34:]
+            out.append((f"{SYNTHETIC['room']} without frames 30-33",
+                        [Frame(n, n / 30.0, f.image, f.intrinsics, gt_pose=f.gt_pose) for n, f in enumerate(picked)]))
         elif name in SYNTHETIC:
             out.append((SYNTHETIC[name], list(open_source(SYNTHETIC[name], use_gt_depth=False))))
         elif name == "icl":
@@ -75,6 +83,7 @@ def run_vo(frames: list, calibrated: bool = True) -> dict:
     """VO over the frames: trajectory (rewritten by the initialisation event), ATE, events and timing."""
     vo = VisualOdometry()
     poses, seconds, tracked, events, flags = [], [], 0, [], []
+    joins: list[tuple[int, np.ndarray]] = []  # (first frame of a restarted map, its correction), newest first
     for frame in frames:
         start = time.perf_counter()
         result = vo.track(frame, frame.intrinsics if calibrated else None)
@@ -86,8 +95,12 @@ def run_vo(frames: list, calibrated: bool = True) -> dict:
             if event["type"] == "initialized":
                 for index, pose in event["frames"]:
                     poses[index] = np.asarray(pose)
+            if event["type"] == "maps_merged":
+                joins.insert(0, (int(event["since"]), np.asarray(event["correction"])))
             events.append((frame.index, event["type"] if "method" not in event else
                            f"{event['type']} ({event['method']})"))
+    for since, correction in joins:
+        poses[since:] = [moved_pose(correction, pose) for pose in poses[since:]]
     gt = np.stack([f.gt_pose for f in frames])
     ate = absolute_trajectory_error(np.stack(poses), gt, "sim3")
     on = [n for n, ok in enumerate(flags) if ok]
@@ -146,6 +159,7 @@ def _report(name: str, r: dict, path_m: float) -> None:
     lost = [i for i, kind in r["events"] if kind == "tracking_lost"]
     back = [(i, kind.removeprefix("relocalized").strip(" ()") or "tracks") for i, kind in r["events"]
             if kind.startswith("relocalized")]
+    back += [(i, "maps merged") for i, kind in r["events"] if kind == "maps_merged"]
     print(f"  {name}: ATE {100 * r['ate_m']:.2f} cm = {100 * r['ate_m'] / path_m:.2f} % of the path "
           f"(max {100 * r['ate_max_m']:.2f} cm; tracked frames only {100 * r['ate_tracked_m']:.2f} cm), "
           f"tracked {r['tracked']}/{r['frames']}, lost at {lost}, relocalised at "

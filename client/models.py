@@ -163,14 +163,17 @@ class LoopClosedEvent:
 class TrackingEvent:
     """The server's pose source changed state at frame `seq`: kind "tracking_lost" (poses hold the last good one
     until "relocalized"), "relocalized", "initializing" (RGB-only: waiting for parallax, `data["state"]`) or
-    "initialized" (RGB-only: the first map; earlier frames' poses were re-estimated, see `data["revision"]`)."""
+    "initialized" (RGB-only: the first map; earlier frames' poses were re-estimated, see `data["revision"]`) or
+    "new_map" (RGB-only: the old map was not found again, a new one begins at the last pose, `data["map"]`) or
+    "maps_merged" (RGB-only: a map restarted after a loss was joined to the older one, scale included; the restarted
+    map's poses moved, see `data["revision"]`)."""
 
     kind: str
     seq: int
     data: dict[str, Any] = field(default_factory=dict)
 
 
-TRACKING_EVENT_TYPES = ("tracking_lost", "relocalized", "initialized", "initializing")
+TRACKING_EVENT_TYPES = ("tracking_lost", "relocalized", "initialized", "initializing", "new_map", "maps_merged")
 StreamEvent = PoseEvent | LoopClosedEvent | TrackingEvent
 
 

@@ -166,6 +166,24 @@ WEBSOCKET_DOC = {
                 "description": "RGB-only sessions: visual odometry made its first map at frame `seq`; the frames "
                                "before it, sent at the first frame's pose, were re-estimated: GET the trajectory "
                                "for revision `revision`"},
+            "new_map": {"type": "object", "properties": {
+                "type": {"const": "new_map"}, "seq": {"type": "integer"}, "map": {"type": "integer"},
+                "lost_frames": {"type": "integer"}},
+                "additionalProperties": True,
+                "description": "RGB-only sessions: after a loss nothing could bridge (a jump to an unseen view), "
+                               "visual odometry begins map number `map` at the last pose, with the old map's scene "
+                               "depth; `initializing` and `initialized` follow, and a `loop_closed` joining the two "
+                               "maps moves it into place (a new trajectory revision)"},
+            "maps_merged": {"type": "object", "properties": {
+                "type": {"const": "maps_merged"}, "seq": {"type": "integer"}, "revision": {"type": "integer"},
+                "place": {"type": "integer", "description": "the older frame the restarted map recognised"},
+                "since": {"type": "integer", "description": "the first frame of the restarted map"},
+                "scale": {"type": "number", "description": "how much the restarted map was scaled to fit"}},
+                "additionalProperties": True,
+                "description": "RGB-only sessions: a map visual odometry restarted after `tracking_lost` recognised "
+                               "a place of the older map; a Sim(3) edge joined the two in the pose graph and the "
+                               "restarted map's poses moved into the older map's frame, scale included: GET the "
+                               "trajectory for revision `revision`"},
             "device_pose_jump": {"type": "object", "properties": {
                 "type": {"const": "device_pose_jump"}, "seq": {"type": "integer"},
                 "translation": {"type": "number", "description": "how far the device's motion into this frame is "
@@ -205,8 +223,10 @@ WEBSOCKET_DOC = {
     },
     "/v1/sessions/{session_id}/events": {
         "description": "A read-only feed for viewers that do not send the frames (the web viewer): the messages the "
-                       "session's stream gets (pose, loop_closed, tracking_lost, relocalized, initializing, "
-                       "initialized, device_pose_jump, depth_misregistered, error, finishing, finished) from the "
+                       "session's stream gets (pose, loop_closed, maps_merged, tracking_lost, relocalized, "
+                       "initializing, initialized, new_map, device_pose_jump, depth_misregistered, error, finishing, "
+                       "finished) "
+                       "from the "
                        "moment of connection; the trajectory endpoint has the earlier ones. A session already "
                        "finished or failed answers one `finished`/`failed` message. Same authentication as the "
                        "stream (read or stream scope; ?api_key= allowed).",

@@ -171,8 +171,9 @@ class InputConfig(_Section):
     mvs_frames_after: int = Field(
         4, ge=0, le=64, description="mvs: frames a keyframe waits for, so that it has neighbours on both sides")
     mvs_buffer_frames: int = Field(16, ge=2, le=256, description="mvs: recent frames kept as neighbour candidates")
+    # propagate: +0.5 dB and a third fewer uncovered pixels on real sparse photos (the fox orbit), neutral on ICL
     mvs_fill: Literal["none", "model", "propagate"] = Field(
-        "none", description="mvs: pixels without a confident depth get no surfel (none), the learned model's "
+        "propagate", description="mvs: pixels without a confident depth get no surfel (none), the learned model's "
         "single-view depth scaled to the confident pixels (model; one model pass per keyframe), or a depth "
         "propagated from confident pixels of similar colour on the same plane (propagate: worker.depth.hole_fill; "
         "those surfels start less opaque)")

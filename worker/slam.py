@@ -47,7 +47,7 @@ from worker.engine.depth_registration import DepthRegistration
 from worker.engine.keyframe_depth import KeyframeDepth
 from worker.engine.keyframes import MotionKeyframeSelector
 from worker.engine.loop_closer import DepthKeyframePoints, LoopCloser
-from worker.engine.loop_stage import CameraUpdate, LoopClosingStage, LoopCorrection, LoopQuery
+from worker.engine.loop_stage import CameraUpdate, LoopClosingStage, LoopCorrection, LoopQuery, MapJoin
 from worker.engine.mapping_stage import MappingStage
 from worker.engine.snapshot_future import SnapshotFuture
 from worker.engine.stage_times import StageTimes
@@ -103,7 +103,8 @@ class SlamSystem:
                                      self.config.device, self.timings) if self.config.mapping.enabled else None)
         if self.backend is not None:
             self.backend.on_keyframe_built = self._keyframe_depth_built
-        self.counters: dict[str, float] = {"frames": 0, "keyframes": 0, "loops": 0, "frontend_seconds": 0.0,
+        self.counters: dict[str, float] = {"frames": 0, "frames_tracked": 0, "keyframes": 0, "loops": 0,
+                                           "frontend_seconds": 0.0,
                                            "wall_seconds": 0.0, "path_given": 0.0, "path_tracked": 0.0}
         self._frame_size: tuple[int, int] | None = None
         self._finished = False
@@ -122,6 +123,7 @@ class SlamSystem:
         self._wall_offset = 0.0  # wall time of the run before a restore
         self._previous_poses: tuple[np.ndarray, np.ndarray] | None = None
         self._last_frame: tuple[Frame, bool] | None = None  # the newest frame and whether tracking held
+        self._restart_seam = False  # the next keyframe's odometry edge crosses the seam of a restarted map
         self.last_frame_mapped: int | None = None  # the final frame's index when finish() mapped it too
         self.finish_events: list[dict[str, Any]] = []  # loop events finish() applied (no frame result carries them)
         self.depth_registration = DepthRegistration(self.config.input.depth_camera,
@@ -284,8 +286,6 @@ class SlamSystem:
         elif size != self._frame_size:
             raise ValueError(f"frame {frame.index} is {size[0]}x{size[1]}, the session's frames are "
                              f"{self._frame_size[0]}x{self._frame_size[1]}")
-        if self.tracking == "device" and frame.pose is None:
-            raise ValueError(f"frame {frame.index} has no pose, but this session runs in posed mode")
         if self.tracking == "rgbd_odometry" and frame.depth is None:
             raise ValueError(f"frame {frame.index} has no depth, but this session tracks by RGB-D odometry")
 
@@ -313,17 +313,22 @@ class SlamSystem:
         intrinsics = self.frame_intrinsics(frame)
         events = self._apply_corrections()
         tracking, pose = self.tracking_stage.track(frame, intrinsics)
-        events += [self._apply_tracking_event(event) for event in tracking.events]
+        events += [self._apply_tracking_event(event) for event in tracking.events if event.get("type") != "maps_merged"]
+        self._restart_seam |= any(e.get("type") == "relocalized" and e.get("method") == "reinitialized"
+                                  for e in tracking.events)
         prediction = tracking.prediction
         if prediction is None and self._model is not None:  # the model predicts the surfels beside the source
             with self.timings.measure("frontend_inference"):
                 prediction = self._model.predict(frame, intrinsics)
             self._accumulate_path(pose, prediction[1].pose_world.numpy())
+        self.counters["frames_tracked"] += int(tracking.tracked)
         if self.keyframe_depth is not None and tracking.tracked:  # a lost frame's held pose is not its own
             self.keyframe_depth.add_frame(frame.index, frame.image)
         is_kf = self.tracking_stage.is_keyframe(tracking, pose)
         if is_kf:
-            self.tracking_stage.add_keyframe(frame, pose, submap_id=tracking.submap_id)
+            self.tracking_stage.add_keyframe(frame, pose, submap_id=tracking.submap_id,
+                                             edge_kind="restart" if self._restart_seam else None)
+            self._restart_seam = False
             self.counters["keyframes"] += 1
             if self.keyframe_depth is not None:  # mapped once later frames give it neighbours
                 self.keyframe_depth.add_keyframe(frame.index, self.camera(frame).matrix().numpy(), tracking.depth)
@@ -332,12 +337,16 @@ class SlamSystem:
                 self._flush_map_jobs()
             if self.loop_closer is not None:
                 events += self._keyframe_loop(frame, prediction)
+        for event in tracking.events:
+            if event.get("type") == "maps_merged" and self.tracking_stage.last_keyframe is not None:
+                self._submit_map_join(pose, event)
         world = self.tracking_stage.add_frame(frame, pose, is_kf, tracking.submap_id)
         self._last_frame = None if is_kf else (frame, tracking.tracked)
         if self.backend is not None:
             self._queue_depth_jobs()
             self._flush_map_jobs()
-        return FrameResult(frame.index, frame.timestamp, world, is_kf, tracking.submap_id, self.revision, events)
+        return FrameResult(frame.index, frame.timestamp, world, is_kf, tracking.submap_id, self.revision, events,
+                           tracked=tracking.tracked)
 
     def _apply_tracking_event(self, event: dict[str, Any]) -> dict[str, Any]:
         """Act on a pose source's event; returns it as clients get it. `initialized` (monocular odometry) carries
@@ -352,6 +361,23 @@ class SlamSystem:
         out["revision"] = self._traj.revise_frames(revised)
         out["frames_revised"] = len(revised)
         return out
+
+    def _submit_map_join(self, pose: np.ndarray, event: dict[str, Any]) -> None:
+        """The Sim(3) edge of a pose source's `maps_merged` event (`relative`: this frame, tracked at `pose`, in
+        the frame of the older frame `place`), moved onto the keyframes those frames follow, to the loop stage;
+        its pose-graph solve comes back as a correction with the `maps_merged` event."""
+        traj, place = self._traj, int(event["place"])
+        if place in traj.tracked_keyframe_poses:
+            i, before = place, np.eye(4)
+        else:
+            record = next((r for r in reversed(traj.frames) if r.index == place), None)
+            if record is None:
+                return
+            i, before = record.keyframe, record.relative  # T_i^-1 T_place, as tracked
+        j = self.tracking_stage.last_keyframe
+        after = sim3_inverse(torch.from_numpy(traj.tracked_keyframe_poses[j])).numpy() @ pose  # T_j^-1 T_frame
+        relative = before @ np.asarray(event["relative"], np.float64) @ sim3_inverse(torch.from_numpy(after)).numpy()
+        self.loop_stage.submit(MapJoin(i, j, relative, event))
 
     def _map_last_frame(self) -> None:
         """At the end of a session the newest view enters the map too (when it is not a keyframe already and was
@@ -646,7 +672,8 @@ class SlamSystem:
                 changed.pop(waiting.kf_id, None)  # their jobs are made later, at the then current pose
             if changed:
                 self.backend.submit(PoseUpdateJob(changed))
-        self.counters["loops"] += 1
+        counter = "maps_merged" if correction.event.get("type") == "maps_merged" else "loops"
+        self.counters[counter] = self.counters.get(counter, 0) + 1
         return {**correction.event, "revision": revision}
 
     # ---------------------------------------------------------------------------------------- snapshot/restore

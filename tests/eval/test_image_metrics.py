@@ -151,3 +151,15 @@ def test_evaluate_renders_on_a_synthetic_scene():
         p[:3, 3] += p[:3, 0] * 0.15  # 15 cm to the right
     worse = evaluate_renders(sequence.scene.render, picked, shifted, "none", no_lpips)
     assert worse.psnr < 30 and worse.ssim < 0.95 and worse.depth_l1 > 0.0
+
+
+def test_hole_shares_measure_the_uncovered_area_and_its_largest_region():
+    from worker.eval.metrics import hole_shares
+
+    alpha = np.ones((100, 200))
+    assert hole_shares(alpha) == (0.0, 0.0)
+    alpha[10:20, 10:30] = 0.2  # a 10x20 hole ...
+    alpha[50:52, 100:105] = 0.0  # ... and a 2x5 one
+    alpha[80, 150] = 0.6  # covered enough: no hole
+    uncovered, largest = hole_shares(alpha)
+    assert uncovered == (200 + 10) / 20000 and largest == 200 / 20000

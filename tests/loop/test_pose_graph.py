@@ -200,3 +200,32 @@ def test_flush_and_reinitialised_nodes():
     assert graph.flush() and graph.optimize().solver == "incremental"
     graph.add_node(3, graph.nodes[3])  # re-initialising a solved node: the next solve starts again in batch
     assert graph.optimize().solver == "batch"
+
+
+def _two_maps(seam_kind: str) -> tuple[np.ndarray, np.ndarray]:
+    """Keyframes 0-3 of a lost map and 4-7 of the map begun after it, placed by a wrong Sim(3) guess (20 degrees,
+    0.5 m, half the scale); each map's own edges are exact, the seam edge holds the guess, and a loop (7 -> 1)
+    measures the true Sim(3). Returns (optimised, true) poses."""
+    true = np.stack([make_sim3(so3_exp(torch.tensor([0.0, 0.15 * k, 0.0], dtype=torch.float64)),
+                               torch.tensor([0.4 * k, 0.0, 0.05 * k * k], dtype=torch.float64)).numpy()
+                     for k in range(8)])
+    guess = make_sim3(so3_exp(torch.tensor([0.0, 0.0, np.radians(20.0)], dtype=torch.float64)),
+                      torch.tensor([0.5, -0.2, 0.1], dtype=torch.float64), 0.5).numpy()
+    placed = np.concatenate([true[:4], guess @ true[4:]])
+    graph = Sim3PoseGraph()
+    for k in range(8):
+        graph.add_node(k, placed[k])
+    for k in range(7):
+        graph.add_odometry_edge(k, k + 1, kind=seam_kind if k == 3 else "sequential")
+    graph.add_edge(1, 7, relative_transform(torch.from_numpy(true[1]), torch.from_numpy(true[7])), "loop")
+    result = graph.optimize()
+    return np.stack([result.poses[k] for k in range(8)]), true
+
+
+def test_a_loop_joins_a_new_map_by_a_sim3_across_a_loose_seam():
+    joined, true = _two_maps("new_map")
+    scales = np.cbrt(np.linalg.det(joined[4:, :3, :3]))
+    np.testing.assert_allclose(scales, 1.0, atol=0.02)  # the new map's half scale is undone
+    assert np.abs(joined[:, :3, 3] - true[:, :3, 3]).max() < 0.02
+    held, _ = _two_maps("sequential")  # a tight seam edge fights the loop: the new map stays off
+    assert np.abs(held[:, :3, 3] - true[:, :3, 3]).max() > 0.1

@@ -63,3 +63,28 @@ def test_the_sdk_reports_tracking_events(stack) -> None:
     kinds = [(e.kind, e.seq) for e in summary.tracking_events]
     assert kinds == [("tracking_lost", BLACK), ("relocalized", BLACK + 1)]
     assert [(e.kind, e.seq) for e in seen] == kinds and summary.tracking_events[0].data["reason"]
+
+
+def test_a_new_map_after_a_jump_reaches_the_client(stack) -> None:
+    """RGB only: the camera jumps to a view the first 20 frames never saw (learned matching cannot find it either
+    at this size); the client gets `tracking_lost`, then `new_map` and the new map's `initialized`, the lost and
+    waiting frames hold the last pose."""
+    frames = icl_frames(71)
+    sequence = frames[:20] + frames[40:52]
+    with httpx.Client(base_url=stack.base_url, timeout=60) as api:
+        sid = api.post("/v1/sessions", json={"intrinsics": ICL_INTRINSICS, "preset": "fast"}).json()["id"]
+        with connect(f"{stack.ws_url}/v1/sessions/{sid}/stream", open_timeout=30) as ws:
+            for seq, frame in enumerate(sequence):
+                ws.send(frame_message(seq, {**frame, "timestamp": seq / 10.0}))  # no depth, no poses: VO
+            messages = receive_until(ws, lambda m: m["type"] == "pose" and m["seq"] == len(sequence) - 1,
+                                     timeout_s=240)
+    assert not of_type(messages, "error"), of_type(messages, "error")
+    lost = [m["seq"] for m in of_type(messages, "tracking_lost")]
+    new = of_type(messages, "new_map")
+    assert 20 in lost and len(new) == 1 and new[0]["seq"] > 20 and new[0]["map"] == 2
+    made = [m["seq"] for m in of_type(messages, "initialized") if m["seq"] > new[0]["seq"]]
+    assert made, "the new map initialises"
+    poses = {m["seq"]: np.reshape(m["pose"], (4, 4)) for m in of_type(messages, "pose")}
+    assert all(np.isfinite(p).all() for p in poses.values())
+    for seq in range(20, made[0]):
+        np.testing.assert_allclose(poses[seq], poses[19])  # lost or waiting: held, never a jump

@@ -81,9 +81,12 @@ def test_model_surfels_are_scaled_to_the_given_poses(frames, run) -> None:
     assert float(z_map.median()) == pytest.approx(ratio * float(z_model.median()), rel=0.1)
 
 
-def test_a_frame_without_pose_is_rejected_in_posed_mode(frames) -> None:
+def test_a_frame_without_pose_in_posed_mode_is_lost_not_an_error(frames) -> None:
     system = SlamSystem(SlamConfig.preset("test", mapping={"enabled": False}))
-    system.push(frames[0])
-    with pytest.raises(ValueError, match="no pose"):
-        system.push(Frame(1, 0.1, frames[1].image, frames[1].intrinsics))
+    first = system.push(frames[0])
+    gap = system.push(Frame(1, 0.1, frames[1].image, frames[1].intrinsics))
+    assert not gap.tracked and gap.events[0]["reason"] == "the frame has no device pose"
+    np.testing.assert_allclose(gap.pose, first.pose)
+    back = system.push(frames[2])
+    assert back.tracked and [e["type"] for e in back.events] == ["relocalized"]
     system.close()

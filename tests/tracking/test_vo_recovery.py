@@ -85,3 +85,34 @@ def test_a_snapshot_taken_while_lost_continues_identically(frames):
         frame = Frame(n, n / 10.0, f.image, f.intrinsics)
         a, b = vo.track(frame, f.intrinsics), restored.track(frame, f.intrinsics)
         assert a.tracked == b.tracked and np.allclose(a.pose, b.pose)
+
+
+def test_a_view_no_matcher_finds_begins_a_new_map_that_tracks(frames):
+    """The camera reappears far from anything the old map saw (learned matching off): after two lost frames a new
+    map initialises there (a `new_map` event, submap 1), placed at the last pose, and tracks the rest accurately
+    in its own frame; the frames while it waits are not tracked and hold the last pose."""
+    sequence = frames[:20] + frames[40:]
+    vo = VisualOdometry(VisualOdometryConfig(learned_relocalisation=False, new_map_after_lost=2))
+    results = [vo.track(Frame(n, n / 10.0, f.image, f.intrinsics), f.intrinsics) for n, f in enumerate(sequence)]
+    assert [e["type"] for e in results[20].events] == ["tracking_lost"]
+    begun = [n for n, r in enumerate(results) if any(e["type"] == "new_map" for e in r.events)]
+    assert begun == [22]
+    event = next(e for e in results[22].events if e["type"] == "new_map")
+    assert event["map"] == 2 and event["lost_frames"] == 2 and event["scene_depth"] > 0
+    made = next(n for n, r in enumerate(results) if n > 22 and any(e["type"] == "initialized" for e in r.events))
+    assert all(not r.tracked and np.array_equal(r.pose, results[19].pose) for r in results[20:made])
+    assert all(r.tracked and r.submap_id == 1 and r.quality > 0 for r in results[made:])
+    assert all(r.submap_id == 0 for r in results[:20])
+    new = list(range(made, len(sequence)))
+    gt = np.stack([sequence[n].gt_pose for n in new])
+    path = float(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1).sum())
+    assert absolute_trajectory_error(np.stack([results[n].pose for n in new]), gt, "sim3").rmse < 0.02 * path
+    # the new map starts where the old one was lost (no jump in the reported trajectory)
+    assert np.linalg.norm(results[made].pose[:3, 3] - results[19].pose[:3, 3]) < 0.5
+
+
+def test_without_new_maps_a_far_view_stays_lost(frames):
+    sequence = frames[:20] + frames[40:]
+    vo = VisualOdometry(VisualOdometryConfig(learned_relocalisation=False, new_map_after_lost=0))
+    results = [vo.track(Frame(n, n / 10.0, f.image, f.intrinsics), f.intrinsics) for n, f in enumerate(sequence)]
+    assert not any(r.tracked for r in results[20:])

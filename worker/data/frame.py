@@ -67,6 +67,7 @@ class FrameResult:
     submap_id: int
     revision: int
     events: list[dict[str, Any]] = field(default_factory=list)
+    tracked: bool = True  # False: tracking was lost at this frame and the pose is the last one held
 
     def to_dict(self) -> dict[str, Any]:
         return {

@@ -46,13 +46,19 @@ def inverse_depths(near: float, far: float, count: int) -> np.ndarray:
 
 
 def sweep_pixels(view: ViewGeometry, width: int, height: int, near: float, far: float) -> float:
-    """Length in pixels of the image centre's epipolar segment between depths `far` and `near` (0 if behind)."""
-    p = np.array([width / 2.0, height / 2.0, 1.0])
-    ends = [view.A @ p + view.b / z for z in (far, near)]
-    if min(e[2] for e in ends) <= 1e-9:
+    """Median length in pixels of the epipolar segments between depths `far` and `near` of a 5x5 grid of pixels
+    over the image (segments that go behind the view do not count; 0 if all do). Not the centre alone: moving
+    forward, the centre is the epipole, where no baseline gives parallax."""
+    grid = (np.arange(5) + 0.5) / 5.0
+    u, v = np.meshgrid(grid * width, grid * height)
+    p = np.stack([u.ravel(), v.ravel(), np.ones(u.size)])  # [3, 25]
+    far_end = view.A @ p + view.b[:, None] / far
+    near_end = view.A @ p + view.b[:, None] / near
+    ahead = np.minimum(far_end[2], near_end[2]) > 1e-9
+    if not ahead.any():
         return 0.0
-    u0, u1 = (e[:2] / e[2] for e in ends)
-    return float(np.linalg.norm(u1 - u0))
+    lengths = np.linalg.norm(near_end[:2, ahead] / near_end[2, ahead] - far_end[:2, ahead] / far_end[2, ahead], axis=0)
+    return float(np.median(lengths))
 
 
 def window_sums(values: np.ndarray, radius: int) -> np.ndarray:

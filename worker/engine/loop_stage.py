@@ -50,6 +50,18 @@ class LoopQuery:
 
 
 @dataclass
+class MapJoin:
+    """A restarted monocular map recognised a keyframe of an older one: the Sim(3) edge between keyframe `i` (the
+    older map) and keyframe `j` (the new map), `relative` = T_i^-1 T_j with the new map's scale in it, and the
+    tracking event that measured it."""
+
+    i: int
+    j: int
+    relative: np.ndarray
+    event: dict[str, Any]
+
+
+@dataclass
 class CameraUpdate:
     """The session's camera was re-estimated: keyframe points are made again with camera matrix K."""
 
@@ -93,7 +105,10 @@ class LoopClosingStage(QueuedStage):
         return out
 
     # -- work (the stage's thread) -------------------------------------------------------------------------------
-    def _process(self, item: GraphKeyframe | LoopQuery | CameraUpdate | PosePrior) -> None:
+    def _process(self, item: GraphKeyframe | LoopQuery | CameraUpdate | PosePrior | MapJoin) -> None:
+        if isinstance(item, MapJoin):
+            self._join_maps(item)
+            return
         if isinstance(item, PosePrior):  # a device's pose of a keyframe (seeded tracking), after its node
             if item.key in self.pose_graph.nodes:
                 self.pose_graph.add_prior(item.key, item.pose, item.sigmas)
@@ -137,6 +152,19 @@ class LoopClosingStage(QueuedStage):
                                  "source": best.source, "scale": float(best.scale)}
         if len(kept) > 1:
             event["also_to_keyframes"] = [int(c.i) for c in kept[1:]]
+        with self._corrections_lock:
+            self._corrections.append(LoopCorrection(dict(result.poses), event))
+
+    def _join_maps(self, join: MapJoin) -> None:
+        """Add the Sim(3) edge joining two maps, solve, and hand the moved keyframes back (`maps_merged`)."""
+        if join.i not in self.pose_graph.nodes or join.j not in self.pose_graph.nodes or join.i == join.j:
+            return
+        self.pose_graph.add_edge(join.i, join.j, join.relative, kind="map_join")
+        with self.timings.measure("pgo"):
+            result = self.pose_graph.optimize(max_iterations=self.cfg.pgo_iterations)
+        event = {**{k: v for k, v in join.event.items() if k not in ("relative", "correction")},
+                 "type": "maps_merged", "from_keyframe": int(join.j), "to_keyframe": int(join.i),
+                 "pgo_error_before": result.initial_error, "pgo_error_after": result.final_error}
         with self._corrections_lock:
             self._corrections.append(LoopCorrection(dict(result.poses), event))
 

@@ -68,64 +68,79 @@ def run_sequence(
         total = None
     given_intrinsics = None if unknown_intrinsics else src.intrinsics
     system = SlamSystem(config, intrinsics=given_intrinsics)
-    frames: list[Frame] = []  # every frame; the image and depth only of every `hold_every`-th (see MAX_HELD_FRAMES)
-    hold_every = 1 if total is None else max(1, -(-total // MAX_HELD_FRAMES))
-    results = []
-    injector = None if drift is None else drift.injector()
-    start = time.perf_counter()
-    for k, frame in enumerate(src):
-        if injector is not None and frame.pose is not None:
-            frame.pose = injector.apply(frame.pose)
-        if unknown_intrinsics:
-            frame.intrinsics = None
-        results.append(system.push(frame))
-        _wait_for_mapping(system, config.queue_size // 2)
-        frames.append(frame if k % hold_every == 0 else _without_pixels(frame))
-        if progress is not None:
-            progress(k + 1, total)
-    tracked_s = time.perf_counter() - start
-    lag_at_last_pose = system.live_stats()
-    system.finish()
-    runtime = time.perf_counter() - start
-    if not frames:
-        raise ValueError(f"{source} yielded no frames")
+    try:  # the stages' threads stop on an error too (else the process aborts at exit)
+        frames: list[Frame] = []  # every frame; the image and depth only of every `hold_every`-th (see MAX_HELD_FRAMES)
+        hold_every = 1 if total is None else max(1, -(-total // MAX_HELD_FRAMES))
+        results = []
+        injector = None if drift is None else drift.injector()
+        start = time.perf_counter()
+        for k, frame in enumerate(src):
+            if injector is not None and frame.pose is not None:
+                frame.pose = injector.apply(frame.pose)
+            if unknown_intrinsics:
+                frame.intrinsics = None
+            results.append(system.push(frame))
+            _wait_for_mapping(system, config.queue_size // 2)
+            frames.append(frame if k % hold_every == 0 else _without_pixels(frame))
+            if progress is not None:
+                progress(k + 1, total)
+        tracked_s = time.perf_counter() - start
+        lag_at_last_pose = system.live_stats()
+        system.finish()
+        runtime = time.perf_counter() - start
+        if not frames:
+            raise ValueError(f"{source} yielded no frames")
 
-    all_poses = system.trajectory("all")
-    _write_trajectory(out / "trajectory_all.tum", all_poses)
-    _write_trajectory(out / "trajectory_keyframes.tum", system.trajectory("keyframes"))
-    intrinsics = system.estimated_intrinsics()
-    (out / "intrinsics.json").write_text(json.dumps(
-        {**(intrinsics.to_dict() if intrinsics else {}), "estimated": given_intrinsics is None}, indent=1))
-    metrics: dict[str, Any] = {
-        "sequence": src.name, "dataset": _dataset_name(source), "method": "Flash-Mono",
-        "mode": system.mode, "preset": config.name, "num_frames": len(frames),
-        "num_keyframes": sum(r.is_keyframe for r in results), "loops": int(system.counters["loops"]),
-        "revision": system.revision, "runtime_s": runtime, "fps": len(frames) / runtime,
-        # the rate poses come out while the frames stream (mapping runs behind, shedding work when it must: what it
-        # shed and how far it lagged at the last pose are below; finish() then drains it and refines)
-        "fps_streaming": len(frames) / max(1e-9, tracked_s),
-        "finish_s": runtime - tracked_s,
-        "mapping_lag_at_last_pose": {"keyframes": lag_at_last_pose["mapping_lag_keyframes"],
-                                     "seconds": lag_at_last_pose["mapping_lag_s"]},
-        "keyframes_shed": system.live_stats()["keyframes_shed"],
-        "use_gt_depth": use_gt_depth, "use_gt_poses": use_gt_poses, "tracking": system.tracking,
-        "depth_source": system.depth_source,
-        "intrinsics": intrinsics.to_dict() if intrinsics else None, "intrinsics_estimated": given_intrinsics is None,
-        "drift": None if drift is None else drift.to_dict(),
-        "runtime_breakdown": system.timings.breakdown(len(frames)),
-        "eval_frames_held_every": hold_every,
-    }
-    metrics.update(_trajectory_metrics(frames, all_poses, drift))
-    if system.backend is not None:
-        (out / "map.ply").write_bytes(system.export_ply())
-        metrics["num_gaussians"] = system.num_gaussians
-        metrics.update(_render_metrics(system, frames, results, all_poses, intrinsics, out, eval_every, hold_every))
-    else:
-        metrics.update({"num_gaussians": 0, "psnr": None, "ssim": None, "lpips": None, "depth_l1": None,
-                        "lpips_note": "mapping disabled"})
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
-    system.close()
+        all_poses = system.trajectory("all")
+        _write_trajectory(out / "trajectory_all.tum", all_poses)
+        _write_trajectory(out / "trajectory_keyframes.tum", system.trajectory("keyframes"))
+        intrinsics = system.estimated_intrinsics()
+        (out / "intrinsics.json").write_text(json.dumps(
+            {**(intrinsics.to_dict() if intrinsics else {}), "estimated": given_intrinsics is None}, indent=1))
+        metrics: dict[str, Any] = {
+            "sequence": src.name, "dataset": _dataset_name(source), "method": "Flash-Mono",
+            "mode": system.mode, "preset": config.name, "num_frames": len(frames),
+            "num_keyframes": sum(r.is_keyframe for r in results), "loops": int(system.counters["loops"]),
+            "frames_tracked": int(system.counters["frames_tracked"]),
+            "events": _event_counts(results),
+            "revision": system.revision, "runtime_s": runtime, "fps": len(frames) / runtime,
+            # the rate poses come out while the frames stream (mapping runs behind, shedding work when it must: what it
+            # shed and how far it lagged at the last pose are below; finish() then drains it and refines)
+            "fps_streaming": len(frames) / max(1e-9, tracked_s),
+            "finish_s": runtime - tracked_s,
+            "mapping_lag_at_last_pose": {"keyframes": lag_at_last_pose["mapping_lag_keyframes"],
+                                         "seconds": lag_at_last_pose["mapping_lag_s"]},
+            "keyframes_shed": system.live_stats()["keyframes_shed"],
+            "use_gt_depth": use_gt_depth, "use_gt_poses": use_gt_poses, "tracking": system.tracking,
+            "depth_source": system.depth_source,
+            "intrinsics": intrinsics.to_dict() if intrinsics else None,
+            "intrinsics_estimated": given_intrinsics is None,
+            "drift": None if drift is None else drift.to_dict(),
+            "runtime_breakdown": system.timings.breakdown(len(frames)),
+            "eval_frames_held_every": hold_every,
+        }
+        metrics.update(_trajectory_metrics(frames, all_poses, drift, [r.tracked for r in results]))
+        if system.backend is not None:
+            (out / "map.ply").write_bytes(system.export_ply())
+            metrics["num_gaussians"] = system.num_gaussians
+            metrics.update(_render_metrics(system, frames, results, all_poses, intrinsics, out, eval_every, hold_every))
+        else:
+            metrics.update({"num_gaussians": 0, "psnr": None, "ssim": None, "lpips": None, "depth_l1": None,
+                            "lpips_note": "mapping disabled"})
+        (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
+    finally:
+        system.close()
     return metrics
+
+
+def _event_counts(results: list) -> dict[str, int]:
+    """How many events of each type (tracking_lost, relocalized, new_map, loop_closed, ...) the frames carried."""
+    counts: dict[str, int] = {}
+    for result in results:
+        for event in result.events:
+            kind = str(event.get("type", "?"))
+            counts[kind] = counts.get(kind, 0) + 1
+    return dict(sorted(counts.items()))
 
 
 def _without_pixels(frame: Frame) -> Frame:
@@ -146,15 +161,20 @@ def _dataset_name(source: str | Path) -> str:
     return text.split("://", 1)[0] if "://" in text else Path(text).resolve().parent.name or "data"
 
 
-def _trajectory_metrics(frames: list[Frame], poses: list, drift: PoseDrift | None) -> dict[str, Any]:
+def _trajectory_metrics(frames: list[Frame], poses: list, drift: PoseDrift | None, tracked: list[bool]
+                        ) -> dict[str, Any]:
+    """ATE over every frame (a lost frame counts with the pose it held) and over the tracked frames alone."""
     from worker.eval import absolute_trajectory_error
 
-    pairs = [(p, f.gt_pose) for (_, _, p), f in zip(poses, frames) if f.gt_pose is not None]
+    pairs = [(p, f.gt_pose, t) for (_, _, p), f, t in zip(poses, frames, tracked) if f.gt_pose is not None]
     if len(pairs) < 3:
         return {"ate_rmse": None, "ate_note": "no ground-truth poses"}
-    est = np.stack([p for p, _ in pairs])
-    gt = np.stack([np.asarray(g, np.float64) for _, g in pairs])
+    est = np.stack([p for p, _, _ in pairs])
+    gt = np.stack([np.asarray(g, np.float64) for _, g, _ in pairs])
     out = {"ate_rmse": absolute_trajectory_error(est, gt, "sim3").rmse}
+    kept = np.array([t for _, _, t in pairs])
+    if 3 <= kept.sum() < len(kept):
+        out["ate_rmse_tracked"] = absolute_trajectory_error(est[kept], gt[kept], "sim3").rmse
     if drift is not None:  # the drifted poses the system was given, before any loop closure
         given = np.stack([np.asarray(f.pose, np.float64) for f in frames if f.gt_pose is not None])
         out["ate_rmse_drift_only"] = absolute_trajectory_error(given, gt, "sim3").rmse
@@ -166,8 +186,10 @@ def _render_metrics(system, frames: list[Frame], results, poses, intrinsics, out
     """PSNR/SSIM/LPIPS and depth L1 on non-keyframes rendered from their estimated poses (those held: every
     `hold_every`-th frame)."""
     import cv2
+    import torch
 
     from worker.eval import evaluate_renders, non_keyframe_indices
+    from worker.eval.metrics import hole_shares
 
     if intrinsics is None:
         return {"psnr": None, "ssim": None, "lpips": None, "depth_l1": None, "lpips_note": "no intrinsics"}
@@ -190,6 +212,10 @@ def _render_metrics(system, frames: list[Frame], results, poses, intrinsics, out
             side = np.concatenate([rgb, frame.image], axis=1)
             cv2.imwrite(str(out / "renders" / f"{frame.index:05d}.png"), cv2.cvtColor(side, cv2.COLOR_RGB2BGR))
     scores = evaluate_renders(render, eval_frames, eval_poses, depth_scaling="none" if metric_depth else "median")
+    holes = [hole_shares(system.backend.render(pose, torch.as_tensor(K, dtype=torch.float32), intrinsics.width,
+                                               intrinsics.height).alpha.cpu().numpy()) for pose in eval_poses]
     return {"psnr": scores.psnr, "ssim": scores.ssim, "lpips": scores.lpips, "lpips_note": scores.lpips_note,
             "depth_l1": scores.depth_l1, "depth_scaling": "none" if metric_depth else "median",
-            "eval_frames": scores.num_frames}
+            "eval_frames": scores.num_frames,
+            "uncovered_share": float(np.mean([h[0] for h in holes])) if holes else None,
+            "largest_hole_share": float(max(h[1] for h in holes)) if holes else None}

@@ -72,9 +72,10 @@ class TrackingStage:
             return False
         return self.selector.is_keyframe(pose, force=bool(tracking.keyframe_hint))
 
-    def add_keyframe(self, frame: Frame, tracked_pose: np.ndarray, submap_id: int) -> np.ndarray:
+    def add_keyframe(self, frame: Frame, tracked_pose: np.ndarray, submap_id: int, edge_kind: str | None = None
+                     ) -> np.ndarray:
         """Insert keyframe `frame` in the trajectory, tell the pose source and publish its pose-graph node (with
-        the odometry edge from the previous keyframe); returns its world pose."""
+        the odometry edge from the previous keyframe, of kind `edge_kind` when given); returns its world pose."""
         kf_id, previous = frame.index, self.last_keyframe
         world = self.trajectory.add_keyframe(kf_id, tracked_pose, reference=previous)
         node = GraphKeyframe(kf_id, world.copy())
@@ -82,7 +83,8 @@ class TrackingStage:
             node.previous = previous
             node.relative = (sim3_inverse(torch.from_numpy(self.trajectory.tracked_keyframe_poses[previous]))
                              @ torch.from_numpy(np.asarray(tracked_pose, np.float64))).numpy()
-            node.kind = "sequential" if self.submap_of.get(previous, submap_id) == submap_id else "inter_submap"
+            node.kind = edge_kind or ("sequential" if self.submap_of.get(previous, submap_id) == submap_id
+                                      else getattr(self.pose_source, "submap_seam", "inter_submap"))
         self.publish_keyframe(node)
         self.submap_of[kf_id] = submap_id
         self.last_keyframe = kf_id

@@ -261,6 +261,16 @@ class RenderingScores:
     lpips_note: str = ""
 
 
+def hole_shares(alpha: np.ndarray, threshold: float = 0.5) -> tuple[float, float]:
+    """(share of the image the map leaves uncovered, share of its largest connected uncovered region): pixels whose
+    accumulated opacity is below `threshold` are holes."""
+    hole = (np.asarray(alpha) < threshold).astype(np.uint8)
+    if not hole.any():
+        return 0.0, 0.0
+    _, _, stats, _ = cv2.connectedComponentsWithStats(hole, connectivity=4)
+    return float(hole.mean()), float(stats[1:, cv2.CC_STAT_AREA].max() / hole.size)
+
+
 def evaluate_renders(
     render: Callable[[np.ndarray, object], tuple[np.ndarray, np.ndarray | None]],
     frames: Iterable,

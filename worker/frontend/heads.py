@@ -163,7 +163,7 @@ def gaussian_attributes(raw: torch.Tensor, points_cam: torch.Tensor, image: torc
     colors = torch.sigmoid(color_raw)
     opacity = torch.sigmoid(raw[..., 3])
     identity = torch.zeros(4, dtype=raw.dtype, device=raw.device)
-    identity[0] = 1.0  # a fill kernel, not a host-to-device copy: keeps the step CUDA-graph capturable
+    identity.narrow(0, 0, 1).fill_(1.0)  # a fill kernel, not a host-to-device copy: keeps CUDA-graph capture legal
     quats = quat_normalize(raw[..., 4:8] + identity)
     quats = torch.where(quats[..., :1] < 0, -quats, quats)
     footprint = points_cam.norm(dim=-1, keepdim=True).clamp_min(1e-6) / (_BASE_FOCAL_FACTOR * max(H, W))

@@ -29,7 +29,10 @@ from worker.geometry.gtsam_bridge import sim3_to_gtsam
 
 from .incremental import IncrementalSolver
 
-EDGE_KINDS = ("sequential", "inter_submap", "loop")
+# new_map: between a lost map and a map begun from nothing after it; restart: across the seam of a monocular map
+# restarted from the last tracked frame after a loss (its scale is a guess); map_join: the Sim(3) that joins such a
+# map to an older one where it recognised an older keyframe.
+EDGE_KINDS = ("sequential", "inter_submap", "loop", "new_map", "restart", "map_join")
 DIVERGED_COST_RATIO = 1.05  # an incremental solve ending this much above its starting cost is redone in batch
 
 
@@ -53,6 +56,11 @@ DEFAULT_SIGMAS: dict[str, EdgeSigmas] = {
     "sequential": EdgeSigmas(0.01, 0.02, 0.01),
     "inter_submap": EdgeSigmas(0.01, 0.02, 0.01),
     "loop": EdgeSigmas(0.02, 0.04, 0.02),
+    # Between the last keyframe of a lost map and the first of the map begun after it: the new map was only placed
+    # at the last pose with the old scene depth, so the edge holds it there until a loop gives the true Sim(3).
+    "new_map": EdgeSigmas(1.0, 10.0, 1.0),
+    "restart": EdgeSigmas(0.02, 0.5, 1.0),
+    "map_join": EdgeSigmas(0.02, 0.04, 0.02),
 }
 
 

@@ -69,7 +69,7 @@ def attribute_errors(surfels: Surfels, viewmat: torch.Tensor, K: torch.Tensor, i
     probe = Surfels(surfels.means.detach(), surfels.quats.detach(), surfels.scales.detach(),
                     surfels.opacities.detach(), colors, surfels.keyframe_ids)
     with torch.enable_grad():
-        render = rasterize(probe, viewmat, K, W, H, background=torch.zeros(3, dtype=colors.dtype))
+        render = rasterize(probe, viewmat, K, W, H, background=torch.zeros(3, dtype=colors.dtype, device=colors.device))
         bad = bad_pixel_mask(_detached(render), image, depth, thresholds, depth_scale)
         objective = (render.rgb[..., 0] * bad).sum() + render.rgb[..., 1].sum()
         (grad,) = torch.autograd.grad(objective, colors, allow_unused=True)

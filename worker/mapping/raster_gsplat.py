@@ -31,9 +31,10 @@ def rasterize_gsplat(surfels: Surfels, viewmat: torch.Tensor, K: torch.Tensor, w
         zeros = torch.zeros(height, width, dtype=surfels.means.dtype, device=surfels.device)
         return torch.zeros(height, width, 7, dtype=zeros.dtype, device=zeros.device), zeros
     scales3 = torch.cat([surfels.scales, torch.ones_like(surfels.scales[:, :1])], dim=-1)  # 3rd scale unused
+    # gsplat 1.5.3 takes non-SH colours per camera ([C, N, 3]); an [N, 3] tensor fails in its RGB+D concatenation
     colors, alphas, normals_world, *_ = rasterization_2dgs(
         means=surfels.means, quats=surfels.quats, scales=scales3, opacities=surfels.opacities,
-        colors=surfels.colors, viewmats=viewmat[None], Ks=K[None], width=width, height=height,
+        colors=surfels.colors[None], viewmats=viewmat[None], Ks=K[None], width=width, height=height,
         render_mode="RGB+D", packed=False,
     )
     normals_cam = normals_world[0] @ viewmat[:3, :3].T  # the caller rotates back to the world frame

@@ -38,10 +38,11 @@ from worker.runtime.stats import StageStats
 from worker.serialization import pack, unpack
 
 # Pose-source events forwarded to the clients as their own messages.
-TRACKING_EVENTS = ("tracking_lost", "relocalized", "initialized", "initializing")
+TRACKING_EVENTS = ("tracking_lost", "relocalized", "initialized", "initializing", "new_map")
 # Notices about the input, forwarded as their own messages (tracking goes on); a misregistration is also kept in
 # the session record's `warnings`.
 INPUT_EVENTS = ("device_pose_jump", "depth_misregistered")
+MAP_EVENTS = ("maps_merged",)  # published with the revision they made; the tracking state stays as it is
 
 log = logging.getLogger(__name__)
 
@@ -455,9 +456,10 @@ class SessionRunner(threading.Thread):
         for event in result.events:
             if event.get("type") in TRACKING_EVENTS:
                 self._publish_tracking_event(seq, event)
-                self._tracking_state = {"tracking_lost": "lost", "initializing": "initializing"}.get(
+                self._tracking_state = {"tracking_lost": "lost", "initializing": "initializing",
+                                        "new_map": "initializing"}.get(
                     event["type"], "tracking")
-            elif event.get("type") in INPUT_EVENTS:
+            elif event.get("type") in INPUT_EVENTS + MAP_EVENTS:
                 self._publish_tracking_event(seq, event)
                 if event["type"] == "depth_misregistered":
                     self._add_warning(str(event.get("message", "depth is not registered to the colour image")))
@@ -543,7 +545,7 @@ class SessionRunner(threading.Thread):
         self._revision = revision
         self._store_trajectory()
         loops = [e for e in events if e.get("type") == "loop_closed"]
-        if not loops and not any(e.get("type") in TRACKING_EVENTS and "revision" in e for e in events):
+        if not loops and not any(e.get("type") in TRACKING_EVENTS + MAP_EVENTS and "revision" in e for e in events):
             loops = [{"type": "loop_closed"}]
         for event in loops:
             message = {**{k: v for k, v in event.items() if isinstance(v, (int, float, str, bool))},

@@ -3,7 +3,7 @@ descriptor matches to each place's 3D points are verified by PnP + RANSAC and a 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -21,7 +21,8 @@ from .vo_config import VisualOdometryConfig
 @dataclass
 class Place:
     """A keyframe remembered for relocalisation: frame index, pose, and its keypoints that have a 3D point
-    (keypoints [n, 2], descriptors [n, 32], world points [n, 3])."""
+    (keypoints [n, 2], descriptors [n, 32], world points [n, 3]); the map it belongs to and the similarity that
+    took that map's coordinates to the odometry's output when the keyframe was made (`map_join`)."""
 
     index: int
     pose: np.ndarray
@@ -29,17 +30,21 @@ class Place:
     descriptors: np.ndarray
     points: np.ndarray
     bag: np.ndarray | None = None
+    map_id: int = 0
+    output: np.ndarray = field(default_factory=lambda: np.eye(4))
 
     def to_state(self) -> dict:
         return {"index": self.index, "pose": self.pose, "keypoints": self.keypoints,
-                "descriptors": self.descriptors, "points": self.points}
+                "descriptors": self.descriptors, "points": self.points, "map_id": self.map_id,
+                "output": self.output}
 
     @classmethod
     def from_state(cls, s: dict) -> Place:
         return cls(int(s["index"]), np.asarray(s["pose"], np.float64).reshape(4, 4),
                    np.asarray(s["keypoints"], np.float32).reshape(-1, 2),
                    np.asarray(s["descriptors"], np.uint8).reshape(-1, 32),
-                   np.asarray(s["points"], np.float64).reshape(-1, 3))
+                   np.asarray(s["points"], np.float64).reshape(-1, 3), map_id=int(s.get("map_id", 0)),
+                   output=np.asarray(s.get("output", np.eye(4)), np.float64).reshape(4, 4))
 
 
 @dataclass

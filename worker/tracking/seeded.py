@@ -88,13 +88,16 @@ class SeededTracking:
 
     # -- tracking ------------------------------------------------------------------------------------------------
     def track(self, frame: Frame, intrinsics: Intrinsics | None) -> TrackingResult:
+        if frame.pose is None:
+            return self._track_without_device(frame, intrinsics)
         device = checked_device_pose(frame.pose, frame.index)
         device_motion = None if self.last_device is None else relative(self.last_device, device)
         if not self.monocular and frame.depth is None:  # nothing to align: follow the device for this frame
             result = TrackingResult(np.eye(4), tracked=False, keyframe_hint=False)
         else:
             result = self.odometry.track(frame, intrinsics, motion_guess=self._guess(device_motion))
-        events = [e for e in result.events if e.get("type") != "initialized"]
+        # A monocular join (maps_merged) measures in odometry units; the device's poses place this world instead.
+        events = [e for e in result.events if e.get("type") not in ("initialized", "maps_merged")]
         initialized = [e for e in result.events if e.get("type") == "initialized"]
         if initialized and self.monocular:
             self._align_monocular(initialized[-1], device, result.pose)
@@ -118,6 +121,26 @@ class SeededTracking:
         return TrackingResult(pose.copy(), tracked=result.tracked, depth=depth, events=events,
                               keyframe_hint=result.keyframe_hint if from_odometry else False,
                               quality=result.quality if from_odometry else None)
+
+    def _track_without_device(self, frame: Frame, intrinsics: Intrinsics | None) -> TrackingResult:
+        """A frame without a device pose (the device not ready yet, a gap in its log): the odometry tracks it alone
+        once the two worlds are aligned; before that, or without depth to align, the last pose is held (lost). The
+        next frame's device motion spans the gap, so it neither seeds nor checks for a jump."""
+        held = np.eye(4) if self.last_pose is None else self.last_pose
+        self.last_device = None
+        if self.alignment is None or (not self.monocular and frame.depth is None):
+            self.last_tracked = False
+            return TrackingResult(held.copy(), tracked=False, keyframe_hint=False)
+        result = self.odometry.track(frame, intrinsics)
+        events = [e for e in result.events if e.get("type") != "initialized"]
+        self.last_tracked = result.tracked
+        if not result.tracked:
+            return TrackingResult(held.copy(), tracked=False, keyframe_hint=False, events=events)
+        pose = self.to_session(result.pose)
+        self.previous_pose, self.last_pose, self.last_index = self.last_pose, pose, frame.index
+        depth = None if result.depth is None else result.depth * np.float32(self.scale)
+        return TrackingResult(pose.copy(), depth=depth, events=events, keyframe_hint=result.keyframe_hint,
+                              quality=result.quality)
 
     def _waiting_for_world(self, initialized: list[dict[str, Any]]) -> bool:
         """A monocular odometry still initialising (its poses are placeholders)."""

@@ -45,26 +45,39 @@ def choose_tracking(requested: str, frame: Frame, uses_pose: bool, uses_depth: b
 
 
 class DevicePoses:
-    """The frames' own poses (validated: finite, rigid up to a uniform scale)."""
+    """The frames' own poses (validated: finite, rigid up to a uniform scale). A frame without one (the device not
+    ready, a gap in its log) holds the last pose and is reported lost until poses come again."""
 
     name = "device"
 
+    def __init__(self) -> None:
+        self.last_pose: np.ndarray | None = None
+        self.lost = False
+
     def track(self, frame: Frame, intrinsics: Intrinsics | None) -> TrackingResult:
         if frame.pose is None:
-            raise ValueError(f"frame {frame.index} has no pose, but this session runs in posed mode")
+            events = [] if self.lost else [{"type": "tracking_lost", "frame": frame.index,
+                                            "reason": "the frame has no device pose"}]
+            self.lost = True
+            held = np.eye(4) if self.last_pose is None else self.last_pose
+            return TrackingResult(held.copy(), tracked=False, keyframe_hint=False, events=events)
         pose = np.asarray(frame.pose, np.float64)
         if not np.all(np.isfinite(pose)):
             raise ValueError(f"frame {frame.index}: the pose is not finite")
-        return TrackingResult(pose.copy())
+        events = [{"type": "relocalized", "frame": frame.index, "method": "device"}] if self.lost else []
+        self.last_pose, self.lost = pose.copy(), False
+        return TrackingResult(pose.copy(), events=events)
 
     def keyframe_added(self, frame: Frame, pose: np.ndarray) -> None:
         """Nothing to do: the device keeps its own map."""
 
     def state_dict(self) -> dict[str, Any]:
-        return {}
+        return {"last_pose": [] if self.last_pose is None else self.last_pose, "lost": self.lost}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Stateless."""
+        last = np.asarray(state.get("last_pose", []), np.float64)
+        self.last_pose = last.reshape(4, 4) if last.size == 16 else None
+        self.lost = bool(state.get("lost", False))
 
 
 class ModelTracking:

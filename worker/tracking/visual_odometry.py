@@ -5,15 +5,20 @@ by the motion model) and re-matched against the last keyframe's image, so that s
 to frame. The map starts from a two-view reconstruction of the first tracks with enough parallax; each frame's pose
 then comes from the tracks that measure map points (robust refinement from the constant-velocity guess, PnP + RANSAC
 when that fails). Keyframes are taken when tracks drop or the baseline grows: they add new corners, triangulate the
-candidate tracks that gained enough parallax since the oldest keyframe that saw them, and run a windowed bundle
-adjustment in which the oldest keyframes stay fixed, so scale carries over without rescaling. A lost frame first
-tries to take up the last tracked frame's tracks (a short loss), then place recognition with the ORB features the
-keyframes keep. When the camera comes back, a keyframe VO takes for its own map is not offered to the engine
-(`keyframe_hint=False`) if an engine keyframe at least `reuse_min_age` frames old lies near and sees most of the
-frame's tracked map points: a place walked through again keeps the keyframes of its first visit.
+candidate tracks that gained enough parallax since the oldest keyframe that saw them, and run a local bundle
+adjustment over the keyframes sharing the most points with the new one, those that also see their points held
+fixed (`covisibility`), so scale carries over without rescaling. A lost frame first tries to take up the last
+tracked frame's tracks (a short loss), then place recognition with the ORB features the keyframes keep, then a map
+restarted from two views. A restarted map is joined to the older one, scale included, when one of its keyframes
+recognises an older keyframe (`map_join`: the map moves, the poses handed out do not jump, and the `maps_merged`
+event carries the Sim(3) edge for the pose graph). When the camera comes back, a keyframe VO takes for its own map
+is not offered to the engine (`keyframe_hint=False`) if an engine keyframe at least `reuse_min_age` frames old lies
+near and sees most of the frame's tracked map points: a place walked through again keeps the keyframes of its first
+visit.
 
 Poses are camera-to-world rigid 4x4 matrices (a Sim(3) with s = 1); the world is the camera of the frame the map
-was initialised from and the scale makes that map's median depth 1.
+was initialised from and the scale makes that map's median depth 1. Poses handed out are the map's moved by the
+output similarity (the identity until a restarted map is joined to an older one).
 """
 
 from __future__ import annotations
@@ -30,13 +35,16 @@ from worker.geometry import Intrinsics
 
 from . import schur_native
 from .base import TrackingResult
-from .bundle_adjustment import bundle_adjust, reprojection_chi2
+from .bundle_adjustment import Observations, bundle_adjust, reprojection_chi2
+from .covisibility import LocalWindow, covisible_window
 from .features import Features, OrbExtractor
 from .local_map import Keyframe, LocalMap
+from .map_join import link_maps, moved_points, moved_pose, similarity, similarity_inverse, similarity_scale
 from .optical_flow import detect_corners, predicted_pixels, refine_points, track_points
 from .pose_optimization import optimize_pose
 from .projection import camera_matrix, invert_pose, rigid, to_camera
 from .relocalization import Place, PlaceRecognizer
+from .reobservation import nearest_keypoints, search_by_projection
 from .self_calibration import FocalEstimator
 from .track_triangulation import triangulate_tracks
 from .tracks import Tracks, lookup_sorted
@@ -97,10 +105,19 @@ class Anchor:
                    np.asarray(s["world"], np.float64).reshape(-1, 3))
 
 
+@dataclass
+class JoinState:
+    """A map restarted after a loss, not joined to an older map yet: its first frame and the keyframes tried."""
+
+    since: int
+    tried: int = 0
+
+
 class VisualOdometry:
     """PoseSource for RGB-only streams (see the module docstring)."""
 
     name = "visual_odometry"
+    submap_seam = "new_map"  # the pose-graph edge kind between a lost map and the new map begun after it
 
     def __init__(self, config: VisualOdometryConfig | None = None) -> None:
         self.config = config or VisualOdometryConfig()
@@ -129,11 +146,20 @@ class VisualOdometry:
         self.last_tracked = -1  # index of the last tracked frame
         self.mapped_at_loss = 0  # tracks of map points when tracking was lost
         self.anchor: Anchor | None = None  # the last tracked frame's tracks, while lost: a map restarts from them
+        self.maps_started = 1  # maps begun by an initialisation: the first, and each new map after a loss
+        self.map_origin = np.eye(4)  # where the next initialised map's reference keyframe is placed ...
+        self.map_depth = 1.0  # ... and the median scene depth it is given (the old map's, after a loss)
         self.image_size: tuple[int, int] | None = None
         self.estimated_intrinsics: Intrinsics | None = None
         self.focal = FocalEstimator(self.config)
         # (frame index, pose) of the engine's keyframes, to come back to
         self.engine_keyframes: deque[tuple[int, np.ndarray]] = deque(maxlen=max(1, self.config.reuse_keyframes))
+        # Maps: the current one's id, how many were made, and the similarity from the map's coordinates to the
+        # poses handed out (it changes when a restarted map joins an older one, so that poses never jump).
+        self.map_id = 0
+        self.maps_made = 1
+        self.output = np.eye(4)
+        self.join: JoinState | None = None
 
     # ---- PoseSource ------------------------------------------------------------------------------------------
     def track(self, frame: Frame, intrinsics: Intrinsics | None, motion_guess: np.ndarray | None = None
@@ -143,8 +169,16 @@ class VisualOdometry:
         the constant-velocity guess when given."""
         camera = self._camera(frame, intrinsics)
         gray = cv2.cvtColor(frame.image, cv2.COLOR_RGB2GRAY)
+        if motion_guess is not None and not self._output_is_identity():  # output units -> the map's
+            motion_guess = np.array(motion_guess, np.float64)
+            motion_guess[:3, 3] /= similarity_scale(self.output)
         if self.status == "initializing":
-            result = self._initialise(frame.index, gray, camera, intrinsics is None)
+            # after a loss, the old map's places are looked for while the new map waits to be made
+            found = self._recognise_place(frame.index, gray, camera) if self.maps_started > 1 and self.retired else None
+            if found is not None:
+                self.maps_started -= 1  # back on the old map: the new one was never made
+                self.pending, self.pending_orientation, self.init_state = [], {}, ""
+            result = found or self._initialise(frame.index, gray, camera, intrinsics is None)
         elif self.status == "lost":
             result = self._relocalise(frame.index, gray, camera)
         else:
@@ -154,6 +188,22 @@ class VisualOdometry:
         self.pose = result.pose
         if result.tracked:
             self.last_tracked = frame.index
+        result.submap_id = self.maps_started - 1
+        return self._to_output(result)
+
+    def _output_is_identity(self) -> bool:
+        return bool(np.array_equal(self.output, np.eye(4)))
+
+    def _to_output(self, result: TrackingResult) -> TrackingResult:
+        """The result in the output's coordinates (the map's, until a restarted map joined an older one)."""
+        if self._output_is_identity():
+            return result
+        result.pose = moved_pose(self.output, result.pose)
+        if result.depth is not None:
+            result.depth = result.depth * np.float32(similarity_scale(self.output))
+        for event in result.events:
+            if event.get("frames"):
+                event["frames"] = [[i, moved_pose(self.output, np.asarray(p)).tolist()] for i, p in event["frames"]]
         return result
 
     def keyframe_added(self, frame: Frame, pose: np.ndarray) -> None:
@@ -249,6 +299,9 @@ class VisualOdometry:
             self.init_state = state
             events.append({"type": "initializing", "frame": index, "state": state, "reason": reason,
                            "model": model, "score_ratio": round(float(score_ratio), 3)})
+        if self.maps_started > 1:  # after a loss the frame has no pose: the last one is held, and said so
+            return TrackingResult(self.pose.copy(), tracked=False, keyframe_hint=False, events=events, quality=0.0)
+        # before the first map the pose is a placeholder the world starts from (the `initialized` event revises it)
         return TrackingResult(rigid(pose), tracked=True, keyframe_hint=False, events=events, quality=0.0)
 
     def _start_map(self, index: int, gray: np.ndarray, attempt: TwoViewAttempt, reference: int, camera: Intrinsics,
@@ -260,11 +313,11 @@ class VisualOdometry:
         K = camera_matrix(camera)
         ref_index, ref_ids, ref_uv = self.pending[reference]
         kf_b = self._two_keyframe_map(index, gray, two, ref_index, ref_ids, ref_uv)
-        self._adjust(K, fixed_count=1)
+        self._adjust(K, LocalWindow(np.array([1]), np.array([0])))
         self._normalise_scale()
         world = np.eye(4)
-        world[:3, :3] = reference_orientation
-        self._move_map(world, 1.0)
+        world[:3, :3], world[:3, 3] = reference_orientation, self.map_origin[:3, 3]
+        self._move_map(world, self.map_depth)
         pose = kf_b.pose
         between, previous = [], world
         for n, (i, ids, uv) in enumerate(self.pending[:-1]):
@@ -274,7 +327,9 @@ class VisualOdometry:
         self.pending, self.pending_orientation, self.init_state = [], {}, ""
         self.velocity = invert_pose(previous) @ pose
         self.status = "tracking"
-        event = {"type": "initialized", "frame": index, "frames": between, "points": len(self.map),
+        # After a loss the waiting frames were reported lost, against the old map's keyframes: they stay so.
+        event = {"type": "initialized", "frame": index, "frames": between if self.maps_started == 1 else [],
+                 "points": len(self.map),
                  "parallax_deg": round(two.parallax_deg, 3), "model": attempt.model,
                  "score_ratio": round(attempt.score_ratio, 3)}
         if uncalibrated:
@@ -352,10 +407,11 @@ class VisualOdometry:
             return TrackingResult(pose, tracked=True, keyframe_hint=False, quality=quality)
         kf = self._insert_keyframe(index, pose, gray, K)
         self.velocity = rigid(self.velocity @ invert_pose(pose) @ kf.pose)
+        events = self._join_maps(index, kf, K) if self.join is not None else []
         if self._covered(index, kf.pose, K, camera):
-            return TrackingResult(kf.pose, tracked=True, keyframe_hint=False, quality=quality)
+            return TrackingResult(kf.pose, tracked=True, keyframe_hint=False, quality=quality, events=events)
         return TrackingResult(kf.pose, tracked=True, keyframe_hint=True, depth=self._sparse_depth(kf, camera),
-                              quality=quality)
+                              quality=quality, events=events)
 
     def _covered(self, index: int, pose: np.ndarray, K: np.ndarray, camera: Intrinsics) -> bool:
         """Whether an engine keyframe at least `reuse_min_age` frames old lies near `pose` and sees at least
@@ -365,6 +421,7 @@ class VisualOdometry:
         points = self.map.positions[t.rows[t.mapped]]
         if c.reuse_keyframes <= 0 or len(points) < c.min_tracked:
             return False
+        pose, points = moved_pose(self.output, pose), moved_points(self.output, points)  # the engine's poses
         depth = to_camera(points, pose)[:, 2]
         median = float(np.median(depth[depth > 0])) if np.any(depth > 0) else 1.0
         for kf_index, kf_pose in self.engine_keyframes:
@@ -479,21 +536,31 @@ class VisualOdometry:
 
     def _insert_keyframe(self, index: int, pose: np.ndarray, gray: np.ndarray, K: np.ndarray) -> Keyframe:
         kf = self._new_keyframe(index, pose, gray)
-        self._triangulate(K)
         c = self.config
-        gone = self.map.slide(c.window + c.fixed_keyframes)
+        self._triangulate(K, self.map.keyframes[-(c.window + c.fixed_keyframes + 1):])
+        if c.reobserve_points:
+            self._reobserve(kf, K)
+        gone = self.map.slide(c.map_keyframes if c.covisibility_ba else c.window + c.fixed_keyframes)
         self._retire(gone)
         self._remap(self.map.forget_unobserved())
-        if len(self.map.keyframes) >= 3:
-            self._adjust(K, fixed_count=max(c.fixed_keyframes, len(self.map.keyframes) - c.window))
+        count = len(self.map.keyframes)
+        if count >= 3:
+            if c.covisibility_ba:
+                window = covisible_window([k.point_ids for k in self.map.keyframes], count - 1, c.window,
+                                          c.covisible_fixed, min_fixed=c.fixed_keyframes)
+            else:
+                held = min(max(c.fixed_keyframes, count - c.window), count - 1)
+                window = LocalWindow(np.arange(held, count), np.arange(held))
+            self._adjust(K, window)
         self.tracked_at_keyframe = int(self.tracks.mapped.sum())
         return kf
 
-    def _triangulate(self, K: np.ndarray) -> None:
-        """Map points from the candidate tracks of the newest keyframe (see `triangulate_tracks`)."""
+    def _triangulate(self, K: np.ndarray, keyframes: list[Keyframe]) -> None:
+        """Map points from the candidate tracks of the newest keyframe seen first by one of `keyframes` (oldest
+        first, the newest last; see `triangulate_tracks`)."""
         m, t = self.map, self.tracks
         candidate = t.rows < 0
-        new = triangulate_tracks(m.keyframes, t.ids[candidate], t.uv[candidate], K, self.config.chi2_px,
+        new = triangulate_tracks(keyframes, t.ids[candidate], t.uv[candidate], K, self.config.chi2_px,
                                  self.config.min_parallax_deg)
         rows = m.add_points(new.points, np.zeros((len(new.points), 32), np.uint8))
         for keyframe in m.keyframes:
@@ -504,30 +571,75 @@ class VisualOdometry:
         if len(new.inconsistent):
             self.tracks = t.subset(~np.isin(t.ids, new.inconsistent))
 
+    def _reobserve(self, kf: Keyframe, K: np.ndarray) -> None:
+        """Describe the points the tracks measure at the new keyframe `kf` (ORB), then match the described points
+        no track follows to its ORB features (`reobservation`): a candidate track on the keypoint takes the point,
+        and away from every track a new track starts there; `kf` observes them."""
+        c, m, t = self.config, self.map, self.tracks
+        radius = c.place_radius_px * self.extractor.level_sigmas(kf.orb.octaves)
+        mapped = np.flatnonzero(t.mapped)
+        bare = mapped[~m.descriptors[t.rows[mapped]].any(axis=1)]
+        nearest, near = nearest_keypoints(t.uv[bare].astype(np.float64), kf.orb, radius)
+        m.descriptors[t.rows[bare[near]]] = kf.orb.descriptors[nearest[near]]
+        followed = np.zeros(len(m), bool)
+        followed[t.rows[mapped]] = True
+        candidates = np.flatnonzero(~followed & m.descriptors.any(axis=1))
+        rows, keypoints = search_by_projection(m.positions, m.descriptors, candidates, kf.pose, K, self.image_size,
+                                               kf.orb, c.reobserve_radius_px, c.reobserve_max_hamming, c.match_ratio)
+        if len(rows) == 0 or len(t) == 0:
+            return
+        uv = kf.orb.keypoints[keypoints].astype(np.float32)
+        d2 = ((uv[:, None, :] - t.uv[None, :, :]) ** 2).sum(-1)
+        closest = d2.argmin(axis=1)
+        distance = np.sqrt(d2[np.arange(len(uv)), closest])
+        taken = np.flatnonzero((distance <= c.reobserve_snap_px) & (t.rows[closest] < 0))
+        take = np.zeros(len(uv), bool)
+        take[taken[np.unique(closest[taken], return_index=True)[1]]] = True  # one point per track
+        t.rows[closest[take]] = rows[take]
+        order = np.argsort(kf.track_ids)
+        at, found = lookup_sorted(kf.track_ids[order], t.ids[closest[take]])
+        kf.point_ids[order[at[found]]] = rows[take][found]
+        fresh = distance > c.corner_min_distance * max(self.image_size)
+        if fresh.any():
+            ids = np.arange(self.next_id, self.next_id + int(fresh.sum()), dtype=np.int64)
+            self.next_id += len(ids)
+            self.tracks = Tracks(np.r_[t.ids, ids], np.concatenate([t.uv, uv[fresh]]), np.r_[t.rows, rows[fresh]])
+            f = kf.features
+            kf.features = Features(np.concatenate([f.keypoints, uv[fresh]]),
+                                   np.concatenate([f.descriptors, np.zeros((len(ids), 32), np.uint8)]),
+                                   np.concatenate([f.octaves, np.zeros(len(ids), f.octaves.dtype)]))
+            kf.point_ids, kf.track_ids = np.r_[kf.point_ids, rows[fresh]], np.r_[kf.track_ids, ids]
+
     def _remap(self, remap: np.ndarray) -> None:
         """Follow the map's renumbering of points in the tracks (a track whose point went becomes a candidate)."""
         self.tracks.rows = remap[self.tracks.rows]
 
-    def _adjust(self, K: np.ndarray, fixed_count: int) -> None:
-        """Windowed bundle adjustment with the first `fixed_count` keyframes held; observations it finds wrong are
-        dropped (and the tracks they came from when the newest keyframe made them), and points nobody sees."""
+    def _adjust(self, K: np.ndarray, window: LocalWindow) -> None:
+        """Bundle adjustment of the window's free keyframes and the points they observe, its fixed keyframes held;
+        observations it finds wrong are dropped (and the tracks they came from when the newest keyframe made
+        them), and points nobody sees."""
         m = self.map
+        slots = window.slots
         obs = m.observations(self.extractor.level_sigmas)
+        keep = np.isin(obs.keyframe, slots)
+        obs = Observations(np.searchsorted(slots, obs.keyframe[keep]), obs.point[keep], obs.uv[keep],
+                           obs.sigma[keep])
         if len(obs.point) == 0:
             return
-        fixed = np.zeros(len(m.keyframes), bool)
-        fixed[: min(fixed_count, len(m.keyframes) - 1)] = True
-        poses = np.stack([kf.pose for kf in m.keyframes])
+        fixed = ~np.isin(slots, window.free)
+        poses = np.stack([m.keyframes[k].pose for k in slots])
         poses, m.positions, _ = bundle_adjust(poses, fixed, m.positions, obs, K, self.config.ba_iterations,
                                               self.config.huber_sigmas)
-        for kf, pose in zip(m.keyframes, poses, strict=True):
-            kf.pose = pose
+        for slot, pose in zip(slots, poses, strict=True):
+            m.keyframes[slot].pose = pose
         bad = reprojection_chi2(poses, m.positions, obs, K) > self.config.chi2_px
-        for slot, kf in enumerate(m.keyframes):
-            bad_rows = obs.point[bad & (obs.keyframe == slot)]
+        for n, slot in enumerate(slots):
+            kf = m.keyframes[slot]
+            bad_rows = obs.point[bad & (obs.keyframe == n)]
             if len(bad_rows):
                 kf.point_ids[np.isin(kf.point_ids, bad_rows)] = -1
-        bad_newest = obs.point[bad & (obs.keyframe == len(m.keyframes) - 1)]
+        newest = len(m.keyframes) - 1
+        bad_newest = obs.point[bad & (obs.keyframe == np.searchsorted(slots, newest))] if newest in slots else []
         if len(bad_newest):
             self.tracks = self.tracks.subset(~np.isin(self.tracks.rows, bad_newest))
         self._remap(m.forget_unobserved())
@@ -542,21 +654,68 @@ class VisualOdometry:
             kf.pose = kf.pose.copy()
             kf.pose[:3, 3] = origin + s * (kf.pose[:3, 3] - origin)
 
-    def _place(self, kf: Keyframe) -> Place:
-        """The keyframe's ORB keypoints that lie on one of its map points' observations (within the relocalisation
-        tolerance), with those points."""
+    def _place_rows(self, kf: Keyframe) -> tuple[np.ndarray, np.ndarray]:
+        """The keyframe's ORB keypoints (indices) that lie on one of its map points' observations (within the
+        relocalisation tolerance), and those points' rows."""
         has = np.flatnonzero(kf.point_ids >= 0)
         orb = kf.orb
         if len(has) == 0 or len(orb) == 0:
-            return Place(kf.index, kf.pose.copy(), orb.keypoints[:0], orb.descriptors[:0], np.zeros((0, 3)))
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
         dx = orb.keypoints[:, None, 0] - kf.features.keypoints[None, has, 0]
         dy = orb.keypoints[:, None, 1] - kf.features.keypoints[None, has, 1]
         d2 = dx * dx + dy * dy  # written out: no [N, M, 2] temporary
         nearest = d2.argmin(axis=1)
         radius = self.config.place_radius_px * self.extractor.level_sigmas(orb.octaves)
         near = np.flatnonzero(d2[np.arange(len(orb)), nearest] <= radius ** 2)
+        return near, kf.point_ids[has[nearest[near]]]
+
+    def _place(self, kf: Keyframe) -> Place:
+        """The keyframe's ORB keypoints that lie on one of its map points' observations, with those points."""
+        near, rows = self._place_rows(kf)
+        orb = kf.orb
         return Place(kf.index, kf.pose.copy(), orb.keypoints[near], orb.descriptors[near],
-                     self.map.positions[kf.point_ids[has[nearest[near]]]].copy())
+                     self.map.positions[rows].copy(), map_id=self.map_id, output=self.output.copy())
+
+    # ---- joining a restarted map to an older one -------------------------------------------------------------
+    def _join_maps(self, index: int, kf: Keyframe, K: np.ndarray) -> list[dict[str, Any]]:
+        """Try to join the restarted map to an older one at keyframe `kf` (see `map_join`): on a link, the map
+        (keyframes, points, its remembered places) moves into the older map's frame, scale included, and the
+        output transform takes the inverse move, so that poses handed out do not jump; the `maps_merged` event
+        carries the Sim(3) edge for the pose graph (`relative`: this frame in the place's frame, each in the units
+        of the poses handed out at the time) and `correction` (the similarity that takes the new map's output
+        poses into the older map's)."""
+        c, join = self.config, self.join
+        join.tried += 1
+        if join.tried > c.join_max_keyframes:
+            self.join = None
+            return []
+        places = [p for p in self.retired if p.map_id != self.map_id]
+        near, rows = self._place_rows(kf)
+        points = np.full((len(kf.orb), 3), np.nan)
+        points[near] = self.map.positions[rows]
+        link = link_maps(self.recognizer, kf.orb, points, kf.pose, places, K,
+                         self.extractor.level_sigmas(kf.orb.octaves), c.reloc_min_inliers, c.join_min_pairs,
+                         c.join_max_spread)
+        if link is None:
+            return []
+        S, s = link.transform, link.scale
+        before = self.output
+        # Each camera with its output units (1 / the output scale of its time, in the older map's units).
+        place_camera = link.place.pose @ similarity(np.eye(3), np.zeros(3), 1.0 / similarity_scale(link.place.output))
+        kf_camera = S @ kf.pose @ similarity(np.eye(3), np.zeros(3), 1.0 / similarity_scale(before))
+        relative = similarity_inverse(place_camera) @ kf_camera
+        correction = link.place.output @ S @ similarity_inverse(before)
+        self._move_map(similarity(S[:3, :3] / s, S[:3, 3], 1.0), s)
+        for place in self.retired:
+            if place.map_id == self.map_id:
+                place.pose, place.points = moved_pose(S, place.pose), moved_points(S, place.points)
+                place.output, place.map_id = place.output @ similarity_inverse(S), link.place.map_id
+        self.output = before @ similarity_inverse(S)
+        self.velocity[:3, 3] *= s
+        self.map_id, self.join = link.place.map_id, None
+        return [{"type": "maps_merged", "frame": index, "place": link.place.index, "since": join.since,
+                 "scale": similarity_scale(correction), "pairs": link.pairs, "spread": round(link.spread, 4),
+                 "relative": relative.tolist(), "correction": correction.tolist()}]
 
     def _retire(self, keyframes: list[Keyframe]) -> None:
         places = (self._place(kf) for kf in keyframes)
@@ -623,16 +782,58 @@ class VisualOdometry:
             self.status, self.lost_since, self.velocity, self.anchor = "tracking", None, np.eye(4), None
             return TrackingResult(pose, tracked=True, keyframe_hint=False, events=[event],
                                   quality=min(1.0, inliers / max(self.tracked_at_keyframe, 1)))
-        features = self.extractor.extract(gray)
-        hit = None
-        if len(features) >= c.min_features:
-            places = self.retired + [self._place(kf) for kf in self.map.keyframes]
-            hit = self.recognizer.relocalise(features, places, K, self.extractor.level_sigmas(features.octaves))
-        if hit is not None:
-            return self._restart_from(index, gray, camera, hit.pose, features.keypoints[hit.keypoints], hit.points,
-                                      hit.place, "place recognition")
+        recognised = self._recognise_place(index, gray, camera)
+        if recognised is not None:
+            return recognised
         restarted = self._reinitialise(index, gray, camera) or self._relocalise_learned(index, gray, camera)
-        return restarted or TrackingResult(self.pose.copy(), tracked=False, keyframe_hint=False, quality=0.0)
+        if restarted is not None:
+            return restarted
+        lost_for = index - (self.lost_since if self.lost_since is not None else index)
+        if c.new_map_after_lost and lost_for >= c.new_map_after_lost and self._textured(gray):
+            return self._begin_new_map(index, gray, camera, lost_for)
+        return TrackingResult(self.pose.copy(), tracked=False, keyframe_hint=False, quality=0.0)
+
+    def _recognise_place(self, index: int, gray: np.ndarray, camera: Intrinsics) -> TrackingResult | None:
+        """Place recognition over the remembered keyframes (ORB, verified by PnP): a hit starts a new local map
+        from the place's points seen in this frame (their positions, hence the scale, carry over); None: no hit."""
+        features = self.extractor.extract(gray)
+        if len(features) < self.config.min_features:
+            return None
+        places = self.retired + [self._place(kf) for kf in self.map.keyframes]
+        hit = self.recognizer.relocalise(features, places, camera_matrix(camera),
+                                         self.extractor.level_sigmas(features.octaves))
+        if hit is None:
+            return None
+        return self._restart_from(index, gray, camera, hit.pose, features.keypoints[hit.keypoints], hit.points,
+                                  hit.place, "place recognition")
+
+    def _textured(self, gray: np.ndarray) -> bool:
+        """Whether the frame has the features an initialisation needs, and at least 30 % of the last keyframe's (a
+        covered lens or a blurred frame begins no map)."""
+        keyframes = self.map.keyframes
+        usual = len(keyframes[-1].features.keypoints) if keyframes else 0
+        return len(self.extractor.extract(gray)) >= max(self.config.init_min_matches, 0.3 * usual)
+
+    def _begin_new_map(self, index: int, gray: np.ndarray, camera: Intrinsics, lost_for: int) -> TrackingResult:
+        """Give up finding the old map from here: its keyframes become places, and a new map initialises from
+        this frame on, placed at the last pose with the old map's median scene depth (a guess: the two share no
+        point) until a loop or relocalisation joins them. A `new_map` event says so."""
+        depth = self._median_depth(self.map.keyframes[-1]) if self.map.keyframes else self.map_depth
+        self._retire(self.map.keyframes)
+        self.map, self.tracks, self.anchor = LocalMap(), Tracks.empty(), None
+        self.pending, self.pending_orientation, self.init_state = [], {}, ""
+        self.previous_gray = self.keyframe_gray = None
+        self.velocity = np.eye(4)
+        self.frames_since_keyframe = self.tracked_at_keyframe = 0
+        self.map_origin, self.map_depth = self.pose.copy(), depth
+        self.maps_started += 1
+        if self.config.join_maps:  # joined to an older map once one of its keyframes recognises an older place
+            self.map_id, self.maps_made, self.join = self.maps_made, self.maps_made + 1, JoinState(index)
+        self.status, self.lost_since = "initializing", None
+        result = self._initialise(index, gray, camera, uncalibrated=False)
+        result.events = [{"type": "new_map", "frame": index, "map": self.maps_started, "lost_frames": lost_for,
+                          "scene_depth": round(depth, 4)}] + list(result.events or [])
+        return result
 
     def _restart_from(self, index: int, gray: np.ndarray, camera: Intrinsics, pose: np.ndarray, uv: np.ndarray,
                       points: np.ndarray, place: int, method: str) -> TrackingResult:
@@ -640,6 +841,9 @@ class VisualOdometry:
         at `pose` (their positions, hence the scale, carry over); the old keyframes become places."""
         self.anchor = None
         self._retire(self.map.keyframes)
+        place_map = next((p.map_id for p in self.retired if p.index == place), self.map_id)
+        if place_map != self.map_id:  # back in an older map's frame: its points carry that map's coordinates
+            self.map_id, self.join = place_map, None
         m = self.map = LocalMap()
         rows = m.add_points(points, np.zeros((len(points), 32), np.uint8))
         ids = np.arange(self.next_id, self.next_id + len(rows), dtype=np.int64)
@@ -745,8 +949,10 @@ class VisualOdometry:
             return None  # a turn in place fits a homography too, and noise then passes for a small baseline
         scale, shared = anchor.scale_of(two.points, at[two.ib])
         self._retire(self.map.keyframes)
+        if c.join_maps:  # a map of its own until a place of the old one is recognised
+            self.map_id, self.maps_made, self.join = self.maps_made, self.maps_made + 1, JoinState(index)
         kf = self._two_keyframe_map(index, gray, two, anchor.index, anchor.ids, anchor.uv)
-        self._adjust(K, fixed_count=1)
+        self._adjust(K, LocalWindow(np.array([1]), np.array([0])))
         self._move_map(anchor.pose, scale)
         self.anchor = None
         self.tracked_at_keyframe = int(self.tracks.mapped.sum())
@@ -760,8 +966,9 @@ class VisualOdometry:
                  else "scene depth", "shared_points": shared,
                  "lost_frames": index - (self.lost_since if self.lost_since is not None else index)}
         self.status, self.lost_since = "tracking", None
+        joined = self._join_maps(index, kf, K) if self.join is not None else []  # the old map's last places
         return TrackingResult(kf.pose, tracked=True, keyframe_hint=True, depth=self._sparse_depth(kf, camera),
-                              events=[event], quality=1.0)
+                              events=[event, *joined], quality=1.0)
 
     # ---- snapshots -------------------------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
@@ -785,6 +992,9 @@ class VisualOdometry:
             "tracks": self.tracks.to_state(), "next_id": self.next_id,
             "map": self.map.to_state(), "retired": [p.to_state() for p in self.retired],
             "engine_keyframes": [{"index": i, "pose": p} for i, p in self.engine_keyframes],
+            "maps_started": self.maps_started, "map_origin": self.map_origin, "map_depth": self.map_depth,
+            "map_id": self.map_id, "maps_made": self.maps_made, "output": self.output,
+            "join": {} if self.join is None else {"since": self.join.since, "tried": self.join.tried},
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -819,3 +1029,10 @@ class VisualOdometry:
         self.retired = [Place.from_state(p) for p in state["retired"]]
         self.engine_keyframes.extend((int(k["index"]), np.asarray(k["pose"], np.float64).reshape(4, 4))
                                      for k in state.get("engine_keyframes", []))
+        self.maps_started = int(state.get("maps_started", 1))
+        self.map_origin = np.asarray(state.get("map_origin", np.eye(4)), np.float64).reshape(4, 4)
+        self.map_depth = float(state.get("map_depth", 1.0))
+        self.map_id, self.maps_made = int(state.get("map_id", 0)), int(state.get("maps_made", 1))
+        self.output = np.asarray(state.get("output", np.eye(4)), np.float64).reshape(4, 4)
+        join = state.get("join") or {}
+        self.join = JoinState(int(join["since"]), int(join["tried"])) if join else None

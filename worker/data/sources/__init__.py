@@ -1,5 +1,6 @@
 """Frame sources: `open_source(path_or_uri, **options)` picks the reader for a video, an image folder, a dataset
-folder (TUM RGB-D, ICL/Open3D, Replica, ScanNet, KITTI odometry) or a `synthetic://` URI."""
+folder (TUM RGB-D, ICL/Open3D, Replica, ScanNet, KITTI odometry, a photo capture with a transforms.json) or a
+`synthetic://` URI."""
 
 from __future__ import annotations
 
@@ -12,10 +13,11 @@ from .image_folder import ImageFolderSource
 from .kitti import KittiOdometrySource
 from .replica import ReplicaSource
 from .scannet import ScanNetSource
+from .transforms import TransformsJsonSource
 from .tum import TumRgbdSource
 from .video import VIDEO_SUFFIXES, VideoSource
 
-FORMATS = ("video", "images", "tum", "icl", "replica", "scannet", "kitti", "synthetic")
+FORMATS = ("video", "images", "tum", "icl", "replica", "scannet", "kitti", "transforms", "synthetic")
 _COMMON_KEYS = {"stride", "max_frames", "resize", "use_gt_poses", "use_gt_depth", "intrinsics"}
 
 
@@ -37,12 +39,14 @@ def detect_format(path: Path) -> str:
         return "kitti"
     if (path / "intrinsics.json").is_file() and any((path / d).is_dir() for d in ("image", "rgb", "color")):
         return "icl"
+    if (path / "transforms.json").is_file():
+        return "transforms"
     if any(p.suffix.lower() in (".jpg", ".jpeg", ".png") for p in path.iterdir()):
         return "images"
     raise DatasetError(
         f"cannot tell the format of {path}: expected a video, an image folder, or a TUM (rgb.txt), Replica "
-        "(results/ + traj.txt), ScanNet (color/ + intrinsic/), KITTI (calib.txt + image_2/) or ICL "
-        "(intrinsics.json + image/) folder"
+        "(results/ + traj.txt), ScanNet (color/ + intrinsic/), KITTI (calib.txt + image_2/), ICL "
+        "(intrinsics.json + image/) or photo-capture (transforms.json) folder"
     )
 
 
@@ -80,6 +84,7 @@ def _open(path_or_uri: str | Path, format: str | None, **options: Any) -> FrameS
     readers = {
         "video": VideoSource, "images": ImageFolderSource, "tum": TumRgbdSource, "icl": IclSource,
         "replica": ReplicaSource, "scannet": ScanNetSource, "kitti": KittiOdometrySource,
+        "transforms": TransformsJsonSource,
     }
     if format not in readers:
         raise DatasetError(f"unknown format {format!r}; known: {', '.join(FORMATS)}")
@@ -93,6 +98,7 @@ def _open(path_or_uri: str | Path, format: str | None, **options: Any) -> FrameS
 
 __all__ = [
     "FORMATS", "DatasetError", "FrameRecord", "FrameSource", "IclSource", "ImageFolderSource",
-    "KittiOdometrySource", "RecordedSource", "ReplicaSource", "ScanNetSource", "SourceOptions", "TumRgbdSource",
+    "KittiOdometrySource", "RecordedSource", "ReplicaSource", "ScanNetSource", "SourceOptions", "TransformsJsonSource",
+    "TumRgbdSource",
     "VideoSource", "detect_format", "open_source",
 ]
