@@ -61,3 +61,19 @@ def optimize_pose(pose_c2w: np.ndarray, points: np.ndarray, uv: np.ndarray, sigm
     out = np.eye(4)
     out[:3, :3], out[:3, 3] = R, t
     return invert_pose(out), inlier
+
+
+def pnp_pose(points: np.ndarray, uv: np.ndarray, K: np.ndarray, sigma: np.ndarray, chi2_px: float,
+             min_inliers: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """Camera-to-world pose of matches points [n, 3] <-> pixels uv [n, 2] found by EPnP + RANSAC (4 px) and
+    refined by `optimize_pose`, with its inlier mask; None when either step keeps fewer than `min_inliers`."""
+    ok, rvec, tvec, inliers = cv2.solvePnPRansac(points, uv, K, None, iterationsCount=200, reprojectionError=4.0,
+                                                 confidence=0.999, flags=cv2.SOLVEPNP_EPNP)
+    if not ok or inliers is None or len(inliers) < min_inliers:
+        return None
+    w2c = np.eye(4)
+    w2c[:3, :3], w2c[:3, 3] = cv2.Rodrigues(rvec)[0], tvec.ravel()
+    pose, inlier = optimize_pose(invert_pose(w2c), points, uv, sigma, K, chi2_px)
+    if inlier.sum() < min_inliers or not np.all(np.isfinite(pose)):
+        return None
+    return pose, inlier

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 
 from worker.loop.descriptors import default_vocabulary
@@ -13,8 +12,7 @@ from worker.loop.vocabulary import Vocabulary
 
 from .features import Features
 from .matching import ratio_matches
-from .pose_optimization import optimize_pose
-from .projection import invert_pose
+from .pose_optimization import pnp_pose
 from .vo_config import VisualOdometryConfig
 
 
@@ -95,13 +93,8 @@ class PlaceRecognizer:
         if len(ia) < c.reloc_min_inliers:
             return None
         X, uv = place.points[ib], features.keypoints[ia].astype(np.float64)
-        ok, rvec, tvec, inliers = cv2.solvePnPRansac(X, uv, K, None, iterationsCount=200, reprojectionError=4.0,
-                                                     confidence=0.999, flags=cv2.SOLVEPNP_EPNP)
-        if not ok or inliers is None or len(inliers) < c.reloc_min_inliers:
+        found = pnp_pose(X, uv, K, sigma[ia], c.chi2_px, c.reloc_min_inliers)
+        if found is None:
             return None
-        w2c = np.eye(4)
-        w2c[:3, :3], w2c[:3, 3] = cv2.Rodrigues(rvec)[0], tvec.ravel()
-        pose, inlier = optimize_pose(invert_pose(w2c), X, uv, sigma[ia], K, c.chi2_px)
-        if inlier.sum() < c.reloc_min_inliers or not np.all(np.isfinite(pose)):
-            return None
+        pose, inlier = found
         return Relocalisation(pose, place.index, ia[inlier], X[inlier])

@@ -41,7 +41,7 @@ from .features import Features, OrbExtractor
 from .local_map import Keyframe, LocalMap
 from .map_join import link_maps, moved_points, moved_pose, similarity, similarity_inverse, similarity_scale
 from .optical_flow import detect_corners, predicted_pixels, refine_points, track_points
-from .pose_optimization import optimize_pose
+from .pose_optimization import optimize_pose, pnp_pose
 from .projection import camera_matrix, invert_pose, rigid, to_camera
 from .relocalization import Place, PlaceRecognizer
 from .reobservation import nearest_keypoints, search_by_projection
@@ -882,15 +882,10 @@ class VisualOdometry:
             return None
         K = camera_matrix(camera)
         X, uv = anchor.world[ia], current.keypoints[ib].astype(np.float64)
-        ok, rvec, tvec, inliers = cv2.solvePnPRansac(X, uv, K, None, iterationsCount=200, reprojectionError=4.0,
-                                                     confidence=0.999, flags=cv2.SOLVEPNP_EPNP)
-        if not ok or inliers is None or len(inliers) < c.reloc_min_inliers:
+        found = pnp_pose(X, uv, K, np.full(len(X), 2.0), c.chi2_px, c.reloc_min_inliers)
+        if found is None:
             return None
-        w2c = np.eye(4)
-        w2c[:3, :3], w2c[:3, 3] = cv2.Rodrigues(rvec)[0], tvec.ravel()
-        pose, inlier = optimize_pose(invert_pose(w2c), X, uv, np.full(len(X), 2.0), K, c.chi2_px)
-        if inlier.sum() < c.reloc_min_inliers or not np.all(np.isfinite(pose)):
-            return None
+        pose, inlier = found
         return self._restart_from(index, gray, camera, pose, uv[inlier], X[inlier], anchor.index, "learned")
 
     def _learned_place(self, anchor: Anchor, xfeat: XFeatExtractor) -> tuple[np.ndarray, np.ndarray]:
