@@ -7,12 +7,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from posed_rgb_run import run_posed_rgb
 
-from worker.config import SlamConfig
 from worker.data import open_source
 from worker.engine.keyframe_depth import PROPAGATED_OPACITY
 from worker.engine.surfel_init import INITIAL_OPACITY
-from worker.slam import SlamSystem
 
 DATA = Path(__file__).parents[1] / "data" / "icl_mini"
 
@@ -23,19 +22,9 @@ def posed_rgb():
     return list(src), src.intrinsics
 
 
-def _run(frames, intr, fill: str) -> SlamSystem:
-    config = SlamConfig.preset("rgbd", threaded=False, input={"pose_mode": "fixed", "mvs_fill": fill},
-                               mapping={"refine_iterations": 0, "final_refine_passes": 0})
-    system = SlamSystem(config, intr)
-    for f in frames:
-        system.push(f)
-    system.finish()
-    return system
-
-
 def test_propagated_depth_adds_fainter_surfels_where_stereo_left_holes(posed_rgb) -> None:
     frames, intr = posed_rgb
-    plain, filled = _run(frames, intr, "none"), _run(frames, intr, "propagate")
+    plain, filled = run_posed_rgb(frames, intr, "none"), run_posed_rgb(frames, intr, "propagate")
     stats = filled.keyframe_depth.fill_stats
     assert stats and min(stats) > 0.01 and not plain.keyframe_depth.fill_stats
     assert filled.num_gaussians > 1.03 * plain.num_gaussians

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from posed_rgb_run import run_posed_rgb
 
 from worker.config import SlamConfig
 from worker.data import open_source
@@ -72,12 +73,7 @@ def test_the_model_can_fill_what_stereo_leaves_empty(posed_rgb) -> None:
     frames, _, intr = posed_rgb
     counts = {}
     for fill in ("none", "model"):
-        config = SlamConfig.preset("rgbd", threaded=False, input={"pose_mode": "fixed", "mvs_fill": fill},
-                                   mapping={"refine_iterations": 0, "final_refine_passes": 0})
-        system = SlamSystem(config, intr)
-        for f in frames:
-            system.push(f)
-        system.finish()
+        system = run_posed_rgb(frames, intr, fill)
         counts[fill] = system.num_gaussians
         assert (system.model is not None) == (fill == "model") and system.tracker is None
         system.close()

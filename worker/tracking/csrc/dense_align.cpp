@@ -64,6 +64,14 @@ inline void transform(const double* T, const double* p, double q[3]) {
     for (int k = 0; k < 3; ++k) q[k] = T[4 * k] * p[0] + T[4 * k + 1] * p[1] + T[4 * k + 2] * p[2] + T[4 * k + 3];
 }
 
+// Point p (world) moved by T into q, and the pixel (u, v) it projects to with K = (fx, fy, cx, cy).
+inline void move_and_project(const double* T, const double* K, const double* p, double q[3], double& u, double& v) {
+    transform(T, p, q);
+    const double z = std::max(q[2], 1e-9);
+    u = K[0] * q[0] / z + K[2];
+    v = K[1] * q[1] / z + K[3];
+}
+
 // Bilinear sample at continuous pixel coordinates (u, v), centres at +0.5; (u, v) must lie in [0.5, w - 0.5) x
 // [0.5, h - 0.5) so that the four neighbours exist.
 inline double bilinear(const float* image, int w, double u, double v) {
@@ -165,10 +173,8 @@ void dense_photometric_system(int64_t n, const double* P, const double* I, const
     std::vector<double> r(n), scratch, moved(5 * n);  // moved: (x, y, z, u, v) of each point landing inside
     int64_t m = 0;
     for (int64_t i = 0; i < n; ++i) {
-        double p[3];
-        transform(T, P + 3 * i, p);
-        const double z = std::max(p[2], 1e-9);
-        const double u = K[0] * p[0] / z + K[2], v = K[1] * p[1] / z + K[3];
+        double p[3], u, v;
+        move_and_project(T, K, P + 3 * i, p, u, v);
         if (!(p[2] > 0.0 && u >= 1.0 && u < w - 1 && v >= 1.0 && v < h - 1)) continue;
         r[m] = bilinear(grey, w, u, v) - I[i];
         double* q = moved.data() + 5 * m++;
@@ -211,10 +217,8 @@ void dense_geometric_system(int64_t n, const double* P, const double* T, const d
     std::vector<double> r(n), scratch, moved(6 * n);  // moved: (x, y, z) and the normal of each pair found
     int64_t m = 0;
     for (int64_t i = 0; i < n; ++i) {
-        double p[3];
-        transform(T, P + 3 * i, p);
-        const double z = std::max(p[2], 1e-9);
-        const double u = K[0] * p[0] / z + K[2], v = K[1] * p[1] / z + K[3];
+        double p[3], u, v;
+        move_and_project(T, K, P + 3 * i, p, u, v);
         if (!(p[2] > 0.0 && u >= 0.0 && u < w && v >= 0.0 && v < h)) continue;
         const int64_t at = int64_t(v) * w + int64_t(u);
         const float* q = points + 3 * at;
