@@ -115,6 +115,12 @@ class VisualOdometryConfig(BaseModel):
     learned_keypoints: int = Field(1024, ge=64, description="XFeat keypoints per lost frame")
     learned_min_similarity: float = Field(0.82, gt=0.0, lt=1.0, description="cosine similarity of an XFeat match "
                                                                              "(XFeat's default)")
+    learned_candidates: int = Field(3, ge=1, description="remembered keyframes matched by XFeat per try: this many "
+                                                        "nearest the last pose, and this many most alike in ORB words")
+    learned_places: int = Field(24, ge=0, description="remembered keyframes that keep their image for XFeat (the "
+                                                      "newest; the map's own keyframes always do)")
+    learned_join: bool = Field(True, description="a keyframe of a restarted map that ORB finds no older place for is "
+                                                 "matched to older places by XFeat (wide baselines)")
 
     # unknown intrinsics
     focal_guess: float = Field(0.9, gt=0.1, lt=5.0, description="focal guess as a share of max(W, H)")
