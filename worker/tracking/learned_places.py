@@ -10,6 +10,8 @@ nearest neighbours and verified by PnP + RANSAC and the robust refinement
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from .pose_optimization import pnp_pose
@@ -37,6 +39,7 @@ class LearnedPlaces:
         self.chi2_px, self.min_inliers = chi2_px, min_inliers
         self._extractor: XFeatExtractor | None = None
         self._cache: dict[int, DescriptorMap] = {}
+        self.passes, self.seconds = 0, 0.0  # network passes so far and their time (what the matcher costs)
 
     @property
     def extractor(self) -> XFeatExtractor:
@@ -47,7 +50,9 @@ class LearnedPlaces:
     def extract(self, gray: np.ndarray, corners: np.ndarray | None = None) -> XFeatures:
         """XFeat keypoints and descriptors of a grey image, followed by descriptors of the given pixels [M, 2]
         (e.g. the corners a keyframe tracks: the kind of pixel a place is described at)."""
+        start = time.perf_counter()
         found, dense = self.extractor.extract_with_map(gray)
+        self._count(start)
         if corners is None or len(corners) == 0:
             return found
         corners = np.asarray(corners, np.float32).reshape(-1, 2)
@@ -60,8 +65,14 @@ class LearnedPlaces:
         if place.gray is None or place.gray.size == 0:
             return None
         if place.index not in self._cache:
+            start = time.perf_counter()
             self._cache[place.index] = self.extractor.dense_map(place.gray)
+            self._count(start)
         return self._cache[place.index]
+
+    def _count(self, start: float) -> None:
+        self.passes += 1
+        self.seconds += time.perf_counter() - start
 
     def forget(self, keep: set[int]) -> None:
         """Drop the cached maps of places other than `keep` (frame indices)."""
