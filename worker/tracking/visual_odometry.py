@@ -55,6 +55,7 @@ from .pose_optimization import optimize_pose, pnp_pose
 from .projection import camera_matrix, invert_pose, rigid, to_camera
 from .relocalization import Place, PlaceRecognizer
 from .reobservation import nearest_keypoints, search_by_projection
+from .rotation_only import angular_errors, bearings, fit_rotation, position_given_rotation
 from .self_calibration import FocalEstimator
 from .track_triangulation import triangulate_tracks
 from .tracks import Tracks, lookup_sorted
@@ -156,6 +157,7 @@ class VisualOdometry:
         self.frames_since_keyframe = 0
         self.tracked_at_keyframe = 0
         self.lost_since: int | None = None
+        self.rotation_since: int | None = None  # first frame of the current rotation-only run
         self.last_tracked = -1  # index of the last tracked frame
         self.mapped_at_loss = 0  # tracks of map points when tracking was lost
         self.anchor: Anchor | None = None  # the last tracked frame's tracks, while lost: a map restarts from them
@@ -405,6 +407,10 @@ class VisualOdometry:
         predicted = rigid(self.pose @ (self.velocity if motion_guess is None else motion_guess))
         mapped_before = int(self.tracks.mapped.sum())
         found = self._follow(gray, predicted, K)
+        if found is None or found[2] < max(c.min_tracked, c.min_survival * mapped_before):
+            turned = self._follow_rotation(index, gray, K, predicted) if c.rotation_bridge else None
+            if turned is not None:
+                return turned
         if found is None:
             return self._lose_or_restart(index, gray, camera,
                                          "too few map points tracked (sudden motion, occlusion or a new view)")
@@ -412,6 +418,7 @@ class VisualOdometry:
         if inliers < max(c.min_tracked, c.min_survival * mapped_before):
             return self._lose_or_restart(index, gray, camera,
                                          f"{inliers} of {mapped_before} tracked points found again (a sudden change)")
+        self.rotation_since = None
         self.tracks, self.previous_gray = tracks, gray
         self.velocity = rigid(invert_pose(self.pose) @ pose)
         self.frames_since_keyframe += 1
@@ -471,6 +478,74 @@ class VisualOdometry:
         keep = np.ones(len(tracks), bool)
         keep[np.flatnonzero(tracks.mapped)[~inlier]] = False
         return pose, tracks.subset(keep), int(inlier.sum())
+
+    def _follow_rotation(self, index: int, gray: np.ndarray, K: np.ndarray, predicted: np.ndarray
+                         ) -> TrackingResult | None:
+        """Track a frame whose map points are too few by the rotation every track agrees on (`rotation_only`):
+        the position comes from the map points still tracked, or is held; None when the tracks do not agree on a
+        rotation (parallax, a bad frame). Its tracks carry on; VO keyframes (not offered to the engine: a turn
+        gives multi-view stereo no baseline) keep new tracks coming, so that points are triangulated again once
+        the camera moves."""
+        c, t = self.config, self.tracks
+        guess = predicted_pixels(t.uv, self.map.positions[t.rows[t.mapped]], t.mapped, self.pose, predicted, K)
+        uv, ok = self._flow(gray, guess)
+        if ok.sum() < c.rotation_min_tracks:
+            return None
+        followed = np.flatnonzero(ok)
+        tolerance = c.rotation_tolerance_px / K[0, 0]
+        fit = fit_rotation(bearings(t.uv[followed], K), bearings(uv[followed], K), tolerance)
+        if fit is None or fit[1].sum() < max(c.rotation_min_tracks, c.rotation_min_share * len(followed)):
+            return None
+        turn, agree = fit  # previous camera -> this camera
+        orientation = self.pose[:3, :3] @ turn.T
+        keep = np.zeros(len(t), bool)
+        keep[followed[agree]] = True
+        position, measured = self.pose[:3, 3].copy(), 0
+        mapped = followed[t.mapped[followed]]
+        if len(mapped) >= c.rotation_position_points:
+            found = position_given_rotation(orientation, self.map.positions[t.rows[mapped]], bearings(uv[mapped], K),
+                                            2.0 * tolerance)
+            depth = self._median_depth(self.map.keyframes[-1]) if self.map.keyframes else self.map_depth
+            if (found is not None and found[1].sum() >= c.rotation_position_points
+                    and np.linalg.norm(found[0] - position) <= c.rotation_max_step * depth):
+                position, measured = found[0], int(found[1].sum())
+                keep[mapped] = found[1]
+        pose = np.eye(4)
+        pose[:3, :3], pose[:3, 3] = orientation, position
+        pose = rigid(pose)
+        tracks = Tracks(t.ids[keep], uv[keep], t.rows[keep])
+        if self.rotation_since is not None and not self._still_a_turn(tracks, pose, K, tolerance):
+            return None
+        self.tracks = tracks
+        self.previous_gray = gray
+        self.velocity = rigid(invert_pose(self.pose) @ pose)
+        self.frames_since_keyframe += 1
+        if self.rotation_since is None or len(self.tracks) < c.rotation_keyframe_share * c.max_tracks:
+            self._new_keyframe(index, pose, gray)
+            self._triangulate(K, self.map.keyframes[-(c.window + c.fixed_keyframes + 1):])
+            self._retire(self.map.slide(c.map_keyframes if c.covisibility_ba else c.window + c.fixed_keyframes))
+            self._remap(self.map.forget_unobserved())
+            self.tracked_at_keyframe = max(int(self.tracks.mapped.sum()), 1)
+        events = []
+        if self.rotation_since is None:
+            self.rotation_since = index
+            events.append({"type": "rotation_only", "frame": index, "tracks": int(agree.sum()),
+                           "map_points": measured})
+        return TrackingResult(pose, tracked=True, keyframe_hint=False, events=events,
+                              quality=0.5 * float(agree.mean()))
+
+    def _still_a_turn(self, tracks: Tracks, pose: np.ndarray, K: np.ndarray, tolerance: float) -> bool:
+        """Whether the tracks shared with the last keyframe (made in this rotation-only run) still agree with a
+        turn about one centre: translation that adds up over frames shows as parallax against it."""
+        kf = self.map.keyframes[-1]
+        order = np.argsort(kf.track_ids)
+        at, found = lookup_sorted(kf.track_ids[order], tracks.ids)
+        if found.sum() < self.config.rotation_min_tracks:
+            return True  # too few shared tracks to tell: the frame-to-frame fit decides
+        then = bearings(kf.features.keypoints[order[at[found]]], K)
+        turn = pose[:3, :3].T @ kf.pose[:3, :3]  # keyframe camera -> this camera
+        agree = angular_errors(then, bearings(tracks.uv[found], K), turn) < 2.0 * tolerance
+        return bool(agree.mean() >= self.config.rotation_min_share)
 
     def _refine(self, tracks: Tracks, gray: np.ndarray, predicted: np.ndarray) -> Tracks:
         """The tracks that began at or before the last keyframe, matched against that keyframe's image where their
@@ -794,7 +869,7 @@ class VisualOdometry:
         if was_tracking:
             self.mapped_at_loss = int(self.tracks.mapped.sum())
         self.status = "lost"
-        self.lost_since = index
+        self.lost_since, self.rotation_since = index, None
         self.anchor = None
         if self.config.reinit_after_loss and self.previous_gray is not None and was_tracking:
             self._replenish(self.previous_gray)  # the anchor's corners, not only its surviving tracks
@@ -1055,6 +1130,7 @@ class VisualOdometry:
             "pose": self.pose, "velocity": self.velocity, "frames_since_keyframe": self.frames_since_keyframe,
             "tracked_at_keyframe": self.tracked_at_keyframe,
             "lost_since": -1 if self.lost_since is None else self.lost_since,
+            "rotation_since": -1 if self.rotation_since is None else self.rotation_since,
             "image_size": [] if self.image_size is None else list(self.image_size),
             "focal": self.focal.state_dict(),
             "estimated_intrinsics": {} if self.estimated_intrinsics is None else self.estimated_intrinsics.to_dict(),
@@ -1083,6 +1159,7 @@ class VisualOdometry:
         self.frames_since_keyframe = int(state["frames_since_keyframe"])
         self.tracked_at_keyframe = int(state["tracked_at_keyframe"])
         self.lost_since = None if int(state["lost_since"]) < 0 else int(state["lost_since"])
+        self.rotation_since = None if int(state.get("rotation_since", -1)) < 0 else int(state["rotation_since"])
         self.image_size = tuple(int(v) for v in state["image_size"]) or None
         self.focal.load_state_dict(state["focal"])
         if state["estimated_intrinsics"]:

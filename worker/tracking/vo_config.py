@@ -82,6 +82,22 @@ class VisualOdometryConfig(BaseModel):
     covisible_fixed: int = Field(2, ge=1, description="keyframes held still around the covisible ones, at the most")
     huber_sigmas: float = Field(2.45, gt=0.0, description="Huber kernel width, in pixel sigmas")
 
+    # turns faster than points can be triangulated
+    rotation_bridge: bool = Field(True, description="a frame whose tracks measure too few map points is tracked by "
+                                                    "the rotation its tracks agree on (position from the map points "
+                                                    "left, else held) while that rotation explains them; a "
+                                                    "`rotation_only` event says so, quality at most 0.5")
+    rotation_min_tracks: int = Field(40, ge=10, description="... tracks that must agree on the rotation")
+    rotation_min_share: float = Field(0.7, gt=0.0, le=1.0, description="... share of the followed tracks they "
+                                                                        "must be (else: parallax, not a rotation)")
+    rotation_tolerance_px: float = Field(1.5, gt=0.0, description="... largest disagreement of a track, pixels")
+    rotation_position_points: int = Field(8, ge=3, description="... map points needed to measure the position")
+    rotation_max_step: float = Field(0.2, gt=0.0, description="... a measured move above this share of the scene "
+                                                             "depth is not believed (the position is held)")
+    rotation_keyframe_share: float = Field(0.6, gt=0.0, le=1.0, description="... a VO keyframe (no engine "
+                                                                             "keyframe) when fewer tracks than this "
+                                                                             "share of `max_tracks` are left")
+
     # relocalisation
     recover_share: float = Field(0.6, gt=0.0, le=1.0, description="share of the last tracked frame's map points "
                                                                   "that a lost frame must show to take up its tracks")
