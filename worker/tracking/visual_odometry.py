@@ -813,11 +813,14 @@ class VisualOdometry:
                  "method": method, "relative": relative.tolist(), "correction": correction.tolist()}]
 
     def _learned_link(self, index: int, kf: Keyframe, places: list[Place], K: np.ndarray) -> MapLink | None:
-        """The join by XFeat where ORB found no place: the keyframe's XFeat keypoints matched to older maps'
-        places alike in ORB words, verified by PnP; those on the keyframe's own map points measure the scale."""
+        """The join by XFeat where ORB found no place: the keyframe's XFeat keypoints and its own map points,
+        described by XFeat, matched to the older maps' places nearest its pose (`learned_join_reach`), verified by
+        PnP; the inliers on its own map points measure the scale."""
         c = self.config
-        self._orb_of = (index, kf.orb)
-        candidates = self._learned_candidates(index, self.keyframe_images[kf.index], places)
+        # A restarted map begins at the old map's last pose: only places near the keyframe there are worth a network
+        # pass (the maps' coordinates agree roughly until joined; far places are left to ORB and loop closure).
+        places = [p for p in places if self._pose_distance(p.pose, kf.pose) <= c.learned_join_reach]
+        candidates = self._learned_candidates(index, self.keyframe_images[kf.index], places, by_words=False)
         if not candidates:
             return None
         has = np.flatnonzero(kf.point_ids >= 0)  # the keyframe's own map points, described where it tracks them
@@ -1015,7 +1018,8 @@ class VisualOdometry:
         return self._restart_from(index, gray, camera, hit.pose, current.keypoints[hit.keypoints], hit.points,
                                   hit.place, "learned keyframe")
 
-    def _learned_candidates(self, index: int, gray: np.ndarray, places: list[Place] | None = None) -> list[Place]:
+    def _learned_candidates(self, index: int, gray: np.ndarray, places: list[Place] | None = None,
+                            by_words: bool = True) -> list[Place]:
         """Remembered keyframes with an image to match a lost frame to by XFeat: the `learned_candidates` nearest
         the last pose (viewing direction and position; a restarted map begins at the old map's last pose, so its
         coordinates are near the old map's until joined), then as many most alike in ORB words, without repeats."""
@@ -1025,18 +1029,18 @@ class VisualOdometry:
         places = [p for p in places if p.gray is not None and len(p.points) >= c.reloc_min_inliers]
         if not places:
             return []
-        depth = max(self.map_depth, 1e-6)
-
-        def distance(place: Place) -> float:
-            turned = np.arccos(np.clip(place.pose[:3, 2] @ self.pose[:3, 2], -1.0, 1.0))
-            return float(turned + np.linalg.norm(place.pose[:3, 3] - self.pose[:3, 3]) / depth)
-
-        chosen = sorted(places, key=distance)[: c.learned_candidates]
-        features = self._orb(index, gray)
-        if len(features) >= c.min_features:
+        chosen = sorted(places, key=lambda p: self._pose_distance(p.pose, self.pose))[: c.learned_candidates]
+        features = self._orb(index, gray) if by_words else None
+        if features is not None and len(features) >= c.min_features:
             alike = self.recognizer.shortlist(features, places)
             chosen += [p for p in alike if p not in chosen][: c.learned_candidates]
         return chosen
+
+    def _pose_distance(self, a: np.ndarray, b: np.ndarray) -> float:
+        """How far apart two camera poses look: the angle between their viewing directions (radians) plus their
+        distance in median scene depths."""
+        turned = np.arccos(np.clip(a[:3, 2] @ b[:3, 2], -1.0, 1.0))
+        return float(turned + np.linalg.norm(a[:3, 3] - b[:3, 3]) / max(self.map_depth, 1e-6))
 
     def _orb(self, index: int, gray: np.ndarray) -> Features:
         """ORB features of frame `index` (extracted once per frame)."""

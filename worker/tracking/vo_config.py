@@ -137,6 +137,10 @@ class VisualOdometryConfig(BaseModel):
                                                       "newest; the map's own keyframes always do)")
     learned_join: bool = Field(True, description="a keyframe of a restarted map that ORB finds no older place for is "
                                                  "matched to older places by XFeat (wide baselines)")
+    learned_join_reach: float = Field(0.8, gt=0.0, description="... against the places whose viewing direction "
+                                                               "(radians) plus distance (median scene depths) from "
+                                                               "the keyframe is at most this (a network pass each "
+                                                               "keyframe that has one: 150-200 ms of CPU)")
 
     # unknown intrinsics
     focal_guess: float = Field(0.9, gt=0.1, lt=5.0, description="focal guess as a share of max(W, H)")
