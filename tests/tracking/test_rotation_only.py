@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+import pytest
 
 from worker.data.frame import Frame
 from worker.data.synthetic import SyntheticScene, default_intrinsics
@@ -78,22 +79,36 @@ def test_the_position_comes_from_map_points_given_the_rotation():
     assert position_given_rotation(R, points[:2], bearings(uv[:2], K), 3.0 / K[0, 0]) is None
 
 
-def _move_then_turn(moves: int, turns: int, step_deg: float) -> list[Frame]:
+def _move_then_turn(moves: int, turns: int, step_deg: float, walk: int = 0) -> list[Frame]:
     """A synthetic room's camera that follows its path (a map is made), then turns in place about its vertical
-    axis `step_deg` per frame: the map's points soon leave the view and the turn gives new ones no parallax."""
+    axis `step_deg` per frame (the map's points soon leave the view and the turn gives new ones no parallax), then
+    walks `walk` frames straight ahead, 2 cm per frame."""
     scene = SyntheticScene(10003)
     poses = list(scene.camera_path(90)[:moves])
     for k in range(1, turns + 1):
         pose = poses[moves - 1].copy()
         pose[:3, :3] = pose[:3, :3] @ _rotation([0.0, 1.0, 0.0], step_deg * k)
         poses.append(pose)
+    turned = poses[-1]
+    for k in range(1, walk + 1):
+        pose = turned.copy()
+        pose[:3, 3] += 0.02 * k * turned[:3, 2]
+        poses.append(pose)
     return [Frame(n, n / 30.0, scene.render(pose, INTRINSICS)[0], INTRINSICS, gt_pose=pose)
             for n, pose in enumerate(poses)]
 
 
-def test_a_fast_turn_in_place_is_tracked_by_its_rotation_and_said_so():
-    moves, turns = 24, 14
-    frames = _move_then_turn(moves, turns, 5.0)
+MOVES, TURNS, WALK = 24, 14, 16
+
+
+@pytest.fixture(scope="module")
+def turn_and_walk() -> list[Frame]:
+    return _move_then_turn(MOVES, TURNS, 5.0, WALK)
+
+
+def test_a_fast_turn_in_place_is_tracked_by_its_rotation_and_said_so(turn_and_walk):
+    moves, turns = MOVES, TURNS
+    frames = turn_and_walk[:moves + turns]
     results = []
     bridged = VisualOdometry()
     for frame in frames:
@@ -115,3 +130,14 @@ def test_a_fast_turn_in_place_is_tracked_by_its_rotation_and_said_so():
     plain = VisualOdometry(bridged.config.model_copy(update={"rotation_bridge": False}))
     lost = [e for f in frames for e in plain.track(f, f.intrinsics).events if e["type"] == "tracking_lost"]
     assert lost
+
+
+def test_walking_on_after_the_turn_ends_the_rotation_only_run(turn_and_walk):
+    """Translation after the turn shows as parallax against the run's keyframe: the frames are then lost (and a map
+    restarts), never tracked with a held position while the camera walks away."""
+    vo = VisualOdometry()
+    results = [vo.track(frame, frame.intrinsics) for frame in turn_and_walk]
+    walking = results[MOVES + TURNS:]
+    held = [n for n, r in enumerate(walking) if r.tracked and r.quality is not None and 0.0 < r.quality <= 0.5]
+    assert len(held) <= 4, held  # noticed within a few frames (2 cm each)
+    assert any(e["type"] == "tracking_lost" for r in walking for e in r.events)

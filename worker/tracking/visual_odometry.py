@@ -520,7 +520,9 @@ class VisualOdometry:
         self.previous_gray = gray
         self.velocity = rigid(invert_pose(self.pose) @ pose)
         self.frames_since_keyframe += 1
-        if self.rotation_since is None or len(self.tracks) < c.rotation_keyframe_share * c.max_tracks:
+        last = self.map.keyframes[-1] if self.map.keyframes else None
+        if (self.rotation_since is None or last is None
+                or len(self.tracks) < c.rotation_keyframe_share * len(last.track_ids)):
             self._new_keyframe(index, pose, gray)
             self._triangulate(K, self.map.keyframes[-(c.window + c.fixed_keyframes + 1):])
             self._retire(self.map.slide(c.map_keyframes if c.covisibility_ba else c.window + c.fixed_keyframes))

@@ -96,7 +96,7 @@ class VisualOdometryConfig(BaseModel):
                                                              "depth is not believed (the position is held)")
     rotation_keyframe_share: float = Field(0.6, gt=0.0, le=1.0, description="... a VO keyframe (no engine "
                                                                              "keyframe) when fewer tracks than this "
-                                                                             "share of `max_tracks` are left")
+                                                                             "share of the last keyframe's are left")
 
     # relocalisation
     recover_share: float = Field(0.6, gt=0.0, le=1.0, description="share of the last tracked frame's map points "
