@@ -88,16 +88,18 @@ class LearnedPlaces:
         ia, ib = mutual_matches(found.describe(place.keypoints), frame.descriptors, self.min_similarity)
         return place.points[ia], ib
 
-    def relocalise(self, frame: XFeatures, places: list[Place], K: np.ndarray) -> Relocalisation | None:
-        """The best verified camera-to-world pose of the frame among `places` (None: none has `min_inliers`);
-        `keypoints` index the frame's XFeat keypoints."""
+    def relocalise(self, frame: XFeatures, places: list[Place], K: np.ndarray, min_inliers: int | None = None
+                   ) -> Relocalisation | None:
+        """The best verified camera-to-world pose of the frame among `places` (None: none has `min_inliers`, by
+        default the matcher's); `keypoints` index the frame's XFeat keypoints."""
+        needed = self.min_inliers if min_inliers is None else min_inliers
         best: Relocalisation | None = None
         for place in places:
             points, keypoints = self.matches(place, frame)
-            if len(points) < self.min_inliers:
+            if len(points) < needed:
                 continue
             uv = frame.keypoints[keypoints].astype(np.float64)
-            found = pnp_pose(points, uv, K, np.full(len(points), 2.0), self.chi2_px, self.min_inliers)
+            found = pnp_pose(points, uv, K, np.full(len(points), 2.0), self.chi2_px, needed)
             if found is None:
                 continue
             pose, inlier = found

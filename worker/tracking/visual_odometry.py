@@ -1014,7 +1014,7 @@ class VisualOdometry:
         if not candidates:
             return None
         current = self.learned.extract(gray, self._orb(index, gray).keypoints)
-        hit = self.learned.relocalise(current, candidates, K)
+        hit = self.learned.relocalise(current, candidates, K, c.learned_keyframe_min_inliers)
         if hit is None:
             return None
         return self._restart_from(index, gray, camera, hit.pose, current.keypoints[hit.keypoints], hit.points,

@@ -133,6 +133,9 @@ class VisualOdometryConfig(BaseModel):
                                                                              "(XFeat's default)")
     learned_candidates: int = Field(3, ge=1, description="remembered keyframes matched by XFeat per try: this many "
                                                         "nearest the last pose, and this many most alike in ORB words")
+    # Several candidates make a chance pose more likely than against one frame: a fast turn then walk (synthetic,
+    # tests/tracking/test_rotation_only.py) gave one with 36 inliers 11 cm off; the ICL jump back finds 156.
+    learned_keyframe_min_inliers: int = Field(50, ge=10, description="... PnP inliers a remembered keyframe needs")
     learned_places: int = Field(24, ge=0, description="remembered keyframes that keep their image for XFeat (the "
                                                       "newest; the map's own keyframes always do)")
     learned_join: bool = Field(True, description="a keyframe of a restarted map that ORB finds no older place for is "
