@@ -131,6 +131,19 @@ class VisualOdometryConfig(BaseModel):
     learned_keypoints: int = Field(1024, ge=64, description="XFeat keypoints per lost frame")
     learned_min_similarity: float = Field(0.82, gt=0.0, lt=1.0, description="cosine similarity of an XFeat match "
                                                                              "(XFeat's default)")
+    learned_candidates: int = Field(3, ge=1, description="remembered keyframes matched by XFeat per try: this many "
+                                                        "nearest the last pose, and this many most alike in ORB words")
+    # Several candidates make a chance pose more likely than against one frame: a fast turn then walk (synthetic,
+    # tests/tracking/test_rotation_only.py) gave one with 36 inliers 11 cm off; the ICL jump back finds 156.
+    learned_keyframe_min_inliers: int = Field(50, ge=10, description="... PnP inliers a remembered keyframe needs")
+    learned_places: int = Field(24, ge=0, description="remembered keyframes that keep their image for XFeat (the "
+                                                      "newest; the map's own keyframes always do)")
+    learned_join: bool = Field(True, description="a keyframe of a restarted map that ORB finds no older place for is "
+                                                 "matched to older places by XFeat (wide baselines)")
+    learned_join_reach: float = Field(0.8, gt=0.0, description="... against the places whose viewing direction "
+                                                               "(radians) plus distance (median scene depths) from "
+                                                               "the keyframe is at most this (a network pass each "
+                                                               "keyframe that has one: 150-200 ms of CPU)")
 
     # unknown intrinsics
     focal_guess: float = Field(0.9, gt=0.1, lt=5.0, description="focal guess as a share of max(W, H)")
