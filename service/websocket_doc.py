@@ -165,7 +165,9 @@ WEBSOCKET_DOC = {
                 "additionalProperties": True,
                 "description": "RGB-only sessions: visual odometry made its first map at frame `seq`; the frames "
                                "before it, sent at the first frame's pose, were re-estimated: GET the trajectory "
-                               "for revision `revision`"},
+                               "for revision `revision`. After a `new_map` (`map` > 1), `registered_frames` are the "
+                               "frames reported lost while it waited, now posed in the new map (they move with it "
+                               "when a loop joins the maps)"},
             "new_map": {"type": "object", "properties": {
                 "type": {"const": "new_map"}, "seq": {"type": "integer"}, "map": {"type": "integer"},
                 "lost_frames": {"type": "integer"}},

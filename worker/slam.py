@@ -103,7 +103,8 @@ class SlamSystem:
                                      self.config.device, self.timings) if self.config.mapping.enabled else None)
         if self.backend is not None:
             self.backend.on_keyframe_built = self._keyframe_depth_built
-        self.counters: dict[str, float] = {"frames": 0, "frames_tracked": 0, "keyframes": 0, "loops": 0,
+        self.counters: dict[str, float] = {"frames": 0, "frames_tracked": 0, "frames_registered_later": 0,
+                                           "keyframes": 0, "loops": 0,
                                            "frontend_seconds": 0.0,
                                            "wall_seconds": 0.0, "path_given": 0.0, "path_tracked": 0.0}
         self._frame_size: tuple[int, int] | None = None
@@ -124,6 +125,8 @@ class SlamSystem:
         self._previous_poses: tuple[np.ndarray, np.ndarray] | None = None
         self._last_frame: tuple[Frame, bool] | None = None  # the newest frame and whether tracking held
         self._restart_seam = False  # the next keyframe's odometry edge crosses the seam of a restarted map
+        # (the `initialized` event of a new map, its frames' poses): applied once the map's first keyframe is in
+        self._revise_on_keyframe: tuple[dict[str, Any], dict[int, np.ndarray]] | None = None
         self.last_frame_mapped: int | None = None  # the final frame's index when finish() mapped it too
         self.finish_events: list[dict[str, Any]] = []  # loop events finish() applied (no frame result carries them)
         self.depth_registration = DepthRegistration(self.config.input.depth_camera,
@@ -337,6 +340,8 @@ class SlamSystem:
                 self._flush_map_jobs()
             if self.loop_closer is not None:
                 events += self._keyframe_loop(frame, prediction)
+        if self._revise_on_keyframe is not None:
+            self._revise_new_map_frames(frame.index if is_kf else None, tracking.submap_id)
         for event in tracking.events:
             if event.get("type") == "maps_merged" and self.tracking_stage.last_keyframe is not None:
                 self._submit_map_join(pose, event)
@@ -358,9 +363,23 @@ class SlamSystem:
         if event.get("intrinsics") and self.depth_points is not None:  # keyframe points made with the old camera
             self.loop_stage.submit(CameraUpdate(Intrinsics.from_dict(event["intrinsics"]).matrix()))
         out = {k: v for k, v in event.items() if k != "frames"}
+        if int(event.get("map", 1)) > 1:  # a new map's waiting frames: tied to its first keyframe (_push_frame)
+            self._revise_on_keyframe = (out, revised)
+            return out
         out["revision"] = self._traj.revise_frames(revised)
         out["frames_revised"] = len(revised)
         return out
+
+    def _revise_new_map_frames(self, keyframe: int | None, submap_id: int) -> None:
+        """The frames a new map waited for (reported lost), posed by its initialisation: tied to the map's first
+        keyframe, so that a loop or a join that moves the map moves them too (a new revision, said in the
+        `initialized` event with the frames' indices)."""
+        out, revised = self._revise_on_keyframe
+        self._revise_on_keyframe = None
+        out["revision"] = self._traj.revise_frames(revised, keyframe=keyframe, submap_id=submap_id)
+        out["frames_revised"] = len(revised)
+        out["registered_frames"] = sorted(revised)
+        self.counters["frames_registered_later"] += len(revised)
 
     def _submit_map_join(self, pose: np.ndarray, event: dict[str, Any]) -> None:
         """The Sim(3) edge of a pose source's `maps_merged` event (`relative`: this frame, tracked at `pose`, in

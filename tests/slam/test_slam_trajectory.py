@@ -56,3 +56,26 @@ def test_motion_keyframe_selector() -> None:
     sel = MotionKeyframeSelector(every=100, translation=0.2, rotation_deg=15.0)
     assert [sel.is_keyframe(pose(x)) for x in (0.0, 0.1, 0.25, 0.3)] == [True, False, True, False]
     assert sel.is_keyframe(pose(0.3, yaw=0.3))  # 17 degrees
+
+
+def test_frames_a_new_map_posed_later_move_with_its_first_keyframe() -> None:
+    """Frames lost before a new map began (held at the old map's last pose) are posed by the new map's
+    initialisation and tied to its first keyframe: a join that moves the new map moves them, not the old map."""
+    traj = Trajectory()
+    traj.add_keyframe(0, pose(0.0))
+    traj.add_frame(0, 0.0, 0, pose(0.0), True, 0)
+    for i in (1, 2, 3):  # lost: the last pose held, tied to the old map's keyframe
+        traj.add_frame(i, 0.1 * i, 0, pose(0.0), False, 0)
+    traj.add_keyframe(4, pose(0.4), reference=0)
+    traj.add_frame(4, 0.4, 4, pose(0.4), True, 1)
+    revision = traj.revise_frames({2: pose(0.2, 0.1), 3: pose(0.3, 0.1)}, keyframe=4, submap_id=1)
+    assert revision == traj.revision
+    poses = dict((i, p) for i, _, p in traj.listing("all"))
+    assert np.allclose(poses[2], pose(0.2, 0.1)) and np.allclose(poses[1], pose(0.0))
+    join = pose(0.7, -0.2, 1.5)  # the new map moved into the old one's world and scale
+    traj.update_keyframes({4: join @ pose(0.4)})
+    poses = dict((i, p) for i, _, p in traj.listing("all"))
+    assert np.allclose(poses[2], join @ pose(0.2, 0.1)) and np.allclose(poses[3], join @ pose(0.3, 0.1))
+    assert np.allclose(poses[1], pose(0.0)) and np.allclose(poses[0], pose(0.0))  # the old map's stay
+    records = {r.index: r for r in traj.frames}
+    assert records[2].keyframe == 4 and records[2].submap_id == 1 and records[1].submap_id == 0

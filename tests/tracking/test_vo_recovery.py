@@ -9,10 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from worker.config import SlamConfig
 from worker.data import open_source
 from worker.data.frame import Frame
 from worker.eval import absolute_trajectory_error
 from worker.serialization import pack, unpack
+from worker.slam import SlamSystem
 from worker.tracking.base import TrackingResult
 from worker.tracking.visual_odometry import VisualOdometry
 from worker.tracking.vo_config import VisualOdometryConfig
@@ -109,6 +111,15 @@ def test_a_view_no_matcher_finds_begins_a_new_map_that_tracks(frames):
     assert absolute_trajectory_error(np.stack([results[n].pose for n in new]), gt, "sim3").rmse < 0.02 * path
     # the new map starts where the old one was lost (no jump in the reported trajectory)
     assert np.linalg.norm(results[made].pose[:3, 3] - results[19].pose[:3, 3]) < 0.5
+    # The frames it waited for (reported lost) are posed by its initialisation, in its frame and as accurately.
+    initialized = next(e for e in results[made].events if e["type"] == "initialized")
+    assert initialized["map"] == 2
+    waited = {int(i): np.asarray(p) for i, p in initialized["frames"]}
+    assert set(waited) and set(waited) <= set(range(20, made)) and len(waited) >= made - 24
+    posed = sorted(waited) + new
+    poses = np.stack([waited[n] if n in waited else results[n].pose for n in posed])
+    truth = np.stack([sequence[n].gt_pose for n in posed])
+    assert absolute_trajectory_error(poses, truth, "sim3").rmse < 0.02 * path
 
 
 def test_without_new_maps_a_far_view_stays_lost(frames):
@@ -116,3 +127,28 @@ def test_without_new_maps_a_far_view_stays_lost(frames):
     vo = VisualOdometry(VisualOdometryConfig(learned_relocalisation=False, new_map_after_lost=0))
     results = [vo.track(Frame(n, n / 10.0, f.image, f.intrinsics), f.intrinsics) for n, f in enumerate(sequence)]
     assert not any(r.tracked for r in results[20:])
+
+
+def test_the_engine_registers_the_frames_a_new_map_waited_for(frames):
+    """Through the engine (mapping off): the new map's `initialized` event names the lost frames it posed
+    (`registered_frames`), and the trajectory now holds their poses, not the held one."""
+    sequence = frames[:20] + frames[40:]
+    config = SlamConfig.preset("rgbd", threaded=False, mapping={"enabled": False},
+                               tracking={"visual": {"learned_relocalisation": False, "new_map_after_lost": 2}})
+    system = SlamSystem(config)
+    results = [system.push(Frame(n, n / 10.0, f.image, f.intrinsics)) for n, f in enumerate(sequence)]
+    system.finish()
+    assert system.mode == "visual_odometry"
+    named = [e for r in results for e in r.events if e["type"] == "initialized" and e.get("registered_frames")]
+    assert len(named) == 1 and named[0]["frames_revised"] == len(named[0]["registered_frames"])
+    registered = named[0]["registered_frames"]
+    assert all(not results[i].tracked for i in registered)  # reported lost live ...
+    poses = {i: p for i, _, p in system.trajectory("all")}
+    held = poses[19]
+    moved = [np.linalg.norm(poses[i][:3, 3] - held[:3, 3]) > 1e-6 for i in registered]
+    assert sum(moved) >= len(registered) - 1  # ... posed now (the new map's first view is placed at the held pose)
+    assert system.stats()["frames_registered_later"] == len(registered)
+    later = [n for n in range(20, len(sequence)) if results[n].tracked or n in registered]
+    gt = np.stack([sequence[n].gt_pose for n in later])
+    path = float(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1).sum())
+    assert absolute_trajectory_error(np.stack([poses[n] for n in later]), gt, "sim3").rmse < 0.02 * path

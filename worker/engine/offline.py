@@ -119,7 +119,11 @@ def run_sequence(
             "runtime_breakdown": system.timings.breakdown(len(frames)),
             "eval_frames_held_every": hold_every,
         }
-        metrics.update(_trajectory_metrics(frames, all_poses, drift, [r.tracked for r in results]))
+        registered = {int(i) for r in results for e in r.events if e.get("type") == "initialized"
+                      for i in e.get("registered_frames", [])}  # lost frames a new map posed later
+        metrics["frames_registered"] = int(sum(r.tracked or r.index in registered for r in results))
+        metrics.update(_trajectory_metrics(frames, all_poses, drift, [r.tracked for r in results],
+                                           [r.tracked or r.index in registered for r in results]))
         if system.backend is not None:
             (out / "map.ply").write_bytes(system.export_ply())
             metrics["num_gaussians"] = system.num_gaussians
@@ -161,9 +165,10 @@ def _dataset_name(source: str | Path) -> str:
     return text.split("://", 1)[0] if "://" in text else Path(text).resolve().parent.name or "data"
 
 
-def _trajectory_metrics(frames: list[Frame], poses: list, drift: PoseDrift | None, tracked: list[bool]
-                        ) -> dict[str, Any]:
-    """ATE over every frame (a lost frame counts with the pose it held) and over the tracked frames alone."""
+def _trajectory_metrics(frames: list[Frame], poses: list, drift: PoseDrift | None, tracked: list[bool],
+                        registered: list[bool] | None = None) -> dict[str, Any]:
+    """ATE over every frame (a lost frame counts with the pose it held), over the tracked frames alone and over
+    the registered ones (tracked, or posed later by the map begun after their loss)."""
     from worker.eval import absolute_trajectory_error
 
     pairs = [(p, f.gt_pose, t) for (_, _, p), f, t in zip(poses, frames, tracked) if f.gt_pose is not None]
@@ -175,6 +180,10 @@ def _trajectory_metrics(frames: list[Frame], poses: list, drift: PoseDrift | Non
     kept = np.array([t for _, _, t in pairs])
     if 3 <= kept.sum() < len(kept):
         out["ate_rmse_tracked"] = absolute_trajectory_error(est[kept], gt[kept], "sim3").rmse
+    if registered is not None:
+        posed = np.array([r for (_, f), r in zip(zip(poses, frames), registered) if f.gt_pose is not None])
+        if 3 <= posed.sum() < len(posed) and not np.array_equal(posed, kept):
+            out["ate_rmse_registered"] = absolute_trajectory_error(est[posed], gt[posed], "sim3").rmse
     if drift is not None:  # the drifted poses the system was given, before any loop closure
         given = np.stack([np.asarray(f.pose, np.float64) for f in frames if f.gt_pose is not None])
         out["ate_rmse_drift_only"] = absolute_trajectory_error(given, gt, "sim3").rmse

@@ -101,13 +101,18 @@ class Trajectory:
                 return self.pose_of(record)
         raise ValueError(f"frame {index} is not in the trajectory")
 
-    def revise_frames(self, poses: dict[int, np.ndarray]) -> int:
+    def revise_frames(self, poses: dict[int, np.ndarray], keyframe: int | None = None,
+                      submap_id: int | None = None) -> int:
         """Replace the tracked poses of past non-keyframes (a pose source re-estimated them, e.g. the frames
-        before a monocular initialisation); returns the new revision."""
+        before a monocular initialisation); with `keyframe`, the frames are tied to that keyframe (and its
+        `submap_id`) instead of the one they followed. Returns the new revision."""
         sealed = len(self.frames) // self.chunk_frames
         touched = set()
         for position, record in enumerate(self.frames):
             if record.index in poses and not record.is_keyframe:
+                if keyframe is not None:
+                    record.keyframe = int(keyframe)
+                    record.submap_id = record.submap_id if submap_id is None else int(submap_id)
                 record.relative = _inv(self.tracked_keyframe_poses[record.keyframe]) @ np.asarray(
                     poses[record.index], np.float64)
                 touched.add(position // self.chunk_frames)

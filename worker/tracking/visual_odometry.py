@@ -342,8 +342,9 @@ class VisualOdometry:
         self.pending, self.pending_orientation, self.init_state = [], {}, ""
         self.velocity = invert_pose(previous) @ pose
         self.status = "tracking"
-        # After a loss the waiting frames were reported lost, against the old map's keyframes: they stay so.
-        event = {"type": "initialized", "frame": index, "frames": between if self.maps_started == 1 else [],
+        # After a loss the waiting frames were reported lost; the new map poses them now (`map` > 1: the engine
+        # ties them to this map's first keyframe, so that they move with it when the maps are joined).
+        event = {"type": "initialized", "frame": index, "frames": between, "map": self.maps_started,
                  "points": len(self.map),
                  "parallax_deg": round(two.parallax_deg, 3), "model": attempt.model,
                  "score_ratio": round(attempt.score_ratio, 3)}
