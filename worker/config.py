@@ -125,7 +125,7 @@ class MappingConfig(_Section):
         True, description="the final refinement first closes the holes of every held keyframe's view, widened by "
         "hole_margin past its border, from the map's own geometry (worker.mapping.hole_closing)")
     hole_margin: float = Field(
-        0.15, ge=0, le=1, description="close_holes: fraction of the image's width and height the view is widened by "
+        0.1, ge=0, le=1, description="close_holes: fraction of the image's width and height the view is widened by "
         "on every side (views between keyframes see past the keyframes' borders)")
     idle_refine: bool = Field(
         True, description="a threaded mapping stage with an empty queue refines the keyframes whose refinement load "

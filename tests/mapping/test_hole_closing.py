@@ -44,7 +44,7 @@ def test_a_view_past_the_keyframes_borders_has_no_hole_after_closing():
     held_out = camera_pose(0.0, 0.03, yaw=0.07, pitch=-0.05)
     uncovered, largest = hole_shares(_render(gmap, held_out).alpha.numpy())
     assert largest > 0.05, largest
-    added = gmap.close_holes(HoleClosingSettings(margin=0.15))
+    added = gmap.close_holes(HoleClosingSettings(margin=0.15, reach=0.3))
     assert added > 0
     render = _render(gmap, held_out)
     uncovered, largest = hole_shares(render.alpha.numpy())
@@ -62,7 +62,7 @@ def test_a_hole_inside_a_keyframe_takes_the_keyframes_colours():
     target = camera_pose(0.0)
     image = view(target)["image"]
     before = psnr(_render(gmap, target).rgb, image)
-    gmap.close_holes(HoleClosingSettings(margin=0.0))
+    gmap.close_holes(HoleClosingSettings(margin=0.0, reach=0.3))
     render = _render(gmap, target)
     assert hole_shares(render.alpha.numpy())[1] == 0.0
     inner = (slice(18, 30), slice(22, 38))
@@ -88,3 +88,16 @@ def test_closing_adds_nothing_where_the_map_already_covers_the_view():
     closing.config.hole_closing = HoleClosingSettings(margin=0.1)
     closing.refine_global(iterations=1)
     assert closing.num_gaussians > count
+
+
+def test_a_view_the_map_barely_covers_is_left_alone():
+    """A keyframe whose own stereo failed (a jump: its view holds only a sliver of the map) gets no surfels: its few
+    covered pixels are no ground to extrapolate a whole view from."""
+    pose = camera_pose(0.0)
+    sliver = torch.zeros(HEIGHT, WIDTH, dtype=torch.bool)
+    sliver[:, :12] = True  # a quarter of the view
+    gmap = GaussianMap(MapConfig(voxel_cap=0))
+    gmap.add_keyframe(0, pose, intrinsics(), view(pose)["image"], pixel_surfels(pose).select(sliver.reshape(-1)),
+                      view(pose)["depth"])
+    assert gmap.close_holes(HoleClosingSettings(margin=0.1, min_covered=0.5)) == 0
+    assert gmap.close_holes(HoleClosingSettings(margin=0.1, min_covered=0.2, reach=0.1)) > 0

@@ -8,7 +8,9 @@ on every side, renders the map; pixels it leaves uncovered (alpha below `max_alp
 of the plane fitted around their nearest covered pixel (a wall seen at an angle continues as one), coloured by the
 keyframe's photo inside its frame and by the render inpainted (Telea) past it. The surfels
 face the camera, one per `1 / resolution` pixels, and start at `opacity`, so the final refinement trains them with
-the rest of the map wherever a keyframe sees them.
+the rest of the map wherever a keyframe sees them. Only holes within `reach` of a covered pixel are closed, and only
+in views whose frame the map covers at least `min_covered`: a keyframe the map barely reaches (stereo failed on it)
+would otherwise extrapolate a few pixels into a sheet of guessed depth hanging in front of other views.
 """
 
 from __future__ import annotations
@@ -33,7 +35,9 @@ RANGE_MARGIN = 1.5
 class HoleClosingSettings:
     """How far past a keyframe's border and how finely the holes of its view are closed."""
 
-    margin: float = 0.15  # the view is widened by this fraction of the image's width and height on every side
+    margin: float = 0.1  # the view is widened by this fraction of the image's width and height on every side
+    reach: float = 0.1  # holes are closed up to this fraction of the image's shorter side from a covered pixel
+    min_covered: float = 0.5  # views whose own frame the map covers less than this are left as they are
     max_alpha: float = 0.5  # pixels the map covers less than this are holes
     resolution: float = 0.5  # holes are closed at this fraction of the keyframe's resolution
     opacity: float = 0.95  # as a keyframe's own new surfels: the refinement fades them where the photos disagree
@@ -58,13 +62,19 @@ def hole_surfels(render: RenderResult, K: torch.Tensor, photo: np.ndarray | None
                  settings: HoleClosingSettings) -> Surfels:
     """Camera-frame surfels for the holes of `render` (made with the widened K), coloured by `photo` (float [h, w,
     3] in [0, 1] at the closing resolution, placed at `offset`; None: the inpainted render everywhere). Empty when
-    the render has no hole or nothing covered to inpaint from."""
+    the render has no hole, or covers less than `min_covered` of the keyframe's own frame (a view the map barely
+    reaches: extrapolating its few covered pixels over it would hang a sheet of guessed depth in front of other
+    views). Holes farther than `reach` from a covered pixel stay open."""
     alpha = render.alpha.detach().cpu().numpy()
     hole = alpha < settings.max_alpha
     covered = ~hole & (render.depth.detach().cpu().numpy() > 0)
     device = render.rgb.device
-    if not hole.any() or covered.sum() < 3:
+    x0, y0 = offset
+    frame = covered[y0:covered.shape[0] - y0, x0:covered.shape[1] - x0]
+    if not hole.any() or frame.mean() < settings.min_covered:
         return Surfels.empty(device)
+    reach = settings.reach * min(frame.shape)
+    hole &= cv2.distanceTransform((~covered).astype(np.uint8), cv2.DIST_L2, 5) <= reach
     mask = (~covered).astype(np.uint8)
     depth = render.depth.detach().cpu().numpy()
     inverse = extrapolate_inverse_depth(np.where(covered, 1.0 / np.where(covered, depth, 1.0), 0.0), covered,
@@ -74,7 +84,6 @@ def hole_surfels(render: RenderResult, K: torch.Tensor, photo: np.ndarray | None
     canvas = cv2.inpaint((canvas * 255 + 0.5).astype(np.uint8), mask, settings.inpaint_radius,
                          cv2.INPAINT_TELEA).astype(np.float32) / 255.0
     if photo is not None:
-        x0, y0 = offset
         h, w = photo.shape[:2]
         canvas[y0:y0 + h, x0:x0 + w] = photo
     # One pixel into the covered region too: the new surfels overlap the edge they continue (no seam of low alpha).
