@@ -13,7 +13,11 @@ fixed intrinsics) of the ICL frames: its ATE over the frames it registered and i
 More cases: room10004, room10005 (fast turns), icl_gaps6 / icl_gaps16 (icl_mini's first 20 frames, then every 6th
 or 16th: gaps the optical flow cannot bridge), room_gap (room 10003 without frames 30-33: the map restarts at a wrong
 scale and is joined to the old one when the camera comes back to its start; `maps_merged` corrections are applied to
-the restarted map's frames as the engine's pose graph does).
+the restarted map's frames as the engine's pose graph does), icl_jump (icl_mini's first 40 frames, then a jump back
+to frames 5-7, no restart from the last tracked frame: relocalised by XFeat against an older keyframe),
+icl_jump_join (the same with a jump to frames 2-4 and ORB descriptor matching off: the map restarted at the jump is
+joined to the old one by XFeat). Each run also prints what XFeat cost (network passes, ms per pass): it runs only
+while lost or while a restarted map is not joined yet.
 """
 
 from __future__ import annotations
@@ -33,6 +37,7 @@ from worker.data.frame import Frame
 from worker.eval import absolute_trajectory_error
 from worker.tracking.map_join import moved_pose
 from worker.tracking.visual_odometry import VisualOdometry
+from worker.tracking.vo_config import VisualOdometryConfig
 
 DEFAULT_DATA = Path("/work/shared/data/icl_livingroom1_micro")
 MINI_DATA = Path(__file__).resolve().parents[1] / "tests" / "data" / "icl_mini"
@@ -46,10 +51,11 @@ def _load(path: Path, frames: int) -> list:
     return list(source)
 
 
-def _cases(names: list[str], data: Path, frames: int) -> list[tuple[str, list]]:
-    """(label, frames) of each named case whose data is at hand."""
-    out = []
+def _cases(names: list[str], data: Path, frames: int) -> list[tuple[str, list, str]]:
+    """(label, frames, case name) of each named case whose data is at hand."""
+    out: list = []
     for name in names:
+        before = len(out)
         if name == "icl" and data.exists():
             out.append((f"{data.name} ({frames} frames)", _load(data, frames)))
         elif name == "icl_mini":
@@ -59,6 +65,12 @@ def _cases(names: list[str], data: Path, frames: int) -> list[tuple[str, list]]:
             mini = list(open_source(MINI_DATA, use_gt_depth=False, use_gt_poses=False))
             picked = mini[:20] + mini[20::step]
             out.append((f"tests/data/icl_mini, 20 frames then every {step}th",
+                        [Frame(n, n / 10.0, f.image, f.intrinsics, gt_pose=f.gt_pose) for n, f in enumerate(picked)]))
+        elif name.startswith("icl_jump"):
+            mini = list(open_source(MINI_DATA, use_gt_depth=False, use_gt_poses=False))
+            back = 2 if name == "icl_jump_join" else 5
+            picked = mini[:40] + mini[back:back + 3]
+            out.append((f"tests/data/icl_mini, 40 frames then frames {back}-{back + 2} again",
                         [Frame(n, n / 10.0, f.image, f.intrinsics, gt_pose=f.gt_pose) for n, f in enumerate(picked)]))
         elif name == "room_gap":
             room = list(open_source(SYNTHETIC["room"], use_gt_depth=False))
@@ -71,6 +83,8 @@ def _cases(names: list[str], data: Path, frames: int) -> list[tuple[str, list]]:
             print(f"no data at {data}: ICL skipped")
         else:
             raise SystemExit(f"unknown case {name!r}")
+        if len(out) > before:
+            out[-1] = (*out[-1], name)
     return out
 
 
@@ -79,9 +93,14 @@ def path_length(frames: list) -> float:
     return float(np.linalg.norm(np.diff(np.stack([f.gt_pose[:3, 3] for f in frames]), axis=0), axis=1).sum())
 
 
-def run_vo(frames: list, calibrated: bool = True) -> dict:
+# icl_jump: no restart from the last tracked frame (only a remembered keyframe can place the jump); icl_jump_join:
+# ORB descriptor matching off (only XFeat can join the maps)
+CASE_CONFIG = {"icl_jump": {"reinit_after_loss": False}, "icl_jump_join": {"max_hamming": 1}}
+
+
+def run_vo(frames: list, calibrated: bool = True, config: dict | None = None) -> dict:
     """VO over the frames: trajectory (rewritten by the initialisation event), ATE, events and timing."""
-    vo = VisualOdometry()
+    vo = VisualOdometry(VisualOdometryConfig(**(config or {})))
     poses, seconds, tracked, events, flags = [], [], 0, [], []
     joins: list[tuple[int, np.ndarray]] = []  # (first frame of a restarted map, its correction), newest first
     for frame in frames:
@@ -109,7 +128,8 @@ def run_vo(frames: list, calibrated: bool = True) -> dict:
             "frames": len(frames), "events": events,
             "ms_per_frame": 1e3 * float(np.mean(seconds)), "ms_p95": 1e3 * float(np.percentile(seconds, 95)),
             "ms_median": 1e3 * float(np.median(seconds)), "ms_max": 1e3 * float(np.max(seconds)),
-            "fps": 1.0 / float(np.mean(seconds)), "intrinsics": vo.estimated_intrinsics}
+            "fps": 1.0 / float(np.mean(seconds)), "intrinsics": vo.estimated_intrinsics,
+            "xfeat_passes": vo.learned.passes, "xfeat_ms": 1e3 * vo.learned.seconds / max(vo.learned.passes, 1)}
 
 
 def run_colmap(frames: list) -> dict | str:
@@ -159,13 +179,15 @@ def _report(name: str, r: dict, path_m: float) -> None:
     lost = [i for i, kind in r["events"] if kind == "tracking_lost"]
     back = [(i, kind.removeprefix("relocalized").strip(" ()") or "tracks") for i, kind in r["events"]
             if kind.startswith("relocalized")]
-    back += [(i, "maps merged") for i, kind in r["events"] if kind == "maps_merged"]
+    back += [(i, kind.replace("_", " ")) for i, kind in r["events"] if kind.startswith("maps_merged")]
     print(f"  {name}: ATE {100 * r['ate_m']:.2f} cm = {100 * r['ate_m'] / path_m:.2f} % of the path "
           f"(max {100 * r['ate_max_m']:.2f} cm; tracked frames only {100 * r['ate_tracked_m']:.2f} cm), "
           f"tracked {r['tracked']}/{r['frames']}, lost at {lost}, relocalised at "
           f"{back}, {r['ms_per_frame']:.1f} ms/frame (median {r['ms_median']:.1f}, p95 {r['ms_p95']:.1f}, max "
           f"{r['ms_max']:.1f}: a keyframe) = {r['fps']:.1f} frames/s"
-          + (f", intrinsics {r['intrinsics']}" if r["intrinsics"] is not None else ""))
+          + (f", intrinsics {r['intrinsics']}" if r["intrinsics"] is not None else "")
+          + (f"; XFeat {r['xfeat_passes']} passes, {r['xfeat_ms']:.0f} ms each" if r["xfeat_passes"] else
+             "; XFeat not run"))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -178,10 +200,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs; "
           f"load before: {os.getloadavg()}")
-    for label, frames in _cases(args.cases.split(","), args.data, args.frames):
+    for label, frames, name in _cases(args.cases.split(","), args.data, args.frames):
         path_m = path_length(frames)
         print(f"{label}: {len(frames)} frames at {frames[0].width}x{frames[0].height}, path {path_m:.2f} m")
-        _report("VO (given intrinsics)", run_vo(frames), path_m)
+        _report("VO (given intrinsics)", run_vo(frames, config=CASE_CONFIG.get(name)), path_m)
         if args.uncalibrated:
             _report("VO (no intrinsics)", run_vo(frames, calibrated=False), path_m)
         if not args.no_colmap and label.startswith(args.data.name):

@@ -166,14 +166,16 @@ class TrackingEvent:
     "initialized" (RGB-only: the first map; earlier frames' poses were re-estimated, see `data["revision"]`) or
     "new_map" (RGB-only: the old map was not found again, a new one begins at the last pose, `data["map"]`) or
     "maps_merged" (RGB-only: a map restarted after a loss was joined to the older one, scale included; the restarted
-    map's poses moved, see `data["revision"]`)."""
+    map's poses moved, see `data["revision"]`) or "rotation_only" (RGB-only: a turn too fast for new points; poses
+    follow the tracks' rotation, the position held or measured, `quality` at most 0.5)."""
 
     kind: str
     seq: int
     data: dict[str, Any] = field(default_factory=dict)
 
 
-TRACKING_EVENT_TYPES = ("tracking_lost", "relocalized", "initialized", "initializing", "new_map", "maps_merged")
+TRACKING_EVENT_TYPES = ("tracking_lost", "relocalized", "initialized", "initializing", "new_map", "maps_merged",
+                        "rotation_only")
 StreamEvent = PoseEvent | LoopClosedEvent | TrackingEvent
 
 

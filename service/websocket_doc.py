@@ -174,6 +174,15 @@ WEBSOCKET_DOC = {
                                "visual odometry begins map number `map` at the last pose, with the old map's scene "
                                "depth; `initializing` and `initialized` follow, and a `loop_closed` joining the two "
                                "maps moves it into place (a new trajectory revision)"},
+            "rotation_only": {"type": "object", "properties": {
+                "type": {"const": "rotation_only"}, "seq": {"type": "integer"},
+                "tracks": {"type": "integer", "description": "tracks that agree on the rotation"},
+                "map_points": {"type": "integer", "description": "map points that measured the position (0: held)"}},
+                "additionalProperties": True,
+                "description": "RGB-only sessions: a turn too fast for new points to be triangulated; from frame "
+                               "`seq` the poses follow the rotation every track agrees on, the position from the "
+                               "map points still seen (or held), with `quality` at most 0.5, until the tracks "
+                               "measure map points again (no event: `quality` rises) or tracking is lost"},
             "maps_merged": {"type": "object", "properties": {
                 "type": {"const": "maps_merged"}, "seq": {"type": "integer"}, "revision": {"type": "integer"},
                 "place": {"type": "integer", "description": "the older frame the restarted map recognised"},
@@ -224,8 +233,8 @@ WEBSOCKET_DOC = {
     "/v1/sessions/{session_id}/events": {
         "description": "A read-only feed for viewers that do not send the frames (the web viewer): the messages the "
                        "session's stream gets (pose, loop_closed, maps_merged, tracking_lost, relocalized, "
-                       "initializing, initialized, new_map, device_pose_jump, depth_misregistered, error, finishing, "
-                       "finished) "
+                       "initializing, initialized, new_map, rotation_only, device_pose_jump, depth_misregistered, "
+                       "error, finishing, finished) "
                        "from the "
                        "moment of connection; the trajectory endpoint has the earlier ones. A session already "
                        "finished or failed answers one `finished`/`failed` message. Same authentication as the "

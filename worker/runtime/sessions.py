@@ -38,7 +38,7 @@ from worker.runtime.stats import StageStats
 from worker.serialization import pack, unpack
 
 # Pose-source events forwarded to the clients as their own messages.
-TRACKING_EVENTS = ("tracking_lost", "relocalized", "initialized", "initializing", "new_map")
+TRACKING_EVENTS = ("tracking_lost", "relocalized", "initialized", "initializing", "new_map", "rotation_only")
 # Notices about the input, forwarded as their own messages (tracking goes on); a misregistration is also kept in
 # the session record's `warnings`.
 INPUT_EVENTS = ("device_pose_jump", "depth_misregistered")

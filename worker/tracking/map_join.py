@@ -6,6 +6,7 @@ estimate of its scale. When one of its keyframes is relocalised against a rememb
 words, then PnP + RANSAC and a robust refinement on the place's 3D points), the same pixels measure a point of each
 map: the recovered pose gives the rotation and position, and the ratio of their depths the scale. The result is a
 Sim(3) edge between the two maps (`MapLink`), which visual odometry applies to its map and hands to the pose graph.
+Where ORB finds no place (wide baselines), XFeat matches give the same hit (`link_from_hit`).
 
 Similarities are 4x4 matrices [s R, t; 0, 1]; poses stay rigid camera-to-world matrices whose positions carry the
 map's units.
@@ -19,7 +20,7 @@ import numpy as np
 
 from .features import Features
 from .projection import to_camera
-from .relocalization import Place, PlaceRecognizer
+from .relocalization import Place, PlaceRecognizer, Relocalisation
 
 
 def similarity(rotation: np.ndarray, translation: np.ndarray, scale: float) -> np.ndarray:
@@ -83,6 +84,16 @@ def link_maps(recognizer: PlaceRecognizer, features: Features, points: np.ndarra
     hit = recognizer.relocalise(features, places, K, sigma)
     if hit is None or len(hit.keypoints) < min_inliers:
         return None
+    return link_from_hit(hit, points, pose, places, min_pairs, max_spread)
+
+
+def link_from_hit(hit: Relocalisation, points: np.ndarray, pose: np.ndarray, places: list[Place], min_pairs: int,
+                  max_spread: float) -> MapLink | None:
+    """The similarity from the new map to the old one measured by a keyframe's verified match to an older place
+    (`hit`: its pose in the old map, the inlier keypoints and their old points), whichever features found it:
+    points [n, 3] are the new map's point each of the keyframe's keypoints lies on (NaN: none), pose its pose in
+    the new map (None: too few pairs, or depth ratios that disagree by more than `max_spread` in log scale)."""
+    on_points = np.isfinite(points).all(axis=1)
     shared = on_points[hit.keypoints]  # the place's points this keyframe also has in its own map
     depth_old = to_camera(hit.points[shared], hit.pose)[:, 2]
     depth_new = to_camera(points[hit.keypoints[shared]], pose)[:, 2]

@@ -20,7 +20,8 @@ from .vo_config import VisualOdometryConfig
 class Place:
     """A keyframe remembered for relocalisation: frame index, pose, and its keypoints that have a 3D point
     (keypoints [n, 2], descriptors [n, 32], world points [n, 3]); the map it belongs to and the similarity that
-    took that map's coordinates to the odometry's output when the keyframe was made (`map_join`)."""
+    took that map's coordinates to the odometry's output when the keyframe was made (`map_join`); its grey image
+    when kept, for learned matching (`learned_places`)."""
 
     index: int
     pose: np.ndarray
@@ -30,11 +31,12 @@ class Place:
     bag: np.ndarray | None = None
     map_id: int = 0
     output: np.ndarray = field(default_factory=lambda: np.eye(4))
+    gray: np.ndarray | None = None
 
     def to_state(self) -> dict:
         return {"index": self.index, "pose": self.pose, "keypoints": self.keypoints,
                 "descriptors": self.descriptors, "points": self.points, "map_id": self.map_id,
-                "output": self.output}
+                "output": self.output, "gray": np.zeros((0, 0), np.uint8) if self.gray is None else self.gray}
 
     @classmethod
     def from_state(cls, s: dict) -> Place:
@@ -42,7 +44,13 @@ class Place:
                    np.asarray(s["keypoints"], np.float32).reshape(-1, 2),
                    np.asarray(s["descriptors"], np.uint8).reshape(-1, 32),
                    np.asarray(s["points"], np.float64).reshape(-1, 3), map_id=int(s.get("map_id", 0)),
-                   output=np.asarray(s.get("output", np.eye(4)), np.float64).reshape(4, 4))
+                   output=np.asarray(s.get("output", np.eye(4)), np.float64).reshape(4, 4),
+                   gray=_image(s.get("gray")))
+
+
+def _image(value: object) -> np.ndarray | None:
+    gray = np.asarray(value if value is not None else np.zeros((0, 0)), np.uint8)
+    return np.ascontiguousarray(gray) if gray.size else None
 
 
 @dataclass

@@ -23,6 +23,11 @@ class RgbdOdometryConfig(BaseModel):
     min_overlap: float = Field(0.3, gt=0, le=1, description="tracking is lost below this overlap")
     max_photometric_residual: float = Field(
         0.12, gt=0, description="tracking is lost when the robust intensity residual (0..1 scale) exceeds this")
+    blurred_photometric_residual: float = Field(
+        0.3, gt=0, description="... up to this residual when the depth still fits (`max_geometric_residual`) and "
+        "the view overlaps the reference well: a motion-blurred or re-exposed frame is tracked on its geometry")
+    max_geometric_residual: float = Field(
+        0.01, gt=0, description="... the robust depth residual, as a share of the reference's median depth, at most")
     max_jump: float = Field(
         0.5, gt=0, description="tracking is lost when the pose leaves the motion model's guess by more than this "
         "fraction of the median depth")

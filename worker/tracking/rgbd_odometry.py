@@ -294,7 +294,7 @@ class RgbdOdometry:
             return None, "too little depth or texture to align"
         if result.overlap < c.min_overlap:
             return None, f"the view overlaps the reference keyframe by {result.overlap:.0%} only"
-        if result.photometric_rms > c.max_photometric_residual:
+        if result.photometric_rms > c.max_photometric_residual and not self._fits_geometry(result, ref):
             return None, f"large photometric residual ({result.photometric_rms:.3f})"
         pose = ref.pose @ np.linalg.inv(result.T)
         jump = float(np.linalg.norm(pose[:3, 3] - guess[:3, 3]))
@@ -302,6 +302,14 @@ class RgbdOdometry:
             return None, f"the alignment jumped {jump:.2f} from the motion model"
         self.typical_residual = 0.8 * self.typical_residual + 0.2 * result.photometric_rms
         return pose, ""
+
+    def _fits_geometry(self, result: AlignmentResult, ref: _Reference) -> bool:
+        """Whether an alignment whose intensities fit poorly (motion blur, an exposure change) is still held by the
+        depth: a small depth residual over a well-overlapping view, and intensities not beyond the blurred limit."""
+        c = self.config
+        return (result.photometric_rms <= c.blurred_photometric_residual
+                and result.geometric_rms <= c.max_geometric_residual * ref.median_depth
+                and result.overlap >= 0.8 * c.new_reference_overlap)
 
     def _relocalize(self, index: int, grey: np.ndarray, depth: np.ndarray, current: _Current,
                     K: np.ndarray) -> TrackingResult:

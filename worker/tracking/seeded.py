@@ -73,6 +73,8 @@ class SeededTracking:
         # (output, device pose) of the frames before the odometry has a world (monocular initialisation)
         self.waiting: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.skip_next_prior = False
+        # (device position, odometry position) of the last keyframes since a jump: the monocular scale's measure
+        self.scale_marks: list[tuple[np.ndarray, np.ndarray]] = []
         self.jumps = 0
         self.priors_sent = 0
         self.priors_dropped = 0
@@ -173,6 +175,7 @@ class SeededTracking:
             return []
         self.correction = self.correction @ self.last_device @ tracked_motion @ np.linalg.inv(device)
         self.skip_next_prior = True
+        self.scale_marks = []  # distances across the jump measure nothing
         self.jumps += 1
         log.warning("frame %d: the device pose jumped (%.3f, %.1f deg from the tracked motion): re-anchored, its "
                     "keyframe prior dropped", index, gap.translation, gap.rotation_deg)
@@ -220,6 +223,8 @@ class SeededTracking:
         (none right after a jump)."""
         if self.alignment is not None:
             self.odometry.keyframe_added(frame, self.to_odometry(pose))
+            if self.monocular and frame.pose is not None and not self.skip_next_prior:
+                self._measure_scale(self.correction @ checked_device_pose(frame.pose, frame.index), pose)
         if self.publish_prior is None or frame.pose is None:
             return
         if self.skip_next_prior:
@@ -229,6 +234,29 @@ class SeededTracking:
         device = self.correction @ checked_device_pose(frame.pose, frame.index)
         self.publish_prior(PosePrior(int(frame.index), device, self._prior_sigmas(device, pose)))
         self.priors_sent += 1
+
+    def _measure_scale(self, device: np.ndarray, pose: np.ndarray) -> None:
+        """Monocular odometry drifts in scale: at a keyframe (device pose `device`, output `pose`), the scale is
+        the device's over the odometry's distances between the last `scale_keyframes` keyframes, and the world is
+        re-anchored at this keyframe with it (its output stays where it is; the motion after it takes the new
+        scale)."""
+        c = self.config
+        if c.scale_keyframes <= 0:
+            return
+        odometry = self.to_odometry(pose)
+        marks = [*self.scale_marks, (device[:3, 3].copy(), odometry[:3, 3].copy())]
+        self.scale_marks = marks[-(c.scale_keyframes + 1):]
+        if len(self.scale_marks) < 3:
+            return
+        devices = np.stack([d for d, _ in self.scale_marks])
+        odometries = np.stack([o for _, o in self.scale_marks])
+        device_steps = np.linalg.norm(np.diff(devices, axis=0), axis=1)
+        odometry_steps = np.linalg.norm(np.diff(odometries, axis=0), axis=1)
+        measured = device_steps >= c.scale_min_baseline
+        if measured.sum() < 2 or odometry_steps[measured].sum() <= 1e-9:
+            return
+        self.scale = float(device_steps[measured].sum() / odometry_steps[measured].sum())
+        self.alignment = pose @ np.linalg.inv(_scaled(odometry, self.scale))
 
     def _prior_sigmas(self, device: np.ndarray, tracked: np.ndarray) -> EdgeSigmas:
         """The stated uncertainty of a device pose, inflated to `prior_inflation` times its disagreement with the
@@ -245,7 +273,8 @@ class SeededTracking:
                 "correction": self.correction, "last_device": self.last_device, "last_index": self.last_index,
                 "last_pose": self.last_pose, "previous_pose": self.previous_pose, "last_tracked": self.last_tracked,
                 "waiting": [[i, p, d] for i, (p, d) in self.waiting.items()], "skip_next_prior": self.skip_next_prior,
-                "counts": [self.jumps, self.priors_sent, self.priors_dropped]}
+                "counts": [self.jumps, self.priors_sent, self.priors_dropped],
+                "scale_marks": [[d, o] for d, o in self.scale_marks]}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         def matrix(value) -> np.ndarray | None:
@@ -260,6 +289,8 @@ class SeededTracking:
         self.waiting = {int(i): (matrix(p), matrix(d)) for i, p, d in state["waiting"]}
         self.skip_next_prior = bool(state["skip_next_prior"])
         self.jumps, self.priors_sent, self.priors_dropped = (int(v) for v in state["counts"])
+        self.scale_marks = [(np.asarray(d, np.float64), np.asarray(o, np.float64))
+                            for d, o in state.get("scale_marks", [])]
 
 
 def seeded_tracking(config, with_depth: bool, publish_prior: Callable[[PosePrior], None] | None) -> SeededTracking:

@@ -25,3 +25,9 @@ class DevicePoseConfig(BaseModel):
         0.05, gt=0, description="a frame's device motion that differs from the tracked motion by more than this "
         "(pose units) is a jump (relocalisation, glitch): it is not used and the next keyframe gets no prior")
     jump_rotation_deg: float = Field(3.0, gt=0, le=180, description="... or by more than this rotation")
+    scale_keyframes: int = Field(
+        8, ge=0, le=256, description="monocular: the odometry's scale is measured again at each keyframe, as the "
+        "device's over the odometry's distances between the last this many keyframes (no jump between them), and "
+        "the world re-anchored there so that no pose jumps; 0: only from the initialisation's baseline")
+    scale_min_baseline: float = Field(
+        0.02, gt=0, description="... keyframe distances shorter than this (pose units) are not measured")

@@ -38,19 +38,30 @@ from .base import TrackingResult
 from .bundle_adjustment import Observations, bundle_adjust, reprojection_chi2
 from .covisibility import LocalWindow, covisible_window
 from .features import Features, OrbExtractor
+from .learned_places import LearnedPlaces
 from .local_map import Keyframe, LocalMap
-from .map_join import link_maps, moved_points, moved_pose, similarity, similarity_inverse, similarity_scale
+from .map_join import (
+    MapLink,
+    link_from_hit,
+    link_maps,
+    moved_points,
+    moved_pose,
+    similarity,
+    similarity_inverse,
+    similarity_scale,
+)
 from .optical_flow import detect_corners, predicted_pixels, refine_points, track_points
 from .pose_optimization import optimize_pose, pnp_pose
 from .projection import camera_matrix, invert_pose, rigid, to_camera
 from .relocalization import Place, PlaceRecognizer
 from .reobservation import nearest_keypoints, search_by_projection
+from .rotation_only import angular_errors, bearings, fit_rotation, position_given_rotation
 from .self_calibration import FocalEstimator
 from .track_triangulation import triangulate_tracks
 from .tracks import Tracks, lookup_sorted
 from .two_view import TwoViewAttempt, TwoViewMap, two_view_from_matches
 from .vo_config import VisualOdometryConfig
-from .xfeat import XFeatExtractor, mutual_matches
+from .xfeat import XFeatExtractor, XFeatures, mutual_matches
 
 STATE_VERSION = 3
 MIN_SHARED_FOR_SCALE = 10  # old map points a restarted map must share to take its scale from them
@@ -123,7 +134,8 @@ class VisualOdometry:
         self.config = config or VisualOdometryConfig()
         self.extractor = OrbExtractor(self.config)
         self.recognizer = PlaceRecognizer(self.config)
-        self._xfeat_extractor: XFeatExtractor | None = None
+        c = self.config  # XFeat against remembered keyframes, computed only when flow and ORB failed
+        self.learned = LearnedPlaces(c.learned_keypoints, c.learned_min_similarity, c.chi2_px, c.reloc_min_inliers)
         schur_native.available()  # builds (or loads) the compiled kernel now, not at the first keyframe
         self._reset()
 
@@ -131,6 +143,8 @@ class VisualOdometry:
         self.status = "initializing"  # | "tracking" | "lost"
         self.map = LocalMap()
         self.retired: list[Place] = []  # keyframes that left the window, kept for relocalisation
+        self.keyframe_images: dict[int, np.ndarray] = {}  # the map keyframes' images (for learned matching)
+        self._orb_of: tuple[int, Features] | None = None  # the last frame's ORB features, extracted on demand
         self.tracks = Tracks.empty()
         self.next_id = 0
         self.previous_gray: np.ndarray | None = None  # the last frame tracked (flow starts from it)
@@ -143,6 +157,7 @@ class VisualOdometry:
         self.frames_since_keyframe = 0
         self.tracked_at_keyframe = 0
         self.lost_since: int | None = None
+        self.rotation_since: int | None = None  # first frame of the current rotation-only run
         self.last_tracked = -1  # index of the last tracked frame
         self.mapped_at_loss = 0  # tracks of map points when tracking was lost
         self.anchor: Anchor | None = None  # the last tracked frame's tracks, while lost: a map restarts from them
@@ -392,6 +407,10 @@ class VisualOdometry:
         predicted = rigid(self.pose @ (self.velocity if motion_guess is None else motion_guess))
         mapped_before = int(self.tracks.mapped.sum())
         found = self._follow(gray, predicted, K)
+        if found is None or found[2] < max(c.min_tracked, c.min_survival * mapped_before):
+            turned = self._follow_rotation(index, gray, K, predicted) if c.rotation_bridge else None
+            if turned is not None:
+                return turned
         if found is None:
             return self._lose_or_restart(index, gray, camera,
                                          "too few map points tracked (sudden motion, occlusion or a new view)")
@@ -399,6 +418,7 @@ class VisualOdometry:
         if inliers < max(c.min_tracked, c.min_survival * mapped_before):
             return self._lose_or_restart(index, gray, camera,
                                          f"{inliers} of {mapped_before} tracked points found again (a sudden change)")
+        self.rotation_since = None
         self.tracks, self.previous_gray = tracks, gray
         self.velocity = rigid(invert_pose(self.pose) @ pose)
         self.frames_since_keyframe += 1
@@ -458,6 +478,76 @@ class VisualOdometry:
         keep = np.ones(len(tracks), bool)
         keep[np.flatnonzero(tracks.mapped)[~inlier]] = False
         return pose, tracks.subset(keep), int(inlier.sum())
+
+    def _follow_rotation(self, index: int, gray: np.ndarray, K: np.ndarray, predicted: np.ndarray
+                         ) -> TrackingResult | None:
+        """Track a frame whose map points are too few by the rotation every track agrees on (`rotation_only`):
+        the position comes from the map points still tracked, or is held; None when the tracks do not agree on a
+        rotation (parallax, a bad frame). Its tracks carry on; VO keyframes (not offered to the engine: a turn
+        gives multi-view stereo no baseline) keep new tracks coming, so that points are triangulated again once
+        the camera moves."""
+        c, t = self.config, self.tracks
+        guess = predicted_pixels(t.uv, self.map.positions[t.rows[t.mapped]], t.mapped, self.pose, predicted, K)
+        uv, ok = self._flow(gray, guess)
+        if ok.sum() < c.rotation_min_tracks:
+            return None
+        followed = np.flatnonzero(ok)
+        tolerance = c.rotation_tolerance_px / K[0, 0]
+        fit = fit_rotation(bearings(t.uv[followed], K), bearings(uv[followed], K), tolerance)
+        if fit is None or fit[1].sum() < max(c.rotation_min_tracks, c.rotation_min_share * len(followed)):
+            return None
+        turn, agree = fit  # previous camera -> this camera
+        orientation = self.pose[:3, :3] @ turn.T
+        keep = np.zeros(len(t), bool)
+        keep[followed[agree]] = True
+        position, measured = self.pose[:3, 3].copy(), 0
+        mapped = followed[t.mapped[followed]]
+        if len(mapped) >= c.rotation_position_points:
+            found = position_given_rotation(orientation, self.map.positions[t.rows[mapped]], bearings(uv[mapped], K),
+                                            2.0 * tolerance)
+            depth = self._median_depth(self.map.keyframes[-1]) if self.map.keyframes else self.map_depth
+            if (found is not None and found[1].sum() >= c.rotation_position_points
+                    and np.linalg.norm(found[0] - position) <= c.rotation_max_step * depth):
+                position, measured = found[0], int(found[1].sum())
+                keep[mapped] = found[1]
+        pose = np.eye(4)
+        pose[:3, :3], pose[:3, 3] = orientation, position
+        pose = rigid(pose)
+        tracks = Tracks(t.ids[keep], uv[keep], t.rows[keep])
+        if self.rotation_since is not None and not self._still_a_turn(tracks, pose, K, tolerance):
+            return None
+        self.tracks = tracks
+        self.previous_gray = gray
+        self.velocity = rigid(invert_pose(self.pose) @ pose)
+        self.frames_since_keyframe += 1
+        last = self.map.keyframes[-1] if self.map.keyframes else None
+        if (self.rotation_since is None or last is None
+                or len(self.tracks) < c.rotation_keyframe_share * len(last.track_ids)):
+            self._new_keyframe(index, pose, gray)
+            self._triangulate(K, self.map.keyframes[-(c.window + c.fixed_keyframes + 1):])
+            self._retire(self.map.slide(c.map_keyframes if c.covisibility_ba else c.window + c.fixed_keyframes))
+            self._remap(self.map.forget_unobserved())
+            self.tracked_at_keyframe = max(int(self.tracks.mapped.sum()), 1)
+        events = []
+        if self.rotation_since is None:
+            self.rotation_since = index
+            events.append({"type": "rotation_only", "frame": index, "tracks": int(agree.sum()),
+                           "map_points": measured})
+        return TrackingResult(pose, tracked=True, keyframe_hint=False, events=events,
+                              quality=0.5 * float(agree.mean()))
+
+    def _still_a_turn(self, tracks: Tracks, pose: np.ndarray, K: np.ndarray, tolerance: float) -> bool:
+        """Whether the tracks shared with the last keyframe (made in this rotation-only run) still agree with a
+        turn about one centre: translation that adds up over frames shows as parallax against it."""
+        kf = self.map.keyframes[-1]
+        order = np.argsort(kf.track_ids)
+        at, found = lookup_sorted(kf.track_ids[order], tracks.ids)
+        if found.sum() < self.config.rotation_min_tracks:
+            return True  # too few shared tracks to tell: the frame-to-frame fit decides
+        then = bearings(kf.features.keypoints[order[at[found]]], K)
+        turn = pose[:3, :3].T @ kf.pose[:3, :3]  # keyframe camera -> this camera
+        agree = angular_errors(then, bearings(tracks.uv[found], K), turn) < 2.0 * tolerance
+        return bool(agree.mean() >= self.config.rotation_min_share)
 
     def _refine(self, tracks: Tracks, gray: np.ndarray, predicted: np.ndarray) -> Tracks:
         """The tracks that began at or before the last keyframe, matched against that keyframe's image where their
@@ -530,6 +620,9 @@ class VisualOdometry:
         features = Features(t.uv.copy(), np.zeros((len(t), 32), np.uint8), np.zeros(len(t), np.int32))
         kf = Keyframe(index, pose.copy(), features, t.rows.copy(), t.ids.copy(), self.extractor.extract(gray))
         self.map.keyframes.append(kf)
+        kept = {k.index for k in self.map.keyframes}
+        self.keyframe_images = {i: g for i, g in self.keyframe_images.items() if i in kept}
+        self.keyframe_images[index] = gray
         self.keyframe_gray = gray
         self.frames_since_keyframe = 0
         return kf
@@ -674,7 +767,8 @@ class VisualOdometry:
         near, rows = self._place_rows(kf)
         orb = kf.orb
         return Place(kf.index, kf.pose.copy(), orb.keypoints[near], orb.descriptors[near],
-                     self.map.positions[rows].copy(), map_id=self.map_id, output=self.output.copy())
+                     self.map.positions[rows].copy(), map_id=self.map_id, output=self.output.copy(),
+                     gray=self.keyframe_images.get(kf.index))
 
     # ---- joining a restarted map to an older one -------------------------------------------------------------
     def _join_maps(self, index: int, kf: Keyframe, K: np.ndarray) -> list[dict[str, Any]]:
@@ -696,6 +790,9 @@ class VisualOdometry:
         link = link_maps(self.recognizer, kf.orb, points, kf.pose, places, K,
                          self.extractor.level_sigmas(kf.orb.octaves), c.reloc_min_inliers, c.join_min_pairs,
                          c.join_max_spread)
+        method = "orb"
+        if link is None and c.learned_join:
+            link, method = self._learned_link(index, kf, places, K), "learned"
         if link is None:
             return []
         S, s = link.transform, link.scale
@@ -715,12 +812,37 @@ class VisualOdometry:
         self.map_id, self.join = link.place.map_id, None
         return [{"type": "maps_merged", "frame": index, "place": link.place.index, "since": join.since,
                  "scale": similarity_scale(correction), "pairs": link.pairs, "spread": round(link.spread, 4),
-                 "relative": relative.tolist(), "correction": correction.tolist()}]
+                 "method": method, "relative": relative.tolist(), "correction": correction.tolist()}]
+
+    def _learned_link(self, index: int, kf: Keyframe, places: list[Place], K: np.ndarray) -> MapLink | None:
+        """The join by XFeat where ORB found no place: the keyframe's XFeat keypoints and its own map points,
+        described by XFeat, matched to the older maps' places nearest its pose (`learned_join_reach`), verified by
+        PnP; the inliers on its own map points measure the scale."""
+        c = self.config
+        # A restarted map begins at the old map's last pose: only places near the keyframe there are worth a network
+        # pass (the maps' coordinates agree roughly until joined; far places are left to ORB and loop closure).
+        places = [p for p in places if self._pose_distance(p.pose, kf.pose) <= c.learned_join_reach]
+        candidates = self._learned_candidates(index, self.keyframe_images[kf.index], places, by_words=False)
+        if not candidates:
+            return None
+        has = np.flatnonzero(kf.point_ids >= 0)  # the keyframe's own map points, described where it tracks them
+        current = self.learned.extract(self.keyframe_images[kf.index], kf.features.keypoints[has])
+        hit = self.learned.relocalise(current, candidates, K)
+        if hit is None:
+            return None
+        points = np.full((len(current), 3), np.nan)
+        points[len(current) - len(has):] = self.map.positions[kf.point_ids[has]]
+        return link_from_hit(hit, points, kf.pose, places, c.join_min_pairs, c.join_max_spread)
 
     def _retire(self, keyframes: list[Keyframe]) -> None:
+        """Keyframes leaving the map become places; the newest `learned_places` keep their image."""
         places = (self._place(kf) for kf in keyframes)
         self.retired.extend(p for p in places if len(p.points) >= self.config.reloc_min_inliers)
         del self.retired[: max(0, len(self.retired) - self.config.reloc_keyframes)]
+        for place in self.retired[: max(0, len(self.retired) - self.config.learned_places)]:
+            place.gray = None
+        self.learned.forget({p.index for p in self.retired if p.gray is not None}
+                            | {kf.index for kf in self.map.keyframes})
 
     def _sparse_depth(self, kf: Keyframe, camera: Intrinsics) -> np.ndarray:
         """z-depth of the keyframe's points at their pixels, 0 elsewhere."""
@@ -752,7 +874,7 @@ class VisualOdometry:
         if was_tracking:
             self.mapped_at_loss = int(self.tracks.mapped.sum())
         self.status = "lost"
-        self.lost_since = index
+        self.lost_since, self.rotation_since = index, None
         self.anchor = None
         if self.config.reinit_after_loss and self.previous_gray is not None and was_tracking:
             self._replenish(self.previous_gray)  # the anchor's corners, not only its surviving tracks
@@ -796,7 +918,7 @@ class VisualOdometry:
     def _recognise_place(self, index: int, gray: np.ndarray, camera: Intrinsics) -> TrackingResult | None:
         """Place recognition over the remembered keyframes (ORB, verified by PnP): a hit starts a new local map
         from the place's points seen in this frame (their positions, hence the scale, carry over); None: no hit."""
-        features = self.extractor.extract(gray)
+        features = self._orb(index, gray)
         if len(features) < self.config.min_features:
             return None
         places = self.retired + [self._place(kf) for kf in self.map.keyframes]
@@ -859,34 +981,74 @@ class VisualOdometry:
                               events=[event], quality=1.0)
 
     def _relocalise_learned(self, index: int, gray: np.ndarray, camera: Intrinsics) -> TrackingResult | None:
-        """XFeat descriptors of the anchor's map points (sampled at their tracked pixels) matched to XFeat
-        keypoints of this frame, verified by PnP + RANSAC and the robust refinement: the old map, hence its
-        scale, carries on past a turn too fast for optical flow and ORB (None: not found)."""
+        """XFeat matching of this frame to the anchor's map points (the last tracked frame) and then to remembered
+        keyframes (`_learned_candidates`), each verified by PnP + RANSAC and the robust refinement: the old map,
+        hence its scale, carries on past a turn too fast for optical flow and ORB (None: not found). Runs on every
+        `learned_reloc_every`-th lost frame, the first one included."""
         c = self.config
-        anchor = self.anchor
-        if not c.learned_relocalisation or anchor is None or anchor.gray.size == 0:
+        if not c.learned_relocalisation:
             return None
-        if index - anchor.index > c.learned_reloc_frames:
-            self.anchor = None
-            return None
-        if (index - anchor.index - 1) % c.learned_reloc_every:  # the network costs more than a tracked frame
-            return None
-        xfeat = self._xfeat()
-        if anchor.descriptors.size == 0:
-            anchor.descriptors, anchor.world = self._learned_place(anchor, xfeat)
-        if len(anchor.world) < c.reloc_min_inliers:
-            return None
-        current = xfeat.extract(gray)
-        ia, ib = mutual_matches(anchor.descriptors, current.descriptors, c.learned_min_similarity)
-        if len(ia) < c.reloc_min_inliers:
+        since = self.lost_since if self.lost_since is not None else index
+        if (index - since) % c.learned_reloc_every:  # the network costs more than a tracked frame
             return None
         K = camera_matrix(camera)
-        X, uv = anchor.world[ia], current.keypoints[ib].astype(np.float64)
-        found = pnp_pose(X, uv, K, np.full(len(X), 2.0), c.chi2_px, c.reloc_min_inliers)
-        if found is None:
+        current: XFeatures | None = None
+        anchor = self.anchor
+        if anchor is not None and index - anchor.index > c.learned_reloc_frames:
+            self.anchor = anchor = None
+        if anchor is not None and anchor.gray.size:
+            xfeat = self._xfeat()
+            if anchor.descriptors.size == 0:
+                anchor.descriptors, anchor.world = self._learned_place(anchor, xfeat)
+            if len(anchor.world) >= c.reloc_min_inliers:
+                current = self.learned.extract(gray)
+                ia, ib = mutual_matches(anchor.descriptors, current.descriptors, c.learned_min_similarity)
+                if len(ia) >= c.reloc_min_inliers:
+                    X, uv = anchor.world[ia], current.keypoints[ib].astype(np.float64)
+                    found = pnp_pose(X, uv, K, np.full(len(X), 2.0), c.chi2_px, c.reloc_min_inliers)
+                    if found is not None:
+                        pose, inlier = found
+                        return self._restart_from(index, gray, camera, pose, uv[inlier], X[inlier], anchor.index,
+                                                  "learned")
+        candidates = self._learned_candidates(index, gray)
+        if not candidates:
             return None
-        pose, inlier = found
-        return self._restart_from(index, gray, camera, pose, uv[inlier], X[inlier], anchor.index, "learned")
+        current = self.learned.extract(gray, self._orb(index, gray).keypoints)
+        hit = self.learned.relocalise(current, candidates, K, c.learned_keyframe_min_inliers)
+        if hit is None:
+            return None
+        return self._restart_from(index, gray, camera, hit.pose, current.keypoints[hit.keypoints], hit.points,
+                                  hit.place, "learned keyframe")
+
+    def _learned_candidates(self, index: int, gray: np.ndarray, places: list[Place] | None = None,
+                            by_words: bool = True) -> list[Place]:
+        """Remembered keyframes with an image to match a lost frame to by XFeat: the `learned_candidates` nearest
+        the last pose (viewing direction and position; a restarted map begins at the old map's last pose, so its
+        coordinates are near the old map's until joined), then as many most alike in ORB words, without repeats."""
+        c = self.config
+        if places is None:
+            places = self.retired + [self._place(kf) for kf in self.map.keyframes]
+        places = [p for p in places if p.gray is not None and len(p.points) >= c.reloc_min_inliers]
+        if not places:
+            return []
+        chosen = sorted(places, key=lambda p: self._pose_distance(p.pose, self.pose))[: c.learned_candidates]
+        features = self._orb(index, gray) if by_words else None
+        if features is not None and len(features) >= c.min_features:
+            alike = self.recognizer.shortlist(features, places)
+            chosen += [p for p in alike if p not in chosen][: c.learned_candidates]
+        return chosen
+
+    def _pose_distance(self, a: np.ndarray, b: np.ndarray) -> float:
+        """How far apart two camera poses look: the angle between their viewing directions (radians) plus their
+        distance in median scene depths."""
+        turned = np.arccos(np.clip(a[:3, 2] @ b[:3, 2], -1.0, 1.0))
+        return float(turned + np.linalg.norm(a[:3, 3] - b[:3, 3]) / max(self.map_depth, 1e-6))
+
+    def _orb(self, index: int, gray: np.ndarray) -> Features:
+        """ORB features of frame `index` (extracted once per frame)."""
+        if self._orb_of is None or self._orb_of[0] != index:
+            self._orb_of = (index, self.extractor.extract(gray))
+        return self._orb_of[1]
 
     def _learned_place(self, anchor: Anchor, xfeat: XFeatExtractor) -> tuple[np.ndarray, np.ndarray]:
         """XFeat descriptors [n, 64] of the anchor image's keypoints that lie on one of its tracked map points
@@ -901,9 +1063,7 @@ class VisualOdometry:
         return found.descriptors[near], anchor.points[has][nearest[near]]
 
     def _xfeat(self) -> XFeatExtractor:
-        if self._xfeat_extractor is None:  # loaded on the first loss that needs it
-            self._xfeat_extractor = XFeatExtractor(top_k=self.config.learned_keypoints)
-        return self._xfeat_extractor
+        return self.learned.extractor  # loaded on the first loss that needs it
 
     def _reinitialise(self, index: int, gray: np.ndarray, camera: Intrinsics) -> TrackingResult | None:
         """A new map from a two-view reconstruction between the last tracked frame (the anchor, whose pose is
@@ -976,6 +1136,7 @@ class VisualOdometry:
             "pose": self.pose, "velocity": self.velocity, "frames_since_keyframe": self.frames_since_keyframe,
             "tracked_at_keyframe": self.tracked_at_keyframe,
             "lost_since": -1 if self.lost_since is None else self.lost_since,
+            "rotation_since": -1 if self.rotation_since is None else self.rotation_since,
             "image_size": [] if self.image_size is None else list(self.image_size),
             "focal": self.focal.state_dict(),
             "estimated_intrinsics": {} if self.estimated_intrinsics is None else self.estimated_intrinsics.to_dict(),
@@ -990,6 +1151,7 @@ class VisualOdometry:
             "maps_started": self.maps_started, "map_origin": self.map_origin, "map_depth": self.map_depth,
             "map_id": self.map_id, "maps_made": self.maps_made, "output": self.output,
             "join": {} if self.join is None else {"since": self.join.since, "tried": self.join.tried},
+            "keyframe_images": [{"index": i, "gray": g} for i, g in self.keyframe_images.items()],
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -1003,6 +1165,7 @@ class VisualOdometry:
         self.frames_since_keyframe = int(state["frames_since_keyframe"])
         self.tracked_at_keyframe = int(state["tracked_at_keyframe"])
         self.lost_since = None if int(state["lost_since"]) < 0 else int(state["lost_since"])
+        self.rotation_since = None if int(state.get("rotation_since", -1)) < 0 else int(state["rotation_since"])
         self.image_size = tuple(int(v) for v in state["image_size"]) or None
         self.focal.load_state_dict(state["focal"])
         if state["estimated_intrinsics"]:
@@ -1031,3 +1194,5 @@ class VisualOdometry:
         self.output = np.asarray(state.get("output", np.eye(4)), np.float64).reshape(4, 4)
         join = state.get("join") or {}
         self.join = JoinState(int(join["since"]), int(join["tried"])) if join else None
+        self.keyframe_images = {int(k["index"]): np.ascontiguousarray(np.asarray(k["gray"], np.uint8))
+                                for k in state.get("keyframe_images", [])}

@@ -82,6 +82,22 @@ class VisualOdometryConfig(BaseModel):
     covisible_fixed: int = Field(2, ge=1, description="keyframes held still around the covisible ones, at the most")
     huber_sigmas: float = Field(2.45, gt=0.0, description="Huber kernel width, in pixel sigmas")
 
+    # turns faster than points can be triangulated
+    rotation_bridge: bool = Field(True, description="a frame whose tracks measure too few map points is tracked by "
+                                                    "the rotation its tracks agree on (position from the map points "
+                                                    "left, else held) while that rotation explains them; a "
+                                                    "`rotation_only` event says so, quality at most 0.5")
+    rotation_min_tracks: int = Field(40, ge=10, description="... tracks that must agree on the rotation")
+    rotation_min_share: float = Field(0.7, gt=0.0, le=1.0, description="... share of the followed tracks they "
+                                                                        "must be (else: parallax, not a rotation)")
+    rotation_tolerance_px: float = Field(1.5, gt=0.0, description="... largest disagreement of a track, pixels")
+    rotation_position_points: int = Field(8, ge=3, description="... map points needed to measure the position")
+    rotation_max_step: float = Field(0.2, gt=0.0, description="... a measured move above this share of the scene "
+                                                             "depth is not believed (the position is held)")
+    rotation_keyframe_share: float = Field(0.6, gt=0.0, le=1.0, description="... a VO keyframe (no engine "
+                                                                             "keyframe) when fewer tracks than this "
+                                                                             "share of the last keyframe's are left")
+
     # relocalisation
     recover_share: float = Field(0.6, gt=0.0, le=1.0, description="share of the last tracked frame's map points "
                                                                   "that a lost frame must show to take up its tracks")
@@ -115,6 +131,19 @@ class VisualOdometryConfig(BaseModel):
     learned_keypoints: int = Field(1024, ge=64, description="XFeat keypoints per lost frame")
     learned_min_similarity: float = Field(0.82, gt=0.0, lt=1.0, description="cosine similarity of an XFeat match "
                                                                              "(XFeat's default)")
+    learned_candidates: int = Field(3, ge=1, description="remembered keyframes matched by XFeat per try: this many "
+                                                        "nearest the last pose, and this many most alike in ORB words")
+    # Several candidates make a chance pose more likely than against one frame: a fast turn then walk (synthetic,
+    # tests/tracking/test_rotation_only.py) gave one with 36 inliers 11 cm off; the ICL jump back finds 156.
+    learned_keyframe_min_inliers: int = Field(50, ge=10, description="... PnP inliers a remembered keyframe needs")
+    learned_places: int = Field(24, ge=0, description="remembered keyframes that keep their image for XFeat (the "
+                                                      "newest; the map's own keyframes always do)")
+    learned_join: bool = Field(True, description="a keyframe of a restarted map that ORB finds no older place for is "
+                                                 "matched to older places by XFeat (wide baselines)")
+    learned_join_reach: float = Field(0.8, gt=0.0, description="... against the places whose viewing direction "
+                                                               "(radians) plus distance (median scene depths) from "
+                                                               "the keyframe is at most this (a network pass each "
+                                                               "keyframe that has one: 150-200 ms of CPU)")
 
     # unknown intrinsics
     focal_guess: float = Field(0.9, gt=0.1, lt=5.0, description="focal guess as a share of max(W, H)")

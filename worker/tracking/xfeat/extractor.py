@@ -68,7 +68,16 @@ class XFeatExtractor:
     @torch.inference_mode()
     def extract(self, gray: np.ndarray) -> XFeatures:
         """Keypoints and descriptors of a uint8 grey image [H, W] (at least 32 x 32)."""
+        return self.extract_with_map(gray)[0]
+
+    @torch.inference_mode()
+    def extract_with_map(self, gray: np.ndarray) -> tuple[XFeatures, DescriptorMap]:
+        """Keypoints and descriptors of a uint8 grey image, and its dense descriptor map (one network pass)."""
         dense, heat, reliability, h, w = self._dense(gray)
+        return self._detect(dense, heat, reliability, h, w, gray.shape), DescriptorMap(dense, h, w, *gray.shape)
+
+    def _detect(self, dense: torch.Tensor, heat: torch.Tensor, reliability: torch.Tensor, h: int, w: int,
+                shape: tuple[int, int]) -> XFeatures:
         peaks = (heat == F.max_pool2d(heat, 5, stride=1, padding=2)) & (heat > self.threshold)
         yx = peaks[0, 0].nonzero()
         if len(yx) == 0:
@@ -78,7 +87,7 @@ class XFeatExtractor:
         keep = torch.argsort(-scores)[: self.top_k]
         xy, scores = xy[keep], scores[keep]
         descriptors = F.normalize(_sample(dense, xy, h, w, "bicubic"), dim=-1)
-        scale = torch.tensor([gray.shape[1] / w, gray.shape[0] / h])
+        scale = torch.tensor([shape[1] / w, shape[0] / h])
         keypoints = (xy + 0.5) * scale  # pixel index -> project convention, in the original image
         return XFeatures(keypoints.cpu().numpy().astype(np.float32), descriptors.cpu().numpy().astype(np.float32),
                          scores.cpu().numpy().astype(np.float32))
@@ -87,12 +96,34 @@ class XFeatExtractor:
     def describe(self, gray: np.ndarray, keypoints: np.ndarray) -> np.ndarray:
         """Unit descriptors [N, 64] of the image at given pixels [N, 2] (project convention), e.g. tracked
         corners that carry map points."""
+        return self.dense_map(gray).describe(keypoints)
+
+    @torch.inference_mode()
+    def dense_map(self, gray: np.ndarray) -> DescriptorMap:
+        """The image's dense descriptor map, to describe any pixels of it later without the network."""
         dense, _, _, h, w = self._dense(gray)
+        return DescriptorMap(dense, h, w, gray.shape[0], gray.shape[1])
+
+
+@dataclass
+class DescriptorMap:
+    """XFeat's descriptor map [1, 64, h/8, w/8] of an image of `height` x `width` run at h x w."""
+
+    dense: torch.Tensor
+    h: int
+    w: int
+    height: int
+    width: int
+
+    @torch.inference_mode()
+    def describe(self, keypoints: np.ndarray) -> np.ndarray:
+        """Unit descriptors [N, 64] at pixels [N, 2] of the image (project convention)."""
         if len(keypoints) == 0:
             return np.zeros((0, 64), np.float32)
-        scale = torch.tensor([w / gray.shape[1], h / gray.shape[0]])
+        scale = torch.tensor([self.w / self.width, self.h / self.height])
         xy = torch.from_numpy(np.asarray(keypoints, np.float32)) * scale - 0.5
-        return F.normalize(_sample(dense, xy, h, w, "bicubic"), dim=-1).cpu().numpy().astype(np.float32)
+        return F.normalize(_sample(self.dense, xy, self.h, self.w, "bicubic"), dim=-1).cpu().numpy().astype(
+            np.float32)
 
 
 def mutual_matches(a: np.ndarray, b: np.ndarray, min_cossim: float = 0.82) -> tuple[np.ndarray, np.ndarray]:
