@@ -121,6 +121,12 @@ class MappingConfig(_Section):
     final_refine_budget_s: float = Field(
         25.0, ge=0, description="finish(): the final refinement stops once finish() has taken this many seconds "
         "(draining the stages included) whatever its passes (0 = no bound), so finishing a session stays bounded")
+    close_holes: bool = Field(
+        True, description="the final refinement first closes the holes of every held keyframe's view, widened by "
+        "hole_margin past its border, from the map's own geometry (worker.mapping.hole_closing)")
+    hole_margin: float = Field(
+        0.1, ge=0, le=1, description="close_holes: fraction of the image's width and height the view is widened by "
+        "on every side (views between keyframes see past the keyframes' borders)")
     idle_refine: bool = Field(
         True, description="a threaded mapping stage with an empty queue refines the keyframes whose refinement load "
         "shedding cut, oldest first (the live map catches up when the camera slows down)")

@@ -58,8 +58,24 @@ def test_distortion_is_removed_and_missing_images_are_skipped(tmp_path):
     first = next(iter(source))
     raw = cv2.cvtColor(cv2.imread(str(tmp_path / "images" / "frame_1.png")), cv2.COLOR_BGR2RGB)
     K = np.array([[50.0, 0, 20.0], [0, 52.0, 15.0], [0, 0, 1]])
-    expected = cv2.undistort(raw, K, np.array([-0.3, 0.05, 0.0, 0.0, 0.0]))
+    distortion = np.array([-0.3, 0.05, 0.0, 0.0, 0.0])
+    camera = source.intrinsics
+    assert camera.fx != 50.0 and camera.fy != 52.0  # the camera whose pixels all lie inside the photo
+    undistorted = np.array([[camera.fx, 0, camera.cx], [0, camera.fy, camera.cy], [0, 0, 1]])
+    expected = cv2.undistort(raw, K, distortion, newCameraMatrix=undistorted)
     assert np.array_equal(first.image, expected) and not np.array_equal(first.image, raw)
+
+
+def test_undistorted_photos_have_no_black_border(tmp_path):
+    """Every pixel of an undistorted photo saw the scene: undistorting with the photo's own camera brings black
+    in at the borders (pixels from outside the photo), which views then render and are scored against."""
+    _capture(tmp_path, {"k1": 0.25})
+    for name in ("frame_1.png", "frame_2.png", "frame_10.png"):
+        cv2.imwrite(str(tmp_path / "images" / name), np.full((30, 40, 3), 200, np.uint8))
+    image = next(iter(open_source(tmp_path))).image
+    assert image.min() >= 190, np.argwhere(image.min(-1) < 190)[:5]
+    K = np.array([[50.0, 0, 20.0], [0, 52.0, 15.0], [0, 0, 1]])
+    assert cv2.undistort(image, K, np.array([0.25, 0.0, 0.0, 0.0, 0.0])).min() < 100  # what the old camera did
 
 
 @pytest.mark.parametrize("content, message", [

@@ -41,6 +41,7 @@ def build_gaussian_map(cfg: MappingConfig, device: str):
     """The map object with this engine's mapping settings."""
     from worker.mapping.fusion import FusionThresholds
     from worker.mapping.gaussian_map import GaussianMap, MapConfig
+    from worker.mapping.hole_closing import HoleClosingSettings
     from worker.mapping.refine import RefineSettings
 
     return GaussianMap(MapConfig(
@@ -55,6 +56,7 @@ def build_gaussian_map(cfg: MappingConfig, device: str):
         archived_views_per_refine=cfg.archived_views_per_refine,
         voxel_cap=cfg.voxel_cap,
         final_refine_budget_s=cfg.final_refine_budget_s or None,
+        hole_closing=HoleClosingSettings(margin=cfg.hole_margin) if cfg.close_holes else None,
         device=device,
     ))
 

@@ -19,6 +19,7 @@ import math
 import time
 from dataclasses import asdict, dataclass, field
 
+import cv2
 import numpy as np
 import torch
 
@@ -26,6 +27,7 @@ from worker.geometry import make_sim3, sim3_decompose, sim3_inverse
 
 from .exposure import apply_exposure, fit_exposure, identity_exposure, remove_exposure
 from .fusion import FusionThresholds, attribute_errors, densify_mask, prune_mask
+from .hole_closing import HoleClosingSettings, hole_surfels, widened_camera
 from .keyframe_archive import ArchivedKeyframe
 from .loop_correction import correct_map
 from .ply import surfels_to_ply_bytes
@@ -62,6 +64,8 @@ class MapConfig:
     voxel_finer: float = 1.5
     # refine_global stops after this many seconds whatever its iteration count (None = no bound).
     final_refine_budget_s: float | None = 25.0
+    # refine_global first closes the holes of every held keyframe's widened view (close_holes); None = it does not.
+    hole_closing: HoleClosingSettings | None = None
     device: str = "cpu"
 
     def to_dict(self) -> dict:
@@ -72,7 +76,9 @@ class MapConfig:
         d = dict(d)
         thresholds = FusionThresholds(**d.pop("thresholds", {}))
         refine = RefineSettings(**d.pop("refine", {}))
-        return cls(thresholds=thresholds, refine=refine, **d)
+        closing = d.pop("hole_closing", None)
+        return cls(thresholds=thresholds, refine=refine,
+                   hole_closing=None if closing is None else HoleClosingSettings(**closing), **d)
 
 
 @dataclass
@@ -319,7 +325,8 @@ class GaussianMap:
         It stops after `budget_s` seconds (default `config.final_refine_budget_s`; math.inf: no bound) whatever
         `iterations` asks: a long session's end costs the same as a short one's. Keyframe exposures (with
         `refine.exposure`) are re-estimated first, oldest first (`estimate_exposure`: keyframes merged without
-        refinement kept the fit made when they arrived), and applied as they are."""
+        refinement kept the fit made when they arrived), and applied as they are; then, with `config.hole_closing`,
+        the holes of the keyframes' widened views are closed (`close_holes`) for the refinement to train."""
         held = [kf_id for kf_id in self.keyframe_ids if self._keyframes[kf_id].held]
         if not held or len(self._surfels) == 0 or iterations <= 0:
             return RefineReport()
@@ -327,6 +334,8 @@ class GaussianMap:
         deadline = None if budget is None or math.isinf(budget) else time.perf_counter() + float(budget)
         for kf_id in held:
             self.estimate_exposure(kf_id)
+        if self.config.hole_closing is not None:
+            self.close_holes(self.config.hole_closing, deadline)
         chunk = max(1, restart_every or 2 * len(held))
         generator = torch.Generator().manual_seed(seed)
         report = RefineReport()
@@ -340,6 +349,37 @@ class GaussianMap:
             report.losses += part.losses
             report.views += [held.index(order[i]) for i in part.views]
         return report
+
+    def close_holes(self, settings: HoleClosingSettings | None = None, deadline: float | None = None) -> int:
+        """Close the holes of every held keyframe's view, widened past its border (worker.mapping.hole_closing),
+        oldest first, each seeing the surfels added for the ones before; stops at `deadline` (perf_counter). The new
+        surfels belong to the keyframe whose view made them. Returns how many were added."""
+        settings = settings or self.config.hole_closing or HoleClosingSettings()
+        added = 0
+        for kf_id in [k for k in self.keyframe_ids if self._keyframes[k].held]:
+            if deadline is not None and time.perf_counter() >= deadline:
+                break
+            kf = self._keyframes[kf_id]
+            viewmat, _ = rigid_viewmat(kf.pose)
+            viewmat = viewmat.to(self.device, torch.float32)
+            K, width, height, offset = widened_camera(kf.K, kf.width, kf.height, settings)
+            K = K.to(self.device)
+            with torch.no_grad():
+                render = rasterize(self._surfels.select(self._in_view(viewmat, K, width, height)), viewmat, K,
+                                   width, height)
+            image = kf.image if kf.image is not None else kf.archived.unpack(self.device)[0]
+            if kf.exposure is not None:
+                image = remove_exposure(image, kf.exposure).clamp(0, 1)
+            size = (width - 2 * offset[0], height - 2 * offset[1])
+            photo = cv2.resize(image.cpu().numpy(), size, interpolation=cv2.INTER_AREA)
+            new = hole_surfels(render, K, photo, offset, settings)
+            if len(new) == 0:
+                continue
+            new = new.transform(torch.linalg.inv(viewmat.double()).to(new.means.dtype))
+            new.keyframe_ids = torch.full((len(new),), kf_id, dtype=torch.int64, device=self.device)
+            self._surfels = Surfels.concat([self._surfels, new])
+            added += len(new)
+        return added
 
     @property
     def held_images(self) -> int:

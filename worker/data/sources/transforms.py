@@ -4,7 +4,9 @@ The file gives one pinhole camera (`fl_x`, `fl_y`, `cx`, `cy`, `w`, `h`, or `cam
 radial-tangential distortion (`k1`, `k2`, `k3`, `p1`, `p2`) and per frame a `file_path` and a camera-to-world
 `transform_matrix` in the OpenGL convention (x right, y up, z backwards). Frames are read in file-name order (the
 capture order of a video or a photo series); their poses become ground truth in the OpenCV convention. Images are
-undistorted on load, so the pinhole camera holds exactly.
+undistorted on load, so the pinhole camera holds exactly; that camera is zoomed in just enough that every pixel
+saw the scene (OpenCV's optimal new camera matrix with alpha 0): with the photo's own K, the pixels undistortion
+brings in from outside the photo are black (fox: 1.7 % of the image, the outer 1-2 pixels at 270x480).
 """
 
 from __future__ import annotations
@@ -64,6 +66,9 @@ class TransformsJsonSource(RecordedSource):
         if not isinstance(data, dict) or not isinstance(data.get("frames"), list):
             raise DatasetError(f"{path}: expected an object with a 'frames' list")
         intrinsics, self._distortion = _camera(data, path)
+        self._photo_camera = _matrix(intrinsics)
+        if self._distortion is not None:
+            intrinsics = _undistorted_camera(intrinsics, self._distortion)
         present = []
         for frame in data["frames"]:
             image_path = root / str(frame.get("file_path", ""))
@@ -84,10 +89,18 @@ class TransformsJsonSource(RecordedSource):
             raise DatasetError(f"{record.image_path} is {image.shape[1]}x{image.shape[0]}, the camera says "
                                f"{self._native_size[0]}x{self._native_size[1]}")
         if self._distortion is not None:
-            image = cv2.undistort(image, _matrix(self._native_intrinsics), self._distortion)
+            image = cv2.undistort(image, self._photo_camera, self._distortion,
+                                  newCameraMatrix=_matrix(self._native_intrinsics))
         return finish_frame(index, record.timestamp, image, self._native_intrinsics, None, record.gt_pose,
                             self.options)
 
 
 def _matrix(intrinsics: Intrinsics) -> np.ndarray:
     return np.array([[intrinsics.fx, 0.0, intrinsics.cx], [0.0, intrinsics.fy, intrinsics.cy], [0.0, 0.0, 1.0]])
+
+
+def _undistorted_camera(photo: Intrinsics, distortion: np.ndarray) -> Intrinsics:
+    """The pinhole camera of the undistorted photos: every one of its pixels inside the photo."""
+    size = (photo.width, photo.height)
+    K, _ = cv2.getOptimalNewCameraMatrix(_matrix(photo), distortion, size, 0.0, size)
+    return Intrinsics(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), photo.width, photo.height)
