@@ -21,6 +21,8 @@ timeout 150 python3 -m bench frontend -- --configs tiny --threads 4 --iters 20
 wait $build; tail -5 "$out/gsplat_build.log"
 echo "== gsplat parity tests"
 timeout 120 python3 -m pytest -q -p no:cacheprovider tests/mapping/test_rasterize_gsplat.py 2>&1 | tail -6
+echo "== hole closing with the map on CUDA"
+timeout 120 python3 -m pytest -q -p no:cacheprovider -m gpu tests/mapping/test_hole_closing.py 2>&1 | tail -4
 echo "== rasterizer timings (cpu = compiled kernels on 4 threads of this machine's CPU; gsplat on the GPU)"
 timeout 150 python3 -m bench render -- --device cuda --threads 4 --no-reference --repeats 10
 echo "== map refinement, 20 iterations per keyframe at 320x240: GPU (gsplat) then this machine's CPU, 4 threads"

@@ -2,10 +2,12 @@
 refinement: a view between keyframes that sees past their borders, or a keyframe region stereo left without depth,
 has no hole afterwards, at the right depth and colour."""
 
+import pytest
 import torch
 from mapping_scene import HEIGHT, WIDTH, camera_pose, intrinsics, pixel_surfels, psnr, view
 
 from worker.eval.metrics import hole_shares
+from worker.mapping import raster_gsplat
 from worker.mapping.gaussian_map import GaussianMap, MapConfig
 from worker.mapping.hole_closing import HoleClosingSettings
 
@@ -23,8 +25,8 @@ def _stereo_surfels(pose: torch.Tensor, keyframe_id: int, hole: tuple[slice, sli
     return surfels
 
 
-def _map(poses: list[torch.Tensor], hole: tuple[slice, slice] | None = None) -> GaussianMap:
-    gmap = GaussianMap(MapConfig(voxel_cap=0, final_refine_budget_s=None))
+def _map(poses: list[torch.Tensor], hole: tuple[slice, slice] | None = None, device: str = "cpu") -> GaussianMap:
+    gmap = GaussianMap(MapConfig(voxel_cap=0, final_refine_budget_s=None, device=device))
     for kf, pose in enumerate(poses):
         gmap.add_keyframe(kf, pose, intrinsics(), view(pose)["image"], _stereo_surfels(pose, kf, hole),
                           view(pose)["depth"])
@@ -101,3 +103,20 @@ def test_a_view_the_map_barely_covers_is_left_alone():
                       view(pose)["depth"])
     assert gmap.close_holes(HoleClosingSettings(margin=0.1, min_covered=0.5)) == 0
     assert gmap.close_holes(HoleClosingSettings(margin=0.1, min_covered=0.2, reach=0.1)) > 0
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not raster_gsplat.available(), reason="needs CUDA and the gsplat package")
+def test_closing_on_the_gpu_matches_the_cpu():
+    """The same closing with the map on CUDA (gsplat renders): no hole left, the same depth as on the CPU."""
+    poses = [camera_pose(-0.05), camera_pose(0.05)]
+    held_out = camera_pose(0.0, 0.03, yaw=0.07, pitch=-0.05)
+    depths = {}
+    for device in ("cpu", "cuda"):
+        gmap = _map(poses, device=device)
+        assert gmap.close_holes(HoleClosingSettings(margin=0.15, reach=0.3)) > 0
+        render = _render(gmap, held_out)
+        uncovered, largest = hole_shares(render.alpha.cpu().numpy())
+        assert uncovered == 0.0 and largest == 0.0, (device, uncovered, largest)
+        depths[device] = render.depth.cpu()
+    assert float(((depths["cuda"] - depths["cpu"]).abs() / depths["cpu"]).max()) < 0.01
