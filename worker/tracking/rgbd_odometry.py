@@ -169,15 +169,46 @@ class RgbdOdometry:
             raise ValueError(f"frame {frame.index} has no depth: RGB-D odometry needs depth on every frame")
         if intrinsics is None and self.estimated_intrinsics is None:
             self.calibrating = self.config.self_calibrate
-        intrinsics = intrinsics or self._guess_intrinsics(frame)
-        K = intrinsics.matrix().numpy().astype(np.float64)
-        grey = grey_of(frame.image)
-        depth = np.nan_to_num(np.asarray(frame.depth, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
-        depth[depth < 0] = 0.0
+        K, grey, depth = self._inputs(frame, intrinsics)
         result = self._track(frame.index, grey, depth, K, motion_guess)
         if self.calibrating and result.tracked:
             return self._calibration_step(frame, grey, depth, result)
         return result
+
+    def resume_from(self, frame: Frame, intrinsics: Intrinsics | None, pose: np.ndarray) -> TrackingResult:
+        """Track `frame` again (after `track` lost it), knowing from outside (a device pose) that the camera is
+        near `pose`: aligned to the newest reference from there, else, when that fails too, a new reference at
+        `pose` (the odometry restarts where the device says the camera is; no velocity across the seam).
+        `relocalized` (method `device_pose`, with the alignment's failure as `reason`) reports the restart."""
+        if self.reference is None or self.calibrating:
+            return self.track(frame, intrinsics)
+        K, grey, depth = self._inputs(frame, intrinsics)
+        current = _Current(build_pyramid(grey, depth, K, self.config.pyramid_levels, backend=self.settings.backend),
+                           grey)
+        self.lost = False
+        aligned, reason = self._align_to(self.reference, current, pose, K)
+        if aligned is not None:
+            self._advance(aligned)
+            self._maybe_new_reference(frame.index, grey, depth, aligned, current, K)
+            return TrackingResult(aligned, depth=depth, keyframe_hint=self._covered_hint())
+        if np.count_nonzero(depth) <= 0.2 * depth.size:
+            self.lost = True
+            return TrackingResult(self.last_pose.copy(), tracked=False, keyframe_hint=False)
+        pose = np.asarray(pose, np.float64).copy()
+        self.previous_pose, self.last_pose = None, pose
+        self.references.append(_Reference(frame.index, pose, grey, depth, pyramid=current.pyramid))
+        self.last_overlap = 1.0
+        log.info("frame %d: RGB-D odometry restarted at the device's pose (%s)", frame.index, reason)
+        return TrackingResult(pose.copy(), depth=depth,
+                              events=[{"type": "relocalized", "method": "device_pose", "reason": reason}])
+
+    def _inputs(self, frame: Frame, intrinsics: Intrinsics | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """K, grey image and cleaned depth (no NaN, no negative) of a frame."""
+        intrinsics = intrinsics or self._guess_intrinsics(frame)
+        K = intrinsics.matrix().numpy().astype(np.float64)
+        depth = np.nan_to_num(np.asarray(frame.depth, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+        depth[depth < 0] = 0.0
+        return K, grey_of(frame.image), depth
 
     def _track(self, index: int, grey: np.ndarray, depth: np.ndarray, K: np.ndarray,
                motion_guess: np.ndarray | None = None) -> TrackingResult:

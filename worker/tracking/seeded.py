@@ -16,7 +16,11 @@ a depth camera's trajectory follows the depth camera. With them, the session's o
 The output lives in the device's world: the odometry's world is aligned to the device pose of its first frame
 (rigid with depth; for monocular visual odometry, also scaled by the device's baseline over its initialisation).
 While the odometry has no world yet (monocular initialisation) or is lost, poses follow the device's motion from
-the last output (never a jump, never a held pose while the device still moves).
+the last output (never a jump, never a held pose while the device still moves). With depth, a frame the odometry
+loses (a fast or sparse motion its own guess misses) is aligned again from the device's pose, and where that fails
+too the odometry restarts at the device's pose (`relocalized`, method `device_pose`, after the `tracking_lost`):
+tracking and keyframes go on instead of waiting for the view of the last reference to come back
+(`device_poses.resume_when_lost`).
 """
 
 from __future__ import annotations
@@ -96,6 +100,8 @@ class SeededTracking:
             result = TrackingResult(np.eye(4), tracked=False, keyframe_hint=False)
         else:
             result = self.odometry.track(frame, intrinsics, motion_guess=self._guess(device_motion))
+            if not result.tracked and self._can_resume(device_motion):
+                result = self._resume(frame, intrinsics, device_motion, result)
         # A monocular join (maps_merged) measures in odometry units; the device's poses place this world instead.
         events = [e for e in result.events if e.get("type") not in ("initialized", "maps_merged")]
         initialized = [e for e in result.events if e.get("type") == "initialized"]
@@ -141,6 +147,25 @@ class SeededTracking:
         depth = None if result.depth is None else result.depth * np.float32(self.scale)
         return TrackingResult(pose.copy(), depth=depth, events=events, keyframe_hint=result.keyframe_hint,
                               quality=result.quality)
+
+    def _can_resume(self, device_motion: np.ndarray | None) -> bool:
+        """Whether a frame the RGB-D odometry lost can be tracked again from the device's pose."""
+        return (self.config.resume_when_lost and not self.monocular and device_motion is not None
+                and self.alignment is not None and self.last_pose is not None
+                and hasattr(self.odometry, "resume_from"))
+
+    def _resume(self, frame: Frame, intrinsics: Intrinsics | None, device_motion: np.ndarray,
+                lost: TrackingResult) -> TrackingResult:
+        """The lost frame aligned again from where the device says the camera is, or the odometry restarted
+        there (module docstring). Its `tracking_lost` is reported only with a restart: a frame the device's
+        pose let the odometry align was tracked."""
+        result = self.odometry.resume_from(frame, intrinsics, self.to_odometry(self.last_pose @ device_motion))
+        restarted = any(e.get("type") == "relocalized" for e in result.events)
+        if result.tracked and not restarted:
+            return result
+        return TrackingResult(result.pose, tracked=result.tracked, depth=result.depth,
+                              events=lost.events + result.events,
+                              keyframe_hint=result.keyframe_hint, quality=result.quality)
 
     def _waiting_for_world(self, initialized: list[dict[str, Any]]) -> bool:
         """A monocular odometry still initialising (its poses are placeholders)."""

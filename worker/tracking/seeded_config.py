@@ -25,3 +25,8 @@ class DevicePoseConfig(BaseModel):
         0.05, gt=0, description="a frame's device motion that differs from the tracked motion by more than this "
         "(pose units) is a jump (relocalisation, glitch): it is not used and the next keyframe gets no prior")
     jump_rotation_deg: float = Field(3.0, gt=0, le=180, description="... or by more than this rotation")
+    resume_when_lost: bool = Field(
+        True, description="with depth: a frame the RGB-D odometry loses is aligned again from the device's pose, "
+        "and where that fails too the odometry restarts there (`relocalized`, method device_pose), so that "
+        "tracking and keyframes go on while the device moves (off: the device's motion is followed, without "
+        "keyframes, until the odometry relocalises by itself)")
