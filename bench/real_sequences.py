@@ -88,11 +88,12 @@ def lost_spans(events: list[tuple[int, str]], frames: int) -> list[tuple[int, in
     """(first, last) frame positions of each stretch from a `tracking_lost` to the frame before the next
     `relocalized` (or the last frame): the frames tracking did not place (their pose is held, or the device's)."""
     spans, start = [], None
-    for at, kind in sorted(events):
+    for at, kind in sorted(events, key=lambda event: event[0]):  # stable: a frame's events keep their order
         if kind == "tracking_lost" and start is None:
             start = at
         elif kind == "relocalized" and start is not None:
-            spans.append((start, at - 1))
+            if at > start:  # a frame lost and relocalised at once (seeded: restarted at the device's pose) held none
+                spans.append((start, at - 1))
             start = None
     if start is not None:
         spans.append((start, frames - 1))
