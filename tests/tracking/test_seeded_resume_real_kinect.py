@@ -64,3 +64,25 @@ def test_without_resume_the_session_follows_the_device_without_keyframes(resumed
     assert sum(r.is_keyframe for r in results) < sum(r.is_keyframe for r in with_resume)
     errors = [np.linalg.norm(r.pose[:3, 3] - f.gt_pose[:3, 3]) for r, f in zip(results, frames)]
     assert max(errors) < 0.08  # the poses still follow the device: never held, never a jump
+
+
+def test_no_restart_on_a_blurred_frame() -> None:
+    """A motion-blurred frame is no reference to restart from: the device's motion is followed through it and the
+    odometry restarts on the next sharp frame."""
+    import cv2
+
+    frames = list(open_source(str(DATA), resize=SIZE, use_gt_depth=True, use_gt_poses=True))
+    config = SlamConfig.preset("rgbd", threaded=False, mapping={"enabled": False}, input={"pose_mode": "seeded"})
+    system = SlamSystem(config)
+    results = []
+    for frame in frames:
+        frame.pose = frame.gt_pose.copy()
+        if frame.index == 2:  # the frame the odometry loses (see above), smeared sideways
+            frame.image = cv2.blur(frame.image, (15, 1))
+        results.append(system.push(frame))
+    system.finish()
+    assert not results[2].tracked and not results[2].is_keyframe
+    assert not any(e["type"] == "relocalized" for e in results[2].events)
+    assert np.linalg.norm(results[2].pose[:3, 3] - frames[2].gt_pose[:3, 3]) < 0.08  # the device's motion, no hold
+    assert all(r.tracked for r in results[3:])
+    assert any(e["type"] == "relocalized" for r in results[3:5] for e in r.events)

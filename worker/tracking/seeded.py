@@ -159,7 +159,8 @@ class SeededTracking:
         """The lost frame aligned again from where the device says the camera is, or the odometry restarted
         there (module docstring). Its `tracking_lost` is reported only with a restart: a frame the device's
         pose let the odometry align was tracked."""
-        result = self.odometry.resume_from(frame, intrinsics, self.to_odometry(self.last_pose @ device_motion))
+        result = self.odometry.resume_from(frame, intrinsics, self.to_odometry(self.last_pose @ device_motion),
+                                           min_sharpness_ratio=self.config.resume_sharpness)
         restarted = any(e.get("type") == "relocalized" for e in result.events)
         if result.tracked and not restarted:
             return result

@@ -30,3 +30,6 @@ class DevicePoseConfig(BaseModel):
         "and where that fails too the odometry restarts there (`relocalized`, method device_pose), so that "
         "tracking and keyframes go on while the device moves (off: the device's motion is followed, without "
         "keyframes, until the odometry relocalises by itself)")
+    resume_sharpness: float = Field(
+        0.6, ge=0, le=1, description="... but no restart on a frame less sharp (variance of the Laplacian) than this "
+        "times the odometry's reference: through motion blur the device's motion is followed until a sharp frame")
