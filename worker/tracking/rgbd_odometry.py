@@ -188,13 +188,14 @@ class RgbdOdometry:
         return result
 
     def resume_from(self, frame: Frame, intrinsics: Intrinsics | None, pose: np.ndarray,
-                    min_sharpness_ratio: float = 0.0) -> TrackingResult:
+                    min_sharpness_ratio: float = 0.0, restart: bool = True) -> TrackingResult:
         """Track `frame` again (after `track` lost it), knowing from outside (a device pose) that the camera is
         near `pose`: aligned to the newest reference from there, else, when that fails too, a new reference at
         `pose` (the odometry restarts where the device says the camera is; no velocity across the seam).
         `relocalized` (method `device_pose`, with the alignment's failure as `reason`) reports the restart. No
         restart on a frame less sharp than `min_sharpness_ratio` times the reference (motion blur: a blurred
-        reference would lose the next frames too): it stays lost, relocalising from `pose` on the next frame."""
+        reference would lose the next frames too), nor with `restart` False: it stays lost, relocalising from `pose`
+        on the next frame."""
         if self.reference is None or self.calibrating:
             return self.track(frame, intrinsics)
         K, grey, depth = self._inputs(frame, intrinsics)
@@ -207,7 +208,7 @@ class RgbdOdometry:
             self._maybe_new_reference(frame.index, grey, depth, aligned, current, K)
             return TrackingResult(aligned, depth=depth, keyframe_hint=self._covered_hint())
         pose = np.asarray(pose, np.float64).copy()
-        if (np.count_nonzero(depth) <= 0.2 * depth.size
+        if (not restart or np.count_nonzero(depth) <= 0.2 * depth.size
                 or sharpness(grey) < min_sharpness_ratio * self.reference.sharpness):
             self.lost, self.previous_pose, self.last_pose = True, None, pose
             return TrackingResult(pose.copy(), tracked=False, keyframe_hint=False)

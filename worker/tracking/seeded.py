@@ -77,6 +77,7 @@ class SeededTracking:
         # (output, device pose) of the frames before the odometry has a world (monocular initialisation)
         self.waiting: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.skip_next_prior = False
+        self.lost_since: float | None = None  # timestamp of the first frame of the odometry's current loss
         self.jumps = 0
         self.priors_sent = 0
         self.priors_dropped = 0
@@ -102,6 +103,8 @@ class SeededTracking:
             result = self.odometry.track(frame, intrinsics, motion_guess=self._guess(device_motion))
             if not result.tracked and self._can_resume(device_motion):
                 result = self._resume(frame, intrinsics, device_motion, result)
+            if result.tracked:
+                self.lost_since = None
         # A monocular join (maps_merged) measures in odometry units; the device's poses place this world instead.
         events = [e for e in result.events if e.get("type") not in ("initialized", "maps_merged")]
         initialized = [e for e in result.events if e.get("type") == "initialized"]
@@ -159,8 +162,11 @@ class SeededTracking:
         """The lost frame aligned again from where the device says the camera is, or the odometry restarted
         there (module docstring). Its `tracking_lost` is reported only with a restart: a frame the device's
         pose let the odometry align was tracked."""
+        if self.lost_since is None:
+            self.lost_since = frame.timestamp
+        restart = frame.timestamp - self.lost_since >= self.config.resume_after_s
         result = self.odometry.resume_from(frame, intrinsics, self.to_odometry(self.last_pose @ device_motion),
-                                           min_sharpness_ratio=self.config.resume_sharpness)
+                                           min_sharpness_ratio=self.config.resume_sharpness, restart=restart)
         restarted = any(e.get("type") == "relocalized" for e in result.events)
         if result.tracked and not restarted:
             return result
@@ -271,6 +277,7 @@ class SeededTracking:
                 "correction": self.correction, "last_device": self.last_device, "last_index": self.last_index,
                 "last_pose": self.last_pose, "previous_pose": self.previous_pose, "last_tracked": self.last_tracked,
                 "waiting": [[i, p, d] for i, (p, d) in self.waiting.items()], "skip_next_prior": self.skip_next_prior,
+                "lost_since": self.lost_since,
                 "counts": [self.jumps, self.priors_sent, self.priors_dropped]}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -285,6 +292,7 @@ class SeededTracking:
         self.last_tracked = bool(state["last_tracked"])
         self.waiting = {int(i): (matrix(p), matrix(d)) for i, p, d in state["waiting"]}
         self.skip_next_prior = bool(state["skip_next_prior"])
+        self.lost_since = state.get("lost_since")
         self.jumps, self.priors_sent, self.priors_dropped = (int(v) for v in state["counts"])
 
 

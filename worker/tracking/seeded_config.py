@@ -33,3 +33,6 @@ class DevicePoseConfig(BaseModel):
     resume_sharpness: float = Field(
         0.6, ge=0, le=1, description="... but no restart on a frame less sharp (variance of the Laplacian) than this "
         "times the odometry's reference: through motion blur the device's motion is followed until a sharp frame")
+    resume_after_s: float = Field(
+        0.3, ge=0, description="... and no restart before the odometry has been lost this long (seconds of frame "
+        "time): a short loss is left to relocalise against the odometry's references, from the device's pose")
