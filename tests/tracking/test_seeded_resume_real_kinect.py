@@ -75,7 +75,8 @@ def test_no_restart_on_a_blurred_frame() -> None:
     import cv2
 
     frames = list(open_source(str(DATA), resize=SIZE, use_gt_depth=True, use_gt_poses=True))
-    config = SlamConfig.preset("rgbd", threaded=False, mapping={"enabled": False}, input={"pose_mode": "seeded"})
+    config = SlamConfig.preset("rgbd", threaded=False, mapping={"enabled": False},
+                               input={"pose_mode": "seeded", "device_poses": {"resume_sharpness": 0.6}})
     system = SlamSystem(config)
     results = []
     for frame in frames:
