@@ -146,8 +146,9 @@ WEBSOCKET_DOC = {
                 "additionalProperties": True,
                 "description": "the pose source lost the camera (a black, textureless or blurred view, no depth, a "
                                "sudden jump): until `relocalized`, poses hold the last good one and no keyframes are "
-                               "made; never a silent jump (seeded sessions with depth: the odometry restarts at the "
-                               "device's pose on the same frame, `relocalized` with method device_pose)"},
+                               "made; never a silent jump (seeded sessions with depth: poses follow the device's "
+                               "motion and, once lost for `device_poses.resume_after_s`, the odometry restarts at the "
+                               "device's pose: `relocalized` with method device_pose)"},
             "relocalized": {"type": "object", "properties": {
                 "type": {"const": "relocalized"}, "seq": {"type": "integer"}},
                 "additionalProperties": True,
