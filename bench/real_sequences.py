@@ -9,8 +9,9 @@ from each loss to its relocalisation). The RGB-only
 row also runs the visual odometry alone (as bench/visual_odometry.py does): frames tracked, where it lost and came
 back, and its own ATE, since the full system's trajectory hides a frame that stood still while the image moved.
 
-    python -m bench real_sequences --source DIR [--source DIR ...] [--modes rgb,rgbd,posed_rgbd,posed_rgb]
-                                   [--width 320] [--max-frames N] [--stride S] [--out DIR] [--no-vo]
+    python -m bench real_sequences --source DIR [--source DIR ...]
+                                   [--modes rgb,rgbd,posed_rgbd,posed_rgb,posed_rgbd_fixed] [--width 320]
+                                   [--max-frames N] [--stride S] [--out DIR] [--no-vo]
 
 Modes the data cannot support (depth or poses missing) are skipped. Sources measured so far and their licences:
 bench/RESULTS.md, section "Real sequences".
@@ -32,7 +33,10 @@ from pathlib import Path
 
 import numpy as np
 
-MODES = {"rgb": (False, False), "rgbd": (True, False), "posed_rgbd": (True, True), "posed_rgb": (False, True)}
+MODES = {"rgb": (False, False), "rgbd": (True, False), "posed_rgbd": (True, True), "posed_rgb": (False, True),
+         "posed_rgbd_fixed": (True, True)}
+# modes that differ from another only in their settings (`posed_rgbd_fixed`: the device poses kept as they are)
+MODE_CONFIG = {"posed_rgbd_fixed": {"input": {"pose_mode": "fixed"}}}
 EVENT_TYPES = ("tracking_lost", "relocalized", "initialized", "device_pose_jump", "depth_misregistered")
 
 
@@ -84,11 +88,12 @@ def lost_spans(events: list[tuple[int, str]], frames: int) -> list[tuple[int, in
     """(first, last) frame positions of each stretch from a `tracking_lost` to the frame before the next
     `relocalized` (or the last frame): the frames tracking did not place (their pose is held, or the device's)."""
     spans, start = [], None
-    for at, kind in sorted(events):
+    for at, kind in sorted(events, key=lambda event: event[0]):  # stable: a frame's events keep their order
         if kind == "tracking_lost" and start is None:
             start = at
         elif kind == "relocalized" and start is not None:
-            spans.append((start, at - 1))
+            if at > start:  # a frame lost and relocalised at once (seeded: restarted at the device's pose) held none
+                spans.append((start, at - 1))
             start = None
     if start is not None:
         spans.append((start, frames - 1))
@@ -102,7 +107,7 @@ def run_mode(source: Path, mode: str, size: tuple[int, int], max_frames: int | N
     from worker.engine.offline import run_sequence
 
     depth, posed = MODES[mode]
-    config = SlamConfig.preset("rgbd", mapping={"final_refine_budget_s": 0})
+    config = SlamConfig.preset("rgbd", mapping={"final_refine_budget_s": 0}, **MODE_CONFIG.get(mode, {}))
     with frame_events() as events:
         metrics = run_sequence(source, out, config, use_gt_depth=depth, use_gt_poses=posed, max_frames=max_frames,
                                stride=stride, resize=size)

@@ -145,12 +145,16 @@ WEBSOCKET_DOC = {
                 "reason": {"type": "string"}},
                 "additionalProperties": True,
                 "description": "the pose source lost the camera (a black, textureless or blurred view, no depth, a "
-                               "sudden jump): until `relocalized`, poses hold the last good one (seeded sessions: they "
-                               "follow the device's motion) and no keyframes are made; never a silent jump"},
+                               "sudden jump): until `relocalized`, poses hold the last good one and no keyframes are "
+                               "made; never a silent jump (seeded sessions with depth: poses follow the device's "
+                               "motion and, once lost for `device_poses.resume_after_s`, the odometry restarts at the "
+                               "device's pose: `relocalized` with method device_pose)"},
             "relocalized": {"type": "object", "properties": {
                 "type": {"const": "relocalized"}, "seq": {"type": "integer"}},
                 "additionalProperties": True,
-                "description": "tracking is back at frame `seq`, placed against an earlier keyframe"},
+                "description": "tracking is back at frame `seq`, placed against an earlier keyframe (`method`: how; "
+                               "device_pose: a seeded session's odometry restarted where the device's pose says the "
+                               "camera is)"},
             "initializing": {"type": "object", "properties": {
                 "type": {"const": "initializing"}, "seq": {"type": "integer"}, "state": {"type": "string"},
                 "reason": {"type": "string"}, "model": {"type": "string"}},

@@ -76,6 +76,11 @@ def _best(results: list[AlignmentResult]) -> AlignmentResult:
     return min(usable, key=lambda r: r.photometric_rms) if usable else results[0]
 
 
+def sharpness(grey: np.ndarray) -> float:
+    """Variance of the Laplacian of a grey image in [0, 1]: falls with motion blur."""
+    return float(cv2.Laplacian(grey, cv2.CV_32F).var())
+
+
 def grey_of(image: np.ndarray) -> np.ndarray:
     """float32 intensity in [0, 1] from uint8 RGB."""
     return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY).astype(np.float32) / 255.0
@@ -92,6 +97,13 @@ class _Reference:
         self.median_depth = float(np.median(valid)) if valid.size else 1.0
         self._pyramid = pyramid  # the tracked frame's own pyramid when it becomes the reference
         self._keypoints: KeypointSet | None = None
+        self._sharpness: float | None = None
+
+    @property
+    def sharpness(self) -> float:
+        if self._sharpness is None:
+            self._sharpness = sharpness(self.grey)
+        return self._sharpness
 
     def pyramid(self, K: np.ndarray, levels: int, backend: Backend = "auto") -> list[PyramidLevel]:
         if self._pyramid is None:
@@ -169,15 +181,51 @@ class RgbdOdometry:
             raise ValueError(f"frame {frame.index} has no depth: RGB-D odometry needs depth on every frame")
         if intrinsics is None and self.estimated_intrinsics is None:
             self.calibrating = self.config.self_calibrate
-        intrinsics = intrinsics or self._guess_intrinsics(frame)
-        K = intrinsics.matrix().numpy().astype(np.float64)
-        grey = grey_of(frame.image)
-        depth = np.nan_to_num(np.asarray(frame.depth, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
-        depth[depth < 0] = 0.0
+        K, grey, depth = self._inputs(frame, intrinsics)
         result = self._track(frame.index, grey, depth, K, motion_guess)
         if self.calibrating and result.tracked:
             return self._calibration_step(frame, grey, depth, result)
         return result
+
+    def resume_from(self, frame: Frame, intrinsics: Intrinsics | None, pose: np.ndarray,
+                    min_sharpness_ratio: float = 0.0, restart: bool = True) -> TrackingResult:
+        """Track `frame` again (after `track` lost it), knowing from outside (a device pose) that the camera is
+        near `pose`: aligned to the newest reference from there, else, when that fails too, a new reference at
+        `pose` (the odometry restarts where the device says the camera is; no velocity across the seam).
+        `relocalized` (method `device_pose`, with the alignment's failure as `reason`) reports the restart. No
+        restart on a frame less sharp than `min_sharpness_ratio` times the reference (motion blur: a blurred
+        reference would lose the next frames too), nor with `restart` False: it stays lost, relocalising from `pose`
+        on the next frame."""
+        if self.reference is None or self.calibrating:
+            return self.track(frame, intrinsics)
+        K, grey, depth = self._inputs(frame, intrinsics)
+        current = _Current(build_pyramid(grey, depth, K, self.config.pyramid_levels, backend=self.settings.backend),
+                           grey)
+        self.lost = False
+        aligned, reason = self._align_to(self.reference, current, pose, K)
+        if aligned is not None:
+            self._advance(aligned)
+            self._maybe_new_reference(frame.index, grey, depth, aligned, current, K)
+            return TrackingResult(aligned, depth=depth, keyframe_hint=self._covered_hint())
+        pose = np.asarray(pose, np.float64).copy()
+        if (not restart or np.count_nonzero(depth) <= 0.2 * depth.size
+                or sharpness(grey) < min_sharpness_ratio * self.reference.sharpness):
+            self.lost, self.previous_pose, self.last_pose = True, None, pose
+            return TrackingResult(pose.copy(), tracked=False, keyframe_hint=False)
+        self.previous_pose, self.last_pose = None, pose
+        self.references.append(_Reference(frame.index, pose, grey, depth, pyramid=current.pyramid))
+        self.last_overlap = 1.0
+        log.info("frame %d: RGB-D odometry restarted at the device's pose (%s)", frame.index, reason)
+        return TrackingResult(pose.copy(), depth=depth,
+                              events=[{"type": "relocalized", "method": "device_pose", "reason": reason}])
+
+    def _inputs(self, frame: Frame, intrinsics: Intrinsics | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """K, grey image and cleaned depth (no NaN, no negative) of a frame."""
+        intrinsics = intrinsics or self._guess_intrinsics(frame)
+        K = intrinsics.matrix().numpy().astype(np.float64)
+        depth = np.nan_to_num(np.asarray(frame.depth, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+        depth[depth < 0] = 0.0
+        return K, grey_of(frame.image), depth
 
     def _track(self, index: int, grey: np.ndarray, depth: np.ndarray, K: np.ndarray,
                motion_guess: np.ndarray | None = None) -> TrackingResult:

@@ -16,7 +16,11 @@ a depth camera's trajectory follows the depth camera. With them, the session's o
 The output lives in the device's world: the odometry's world is aligned to the device pose of its first frame
 (rigid with depth; for monocular visual odometry, also scaled by the device's baseline over its initialisation).
 While the odometry has no world yet (monocular initialisation) or is lost, poses follow the device's motion from
-the last output (never a jump, never a held pose while the device still moves).
+the last output (never a jump, never a held pose while the device still moves). With depth, a frame the odometry
+loses (a fast or sparse motion its own guess misses) is aligned again from the device's pose, and where that fails
+too the odometry restarts at the device's pose (`relocalized`, method `device_pose`, after the `tracking_lost`):
+tracking and keyframes go on instead of waiting for the view of the last reference to come back
+(`device_poses.resume_when_lost`).
 """
 
 from __future__ import annotations
@@ -75,6 +79,7 @@ class SeededTracking:
         self.skip_next_prior = False
         # (device position, odometry position) of the last keyframes since a jump: the monocular scale's measure
         self.scale_marks: list[tuple[np.ndarray, np.ndarray]] = []
+        self.lost_since: float | None = None  # timestamp of the first frame of the odometry's current loss
         self.jumps = 0
         self.priors_sent = 0
         self.priors_dropped = 0
@@ -98,6 +103,10 @@ class SeededTracking:
             result = TrackingResult(np.eye(4), tracked=False, keyframe_hint=False)
         else:
             result = self.odometry.track(frame, intrinsics, motion_guess=self._guess(device_motion))
+            if not result.tracked and self._can_resume(device_motion):
+                result = self._resume(frame, intrinsics, device_motion, result)
+            if result.tracked:
+                self.lost_since = None
         # A monocular join (maps_merged) measures in odometry units; the device's poses place this world instead.
         events = [e for e in result.events if e.get("type") not in ("initialized", "maps_merged")]
         initialized = [e for e in result.events if e.get("type") == "initialized"]
@@ -143,6 +152,29 @@ class SeededTracking:
         depth = None if result.depth is None else result.depth * np.float32(self.scale)
         return TrackingResult(pose.copy(), depth=depth, events=events, keyframe_hint=result.keyframe_hint,
                               quality=result.quality)
+
+    def _can_resume(self, device_motion: np.ndarray | None) -> bool:
+        """Whether a frame the RGB-D odometry lost can be tracked again from the device's pose."""
+        return (self.config.resume_when_lost and not self.monocular and device_motion is not None
+                and self.alignment is not None and self.last_pose is not None
+                and hasattr(self.odometry, "resume_from"))
+
+    def _resume(self, frame: Frame, intrinsics: Intrinsics | None, device_motion: np.ndarray,
+                lost: TrackingResult) -> TrackingResult:
+        """The lost frame aligned again from where the device says the camera is, or the odometry restarted
+        there (module docstring). Its `tracking_lost` is reported only with a restart: a frame the device's
+        pose let the odometry align was tracked."""
+        if self.lost_since is None:
+            self.lost_since = frame.timestamp
+        restart = frame.timestamp - self.lost_since >= self.config.resume_after_s
+        result = self.odometry.resume_from(frame, intrinsics, self.to_odometry(self.last_pose @ device_motion),
+                                           min_sharpness_ratio=self.config.resume_sharpness, restart=restart)
+        restarted = any(e.get("type") == "relocalized" for e in result.events)
+        if result.tracked and not restarted:
+            return result
+        return TrackingResult(result.pose, tracked=result.tracked, depth=result.depth,
+                              events=lost.events + result.events,
+                              keyframe_hint=result.keyframe_hint, quality=result.quality)
 
     def _waiting_for_world(self, initialized: list[dict[str, Any]]) -> bool:
         """A monocular odometry still initialising (its poses are placeholders)."""
@@ -274,7 +306,7 @@ class SeededTracking:
                 "last_pose": self.last_pose, "previous_pose": self.previous_pose, "last_tracked": self.last_tracked,
                 "waiting": [[i, p, d] for i, (p, d) in self.waiting.items()], "skip_next_prior": self.skip_next_prior,
                 "counts": [self.jumps, self.priors_sent, self.priors_dropped],
-                "scale_marks": [[d, o] for d, o in self.scale_marks]}
+                "scale_marks": [[d, o] for d, o in self.scale_marks], "lost_since": self.lost_since}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         def matrix(value) -> np.ndarray | None:
@@ -288,6 +320,7 @@ class SeededTracking:
         self.last_tracked = bool(state["last_tracked"])
         self.waiting = {int(i): (matrix(p), matrix(d)) for i, p, d in state["waiting"]}
         self.skip_next_prior = bool(state["skip_next_prior"])
+        self.lost_since = state.get("lost_since")
         self.jumps, self.priors_sent, self.priors_dropped = (int(v) for v in state["counts"])
         self.scale_marks = [(np.asarray(d, np.float64), np.asarray(o, np.float64))
                             for d, o in state.get("scale_marks", [])]

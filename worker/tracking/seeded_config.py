@@ -31,3 +31,16 @@ class DevicePoseConfig(BaseModel):
         "the world re-anchored there so that no pose jumps; 0: only from the initialisation's baseline")
     scale_min_baseline: float = Field(
         0.02, gt=0, description="... keyframe distances shorter than this (pose units) are not measured")
+    resume_when_lost: bool = Field(
+        True, description="with depth: a frame the RGB-D odometry loses is aligned again from the device's pose, "
+        "and where that fails too the odometry restarts there (`relocalized`, method device_pose), so that "
+        "tracking and keyframes go on while the device moves (off: the device's motion is followed, without "
+        "keyframes, until the odometry relocalises by itself)")
+    resume_sharpness: float = Field(
+        0.0, ge=0, le=1, description="... but no restart on a frame less sharp (variance of the Laplacian) than this "
+        "times the odometry's reference: through motion blur the device's motion is followed until a sharp frame "
+        "(0: off, the default: the Laplacian's variance follows the scene's texture as much as the blur; on the "
+        "fr3/cabinet keyframes a ratio of 0.6 blocked 17 frames of restarts where the view turned to the bare floor)")
+    resume_after_s: float = Field(
+        0.3, ge=0, description="... and no restart before the odometry has been lost this long (seconds of frame "
+        "time): a short loss is left to relocalise against the odometry's references, from the device's pose")
