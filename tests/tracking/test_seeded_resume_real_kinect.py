@@ -2,7 +2,9 @@
 and 6-17 degrees between frames): a lost frame is aligned again from the device's pose and, once the loss lasts
 `resume_after_s` (0.3 s, the next frame here), the odometry restarts at the device's pose (`relocalized` with method
 device_pose) on a sharp frame, so tracking and keyframes go on; without it the session follows the device's motion
-without keyframes from the first loss on."""
+without keyframes from the first loss on. The odometry here is the photometric-only one (`blurred_photometric_residual`
+at `max_photometric_residual`: no allowance for frames whose depth still fits), which loses these frames; the
+default odometry tracks them by their depth (checked first)."""
 
 from __future__ import annotations
 
@@ -19,9 +21,12 @@ DATA = Path(__file__).parents[1] / "data" / "tum_fr3_cabinet_kf_mini"
 SIZE = (160, 120)
 
 
-def _run(resume: bool, with_poses: bool = True):
+STRICT = {"rgbd": {"blurred_photometric_residual": 0.12}}  # lost on intensities alone, as before the allowance
+
+
+def _run(resume: bool, with_poses: bool = True, tracking: dict | None = None):
     frames = list(open_source(str(DATA), resize=SIZE, use_gt_depth=True, use_gt_poses=True))
-    config = SlamConfig.preset("rgbd", threaded=False, mapping={"enabled": False},
+    config = SlamConfig.preset("rgbd", threaded=False, mapping={"enabled": False}, tracking=tracking or STRICT,
                                input={"pose_mode": "seeded", "device_poses": {"resume_when_lost": resume}})
     system = SlamSystem(config)
     results = []
@@ -37,11 +42,16 @@ def resumed():
     return _run(resume=True)
 
 
-def test_the_odometry_alone_loses_these_frames() -> None:
+def test_the_photometric_odometry_alone_loses_these_frames_and_the_default_one_tracks_them() -> None:
     _, results = _run(resume=True, with_poses=False)
     lost = [r.index for r in results if not r.tracked]
     assert lost and len(lost) >= len(results) // 2
     assert sum(r.is_keyframe for r in results) <= 2
+    frames, results = _run(resume=True, with_poses=False, tracking={"rgbd": {}})
+    assert all(r.tracked for r in results)  # their depth still fits where their intensities do not
+    truth = [np.linalg.inv(frames[0].gt_pose) @ f.gt_pose for f in frames]
+    estimate = [np.linalg.inv(results[0].pose) @ r.pose for r in results]
+    assert max(np.linalg.norm(e[:3, 3] - t[:3, 3]) for e, t in zip(estimate, truth)) < 0.06
 
 
 def test_seeded_tracking_resumes_from_the_device_pose(resumed) -> None:
@@ -75,7 +85,7 @@ def test_no_restart_on_a_blurred_frame() -> None:
     import cv2
 
     frames = list(open_source(str(DATA), resize=SIZE, use_gt_depth=True, use_gt_poses=True))
-    config = SlamConfig.preset("rgbd", threaded=False, mapping={"enabled": False},
+    config = SlamConfig.preset("rgbd", threaded=False, mapping={"enabled": False}, tracking=STRICT,
                                input={"pose_mode": "seeded", "device_poses": {"resume_sharpness": 0.6}})
     system = SlamSystem(config)
     results = []
