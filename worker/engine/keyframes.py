@@ -1,6 +1,13 @@
 """Keyframe selection from poses: the first frame, then every N frames or when the camera moved or turned enough
 since the last keyframe (used where the pose source leaves the choice to the engine: given poses, RGB-D odometry).
 
+"Enough" is measured against the scene, so that it does not depend on the pose units or on the scene's size (a car
+moves 0.8 m a frame, a hand-held camera over a desk 3 mm): the last keyframe's view is a grid of its pixels at their
+depth (the keyframe's sensor depth or its source's, else a plane at the median depth multi-view stereo found for a
+recent keyframe); a keyframe is due when the median parallax of those points (the angle between the rays from the
+two camera centres, about the motion over the depth, less for motion along the view) passes a limit, or when less
+than a share of them is left inside the frame. Until any depth is known, an absolute distance in pose units.
+
 A blurred frame makes a poor keyframe (its colours smear into the map and its depth is worse): when a keyframe is
 due and the frame is markedly blurrier than the recent frames (sharpness below `blur_ratio` times their median),
 the keyframe waits for the next frame, at most `blur_delay` frames. Sharpness is the variance of the Laplacian of
