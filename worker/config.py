@@ -52,7 +52,7 @@ class FrontendConfig(_Section):
         0.2, gt=0, description="engine-chosen keyframes: or when it moved this far (pose units) while no scene depth "
         "is known yet")
     keyframe_parallax: float = Field(
-        0.06, gt=0, description="engine-chosen keyframes: or once the camera moved this fraction of the scene depth "
+        0.08, gt=0, description="engine-chosen keyframes: or once the camera moved this fraction of the scene depth "
         "(the median depth of the last keyframe: sensor, or the newest multi-view depth)")
     keyframe_min_overlap: float = Field(
         0.7, ge=0, lt=1, description="engine-chosen keyframes: or once less than this fraction of the last "
