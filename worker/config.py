@@ -44,10 +44,19 @@ class FrontendConfig(_Section):
                            description="images are resized so the long side is this, then cropped to /16")
     submap_size: int = Field(8, ge=2, le=256, description="frames per submap")
     submap_overlap: Literal[1] = Field(1, description="frames shared by consecutive submaps (the paper's one)")
-    keyframe_every: int = Field(4, ge=1, description="posed mode: a keyframe at least every N frames")
+    keyframe_every: int = Field(
+        4, ge=1, description="engine-chosen keyframes (posed, RGB-D odometry): a keyframe at least every N frames")
     keyframe_depth_ratio: float = Field(
         0.10, gt=0, description="monocular: a keyframe once the camera moved this fraction of the scene depth")
-    keyframe_translation: float = Field(0.2, gt=0, description="posed mode: or when it moved this far (pose units)")
+    keyframe_translation: float = Field(
+        0.2, gt=0, description="engine-chosen keyframes: or when it moved this far (pose units) while no scene depth "
+        "is known yet")
+    keyframe_parallax: float = Field(
+        0.08, gt=0, description="engine-chosen keyframes: or once the camera moved this fraction of the scene depth "
+        "(the median depth of the last keyframe: sensor, or the newest multi-view depth)")
+    keyframe_min_overlap: float = Field(
+        0.7, ge=0, lt=1, description="engine-chosen keyframes: or once less than this fraction of the last "
+        "keyframe's view (a grid of its pixels at their depth) is inside the frame; 0 = not judged")
     keyframe_rotation_deg: float = Field(15.0, gt=0, description="or turned this much")
     keyframe_blur_ratio: float = Field(
         0.5, ge=0, lt=1, description="a due keyframe waits (up to keyframe_blur_delay frames) while the frame's "

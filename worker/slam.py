@@ -95,7 +95,8 @@ class SlamSystem:
         fc = self.config.frontend
         self.tracking_stage = TrackingStage(
             MotionKeyframeSelector(fc.keyframe_every, fc.keyframe_translation, fc.keyframe_rotation_deg,
-                                   fc.keyframe_blur_ratio, fc.keyframe_blur_delay),
+                                   fc.keyframe_blur_ratio, fc.keyframe_blur_delay, depth_ratio=fc.keyframe_parallax,
+                                   min_overlap=fc.keyframe_min_overlap),
             publish_keyframe=lambda node: self.loop_stage.submit(node), timings=self.timings,
             max_side=self.config.tracking.max_side)
         self._traj = self.tracking_stage.trajectory
@@ -327,7 +328,7 @@ class SlamSystem:
         self.counters["frames_tracked"] += int(tracking.tracked)
         if self.keyframe_depth is not None and tracking.tracked:  # a lost frame's held pose is not its own
             self.keyframe_depth.add_frame(frame.index, frame.image)
-        is_kf = self.tracking_stage.is_keyframe(tracking, pose)
+        is_kf = self.tracking_stage.is_keyframe(tracking, pose, *self._scene_view(frame, tracking))
         if is_kf:
             self.tracking_stage.add_keyframe(frame, pose, submap_id=tracking.submap_id,
                                              edge_kind="restart" if self._restart_seam else None)
@@ -352,6 +353,16 @@ class SlamSystem:
             self._flush_map_jobs()
         return FrameResult(frame.index, frame.timestamp, world, is_kf, tracking.submap_id, self.revision, events,
                            tracked=tracking.tracked)
+
+    def _scene_view(self, frame: Frame, tracking) -> tuple[np.ndarray | None, Intrinsics | None]:
+        """The depth the keyframe selector measures motion against, and the frame's camera: the source's depth
+        (sensor, or the points it triangulated), else the frame's sensor depth; without either (posed RGB), the
+        selector gets the median depth of the newest keyframe multi-view stereo has estimated."""
+        depth = tracking.depth if tracking.depth is not None else (frame.depth if self._with_depth else None)
+        if depth is None and self.keyframe_depth is not None:
+            self.tracking_stage.selector.set_scene_depth(self.keyframe_depth.recent_hint[1])
+        camera = self.frame_intrinsics(frame) or self.tracking_stage.source_intrinsics(frame.width, frame.height)
+        return depth, camera
 
     def _apply_tracking_event(self, event: dict[str, Any]) -> dict[str, Any]:
         """Act on a pose source's event; returns it as clients get it. `initialized` (monocular odometry) carries

@@ -22,7 +22,7 @@ def flashmono(*args: str) -> subprocess.CompletedProcess:
 def test_run_writes_trajectories_map_renders_and_metrics(data_dir: Path, tmp_path: Path) -> None:
     overrides = tmp_path / "cfg.json"
     overrides.write_text(json.dumps({"input": {"surfel_init": "depth", "pose_mode": "fixed"},
-                                     "frontend": {"keyframe_every": 3}}))
+                                     "frontend": {"keyframe_every": 3, "keyframe_parallax": 1.0}}))
     out = tmp_path / "run"
     proc = flashmono("run", str(data_dir / "icl_mini"), "--out", str(out), "--use-gt-depth", "--use-gt-poses",
                      "--preset", "test", "--max-frames", "6", "--resize", "80x60", "--config", str(overrides),

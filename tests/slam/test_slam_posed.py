@@ -18,7 +18,8 @@ SIZE = (80, 60)
 
 def rgbd_config(**overrides) -> SlamConfig:
     return SlamConfig.preset("test", input={"pose_mode": "fixed", "surfel_init": "depth"},
-                             frontend={"keyframe_every": 3}, **overrides)
+                             frontend={"keyframe_every": 3, "keyframe_parallax": 1.0},  # the schedule alone
+                             **overrides)
 
 
 @pytest.fixture(scope="module")

@@ -62,15 +62,17 @@ class TrackingStage:
             raise RuntimeError(f"frame {frame.index}: the pose source returned a non-finite pose")
         return tracking, pose
 
-    def is_keyframe(self, tracking: TrackingResult, pose: np.ndarray) -> bool:
+    def is_keyframe(self, tracking: TrackingResult, pose: np.ndarray, depth: np.ndarray | None = None,
+                    camera: Intrinsics | None = None) -> bool:
         """The first frame always; then the source's hint when it gives one (False while lost), else the motion
-        selector."""
+        selector. `depth` (the frame's, sensor or the source's) and its `camera` let the selector measure motion
+        against the scene's depth (any size: the camera is the frame's)."""
         if self.last_keyframe is None:
-            self.selector.is_keyframe(pose)
+            self.selector.is_keyframe(pose, depth=depth, camera=camera)
             return True
         if tracking.keyframe_hint is False:
             return False
-        return self.selector.is_keyframe(pose, force=bool(tracking.keyframe_hint))
+        return self.selector.is_keyframe(pose, force=bool(tracking.keyframe_hint), depth=depth, camera=camera)
 
     def add_keyframe(self, frame: Frame, tracked_pose: np.ndarray, submap_id: int, edge_kind: str | None = None
                      ) -> np.ndarray:
