@@ -229,3 +229,34 @@ def test_a_loop_joins_a_new_map_by_a_sim3_across_a_loose_seam():
     assert np.abs(joined[:, :3, 3] - true[:, :3, 3]).max() < 0.02
     held, _ = _two_maps("sequential")  # a tight seam edge fights the loop: the new map stays off
     assert np.abs(held[:, :3, 3] - true[:, :3, 3]).max() > 0.1
+
+
+def test_degenerate_poses_and_measurements_are_refused_and_an_isam2_failure_falls_back_to_batch():
+    """A non-finite pose or a Sim(3) of scale near 0 would leave every later solve indeterminate: refused. An edge
+    iSAM2's undamped step cannot take (a 1e12 translation) drops iSAM2, and the damped batch solve answers."""
+    def moved(x: float, scale: float = 1.0) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3] *= scale
+        T[0, 3] = x
+        return T
+
+    graph = Sim3PoseGraph()
+    for k in range(5):
+        graph.add_node(k, moved(0.1 * k))
+        if k:
+            graph.add_edge(k - 1, k, moved(0.1))
+    graph.optimize()
+    with pytest.raises(ValueError, match="scale"):
+        graph.add_node(5, moved(0.5, 1e-9))
+    with pytest.raises(ValueError, match="finite"):
+        graph.add_node(5, moved(np.nan))
+    graph.add_node(5, moved(0.5))
+    with pytest.raises(ValueError, match="scale"):
+        graph.add_edge(4, 5, moved(0.1, 1e-9))
+    assert 5 in graph.nodes and len(graph.edges) == 4  # nothing half-added
+    graph.add_edge(4, 5, moved(1e12))
+    result = graph.optimize()
+    assert result.solver == "batch" and np.all(np.isfinite(graph.nodes[5]))
+    graph.add_node(6, moved(0.6))
+    graph.add_edge(5, 6, moved(0.1))
+    assert graph.flush() in (True, False) and np.all(np.isfinite(graph.optimize().poses[6]))

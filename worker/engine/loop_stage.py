@@ -11,6 +11,7 @@ publishes as a new trajectory revision: tracking never waits for loop closure.
 
 from __future__ import annotations
 
+import logging
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -25,6 +26,8 @@ from worker.engine.stage_thread import QueuedStage, StageThread
 from worker.engine.stage_times import StageTimes
 from worker.geometry import Intrinsics, se3_part
 from worker.loop.pose_graph import PosePrior, Sim3PoseGraph
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -106,6 +109,17 @@ class LoopClosingStage(QueuedStage):
 
     # -- work (the stage's thread) -------------------------------------------------------------------------------
     def _process(self, item: GraphKeyframe | LoopQuery | CameraUpdate | PosePrior | MapJoin) -> None:
+        try:
+            self._process_item(item)
+        except ValueError as error:  # a degenerate node or edge (non-finite, a scale near 0): left out, not fatal
+            log.warning("loop-closing stage: %s for %s: left out of the pose graph", error, type(item).__name__)
+        except RuntimeError as error:  # gtsam's IndeterminateSystemException: this item's solve is given up
+            if "Indeterminate" not in str(error):
+                raise
+            log.warning("loop-closing stage: the pose graph could not be solved with %s: left out",
+                        type(item).__name__)
+
+    def _process_item(self, item: GraphKeyframe | LoopQuery | CameraUpdate | PosePrior | MapJoin) -> None:
         if isinstance(item, MapJoin):
             self._join_maps(item)
             return

@@ -16,6 +16,7 @@ after a node was re-initialised, is a batch solve that iSAM2 then starts from.
 
 from __future__ import annotations
 
+import logging
 import threading
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -28,6 +29,8 @@ from worker.geometry import relative_transform, sim3_decompose
 from worker.geometry.gtsam_bridge import sim3_to_gtsam
 
 from .incremental import IncrementalSolver
+
+log = logging.getLogger(__name__)
 
 # new_map: between a lost map and a map begun from nothing after it; restart: across the seam of a monocular map
 # restarted from the last tracked frame after a loss (its scale is a guess); map_join: the Sim(3) that joins such a
@@ -142,11 +145,22 @@ def sim3_batch_from_gtsam(values: list[gtsam.Similarity3]) -> np.ndarray:
     return out
 
 
+MIN_SCALE, MAX_SCALE = 1e-6, 1e6  # a Sim(3) scale outside these leaves the solve indeterminate
+
+
 def _as_matrix(T: np.ndarray | torch.Tensor) -> np.ndarray:
+    """A 4x4 float64 Sim(3), finite and of a usable scale (ValueError otherwise: such a pose or measurement would
+    make every later solve of the graph fail)."""
     M = T.detach().cpu().numpy() if isinstance(T, torch.Tensor) else np.asarray(T)
     if M.shape != (4, 4):
         raise ValueError(f"poses must be 4x4, got {M.shape}")
-    return M.astype(np.float64)
+    M = M.astype(np.float64)
+    if not np.all(np.isfinite(M)):
+        raise ValueError("a pose or measurement is not finite")
+    scale = float(np.cbrt(abs(np.linalg.det(M[:3, :3]))))
+    if not MIN_SCALE <= scale <= MAX_SCALE:
+        raise ValueError(f"a pose or measurement has scale {scale:.3g}, outside [{MIN_SCALE:g}, {MAX_SCALE:g}]")
+    return M
 
 
 class Sim3PoseGraph:
@@ -382,7 +396,11 @@ class Sim3PoseGraph:
         before = solver.estimate()
         before.insert(values)
         initial_error = solver.factors().error(before) + factors.error(before)
-        step = solver.solve(factors, values, max_updates=max_iterations)
+        try:
+            step = solver.solve(factors, values, max_updates=max_iterations)
+        except RuntimeError as error:
+            self._give_up_incremental(error)
+            return None
         estimate = solver.estimate()
         final_error = solver.factors().error(estimate)
         # Partial relinearisation may end a little above the start when the new edges agree with the estimate;
@@ -401,8 +419,19 @@ class Sim3PoseGraph:
             if self._solver is None:
                 return False
             if len(self.edges) > self._edges_sent or len(self.priors) > self._priors_sent:
-                self._solver.solve(*self._new_factors(), max_updates=1)
+                try:
+                    self._solver.solve(*self._new_factors(), max_updates=1)
+                except RuntimeError as error:  # iSAM2's undamped step met an ill-posed system
+                    self._give_up_incremental(error)
+                    return False
             return True
+
+    def _give_up_incremental(self, error: RuntimeError) -> None:
+        """iSAM2 (Gauss-Newton, undamped) threw on a near-indeterminate system (gtsam's IndeterminateSystemException,
+        raised as RuntimeError): its state is dropped and the next solve is the damped batch one, which seeds a new
+        iSAM2. The graph itself is kept whole."""
+        log.warning("pose graph: iSAM2 failed (%s); the batch solve takes over", str(error).strip().splitlines()[0])
+        self._drop_solver()
 
     def state_dict(self) -> dict:
         """msgpack-able contents (nodes and edges; the solver settings are construction arguments)."""
