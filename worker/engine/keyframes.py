@@ -20,29 +20,16 @@ import math
 from collections import deque
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 import torch
 
+from worker.data.sharpness import sharpness
 from worker.geometry import Intrinsics, relative_transform, sim3_decompose, so3_log
 
-SHARPNESS_SIDE = 160  # the longer side (pixels) at which sharpness is measured
 SHARPNESS_HISTORY = 8  # recent frames whose median sharpness a frame is compared with
 MIN_HISTORY = 3  # frames needed before a frame can be judged blurred
 VIEW_GRID = (16, 12)  # the pixels (columns, rows) a keyframe's view is judged by
 MIN_VIEW_POINTS = 20  # valid depths needed to judge the view by the keyframe's own depth
-
-
-def sharpness(image: np.ndarray) -> float:
-    """Variance of the Laplacian of the grey image (RGB uint8 [H, W, 3] or grey [H, W]) reduced to about
-    SHARPNESS_SIDE pixels on its longer side: higher is sharper."""
-    grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
-    h, w = grey.shape
-    factor = max(1, round(max(h, w) / SHARPNESS_SIDE))
-    if factor > 1:
-        grey = cv2.resize(grey, (max(1, w // factor), max(1, h // factor)), interpolation=cv2.INTER_AREA)
-    _, std = cv2.meanStdDev(cv2.Laplacian(grey, cv2.CV_32F))
-    return float(std[0, 0]) ** 2
 
 
 def median_depth(depth: np.ndarray | None) -> float | None:

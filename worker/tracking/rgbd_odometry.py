@@ -29,6 +29,7 @@ import cv2
 import numpy as np
 
 from worker.data.frame import Frame
+from worker.data.sharpness import sharpness
 from worker.geometry import Intrinsics
 from worker.tracking.base import TrackingResult
 from worker.tracking.dense_alignment import (
@@ -74,11 +75,6 @@ def _best(results: list[AlignmentResult]) -> AlignmentResult:
     """The well-posed alignment with the smallest photometric residual (the first one when none is well posed)."""
     usable = [r for r in results if r.ok]
     return min(usable, key=lambda r: r.photometric_rms) if usable else results[0]
-
-
-def sharpness(grey: np.ndarray) -> float:
-    """Variance of the Laplacian of a grey image in [0, 1]: falls with motion blur."""
-    return float(cv2.Laplacian(grey, cv2.CV_32F).var())
 
 
 def grey_of(image: np.ndarray) -> np.ndarray:
@@ -348,7 +344,8 @@ class RgbdOdometry:
         jump = float(np.linalg.norm(pose[:3, 3] - guess[:3, 3]))
         if jump > c.max_jump * ref.median_depth and not relocalizing:
             return None, f"the alignment jumped {jump:.2f} from the motion model"
-        self.typical_residual = 0.8 * self.typical_residual + 0.2 * result.photometric_rms
+        if result.photometric_rms <= c.max_photometric_residual:  # a blurred frame held by its depth is no norm
+            self.typical_residual = 0.8 * self.typical_residual + 0.2 * result.photometric_rms
         return pose, ""
 
     def _fits_geometry(self, result: AlignmentResult, ref: _Reference) -> bool:
