@@ -19,15 +19,17 @@ from .relocalization import Place, Relocalisation
 from .xfeat import DescriptorMap, XFeatExtractor, XFeatures, mutual_matches
 
 
-def nearest_within(queries: np.ndarray, targets: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
-    """(rows of `queries` [N, 2], their nearest row of `targets` [M, 2]) for the queries within `radius` pixels."""
+def nearest_within(queries: np.ndarray, targets: np.ndarray, radius: float | np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """(rows of `queries` [N, 2], their nearest row of `targets` [M, 2]) for the queries within `radius` pixels
+    (one radius, or one per query [N])."""
     if len(queries) == 0 or len(targets) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     dx = queries[:, None, 0] - targets[None, :, 0]
     dy = queries[:, None, 1] - targets[None, :, 1]
     d2 = dx * dx + dy * dy
     nearest = d2.argmin(axis=1)
-    near = np.flatnonzero(d2[np.arange(len(queries)), nearest] <= radius * radius)
+    near = np.flatnonzero(d2[np.arange(len(queries)), nearest] <= np.square(radius))
     return near, nearest[near]
 
 

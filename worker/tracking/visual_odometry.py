@@ -38,7 +38,7 @@ from .base import TrackingResult
 from .bundle_adjustment import Observations, bundle_adjust, reprojection_chi2
 from .covisibility import LocalWindow, covisible_window
 from .features import Features, OrbExtractor
-from .learned_places import LearnedPlaces
+from .learned_places import LearnedPlaces, nearest_within
 from .local_map import Keyframe, LocalMap
 from .map_join import (
     MapLink,
@@ -755,13 +755,9 @@ class VisualOdometry:
         orb = kf.orb
         if len(has) == 0 or len(orb) == 0:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
-        dx = orb.keypoints[:, None, 0] - kf.features.keypoints[None, has, 0]
-        dy = orb.keypoints[:, None, 1] - kf.features.keypoints[None, has, 1]
-        d2 = dx * dx + dy * dy  # written out: no [N, M, 2] temporary
-        nearest = d2.argmin(axis=1)
         radius = self.config.place_radius_px * self.extractor.level_sigmas(orb.octaves)
-        near = np.flatnonzero(d2[np.arange(len(orb)), nearest] <= radius ** 2)
-        return near, kf.point_ids[has[nearest[near]]]
+        near, nearest = nearest_within(orb.keypoints, kf.features.keypoints[has], radius)
+        return near, kf.point_ids[has[nearest]]
 
     def _place(self, kf: Keyframe) -> Place:
         """The keyframe's ORB keypoints that lie on one of its map points' observations, with those points."""
