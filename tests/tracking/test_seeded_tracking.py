@@ -187,3 +187,32 @@ def test_without_depth_the_scale_follows_the_device_as_the_odometry_drifts(scale
     assert all(np.all(np.isfinite(p)) for p in outputs)
     steps_out = np.linalg.norm(np.diff(np.stack(outputs)[:, :3, 3], axis=0), axis=1)
     assert steps_out.max() < 3 * np.median(steps_out)  # re-anchoring at keyframes never makes a pose jump
+
+
+def _scaled_steps(poses: list[np.ndarray], factor: float) -> list[np.ndarray]:
+    """Poses whose every step moves `factor` times as far (a device whose scale is off)."""
+    out = [poses[0].copy()]
+    for a, b in zip(poses, poses[1:]):
+        step = np.linalg.inv(a) @ b
+        step[:3, 3] *= factor
+        out.append(out[-1] @ step)
+    return out
+
+
+def _jump_frames(frames, device_poses, jump_relative: float) -> list[int]:
+    config = _config(device_poses={"jump_relative": jump_relative})
+    _, results = _run(frames, device_poses, config)
+    return [r.index for r in results for e in r.events if e["type"] == "device_pose_jump"]
+
+
+def test_jump_thresholds_grow_with_the_motion_of_sparse_frames() -> None:
+    """Every other frame (steps up to 21 cm) with a device 35 % off in scale: its disagreement with the odometry
+    grows with each step (up to 7 cm) and is not a jump; a 15 cm relocalisation on the same frames is one."""
+    sparse = list(open_source(str(DATA), stride=2, resize=SIZE, use_gt_depth=True, use_gt_poses=True))
+    truth = [f.gt_pose for f in sparse]
+    device = _scaled_steps(truth, 1.35)
+    assert _jump_frames(sparse, device, jump_relative=0.0)  # absolute thresholds alone call these jumps
+    assert _jump_frames(sparse, device, jump_relative=0.25) == []
+    jumped = PoseDrift(0.0, 0.0, 0.0, 0.0, seed=3, jump_frame=8, jump_translation=0.15,
+                       jump_rotation_deg=4.0).apply_to_trajectory(np.stack(device))
+    assert _jump_frames(sparse, list(jumped), jump_relative=0.25) == [sparse[8].index]

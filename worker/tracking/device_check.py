@@ -37,6 +37,11 @@ def disagreement(device_motion: np.ndarray, tracked_motion: np.ndarray) -> Motio
                               math.degrees(math.acos(float(np.clip(cos, -1.0, 1.0)))))
 
 
+def motion_size(motion: np.ndarray) -> MotionDisagreement:
+    """A relative motion's own distance and angle (its disagreement with standing still)."""
+    return disagreement(motion, np.eye(4))
+
+
 def checked_device_pose(pose: np.ndarray | None, index: int) -> np.ndarray:
     """A frame's device pose as float64 4x4, refused with a clear message when missing, malformed or not finite."""
     if pose is None:

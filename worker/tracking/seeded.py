@@ -7,7 +7,8 @@ a depth camera's trajectory follows the depth camera. With them, the session's o
 - its relative motion since the previous frame is the odometry's initial guess where the constant-velocity guess
   misses it (a sudden motion), unless it disagrees with the recent tracked motion by more than a jump;
 - the tracked motion is compared with the device's (worker.tracking.device_check): a disagreement beyond
-  `jump_translation` / `jump_rotation_deg` is a device jump: a `device_pose_jump` event, the device world is
+  `jump_translation` / `jump_rotation_deg` (grown by `jump_relative` of the tracked motion's own size: frames far
+  apart carry an odometry error in proportion) is a device jump: a `device_pose_jump` event, the device world is
   re-anchored so that the jump does not reach the priors (`correction`), and the next keyframe gets no prior;
 - each keyframe's device pose goes to the pose graph as an absolute prior with the stated uncertainty
   (`device_poses.prior_translation`, `prior_rotation_deg`), inflated where the device and the tracked poses
@@ -36,7 +37,7 @@ from worker.data.frame import Frame
 from worker.geometry import Intrinsics
 from worker.loop.pose_graph import EdgeSigmas, PosePrior
 from worker.tracking.base import TrackingResult
-from worker.tracking.device_check import checked_device_pose, disagreement, relative
+from worker.tracking.device_check import checked_device_pose, disagreement, motion_size, relative
 from worker.tracking.seeded_config import DevicePoseConfig
 
 log = logging.getLogger(__name__)
@@ -203,7 +204,9 @@ class SeededTracking:
         is then re-anchored so that this frame's device pose continues the tracked motion."""
         c = self.config
         gap = disagreement(device_motion, tracked_motion)
-        if not gap.exceeds(c.jump_translation, c.jump_rotation_deg):
+        size = motion_size(tracked_motion)
+        if not gap.exceeds(c.jump_translation + c.jump_relative * size.translation,
+                           c.jump_rotation_deg + c.jump_relative * size.rotation_deg):
             return []
         self.correction = self.correction @ self.last_device @ tracked_motion @ np.linalg.inv(device)
         self.skip_next_prior = True

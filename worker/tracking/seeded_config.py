@@ -25,6 +25,10 @@ class DevicePoseConfig(BaseModel):
         0.05, gt=0, description="a frame's device motion that differs from the tracked motion by more than this "
         "(pose units) is a jump (relocalisation, glitch): it is not used and the next keyframe gets no prior")
     jump_rotation_deg: float = Field(3.0, gt=0, le=180, description="... or by more than this rotation")
+    jump_relative: float = Field(
+        0.25, ge=0, le=10, description="... both thresholds grow by this fraction of the tracked motion's own "
+        "distance and angle: frames far apart (sparse keyframes, a dropped stretch of the stream) carry an odometry "
+        "error in proportion to their motion, which is not a jump (0: absolute thresholds only)")
     scale_keyframes: int = Field(
         8, ge=0, le=256, description="monocular: the odometry's scale is measured again at each keyframe, as the "
         "device's over the odometry's distances between the last this many keyframes (no jump between them), and "
