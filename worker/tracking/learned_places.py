@@ -6,17 +6,31 @@ costs several tracked frames, so nothing is extracted while tracking goes well) 
 place's descriptors are sampled at its keypoints on map points and matched to the frame's XFeat keypoints by mutual
 nearest neighbours and verified by PnP + RANSAC and the robust refinement
 (`pnp_pose`). The best place by inliers wins.
+
+Where no place verifies, `glue_relocalise` is the wide-baseline fallback: XFeat keypoints of both images detected at
+twice their size (the network sees detail in 8 x 8 cells: a small object in a 270 x 480 photo has few) are matched
+by LighterGlue, and a place verifies when the PnP pose on its map points agrees with the two-view motion of all the
+matches. On the instant-ngp fox (photos 30 degrees apart) mutual nearest neighbours give 26-43 chance inliers and
+LighterGlue 140-190 true ones; a pair costs several XFeat passes, so it runs only where the above found nothing.
 """
 
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
+import cv2
 import numpy as np
 
 from .pose_optimization import pnp_pose
 from .relocalization import Place, Relocalisation
 from .xfeat import DescriptorMap, XFeatExtractor, XFeatures, mutual_matches
+
+if TYPE_CHECKING:
+    from .xfeat.glue import LighterGlue
+
+GLUE_UPSAMPLE = 2  # XFeat runs on the image enlarged this many times for LighterGlue
 
 
 def nearest_within(queries: np.ndarray, targets: np.ndarray, radius: float | np.ndarray
@@ -36,11 +50,19 @@ def nearest_within(queries: np.ndarray, targets: np.ndarray, radius: float | np.
 class LearnedPlaces:
     """XFeat on demand (the network loads at the first use) with a cache of the places' keypoints."""
 
-    def __init__(self, top_k: int, min_similarity: float, chi2_px: float, min_inliers: int) -> None:
+    def __init__(self, top_k: int, min_similarity: float, chi2_px: float, min_inliers: int,
+                 glue_keypoints: int = 2048, glue_min_confidence: float = 0.1, glue_candidates: int = 6,
+                 glue_point_inliers: int = 12, radius_px: float = 3.0) -> None:
         self.top_k, self.min_similarity = top_k, min_similarity
         self.chi2_px, self.min_inliers = chi2_px, min_inliers
+        self.glue_keypoints, self.glue_min_confidence, self.radius_px = glue_keypoints, glue_min_confidence, radius_px
+        self.glue_candidates, self.glue_point_inliers = glue_candidates, glue_point_inliers
         self._extractor: XFeatExtractor | None = None
+        self._glue_extractor: XFeatExtractor | None = None
+        self._glue: LighterGlue | None = None
         self._cache: dict[int, DescriptorMap] = {}
+        self._glue_cache: dict[int, XFeatures] = {}
+        self.glue_pairs, self.glue_seconds = 0, 0.0  # LighterGlue pairs matched so far and their time
         self.passes, self.seconds = 0, 0.0  # network passes so far and their time (what the matcher costs)
 
     @property
@@ -80,6 +102,74 @@ class LearnedPlaces:
         """Drop the cached maps of places other than `keep` (frame indices)."""
         for index in [i for i in self._cache if i not in keep]:
             del self._cache[index]
+        for index in [i for i in self._glue_cache if i not in keep]:
+            del self._glue_cache[index]
+
+    def glue_features(self, gray: np.ndarray, corners: np.ndarray | None = None) -> XFeatures:
+        """XFeat keypoints of a grey image detected at `GLUE_UPSAMPLE` times its size (`glue_keypoints` of them),
+        in the image's own pixels, followed by the given pixels [M, 2] described at that size: LighterGlue's input."""
+        if self._glue_extractor is None:
+            self._glue_extractor = XFeatExtractor(top_k=self.glue_keypoints)
+        start = time.perf_counter()
+        height, width = gray.shape[:2]
+        enlarged = cv2.resize(gray, (width * GLUE_UPSAMPLE, height * GLUE_UPSAMPLE), interpolation=cv2.INTER_LINEAR)
+        found, dense = self._glue_extractor.extract_with_map(enlarged)
+        self._count(start)
+        keypoints, descriptors = found.keypoints / GLUE_UPSAMPLE, found.descriptors
+        if corners is not None and len(corners):
+            corners = np.asarray(corners, np.float32).reshape(-1, 2)
+            keypoints = np.concatenate([keypoints, corners])
+            descriptors = np.concatenate([descriptors, dense.describe(corners * GLUE_UPSAMPLE)])
+        return XFeatures(keypoints.astype(np.float32), descriptors, np.zeros(len(keypoints), np.float32))
+
+    def glue_relocalise(self, gray: np.ndarray, places: list[Place], K: np.ndarray, min_inliers: int | None = None
+                        ) -> tuple[Relocalisation, np.ndarray] | None:
+        """The pose of a frame (grey image) from the first of `places` (at most `glue_candidates` are tried) that
+        verifies by LighterGlue, and the frame's pixels [n, 2] of its inliers (`keypoints` index them); None: none
+        verified. A place verifies when all its matches hold an essential matrix with `min_inliers` inliers and the
+        PnP pose on its map points (`glue_point_inliers` of them) agrees with that two-view motion: a place keeps
+        few map points (100-150 on the fox), far fewer than the matches that show the views overlap, and on the
+        fox wrong places also give 150-170 essential inliers, so the agreement is the test."""
+        needed = self.min_inliers if min_inliers is None else min_inliers
+        places = [p for p in places if p.gray is not None and p.gray.size and len(p.points) >= self.glue_point_inliers]
+        places = places[: self.glue_candidates]
+        if not places:
+            return None
+        if self._glue is None:
+            from .xfeat.glue import LighterGlue  # kornia loads only when a frame needs the matcher
+
+            self._glue = LighterGlue(self.glue_min_confidence)
+        frame = self.glue_features(gray)
+        for place in places:
+            found = self._place_glue_features(place)
+            start = time.perf_counter()
+            ia, ib, _ = self._glue.match(found, place.gray.shape[::-1], frame, gray.shape[::-1])
+            self.glue_pairs += 1
+            self.glue_seconds += time.perf_counter() - start
+            motion = two_view_motion(found.keypoints[ia], frame.keypoints[ib], K, needed)
+            if motion is None:
+                continue
+            # The matches on the place's map points: at one of its keypoints, or at a detection near one.
+            detected = len(found) - len(place.keypoints)
+            on_point = ia >= detected
+            near, nearest = nearest_within(found.keypoints[ia[~on_point]], place.keypoints, self.radius_px)
+            point = np.concatenate([ia[on_point] - detected, nearest])
+            matched = np.concatenate([ib[on_point], ib[~on_point][near]])
+            if len(point) < self.glue_point_inliers:
+                continue
+            X, uv = place.points[point], frame.keypoints[matched].astype(np.float64)
+            result = pnp_pose(X, uv, K, np.full(len(X), 2.0), self.chi2_px, self.glue_point_inliers)
+            if result is None or not agrees(motion, place.pose, result[0]):
+                continue
+            pose, inlier = result
+            return Relocalisation(pose, place.index, np.flatnonzero(inlier), X[inlier]), uv
+        return None
+
+    def _place_glue_features(self, place: Place) -> XFeatures:
+        """A place's LighterGlue input (cached): its detections, then its keypoints on map points."""
+        if place.index not in self._glue_cache:
+            self._glue_cache[place.index] = self.glue_features(place.gray, place.keypoints)
+        return self._glue_cache[place.index]
 
     def matches(self, place: Place, frame: XFeatures) -> tuple[np.ndarray, np.ndarray]:
         """The place's map points [n, 3] matched to keypoints of the frame (indices [n] into `frame`): the
@@ -108,3 +198,41 @@ class LearnedPlaces:
             if best is None or inlier.sum() > len(best.keypoints):
                 best = Relocalisation(pose, place.index, keypoints[inlier], points[inlier])
         return best
+
+
+@dataclass
+class TwoViewMotion:
+    """Rotation [3, 3] and unit translation [3] taking points of the first camera to the second (x2 = R x1 + t)."""
+
+    rotation: np.ndarray
+    direction: np.ndarray
+    inliers: int
+
+
+def two_view_motion(pa: np.ndarray, pb: np.ndarray, K: np.ndarray, min_inliers: int) -> TwoViewMotion | None:
+    """The relative motion of two views from matched pixels [n, 2] by an essential matrix (RANSAC, 1 px) with at
+    least `min_inliers` inliers (None: fewer)."""
+    if len(pa) < max(min_inliers, 8):
+        return None
+    pa, pb = pa.astype(np.float64), pb.astype(np.float64)
+    E, mask = cv2.findEssentialMat(pa, pb, K, cv2.RANSAC, 0.999, 1.0)
+    if E is None or mask is None or int(mask.sum()) < min_inliers:
+        return None
+    _, R, t, _ = cv2.recoverPose(E[:3], pa, pb, K, mask=mask.copy())
+    return TwoViewMotion(R, t.ravel() / max(np.linalg.norm(t), 1e-12), int(mask.sum()))
+
+
+def agrees(motion: TwoViewMotion, place_pose: np.ndarray, pose: np.ndarray, max_rotation_deg: float = 3.0,
+           max_direction_deg: float = 20.0) -> bool:
+    """Whether a camera-to-world `pose` found from a place's map points agrees with the two-view motion from the
+    place (camera-to-world `place_pose`) to it: the rotations within `max_rotation_deg`, and the directions of travel
+    within `max_direction_deg` where the pose moved at all."""
+    relative = np.linalg.inv(pose) @ place_pose  # place camera -> this camera
+    R, t = relative[:3, :3], relative[:3, 3]
+    turned = np.degrees(np.arccos(np.clip((np.trace(motion.rotation.T @ R) - 1.0) / 2.0, -1.0, 1.0)))
+    if turned > max_rotation_deg:
+        return False
+    length = np.linalg.norm(t)
+    if length < 1e-9:
+        return True
+    return float(np.degrees(np.arccos(np.clip(motion.direction @ t / length, -1.0, 1.0)))) <= max_direction_deg

@@ -135,7 +135,9 @@ class VisualOdometry:
         self.extractor = OrbExtractor(self.config)
         self.recognizer = PlaceRecognizer(self.config)
         c = self.config  # XFeat against remembered keyframes, computed only when flow and ORB failed
-        self.learned = LearnedPlaces(c.learned_keypoints, c.learned_min_similarity, c.chi2_px, c.reloc_min_inliers)
+        self.learned = LearnedPlaces(c.learned_keypoints, c.learned_min_similarity, c.chi2_px, c.reloc_min_inliers,
+                                     c.learned_glue_keypoints, c.learned_glue_min_confidence,
+                                     c.learned_glue_candidates, c.learned_glue_point_inliers)
         schur_native.available()  # builds (or loads) the compiled kernel now, not at the first keyframe
         self._reset()
 
@@ -1012,10 +1014,16 @@ class VisualOdometry:
             return None
         current = self.learned.extract(gray, self._orb(index, gray).keypoints)
         hit = self.learned.relocalise(current, candidates, K, c.learned_keyframe_min_inliers)
-        if hit is None:
+        if hit is not None:
+            return self._restart_from(index, gray, camera, hit.pose, current.keypoints[hit.keypoints], hit.points,
+                                      hit.place, "learned keyframe")
+        glued = self.learned.glue_relocalise(gray, candidates, K, c.learned_keyframe_min_inliers) if c.learned_glue \
+            else None  # wide baselines: LighterGlue where mutual nearest neighbours verified nothing
+        if glued is None:
             return None
-        return self._restart_from(index, gray, camera, hit.pose, current.keypoints[hit.keypoints], hit.points,
-                                  hit.place, "learned keyframe")
+        hit, uv = glued
+        return self._restart_from(index, gray, camera, hit.pose, uv[hit.keypoints], hit.points, hit.place,
+                                  "learned glue")
 
     def _learned_candidates(self, index: int, gray: np.ndarray, places: list[Place] | None = None,
                             by_words: bool = True) -> list[Place]:

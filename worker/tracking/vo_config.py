@@ -138,6 +138,22 @@ class VisualOdometryConfig(BaseModel):
     learned_keyframe_min_inliers: int = Field(50, ge=10, description="... PnP inliers a remembered keyframe needs")
     learned_places: int = Field(24, ge=0, description="remembered keyframes that keep their image for XFeat (the "
                                                       "newest; the map's own keyframes always do)")
+    learned_glue: bool = Field(True, description="where no remembered keyframe verifies by XFeat's mutual nearest "
+                                                 "neighbours, match them by LighterGlue (keypoints detected at twice "
+                                                 "the image size): wide baselines of 30 degrees and more; a pair "
+                                                 "costs about 1-2 s of CPU at 270x480 (two XFeat passes and the "
+                                                 "matcher), a place's keypoints are cached")
+    learned_glue_keypoints: int = Field(2048, ge=64, description="... XFeat keypoints per image for LighterGlue")
+    learned_glue_min_confidence: float = Field(0.1, gt=0.0, lt=1.0, description="... a match's LighterGlue score")
+    # On the fox the place that verifies was the third of six (the nearest to a pose held over a 44-degree jump
+    # do not overlap), and mutual-NN match counts at chance level do not rank them: all are tried, in order.
+    learned_glue_candidates: int = Field(6, ge=1, description="... against at most this many of the remembered "
+                                                              "keyframes XFeat tried, in their order, up to the "
+                                                              "first that verifies")
+    learned_glue_point_inliers: int = Field(12, ge=6, description="... PnP inliers on the keyframe's map points, "
+                                                                  "when all the pair's matches hold an essential "
+                                                                  "matrix with `learned_keyframe_min_inliers` "
+                                                                  "inliers and agree with the PnP pose")
     learned_join: bool = Field(True, description="a keyframe of a restarted map that ORB finds no older place for is "
                                                  "matched to older places by XFeat (wide baselines)")
     learned_join_reach: float = Field(0.8, gt=0.0, description="... against the places whose viewing direction "
