@@ -129,7 +129,9 @@ def run_vo(frames: list, calibrated: bool = True, config: dict | None = None) ->
             "ms_per_frame": 1e3 * float(np.mean(seconds)), "ms_p95": 1e3 * float(np.percentile(seconds, 95)),
             "ms_median": 1e3 * float(np.median(seconds)), "ms_max": 1e3 * float(np.max(seconds)),
             "fps": 1.0 / float(np.mean(seconds)), "intrinsics": vo.estimated_intrinsics,
-            "xfeat_passes": vo.learned.passes, "xfeat_ms": 1e3 * vo.learned.seconds / max(vo.learned.passes, 1)}
+            "xfeat_passes": vo.learned.passes, "xfeat_ms": 1e3 * vo.learned.seconds / max(vo.learned.passes, 1),
+            "glue_pairs": vo.learned.glue_pairs,
+            "glue_ms": 1e3 * vo.learned.glue_seconds / max(vo.learned.glue_pairs, 1)}
 
 
 def run_colmap(frames: list) -> dict | str:
@@ -187,7 +189,8 @@ def _report(name: str, r: dict, path_m: float) -> None:
           f"{r['ms_max']:.1f}: a keyframe) = {r['fps']:.1f} frames/s"
           + (f", intrinsics {r['intrinsics']}" if r["intrinsics"] is not None else "")
           + (f"; XFeat {r['xfeat_passes']} passes, {r['xfeat_ms']:.0f} ms each" if r["xfeat_passes"] else
-             "; XFeat not run"))
+             "; XFeat not run")
+          + (f"; LighterGlue {r['glue_pairs']} pairs, {r['glue_ms']:.0f} ms each" if r["glue_pairs"] else ""))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -63,6 +63,7 @@ class LearnedPlaces:
         self._cache: dict[int, DescriptorMap] = {}
         self._glue_cache: dict[int, XFeatures] = {}
         self.glue_pairs, self.glue_seconds = 0, 0.0  # LighterGlue pairs matched so far and their time
+        self._glue_at: int | None = None  # the frame of the last LighterGlue try
         self.passes, self.seconds = 0, 0.0  # network passes so far and their time (what the matcher costs)
 
     @property
@@ -121,6 +122,14 @@ class LearnedPlaces:
             keypoints = np.concatenate([keypoints, corners])
             descriptors = np.concatenate([descriptors, dense.describe(corners * GLUE_UPSAMPLE)])
         return XFeatures(keypoints.astype(np.float32), descriptors, np.zeros(len(keypoints), np.float32))
+
+    def glue_due(self, index: int, every: int) -> bool:
+        """Whether frame `index` may try LighterGlue (and, if so, counts as the last try): at most one try every
+        `every` frames, since a try that finds nothing still costs up to `glue_candidates` pairs."""
+        if self._glue_at is not None and 0 <= index - self._glue_at < every:
+            return False
+        self._glue_at = index
+        return True
 
     def glue_relocalise(self, gray: np.ndarray, places: list[Place], K: np.ndarray, min_inliers: int | None = None
                         ) -> tuple[Relocalisation, np.ndarray] | None:

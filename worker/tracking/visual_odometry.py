@@ -1017,8 +1017,8 @@ class VisualOdometry:
         if hit is not None:
             return self._restart_from(index, gray, camera, hit.pose, current.keypoints[hit.keypoints], hit.points,
                                       hit.place, "learned keyframe")
-        glued = self.learned.glue_relocalise(gray, candidates, K, c.learned_keyframe_min_inliers) if c.learned_glue \
-            else None  # wide baselines: LighterGlue where mutual nearest neighbours verified nothing
+        glue = c.learned_glue and self.learned.glue_due(index, c.learned_glue_every)  # wide baselines
+        glued = self.learned.glue_relocalise(gray, candidates, K, c.learned_keyframe_min_inliers) if glue else None
         if glued is None:
             return None
         hit, uv = glued

@@ -143,6 +143,8 @@ class VisualOdometryConfig(BaseModel):
                                                  "the image size): wide baselines of 30 degrees and more; a pair "
                                                  "costs about 1-2 s of CPU at 270x480 (two XFeat passes and the "
                                                  "matcher), a place's keypoints are cached")
+    learned_glue_every: int = Field(10, ge=1, description="... at most on one lost frame in this many (a try that "
+                                                          "finds nothing costs up to `learned_glue_candidates` pairs)")
     learned_glue_keypoints: int = Field(2048, ge=64, description="... XFeat keypoints per image for LighterGlue")
     learned_glue_min_confidence: float = Field(0.1, gt=0.0, lt=1.0, description="... a match's LighterGlue score")
     # On the fox the place that verifies was the third of six (the nearest to a pose held over a 44-degree jump
