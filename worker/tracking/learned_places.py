@@ -231,11 +231,12 @@ def two_view_motion(pa: np.ndarray, pb: np.ndarray, K: np.ndarray, min_inliers: 
     return TwoViewMotion(R, t.ravel() / max(np.linalg.norm(t), 1e-12), int(mask.sum()))
 
 
-def agrees(motion: TwoViewMotion, place_pose: np.ndarray, pose: np.ndarray, max_rotation_deg: float = 3.0,
-           max_direction_deg: float = 20.0) -> bool:
+def agrees(motion: TwoViewMotion, place_pose: np.ndarray, pose: np.ndarray, max_rotation_deg: float = 2.5,
+           max_direction_deg: float = 5.0) -> bool:
     """Whether a camera-to-world `pose` found from a place's map points agrees with the two-view motion from the
     place (camera-to-world `place_pose`) to it: the rotations within `max_rotation_deg`, and the directions of travel
-    within `max_direction_deg` where the pose moved at all."""
+    within `max_direction_deg` where the pose moved at all. True poses (fox, ICL pairs 28-37 degrees apart) agree
+    within 0.8-2.1 degrees and 0.8-2.0 degrees; a synthetic room's wrong one (3 degrees, 12 cm off) at 3.0 and 8.7."""
     relative = np.linalg.inv(pose) @ place_pose  # place camera -> this camera
     R, t = relative[:3, :3], relative[:3, 3]
     turned = np.degrees(np.arccos(np.clip((np.trace(motion.rotation.T @ R) - 1.0) / 2.0, -1.0, 1.0)))
