@@ -70,6 +70,7 @@ class LearnedPlaces:
         self.passes_per_frame, self.threads = passes_per_frame, threads
         self._extractor: XFeatExtractor | None = None
         self._cache: dict[int, DescriptorMap] = {}
+        self._at_keypoints: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # place -> (keypoints, descriptors)
         self._frame: tuple[int, XFeatures, DescriptorMap] | None = None  # the current frame's pass
         self._budget_frame, self._left = -1, passes_per_frame
         self.passes, self.seconds = 0, 0.0  # network passes so far and their time (what the matcher costs)
@@ -121,8 +122,10 @@ class LearnedPlaces:
         if corners is None or len(corners) == 0:
             return found
         corners = np.asarray(corners, np.float32).reshape(-1, 2)
+        with torch_threads(self.threads):
+            at_corners = dense.describe(corners)
         return XFeatures(np.concatenate([found.keypoints, corners]),
-                         np.concatenate([found.descriptors, dense.describe(corners)]),
+                         np.concatenate([found.descriptors, at_corners]),
                          np.concatenate([found.scores, np.zeros(len(corners), np.float32)]))
 
     def described(self, place: Place) -> bool:
@@ -145,15 +148,30 @@ class LearnedPlaces:
         """Drop the cached maps of places other than `keep` (frame indices)."""
         for index in [i for i in self._cache if i not in keep]:
             del self._cache[index]
+            self._at_keypoints.pop(index, None)
 
     def matches(self, place: Place, frame: XFeatures) -> tuple[np.ndarray, np.ndarray]:
         """The place's map points [n, 3] matched to keypoints of the frame (indices [n] into `frame`): the
         place's descriptors are sampled at its own keypoints, on the points."""
-        found = self.of_place(place)
-        if found is None or len(place.points) == 0:
+        descriptors = self._place_descriptors(place)
+        if descriptors is None or len(place.points) == 0:
             return np.zeros((0, 3)), np.zeros(0, np.int64)
-        ia, ib = mutual_matches(found.describe(place.keypoints), frame.descriptors, self.min_similarity)
+        ia, ib = mutual_matches(descriptors, frame.descriptors, self.min_similarity)
         return place.points[ia], ib
+
+    def _place_descriptors(self, place: Place) -> np.ndarray | None:
+        """XFeat descriptors [n, 64] at the place's keypoints (kept while its keypoints stay those: a keyframe
+        still in the map gains points)."""
+        kept = self._at_keypoints.get(place.index)
+        if kept is not None and np.array_equal(kept[0], place.keypoints):
+            return kept[1]
+        found = self.of_place(place)
+        if found is None:
+            return None
+        with torch_threads(self.threads):
+            descriptors = found.describe(place.keypoints)
+        self._at_keypoints[place.index] = (place.keypoints.copy(), descriptors)
+        return descriptors
 
     def relocalise(self, frame: XFeatures, places: list[Place], K: np.ndarray, min_inliers: int | None = None
                    ) -> Relocalisation | None:
