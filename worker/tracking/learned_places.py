@@ -9,40 +9,22 @@ nearest neighbours and verified by PnP + RANSAC and the robust refinement
 
 The network runs on the tracking thread, so its work per frame is bounded: at most `passes_per_frame` network passes
 (the frame's own, once per frame, and the maps of places not described yet; a candidate whose map did not fit is
-described on a later frame) on `threads` torch threads. One thread: on 2 busy cores two OpenMP threads wait for each
-other (a 320x240 pass took 100-1500 ms on two threads, 14-35 ms on one, at load 4).
+described on a later frame) on `threads` torch threads (one: see `xfeat.torch_threads`).
 """
 
 from __future__ import annotations
 
-import contextlib
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from typing import TypeVar
 
 import numpy as np
-import torch
 
 from .pose_optimization import pnp_pose
 from .relocalization import Place, Relocalisation
-from .xfeat import DescriptorMap, XFeatExtractor, XFeatures, mutual_matches
+from .xfeat import DescriptorMap, XFeatExtractor, XFeatures, mutual_matches, torch_threads
 
 T = TypeVar("T")
-
-
-@contextlib.contextmanager
-def torch_threads(threads: int) -> Iterator[None]:
-    """Torch operators of the calling thread on `threads` threads (OpenMP's setting is per thread: other threads,
-    e.g. the mapping stage's, keep theirs)."""
-    before = torch.get_num_threads()
-    if threads == before:
-        yield
-        return
-    torch.set_num_threads(threads)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
 
 
 def nearest_within(queries: np.ndarray, targets: np.ndarray, radius: float | np.ndarray
