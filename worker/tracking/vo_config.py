@@ -131,7 +131,7 @@ class VisualOdometryConfig(BaseModel):
     learned_keypoints: int = Field(1024, ge=64, description="XFeat keypoints per lost frame")
     # The network runs on the tracking thread: a frame's XFeat work is bounded so that a loss never stalls the
     # stream (before: up to 9 passes in the first lost frame, 1-6 s on 2 busy cores; see bench/RESULTS.md).
-    learned_passes_per_frame: int = Field(3, ge=1, description="XFeat network passes one frame may run at most "
+    learned_passes_per_frame: int = Field(3, ge=2, description="XFeat network passes one frame may run at most "
                                                                "(its own, the last tracked frame's, remembered "
                                                                "keyframes not described yet: those left over are "
                                                                "described on later lost frames and then cached)")
