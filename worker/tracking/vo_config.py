@@ -129,6 +129,14 @@ class VisualOdometryConfig(BaseModel):
     learned_reloc_frames: int = Field(30, ge=1, description="... for this many frames after it")
     learned_reloc_every: int = Field(3, ge=1, description="... on every n-th lost frame (the first one included)")
     learned_keypoints: int = Field(1024, ge=64, description="XFeat keypoints per lost frame")
+    # The network runs on the tracking thread: a frame's XFeat work is bounded so that a loss never stalls the
+    # stream (before: up to 9 passes in the first lost frame, 1-6 s on 2 busy cores; see bench/RESULTS.md).
+    learned_passes_per_frame: int = Field(3, ge=2, description="XFeat network passes one frame may run at most "
+                                                               "(its own, the last tracked frame's, remembered "
+                                                               "keyframes not described yet: those left over are "
+                                                               "described on later lost frames and then cached)")
+    learned_threads: int = Field(1, ge=1, le=64, description="torch threads of an XFeat pass (one: two threads "
+                                                             "on 2 busy cores wait for each other, 3-30x slower)")
     learned_min_similarity: float = Field(0.82, gt=0.0, lt=1.0, description="cosine similarity of an XFeat match "
                                                                              "(XFeat's default)")
     learned_candidates: int = Field(3, ge=1, description="remembered keyframes matched by XFeat per try: this many "
