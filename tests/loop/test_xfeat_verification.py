@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -61,3 +62,21 @@ def test_a_pair_sharing_no_view_stays_rejected_and_xfeat_tries_are_bounded(frame
     passes = pnp.xfeat.passes
     c = pnp.relocalize(30, 62, frames[62].image, frames[62].intrinsics)
     assert "XFeat" not in c.reason and pnp.xfeat.passes == passes
+
+
+def test_keyframe_images_are_kept_small_and_matched_in_their_own_pixels(frames):
+    """A 640x480 keyframe is kept downscaled and JPEG-encoded (a long session keeps one per keyframe); its
+    matches come back in its own pixels: twice those of the same view kept at 320x240."""
+    image = frames[30].image  # [1, 3, 240, 320]
+    large = torch.nn.functional.interpolate(image, scale_factor=2.0, mode="bilinear", align_corners=False)
+    matcher = XFeatKeyframeMatcher()
+    matcher.add_keyframe(0, large)
+    matcher.add_keyframe(1, image)
+    assert len(matcher.images[0][0]) < 40_000  # raw grey 640x480: 307 kB
+    uv_large, uv_small = matcher.match(0, 1)
+    assert len(uv_large) > 200
+    off = np.linalg.norm(np.asarray(uv_large) - 2.0 * np.asarray(uv_small), axis=1)
+    assert np.median(off) < 1.0 and np.mean(off <= 3.0) > 0.85  # a 1-pixel keypoint grid, doubled; a few wrong
+    restored = XFeatKeyframeMatcher()
+    restored.load_state_dict(matcher.state_dict())
+    assert restored.images == matcher.images

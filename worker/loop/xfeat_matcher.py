@@ -1,7 +1,9 @@
 """XFeat matches between two keyframes, for loop verification where ORB's fail (a revisit from a wide viewpoint
 change: ORB's descriptors change with the view, XFeat's learned ones much less).
 
-Each keyframe's grey image is kept when it is added (320x240: 77 kB); its XFeat keypoints and descriptors are
+Each keyframe's grey image is kept when it is added, at a long side of at most `max_side` pixels and JPEG-encoded
+(320x240: ~12 kB instead of 77 kB raw, 300 kB for a 640x480 keyframe: a long session's loop closer and its snapshots
+keep one per keyframe); its XFeat keypoints (in the keyframe's own pixels) and descriptors are
 computed the first time a loop candidate needs them (one network pass, ~25 ms at 320x240 on one thread) and kept
 for the `cached` keyframes used last. Matches are mutual nearest neighbours above a cosine similarity (XFeat's
 matcher); the geometry (PnP on the old keyframe's points) is the relocalizer's (`worker.loop.pnp`).
@@ -11,7 +13,9 @@ from __future__ import annotations
 
 import time
 from collections import OrderedDict
+from dataclasses import replace
 
+import cv2
 import numpy as np
 import torch
 
@@ -28,9 +32,11 @@ def grey_of(image: torch.Tensor) -> np.ndarray:
 class XFeatKeyframeMatcher:
     """Keyframe images and their XFeat features on demand (the network loads at the first use)."""
 
-    def __init__(self, top_k: int = 1024, min_similarity: float = 0.82, threads: int = 1, cached: int = 32) -> None:
+    def __init__(self, top_k: int = 1024, min_similarity: float = 0.82, threads: int = 1, cached: int = 32,
+                 max_side: int = 320, jpeg_quality: int = 90) -> None:
         self.top_k, self.min_similarity, self.threads, self.cached = top_k, min_similarity, threads, cached
-        self.images: dict[int, np.ndarray] = {}
+        self.max_side, self.jpeg_quality = max_side, jpeg_quality
+        self.images: dict[int, tuple[bytes, float]] = {}  # keyframe -> (JPEG of its grey image, scale to it)
         self._features: OrderedDict[int, XFeatures] = OrderedDict()
         self._extractor: XFeatExtractor | None = None
         self.passes, self.seconds = 0, 0.0  # network passes so far and their time (what verification costs)
@@ -39,8 +45,16 @@ class XFeatKeyframeMatcher:
         return int(index) in self.images
 
     def add_keyframe(self, index: int, image: torch.Tensor) -> None:
-        """Keep keyframe `index`'s image [1, 3, H, W] in [0, 1] (as grey) for later matching."""
-        self.images[int(index)] = grey_of(image)
+        """Keep keyframe `index`'s image [1, 3, H, W] in [0, 1] (as grey, downscaled, JPEG) for later matching."""
+        grey = grey_of(image)
+        scale = min(1.0, self.max_side / max(grey.shape))
+        if scale < 1.0:
+            size = (max(1, round(grey.shape[1] * scale)), max(1, round(grey.shape[0] * scale)))
+            grey = cv2.resize(grey, size, interpolation=cv2.INTER_AREA)
+        ok, encoded = cv2.imencode(".jpg", grey, [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality])
+        if not ok:
+            raise ValueError(f"keyframe {index}: its image could not be encoded")
+        self.images[int(index)] = (encoded.tobytes(), scale)
 
     def features(self, index: int) -> XFeatures:
         """XFeat keypoints and descriptors of keyframe `index` (computed once, kept for the newest uses)."""
@@ -51,8 +65,12 @@ class XFeatKeyframeMatcher:
         if self._extractor is None:
             self._extractor = XFeatExtractor(top_k=self.top_k)
         start = time.perf_counter()
+        encoded, scale = self.images[index]
+        grey = cv2.imdecode(np.frombuffer(encoded, np.uint8), cv2.IMREAD_GRAYSCALE)
         with torch_threads(self.threads):
-            found = self._extractor.extract(self.images[index])
+            found = self._extractor.extract(grey)
+        if scale < 1.0:  # keypoints (pixel centres at +0.5) in the keyframe's own pixels
+            found = replace(found, keypoints=(found.keypoints / scale).astype(found.keypoints.dtype))
         self.passes += 1
         self.seconds += time.perf_counter() - start
         self._features[index] = found
@@ -68,8 +86,10 @@ class XFeatKeyframeMatcher:
 
     def state_dict(self) -> dict:
         keys = list(self.images)
-        return {"keys": keys, "images": [self.images[k] for k in keys]}
+        return {"keys": keys, "jpegs": [self.images[k][0] for k in keys],
+                "scales": [self.images[k][1] for k in keys]}
 
     def load_state_dict(self, d: dict) -> None:
-        self.images = {int(k): np.ascontiguousarray(np.asarray(g, np.uint8)) for k, g in zip(d["keys"], d["images"])}
+        self.images = {int(k): (bytes(jpeg), float(scale))
+                       for k, jpeg, scale in zip(d["keys"], d.get("jpegs", []), d.get("scales", []))}
         self._features.clear()
