@@ -33,6 +33,9 @@ def add_run_options(parser: argparse.ArgumentParser) -> None:
                         help="bound the final refinement at the end of the run (default 0: no bound, an offline run "
                         "completes its passes, at most passes x held keyframe images iterations; live sessions keep "
                         "the config's mapping.final_refine_budget_s)")
+    parser.add_argument("--live-pacing", action="store_true",
+                        help="shed mapping work as a live session does when mapping falls behind (default: an "
+                        "offline run refines every keyframe, so its map does not depend on the machine's load)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -83,7 +86,7 @@ def run_one(args: argparse.Namespace, source: str, out_dir: str) -> dict:
         return run_sequence(source, out_dir, config, use_gt_depth=args.use_gt_depth, use_gt_poses=args.use_gt_poses,
                             max_frames=args.max_frames, stride=args.stride, resize=args.resize, drift=drift,
                             progress=progress, unknown_intrinsics=args.unknown_intrinsics,
-                            pingpong=args.pingpong)
+                            pingpong=args.pingpong, live_pacing=args.live_pacing)
     finally:
         bar.close()
 

@@ -45,3 +45,23 @@ def test_a_run_reports_where_its_time_went(tmp_path):
     assert b["pgo"]["events"] == metrics["loops"]
     table = breakdown_table(b, metrics["num_frames"])
     assert "total per frame" in table and "merge & voxelization" in table
+
+
+@pytest.mark.parametrize("live_pacing", [False, True])
+def test_an_offline_run_refines_every_keyframe_unless_paced_like_a_live_stream(tmp_path, live_pacing):
+    """Mapping far slower than tracking (given poses and depth, 25 refinement iterations a keyframe): an offline run
+    sheds nothing by default, so its map does not depend on the machine's load; paced like a live stream it sheds."""
+    config = SlamConfig.preset("test", threaded=True, queue_size=24, input={"pose_mode": "fixed",
+                                                                          "surfel_init": "depth"},
+                               mapping={"refine_iterations": 25, "shed_backlog": 1, "merge_only_backlog": 2,
+                                        "final_refine_passes": 0},
+                               frontend={"keyframe_every": 1})
+    metrics = run_sequence(ICL, tmp_path, config, use_gt_depth=True, use_gt_poses=True, max_frames=8,
+                           resize=(80, 60), live_pacing=live_pacing)
+    shed = metrics["keyframes_shed"]
+    refined = metrics["runtime_breakdown"]["map_refine"]["events"]
+    if live_pacing:
+        assert shed["merge_only"] > 0 and refined < metrics["num_keyframes"]
+    else:
+        assert shed == {"reduced": 0, "merge_only": 0, "dropped": 0}
+        assert refined == metrics["num_keyframes"] >= 6

@@ -79,7 +79,7 @@ def test_a_wide_baseline_is_placed_by_the_glue_where_mutual_neighbours_fail(mini
     place, frame = _place(mini[PLACE], orb), mini[FRAME]
     gray, K = _gray(frame), _K(frame)
     learned = LearnedPlaces(1024, 0.82, 5.991, 30)
-    current = learned.extract(gray, orb.extract(gray).keypoints)  # as visual odometry does while lost
+    current = learned.of_frame(FRAME, gray, orb.extract(gray).keypoints)  # as visual odometry does while lost
     assert learned.relocalise(current, [place], K, 50) is None
     found = learned.glue_relocalise(gray, [place], K, 50)
     assert found is not None

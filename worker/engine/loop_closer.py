@@ -4,7 +4,8 @@ modes and makes their state snapshot-able.
 
 Relocalization sources: "hidden_state" (f(I_j, M_a) with the bag of hidden states, monocular) and "pnp" (ORB + PnP
 with keyframe i's 3D points: the tracker's predicted points or, in posed RGB-D mode, the given depth through
-`DepthKeyframePoints`, which makes the constraint metric like the given poses).
+`DepthKeyframePoints`, which makes the constraint metric like the given poses), with XFeat matches where ORB's are
+too few (`loop.xfeat_verification`: source "pnp_xfeat").
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from worker.loop.detector import LoopDetector
 from worker.loop.pnp import PnPRelocalizer
 from worker.loop.relocalize import LoopConstraint
 from worker.loop.vocabulary import SparseBag
+from worker.loop.xfeat_matcher import XFeatKeyframeMatcher
 
 
 class DepthKeyframePoints:
@@ -132,10 +134,12 @@ class LoopCloser:
                                      min_score=cfg.min_score, shortlist=cfg.shortlist,
                                      recent=min(cfg.recent_candidates, cfg.shortlist))
         self.pnp: PnPRelocalizer | None = None
-        if depth_points is not None:
-            self.relocalizer = self.pnp = PnPRelocalizer(depth_points, orb, min_inliers=cfg.min_inliers)
-        elif cfg.relocalization == "pnp":
-            self.relocalizer = self.pnp = PnPRelocalizer(tracker, orb, min_inliers=cfg.min_inliers)
+        pnp_settings = {"min_inliers": cfg.min_inliers, "xfeat_min_inliers": cfg.xfeat_min_inliers,
+                        "xfeat_per_keyframe": cfg.xfeat_per_keyframe}
+        if depth_points is not None or cfg.relocalization == "pnp":
+            xfeat = XFeatKeyframeMatcher() if cfg.xfeat_verification and cfg.xfeat_per_keyframe > 0 else None
+            self.relocalizer = self.pnp = PnPRelocalizer(depth_points if depth_points is not None else tracker, orb,
+                                                         xfeat=xfeat, **pnp_settings)
         else:
             from worker.loop.relocalize import HiddenStateRelocalizer
 
@@ -189,6 +193,7 @@ class LoopCloser:
             "last_loop_keyframe_count": self.last_loop_keyframe_count,
             "keyframes_seen": self.keyframes_seen,
             "rejected": self.rejected,
+            "xfeat": None if self.pnp is None or self.pnp.xfeat is None else self.pnp.xfeat.state_dict(),
         }
 
     def load_state_dict(self, d: dict) -> None:
@@ -200,3 +205,5 @@ class LoopCloser:
         self.last_loop_keyframe_count = int(d["last_loop_keyframe_count"])
         self.keyframes_seen = int(d["keyframes_seen"])
         self.rejected = int(d["rejected"])
+        if self.pnp is not None and self.pnp.xfeat is not None and d.get("xfeat"):
+            self.pnp.xfeat.load_state_dict(d["xfeat"])

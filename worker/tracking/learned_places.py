@@ -7,6 +7,10 @@ place's descriptors are sampled at its keypoints on map points and matched to th
 nearest neighbours and verified by PnP + RANSAC and the robust refinement
 (`pnp_pose`). The best place by inliers wins.
 
+The network runs on the tracking thread, so its work per frame is bounded: at most `passes_per_frame` network passes
+(the frame's own, once per frame, and the maps of places not described yet; a candidate whose map did not fit is
+described on a later frame) on `threads` torch threads (one: see `xfeat.torch_threads`).
+
 Where no place verifies, `glue_relocalise` is the wide-baseline fallback: XFeat keypoints of both images detected at
 twice their size (the network sees detail in 8 x 8 cells: a small object in a 270 x 480 photo has few) are matched
 by LighterGlue, and a place verifies when the PnP pose on its map points agrees with the two-view motion of all the
@@ -17,19 +21,21 @@ LighterGlue 140-190 true ones; a pair costs several XFeat passes, so it runs onl
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypeVar
 
 import cv2
 import numpy as np
 
 from .pose_optimization import pnp_pose
 from .relocalization import Place, Relocalisation
-from .xfeat import DescriptorMap, XFeatExtractor, XFeatures, mutual_matches
+from .xfeat import DescriptorMap, XFeatExtractor, XFeatures, mutual_matches, torch_threads
 
 if TYPE_CHECKING:
     from .xfeat.glue import LighterGlue
 
+T = TypeVar("T")
 GLUE_UPSAMPLE = 2  # XFeat runs on the image enlarged this many times for LighterGlue
 
 
@@ -48,23 +54,30 @@ def nearest_within(queries: np.ndarray, targets: np.ndarray, radius: float | np.
 
 
 class LearnedPlaces:
-    """XFeat on demand (the network loads at the first use) with a cache of the places' keypoints."""
+    """XFeat on demand (the network loads at the first use) with a cache of the places' descriptor maps and a budget
+    of network passes per frame (see the module docstring)."""
 
     def __init__(self, top_k: int, min_similarity: float, chi2_px: float, min_inliers: int,
-                 glue_keypoints: int = 2048, glue_min_confidence: float = 0.1, glue_candidates: int = 6,
-                 glue_point_inliers: int = 12, radius_px: float = 3.0) -> None:
+                 passes_per_frame: int = 3, threads: int = 1, glue_keypoints: int = 2048,
+                 glue_min_confidence: float = 0.1, glue_candidates: int = 6, glue_point_inliers: int = 12,
+                 radius_px: float = 3.0) -> None:
         self.top_k, self.min_similarity = top_k, min_similarity
         self.chi2_px, self.min_inliers = chi2_px, min_inliers
+        self.passes_per_frame, self.threads = passes_per_frame, threads
+        self._extractor: XFeatExtractor | None = None
+        self._cache: dict[int, DescriptorMap] = {}
+        self._at_keypoints: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # place -> (keypoints, descriptors)
+        self._frame: tuple[int, XFeatures, DescriptorMap] | None = None  # the current frame's pass
+        self._budget_frame, self._left = -1, passes_per_frame
+        self.passes, self.seconds = 0, 0.0  # network passes so far and their time (what the matcher costs)
+        self.most_in_a_frame = 0  # the most passes one frame ran
         self.glue_keypoints, self.glue_min_confidence, self.radius_px = glue_keypoints, glue_min_confidence, radius_px
         self.glue_candidates, self.glue_point_inliers = glue_candidates, glue_point_inliers
-        self._extractor: XFeatExtractor | None = None
         self._glue_extractor: XFeatExtractor | None = None
         self._glue: LighterGlue | None = None
-        self._cache: dict[int, DescriptorMap] = {}
         self._glue_cache: dict[int, XFeatures] = {}
         self.glue_pairs, self.glue_seconds = 0, 0.0  # LighterGlue pairs matched so far and their time
         self._glue_at: int | None = None  # the frame of the last LighterGlue try
-        self.passes, self.seconds = 0, 0.0  # network passes so far and their time (what the matcher costs)
 
     @property
     def extractor(self) -> XFeatExtractor:
@@ -72,37 +85,73 @@ class LearnedPlaces:
             self._extractor = XFeatExtractor(top_k=self.top_k)
         return self._extractor
 
-    def extract(self, gray: np.ndarray, corners: np.ndarray | None = None) -> XFeatures:
-        """XFeat keypoints and descriptors of a grey image, followed by descriptors of the given pixels [M, 2]
-        (e.g. the corners a keyframe tracks: the kind of pixel a place is described at)."""
+    def begin_frame(self, index: int) -> None:
+        """Frame `index` is being tracked: its budget of network passes starts (once per frame)."""
+        if index != self._budget_frame:
+            self._budget_frame, self._left = index, self.passes_per_frame
+
+    @property
+    def passes_left(self) -> int:
+        """Network passes the current frame may still run."""
+        return self._left
+
+    def _network(self, work: Callable[[XFeatExtractor], T]) -> T | None:
+        """One network pass within the frame's budget (None: the budget is spent), timed and counted."""
+        if self._left <= 0:
+            return None
+        self._left -= 1
         start = time.perf_counter()
-        found, dense = self.extractor.extract_with_map(gray)
-        self._count(start)
+        with torch_threads(self.threads):
+            out = work(self.extractor)
+        self.passes += 1
+        self.seconds += time.perf_counter() - start
+        self.most_in_a_frame = max(self.most_in_a_frame, self.passes_per_frame - self._left)
+        return out
+
+    def describe_image(self, gray: np.ndarray) -> XFeatures | None:
+        """XFeat keypoints and descriptors of another image than the frame's (one pass; None: no pass left)."""
+        return self._network(lambda xfeat: xfeat.extract(gray))
+
+    def of_frame(self, index: int, gray: np.ndarray, corners: np.ndarray | None = None) -> XFeatures | None:
+        """XFeat keypoints and descriptors of frame `index` (its grey image; one pass per frame, kept for the rest of
+        the frame), followed by descriptors of the given pixels [M, 2] (e.g. the corners a keyframe tracks: the kind
+        of pixel a place is described at); None: the frame's budget is spent."""
+        if self._frame is None or self._frame[0] != index:
+            found = self._network(lambda xfeat: xfeat.extract_with_map(gray))
+            if found is None:
+                return None
+            self._frame = (index, *found)
+        _, found, dense = self._frame
         if corners is None or len(corners) == 0:
             return found
         corners = np.asarray(corners, np.float32).reshape(-1, 2)
+        with torch_threads(self.threads):
+            at_corners = dense.describe(corners)
         return XFeatures(np.concatenate([found.keypoints, corners]),
-                         np.concatenate([found.descriptors, dense.describe(corners)]),
+                         np.concatenate([found.descriptors, at_corners]),
                          np.concatenate([found.scores, np.zeros(len(corners), np.float32)]))
 
+    def described(self, place: Place) -> bool:
+        """Whether the place's descriptor map is cached (matching it costs no network pass)."""
+        return place.index in self._cache
+
     def of_place(self, place: Place) -> DescriptorMap | None:
-        """The place image's XFeat descriptor map (cached; None: the place kept no image)."""
+        """The place image's XFeat descriptor map (cached; None: the place kept no image, or it is not described
+        yet and this frame has no pass left)."""
         if place.gray is None or place.gray.size == 0:
             return None
         if place.index not in self._cache:
-            start = time.perf_counter()
-            self._cache[place.index] = self.extractor.dense_map(place.gray)
-            self._count(start)
+            found = self._network(lambda xfeat: xfeat.dense_map(place.gray))
+            if found is None:
+                return None
+            self._cache[place.index] = found
         return self._cache[place.index]
-
-    def _count(self, start: float) -> None:
-        self.passes += 1
-        self.seconds += time.perf_counter() - start
 
     def forget(self, keep: set[int]) -> None:
         """Drop the cached maps of places other than `keep` (frame indices)."""
         for index in [i for i in self._cache if i not in keep]:
             del self._cache[index]
+            self._at_keypoints.pop(index, None)
         for index in [i for i in self._glue_cache if i not in keep]:
             del self._glue_cache[index]
 
@@ -114,13 +163,15 @@ class LearnedPlaces:
         start = time.perf_counter()
         height, width = gray.shape[:2]
         enlarged = cv2.resize(gray, (width * GLUE_UPSAMPLE, height * GLUE_UPSAMPLE), interpolation=cv2.INTER_LINEAR)
-        found, dense = self._glue_extractor.extract_with_map(enlarged)
-        self._count(start)
-        keypoints, descriptors = found.keypoints / GLUE_UPSAMPLE, found.descriptors
-        if corners is not None and len(corners):
-            corners = np.asarray(corners, np.float32).reshape(-1, 2)
-            keypoints = np.concatenate([keypoints, corners])
-            descriptors = np.concatenate([descriptors, dense.describe(corners * GLUE_UPSAMPLE)])
+        with torch_threads(self.threads):  # outside the frame's pass budget: `glue_due` bounds these tries
+            found, dense = self._glue_extractor.extract_with_map(enlarged)
+            keypoints, descriptors = found.keypoints / GLUE_UPSAMPLE, found.descriptors
+            if corners is not None and len(corners):
+                corners = np.asarray(corners, np.float32).reshape(-1, 2)
+                keypoints = np.concatenate([keypoints, corners])
+                descriptors = np.concatenate([descriptors, dense.describe(corners * GLUE_UPSAMPLE)])
+        self.passes += 1
+        self.seconds += time.perf_counter() - start
         return XFeatures(keypoints.astype(np.float32), descriptors, np.zeros(len(keypoints), np.float32))
 
     def glue_due(self, index: int, every: int) -> bool:
@@ -152,7 +203,8 @@ class LearnedPlaces:
         for place in places:
             found = self._place_glue_features(place)
             start = time.perf_counter()
-            ia, ib, _ = self._glue.match(found, place.gray.shape[::-1], frame, gray.shape[::-1])
+            with torch_threads(self.threads):
+                ia, ib, _ = self._glue.match(found, place.gray.shape[::-1], frame, gray.shape[::-1])
             self.glue_pairs += 1
             self.glue_seconds += time.perf_counter() - start
             motion = two_view_motion(found.keypoints[ia], frame.keypoints[ib], K, needed)
@@ -183,16 +235,31 @@ class LearnedPlaces:
     def matches(self, place: Place, frame: XFeatures) -> tuple[np.ndarray, np.ndarray]:
         """The place's map points [n, 3] matched to keypoints of the frame (indices [n] into `frame`): the
         place's descriptors are sampled at its own keypoints, on the points."""
-        found = self.of_place(place)
-        if found is None or len(place.points) == 0:
+        descriptors = self._place_descriptors(place)
+        if descriptors is None or len(place.points) == 0:
             return np.zeros((0, 3)), np.zeros(0, np.int64)
-        ia, ib = mutual_matches(found.describe(place.keypoints), frame.descriptors, self.min_similarity)
+        ia, ib = mutual_matches(descriptors, frame.descriptors, self.min_similarity)
         return place.points[ia], ib
+
+    def _place_descriptors(self, place: Place) -> np.ndarray | None:
+        """XFeat descriptors [n, 64] at the place's keypoints (kept while its keypoints stay those: a keyframe
+        still in the map gains points)."""
+        kept = self._at_keypoints.get(place.index)
+        if kept is not None and np.array_equal(kept[0], place.keypoints):
+            return kept[1]
+        found = self.of_place(place)
+        if found is None:
+            return None
+        with torch_threads(self.threads):
+            descriptors = found.describe(place.keypoints)
+        self._at_keypoints[place.index] = (place.keypoints.copy(), descriptors)
+        return descriptors
 
     def relocalise(self, frame: XFeatures, places: list[Place], K: np.ndarray, min_inliers: int | None = None
                    ) -> Relocalisation | None:
         """The best verified camera-to-world pose of the frame among `places` (None: none has `min_inliers`, by
-        default the matcher's); `keypoints` index the frame's XFeat keypoints."""
+        default the matcher's); `keypoints` index the frame's XFeat keypoints. Places not described yet take the
+        frame's passes left in the given order; those left over wait for a later frame."""
         needed = self.min_inliers if min_inliers is None else min_inliers
         best: Relocalisation | None = None
         for place in places:

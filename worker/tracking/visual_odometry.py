@@ -25,6 +25,7 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field
+from itertools import zip_longest
 from typing import Any
 
 import cv2
@@ -61,7 +62,7 @@ from .track_triangulation import triangulate_tracks
 from .tracks import Tracks, lookup_sorted
 from .two_view import TwoViewAttempt, TwoViewMap, two_view_from_matches
 from .vo_config import VisualOdometryConfig
-from .xfeat import XFeatExtractor, XFeatures, mutual_matches
+from .xfeat import XFeatures, mutual_matches
 
 STATE_VERSION = 3
 MIN_SHARED_FOR_SCALE = 10  # old map points a restarted map must share to take its scale from them
@@ -82,6 +83,7 @@ class Anchor:
     gray: np.ndarray  # its image (learned relocalisation describes its map points there)
     descriptors: np.ndarray = field(default_factory=lambda: np.zeros((0, 64), np.float32))  # XFeat, lazily ...
     world: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # ... of keypoints on these map points
+    described: bool = False  # whether XFeat described it (it may have no keypoint on a map point)
 
     def scale_of(self, points: np.ndarray, rows: np.ndarray) -> tuple[float, int]:
         """Scale from a new map (`points` [n, 3] in the anchor camera's frame, on the anchor's tracks `rows` [n])
@@ -136,8 +138,9 @@ class VisualOdometry:
         self.recognizer = PlaceRecognizer(self.config)
         c = self.config  # XFeat against remembered keyframes, computed only when flow and ORB failed
         self.learned = LearnedPlaces(c.learned_keypoints, c.learned_min_similarity, c.chi2_px, c.reloc_min_inliers,
-                                     c.learned_glue_keypoints, c.learned_glue_min_confidence,
-                                     c.learned_glue_candidates, c.learned_glue_point_inliers)
+                                     c.learned_passes_per_frame, c.learned_threads, c.learned_glue_keypoints,
+                                     c.learned_glue_min_confidence, c.learned_glue_candidates,
+                                     c.learned_glue_point_inliers)
         schur_native.available()  # builds (or loads) the compiled kernel now, not at the first keyframe
         self._reset()
 
@@ -186,6 +189,7 @@ class VisualOdometry:
         the constant-velocity guess when given."""
         camera = self._camera(frame, intrinsics)
         gray = cv2.cvtColor(frame.image, cv2.COLOR_RGB2GRAY)
+        self.learned.begin_frame(frame.index)
         if motion_guess is not None and not self._output_is_identity():  # output units -> the map's
             motion_guess = np.array(motion_guess, np.float64)
             motion_guess[:3, 3] /= similarity_scale(self.output)
@@ -621,7 +625,7 @@ class VisualOdometry:
         self._replenish(gray)
         t = self.tracks
         features = Features(t.uv.copy(), np.zeros((len(t), 32), np.uint8), np.zeros(len(t), np.int32))
-        kf = Keyframe(index, pose.copy(), features, t.rows.copy(), t.ids.copy(), self.extractor.extract(gray))
+        kf = Keyframe(index, pose.copy(), features, t.rows.copy(), t.ids.copy(), self._orb(index, gray))
         self.map.keyframes.append(kf)
         kept = {k.index for k in self.map.keyframes}
         self.keyframe_images = {i: g for i, g in self.keyframe_images.items() if i in kept}
@@ -825,7 +829,9 @@ class VisualOdometry:
         if not candidates:
             return None
         has = np.flatnonzero(kf.point_ids >= 0)  # the keyframe's own map points, described where it tracks them
-        current = self.learned.extract(self.keyframe_images[kf.index], kf.features.keypoints[has])
+        current = self.learned.of_frame(kf.index, self.keyframe_images[kf.index], kf.features.keypoints[has])
+        if current is None:
+            return None
         hit = self.learned.relocalise(current, candidates, K)
         if hit is None:
             return None
@@ -910,7 +916,7 @@ class VisualOdometry:
         if restarted is not None:
             return restarted
         lost_for = index - (self.lost_since if self.lost_since is not None else index)
-        if c.new_map_after_lost and lost_for >= c.new_map_after_lost and self._textured(gray):
+        if c.new_map_after_lost and lost_for >= c.new_map_after_lost and self._textured(index, gray):
             return self._begin_new_map(index, gray, camera, lost_for)
         return TrackingResult(self.pose.copy(), tracked=False, keyframe_hint=False, quality=0.0)
 
@@ -928,12 +934,12 @@ class VisualOdometry:
         return self._restart_from(index, gray, camera, hit.pose, features.keypoints[hit.keypoints], hit.points,
                                   hit.place, "place recognition")
 
-    def _textured(self, gray: np.ndarray) -> bool:
+    def _textured(self, index: int, gray: np.ndarray) -> bool:
         """Whether the frame has the features an initialisation needs, and at least 30 % of the last keyframe's (a
         covered lens or a blurred frame begins no map)."""
         keyframes = self.map.keyframes
         usual = len(keyframes[-1].features.keypoints) if keyframes else 0
-        return len(self.extractor.extract(gray)) >= max(self.config.init_min_matches, 0.3 * usual)
+        return len(self._orb(index, gray)) >= max(self.config.init_min_matches, 0.3 * usual)
 
     def _begin_new_map(self, index: int, gray: np.ndarray, camera: Intrinsics, lost_for: int) -> TrackingResult:
         """Give up finding the old map from here: its keyframes become places, and a new map initialises from
@@ -983,7 +989,8 @@ class VisualOdometry:
         """XFeat matching of this frame to the anchor's map points (the last tracked frame) and then to remembered
         keyframes (`_learned_candidates`), each verified by PnP + RANSAC and the robust refinement: the old map,
         hence its scale, carries on past a turn too fast for optical flow and ORB (None: not found). Runs on every
-        `learned_reloc_every`-th lost frame, the first one included."""
+        `learned_reloc_every`-th lost frame, the first one included, within the frame's network passes
+        (`learned_passes_per_frame`: what is not described yet waits for the next try)."""
         c = self.config
         if not c.learned_relocalisation:
             return None
@@ -996,11 +1003,10 @@ class VisualOdometry:
         if anchor is not None and index - anchor.index > c.learned_reloc_frames:
             self.anchor = anchor = None
         if anchor is not None and anchor.gray.size:
-            xfeat = self._xfeat()
-            if anchor.descriptors.size == 0:
-                anchor.descriptors, anchor.world = self._learned_place(anchor, xfeat)
-            if len(anchor.world) >= c.reloc_min_inliers:
-                current = self.learned.extract(gray)
+            if anchor.descriptors.size == 0 and not anchor.described:
+                anchor.descriptors, anchor.world = self._learned_place(anchor)
+            current = self.learned.of_frame(index, gray)
+            if current is not None and len(anchor.world) >= c.reloc_min_inliers:
                 ia, ib = mutual_matches(anchor.descriptors, current.descriptors, c.learned_min_similarity)
                 if len(ia) >= c.reloc_min_inliers:
                     X, uv = anchor.world[ia], current.keypoints[ib].astype(np.float64)
@@ -1012,12 +1018,17 @@ class VisualOdometry:
         candidates = self._learned_candidates(index, gray)
         if not candidates:
             return None
-        current = self.learned.extract(gray, self._orb(index, gray).keypoints)
+        current = self.learned.of_frame(index, gray, self._orb(index, gray).keypoints)
+        if current is None:
+            return None
         hit = self.learned.relocalise(current, candidates, K, c.learned_keyframe_min_inliers)
         if hit is not None:
             return self._restart_from(index, gray, camera, hit.pose, current.keypoints[hit.keypoints], hit.points,
                                       hit.place, "learned keyframe")
-        glue = c.learned_glue and self.learned.glue_due(index, c.learned_glue_every)  # wide baselines
+        # Wide baselines: LighterGlue once mutual nearest neighbours have tried every candidate (the pass budget may
+        # leave some for later frames) and verified none.
+        glue = (c.learned_glue and all(self.learned.described(p) for p in candidates)
+                and self.learned.glue_due(index, c.learned_glue_every))
         glued = self.learned.glue_relocalise(gray, candidates, K, c.learned_keyframe_min_inliers) if glue else None
         if glued is None:
             return None
@@ -1029,18 +1040,23 @@ class VisualOdometry:
                             by_words: bool = True) -> list[Place]:
         """Remembered keyframes with an image to match a lost frame to by XFeat: the `learned_candidates` nearest
         the last pose (viewing direction and position; a restarted map begins at the old map's last pose, so its
-        coordinates are near the old map's until joined), then as many most alike in ORB words, without repeats."""
+        coordinates are near the old map's until joined) and as many most alike in ORB words, without repeats,
+        taken in turn (the most alike, the nearest, the second most alike, ...: a frame's network passes describe
+        the likeliest of each kind first)."""
         c = self.config
         if places is None:
             places = self.retired + [self._place(kf) for kf in self.map.keyframes]
         places = [p for p in places if p.gray is not None and len(p.points) >= c.reloc_min_inliers]
         if not places:
             return []
-        chosen = sorted(places, key=lambda p: self._pose_distance(p.pose, self.pose))[: c.learned_candidates]
+        nearest = sorted(places, key=lambda p: self._pose_distance(p.pose, self.pose))[: c.learned_candidates]
         features = self._orb(index, gray) if by_words else None
-        if features is not None and len(features) >= c.min_features:
-            alike = self.recognizer.shortlist(features, places)
-            chosen += [p for p in alike if p not in chosen][: c.learned_candidates]
+        if features is None or len(features) < c.min_features:
+            return nearest
+        alike = self.recognizer.shortlist(features, places)[: c.learned_candidates]
+        chosen: list[Place] = []
+        for pair in zip_longest(alike, nearest):
+            chosen += [p for p in pair if p is not None and p not in chosen]
         return chosen
 
     def _pose_distance(self, a: np.ndarray, b: np.ndarray) -> float:
@@ -1055,20 +1071,18 @@ class VisualOdometry:
             self._orb_of = (index, self.extractor.extract(gray))
         return self._orb_of[1]
 
-    def _learned_place(self, anchor: Anchor, xfeat: XFeatExtractor) -> tuple[np.ndarray, np.ndarray]:
+    def _learned_place(self, anchor: Anchor) -> tuple[np.ndarray, np.ndarray]:
         """XFeat descriptors [n, 64] of the anchor image's keypoints that lie on one of its tracked map points
-        (within `place_radius_px`), and those points [n, 3]."""
-        found = xfeat.extract(anchor.gray)
+        (within `place_radius_px`), and those points [n, 3] (none while the frame has no network pass left)."""
+        found = self.learned.describe_image(anchor.gray)
+        anchor.described = found is not None
         has = np.isfinite(anchor.points).all(axis=1)
-        if len(found) == 0 or not has.any():
+        if found is None or len(found) == 0 or not has.any():
             return np.zeros((0, 64), np.float32), np.zeros((0, 3))
         d2 = ((found.keypoints[:, None, :] - anchor.uv[None, has, :]) ** 2).sum(-1)
         nearest = d2.argmin(axis=1)
         near = np.flatnonzero(d2[np.arange(len(found)), nearest] <= (2.0 * self.config.place_radius_px) ** 2)
         return found.descriptors[near], anchor.points[has][nearest[near]]
-
-    def _xfeat(self) -> XFeatExtractor:
-        return self.learned.extractor  # loaded on the first loss that needs it
 
     def _reinitialise(self, index: int, gray: np.ndarray, camera: Intrinsics) -> TrackingResult | None:
         """A new map from a two-view reconstruction between the last tracked frame (the anchor, whose pose is

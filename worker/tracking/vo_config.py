@@ -129,6 +129,14 @@ class VisualOdometryConfig(BaseModel):
     learned_reloc_frames: int = Field(30, ge=1, description="... for this many frames after it")
     learned_reloc_every: int = Field(3, ge=1, description="... on every n-th lost frame (the first one included)")
     learned_keypoints: int = Field(1024, ge=64, description="XFeat keypoints per lost frame")
+    # The network runs on the tracking thread: a frame's XFeat work is bounded so that a loss never stalls the
+    # stream (before: up to 9 passes in the first lost frame, 1-6 s on 2 busy cores; see bench/RESULTS.md).
+    learned_passes_per_frame: int = Field(3, ge=2, description="XFeat network passes one frame may run at most "
+                                                               "(its own, the last tracked frame's, remembered "
+                                                               "keyframes not described yet: those left over are "
+                                                               "described on later lost frames and then cached)")
+    learned_threads: int = Field(1, ge=1, le=64, description="torch threads of an XFeat pass (one: two threads "
+                                                             "on 2 busy cores wait for each other, 3-30x slower)")
     learned_min_similarity: float = Field(0.82, gt=0.0, lt=1.0, description="cosine similarity of an XFeat match "
                                                                              "(XFeat's default)")
     learned_candidates: int = Field(3, ge=1, description="remembered keyframes matched by XFeat per try: this many "
@@ -138,11 +146,14 @@ class VisualOdometryConfig(BaseModel):
     learned_keyframe_min_inliers: int = Field(50, ge=10, description="... PnP inliers a remembered keyframe needs")
     learned_places: int = Field(24, ge=0, description="remembered keyframes that keep their image for XFeat (the "
                                                       "newest; the map's own keyframes always do)")
-    learned_glue: bool = Field(True, description="where no remembered keyframe verifies by XFeat's mutual nearest "
-                                                 "neighbours, match them by LighterGlue (keypoints detected at twice "
-                                                 "the image size): wide baselines of 30 degrees and more; a pair "
-                                                 "costs about 1-2 s of CPU at 270x480 (two XFeat passes and the "
-                                                 "matcher), a place's keypoints are cached")
+    # Off by default: a try takes seconds outside the per-frame pass budget, which live streams need; offline runs
+    # (`flashmono run` without --live-pacing) turn it on, recorded frames can wait.
+    learned_glue: bool = Field(False, description="where no remembered keyframe verifies by XFeat's mutual nearest "
+                                                  "neighbours, match them by LighterGlue (keypoints detected at twice "
+                                                  "the image size): wide baselines of 30 degrees and more; a pair "
+                                                  "costs 2-3 s of a loaded 2-core CPU at 270x480 (an XFeat pass on "
+                                                  "the enlarged image and the matcher), a place's keypoints are "
+                                                  "cached")
     learned_glue_every: int = Field(10, ge=1, description="... at most on one lost frame in this many (a try that "
                                                           "finds nothing costs up to `learned_glue_candidates` pairs)")
     learned_glue_keypoints: int = Field(2048, ge=64, description="... XFeat keypoints per image for LighterGlue")

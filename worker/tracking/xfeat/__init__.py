@@ -2,5 +2,6 @@
 where optical flow and ORB fail."""
 
 from .extractor import DescriptorMap, XFeatExtractor, XFeatures, mutual_matches
+from .threads import torch_threads
 
-__all__ = ["DescriptorMap", "XFeatExtractor", "XFeatures", "mutual_matches"]
+__all__ = ["DescriptorMap", "XFeatExtractor", "XFeatures", "mutual_matches", "torch_threads"]
