@@ -1025,10 +1025,9 @@ class VisualOdometry:
         if hit is not None:
             return self._restart_from(index, gray, camera, hit.pose, current.keypoints[hit.keypoints], hit.points,
                                       hit.place, "learned keyframe")
-        # Wide baselines: LighterGlue once mutual nearest neighbours have tried every candidate (the pass budget may
-        # leave some for later frames) and verified none.
-        glue = (c.learned_glue and all(self.learned.described(p) for p in candidates)
-                and self.learned.glue_due(index, c.learned_glue_every))
+        # Wide baselines: LighterGlue on every candidate, also those the pass budget left undescribed this frame (a
+        # jump's lost frames may be few: the fox's are, before a new map begins).
+        glue = c.learned_glue and self.learned.glue_due(index, c.learned_glue_every)
         glued = self.learned.glue_relocalise(gray, candidates, K, c.learned_keyframe_min_inliers) if glue else None
         if glued is None:
             return None
