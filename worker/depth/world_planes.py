@@ -4,9 +4,11 @@ A uniform floor or wall gets confident multi-view depth only near the few textur
 standing on it), and local propagation (worker.depth.hole_fill) reaches a band around those. The places differ from
 keyframe to keyframe, so the confident points of the recent keyframes together show the scene's dominant planes
 (`PlaneMemory`: RANSAC in world coordinates, inliers within `tolerance` of each point's depth, a plane kept when it
-holds `min_share` of the points spread in two directions). A keyframe's holes then take a plane's depth where the
-plane explains its own supported pixels of the same colour (`agreement`) and the holes are 4-connected to those
-pixels: the plane is trusted only over a colour region that already lies on it in this view.
+holds `min_share` of the points spread in two directions). A keyframe's image is cut into regions along its edges
+(low thresholds: smooth shading has no edge, a boundary between surfaces has one); a region's holes take the plane
+that most of the region's supported pixels (confident or propagated) lie on, when those are `agreement` of them, at
+least `min_pixels` of the image and spread in two directions: the plane is trusted only over a region that already
+lies on it in this view, never beyond the supported depths' range (`depth_margin`) or at grazing angles.
 
 Every tolerance is relative to depth, so any pose scale (monocular SLAM's) works.
 """
@@ -36,7 +38,9 @@ class PlaneSettings:
     on_tolerance: float = 0.06  # a keyframe's pixel lies on a plane within this fraction of its depth
     agreement: float = 0.6  # share of an image region's supported pixels on the plane for its holes to take it
     min_pixels: float = 0.005  # ... and those on-plane pixels at least this share of the image
-    edge_low: int = 5  # Canny thresholds (grey levels) of the edges that bound the image regions: low, so that
+    min_spread: float = 0.02  # ... spread in two directions: smallest std at least this share of the longer side
+    region_extent: float = 0.2  # ... and at least this share of their largest std (a band where planes meet is not)
+    edge_low: int = 5  # Canny thresholds (8-bit levels) of the edges that bound the image regions: low, so that
     edge_high: int = 15  # faint boundaries stop a plane; smooth shading has none
     min_incidence: float = 0.1  # |cos| of the angle between a pixel's ray and the plane's normal
     depth_margin: float = 1.5  # filled depth at most this times the supported depths' 99th percentile
@@ -134,19 +138,41 @@ def plane_depth(plane: Plane, pose: np.ndarray, K: np.ndarray, shape: tuple[int,
     return np.where(z > 0, z, 0.0)
 
 
-def image_regions(image: np.ndarray, low: int, high: int) -> tuple[int, np.ndarray]:
-    """(count, labels [H, W]) of the 4-connected regions between the image's edges (Canny with thresholds `low`,
-    `high` on the blurred grey image, widened by a pixel; label 0: the edges)."""
-    grey = cv2.GaussianBlur(cv2.cvtColor(image, cv2.COLOR_RGB2GRAY), (5, 5), 0)
-    edges = cv2.dilate(cv2.Canny(grey, low, high), np.ones((3, 3), np.uint8)) > 0
+def image_regions(image: np.ndarray, low: int, high: int, chroma_factor: float = 3.0) -> tuple[int, np.ndarray]:
+    """(count, labels [H, W]) of the 4-connected regions between the image's edges (label 0: the edges, widened by a
+    pixel): Canny with thresholds `low`, `high` on the blurred lightness, and `chroma_factor` times those on the
+    blurred colour-opponent channels (Lab a, b), so that surfaces of one lightness but different colours are
+    separated while compression's colour noise is not an edge."""
+    lab = cv2.cvtColor(cv2.GaussianBlur(image, (5, 5), 0), cv2.COLOR_RGB2LAB)
+    edges = cv2.Canny(np.ascontiguousarray(lab[..., 0]), low, high)
+    if chroma_factor > 0:
+        for channel in (1, 2):
+            edges |= cv2.Canny(np.ascontiguousarray(lab[..., channel]), chroma_factor * low, chroma_factor * high)
+    edges = cv2.dilate(edges, np.ones((3, 3), np.uint8)) > 0
     return cv2.connectedComponents((~edges).astype(np.uint8), connectivity=4)
+
+
+def _region_spread(regions: np.ndarray, mask: np.ndarray, count: int) -> np.ndarray:
+    """Per region [count]: the smallest and the largest standard deviation (pixels, over all directions) of its
+    `mask` pixels."""
+    rows, cols = np.nonzero(mask)
+    label = regions[rows, cols]
+    n = np.maximum(np.bincount(label, minlength=count), 1)
+    mu, mv = np.bincount(label, cols, count) / n, np.bincount(label, rows, count) / n
+    cuu = np.bincount(label, cols * cols, count) / n - mu * mu
+    cvv = np.bincount(label, rows * rows, count) / n - mv * mv
+    cuv = np.bincount(label, cols * rows, count) / n - mu * mv
+    half = (cuu + cvv) / 2
+    root = np.sqrt(np.maximum(half ** 2 - (cuu * cvv - cuv ** 2), 0.0))
+    return np.sqrt(np.maximum(half - root, 0.0)), np.sqrt(np.maximum(half + root, 0.0))
 
 
 def fill_from_planes(depth: np.ndarray, image: np.ndarray, planes: list[Plane], pose: np.ndarray, K: np.ndarray,
                      settings: PlaneSettings | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(depth [H, W] float32 with holes filled from `planes`, filled bool [H, W]) for a keyframe at `pose` whose
     supported depth (> 0: confident or propagated) is `depth` and image `image` (uint8 RGB); see the module
-    docstring."""
+    docstring. An image region takes the plane that most of its supported pixels lie on, when they are enough and
+    spread in two directions (pixels along a line, such as where a wall meets the floor, lie on several planes)."""
     settings = settings or PlaneSettings()
     depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0).astype(np.float32)
     support = depth > 0
@@ -156,19 +182,29 @@ def fill_from_planes(depth: np.ndarray, image: np.ndarray, planes: list[Plane], 
     far = settings.depth_margin * float(np.percentile(depth[support], 99))
     count, regions = image_regions(image, settings.edge_low, settings.edge_high)
     supported = np.bincount(regions[support], minlength=count)
-    min_pixels = settings.min_pixels * depth.size
-    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * settings.close_radius + 1,) * 2)
-    out = depth.copy()
-    for plane in planes:  # largest first: a region takes the first plane it agrees with
+    min_pixels, min_spread = settings.min_pixels * depth.size, settings.min_spread * max(depth.shape)
+    zs, ons, scores = [], [], []
+    for plane in planes:
         z = plane_depth(plane, pose, K, depth.shape, settings.min_incidence)
         on = support & (z > 0) & (np.abs(depth - z) <= settings.on_tolerance * z)
         on_count = np.bincount(regions[on], minlength=count)
         agrees = (on_count >= min_pixels) & (on_count >= settings.agreement * supported)
-        agrees[0] = False  # the edges
+        narrow, wide = _region_spread(regions, on, count)
+        agrees &= (narrow >= min_spread) & (narrow >= settings.region_extent * wide)
+        zs.append(z)
+        ons.append(on)
+        scores.append(np.where(agrees, on_count, 0))
+    scores = np.stack(scores)
+    best, chosen = scores.argmax(0), scores.max(0) > 0
+    chosen[0] = False  # the edges
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * settings.close_radius + 1,) * 2)
+    out = depth.copy()
+    for p, (z, on) in enumerate(zip(zs, ons, strict=True)):
+        mine = (chosen & (best == p))[regions]
         reach = (z > 0) & (z <= far) & ~support & ~filled
-        take = agrees[regions] & reach
+        take = mine & reach
         if settings.close_radius > 0:  # edge pixels and specks inside the plane's regions take it too
-            inside = cv2.morphologyEx((agrees[regions] & (take | on)).astype(np.uint8), cv2.MORPH_CLOSE, kernel)
+            inside = cv2.morphologyEx((mine & (take | on)).astype(np.uint8), cv2.MORPH_CLOSE, kernel)
             take |= (inside > 0) & reach
         out[take] = z[take]
         filled |= take
