@@ -25,6 +25,7 @@ import torch
 
 from worker.depth import MultiViewDepthConfig, estimate_depth, scale_to_confident, select_neighbours
 from worker.depth.hole_fill import HoleFillSettings, fill_depth
+from worker.depth.neighbours import looked_at_depth
 from worker.depth.world_planes import PlaneMemory, PlaneSettings, fill_from_planes
 from worker.engine.backend import KeyframeJob
 from worker.engine.surfel_init import grid_from_depth
@@ -117,6 +118,8 @@ class KeyframeDepth:
         depth_range, scene_depth = (kf.depth_range, kf.scene_depth) if kf.scene_depth else self.recent_hint
         candidates = [i for i in self.images if i != kf.kf_id]
         poses = [se3_part(pose_of(i)) for i in candidates]
+        if scene_depth is None:  # no depth yet (posed RGB's first keyframes, textureless ones): where the views look
+            scene_depth = looked_at_depth(ref_pose, poses)
         chosen = select_neighbours(ref_pose, poses, self.config, scene_depth=scene_depth)
         neighbours = [(self.images[candidates[c]], poses[c]) for c in chosen]
         config, K = self.config, kf.K
