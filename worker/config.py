@@ -201,6 +201,9 @@ class InputConfig(_Section):
         "single-view depth scaled to the confident pixels (model; one model pass per keyframe), or a depth "
         "propagated from confident pixels of similar colour on the same plane (propagate: worker.depth.hole_fill; "
         "those surfels start less opaque)")
+    mvs_planes: bool = Field(
+        True, description="mvs with propagate: holes of image regions lying on a dominant plane of the recent "
+        "keyframes' confident points (a uniform floor or wall) take that plane's depth (worker.depth.world_planes)")
 
 
 class TrackingConfig(_Section):

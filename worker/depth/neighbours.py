@@ -58,3 +58,30 @@ def select_neighbours(ref_pose: np.ndarray, candidate_poses: Sequence[np.ndarray
         chosen.append(pick)
         remaining.remove(pick)
     return [usable[i] for i in chosen]
+
+
+def looked_at_depth(ref_pose: np.ndarray, candidate_poses: Sequence[np.ndarray] | np.ndarray,
+                    min_angle_deg: float = 5.0) -> float | None:
+    """The typical depth of the scene from the poses alone: the median distance, along the keyframe's optical axis,
+    of the points where the candidates' optical axes pass closest to it (cameras around an object or a room corner
+    look at a common place), counting candidates whose axes turn by at least `min_angle_deg` from the keyframe's
+    and meet it in front of both cameras; None when fewer than two do (parallel axes: a sideways pan)."""
+    ref_pose = np.asarray(ref_pose, dtype=np.float64)
+    origin, axis = ref_pose[:3, 3], ref_pose[:3, 2] / np.linalg.norm(ref_pose[:3, 2])
+    depths = []
+    for pose in candidate_poses:
+        pose = np.asarray(pose, dtype=np.float64)
+        if pose_problem(pose) is not None:
+            continue
+        other, direction = pose[:3, 3], pose[:3, 2] / np.linalg.norm(pose[:3, 2])
+        cos = float(axis @ direction)
+        if np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))) < min_angle_deg:
+            continue
+        # closest points origin + s axis and other + t direction of the two lines
+        w = origin - other
+        denom = 1.0 - cos * cos
+        s = (cos * (direction @ w) - (axis @ w)) / denom
+        t = ((direction @ w) - cos * (axis @ w)) / denom
+        if s > 0 and t > 0:
+            depths.append(s)
+    return float(np.median(depths)) if len(depths) >= 2 else None

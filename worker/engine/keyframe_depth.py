@@ -5,9 +5,11 @@ The engine keeps the last frames' images here; each keyframe waits until `frames
 angle among the kept frames (worker.depth.select_neighbours) at their current poses, and a `KeyframeJob` is made
 whose surfel grid the backend thread builds from the plane-sweep depth (worker.depth.estimate_depth): confident
 pixels become surfels, the others none, or, with a `fill`, the learned model's depth brought to their scale, or,
-with `propagate`, depth propagated from confident pixels of the same surface (worker.depth.hole_fill): those
-surfels start at `PROPAGATED_OPACITY` of the usual opacity, so the refinement can fade and prune them where the
-photos disagree, and the refinement's depth term sees the confident pixels only.
+with `propagate`, depth propagated from confident pixels of the same surface (worker.depth.hole_fill) and, with
+`planes`, the depth of the dominant planes the recent keyframes' confident points show, over the image regions
+that lie on them (worker.depth.world_planes: uniform floors and walls): those surfels start at
+`PROPAGATED_OPACITY` of the usual opacity, so the refinement can fade and prune them where the photos disagree, and
+the refinement's depth term sees the confident pixels only.
 """
 
 from __future__ import annotations
@@ -23,6 +25,8 @@ import torch
 
 from worker.depth import MultiViewDepthConfig, estimate_depth, scale_to_confident, select_neighbours
 from worker.depth.hole_fill import HoleFillSettings, fill_depth
+from worker.depth.neighbours import looked_at_depth
+from worker.depth.world_planes import PlaneMemory, PlaneSettings, fill_from_planes
 from worker.engine.backend import KeyframeJob
 from worker.engine.surfel_init import grid_from_depth
 from worker.geometry import se3_part
@@ -65,13 +69,16 @@ class KeyframeDepth:
 
     def __init__(self, config: MultiViewDepthConfig, buffer_frames: int, frames_after: int,
                  fill: Callable[[np.ndarray], np.ndarray] | None = None,
-                 propagate: bool = False, propagation: HoleFillSettings | None = None) -> None:
+                 propagate: bool = False, propagation: HoleFillSettings | None = None,
+                 planes: PlaneSettings | None = None) -> None:
         """`fill(image) -> depth`: another depth (the model's) for the pixels stereo leaves without one, brought to
         the stereo depth's scale; else `propagate`: depth propagated into them from confident pixels of the same
-        surface (with `propagation`'s settings); neither leaves them without surfels."""
+        surface (with `propagation`'s settings), then, with `planes`, from the recent keyframes' dominant planes;
+        neither leaves them without surfels."""
         self.config = config
         self.fill = fill
         self.propagation = (propagation or HoleFillSettings()) if propagate else None
+        self.plane_memory = PlaneMemory(planes) if propagate and planes is not None else None
         self.fill_stats: list[float] = []  # fraction of each keyframe's pixels given a propagated depth
         self.buffer_frames = buffer_frames
         self.frames_after = frames_after
@@ -111,6 +118,8 @@ class KeyframeDepth:
         depth_range, scene_depth = (kf.depth_range, kf.scene_depth) if kf.scene_depth else self.recent_hint
         candidates = [i for i in self.images if i != kf.kf_id]
         poses = [se3_part(pose_of(i)) for i in candidates]
+        if scene_depth is None:  # no depth yet (posed RGB's first keyframes, textureless ones): where the views look
+            scene_depth = looked_at_depth(ref_pose, poses)
         chosen = select_neighbours(ref_pose, poses, self.config, scene_depth=scene_depth)
         neighbours = [(self.images[candidates[c]], poses[c]) for c in chosen]
         config, K = self.config, kf.K
@@ -130,12 +139,21 @@ class KeyframeDepth:
             if self.fill is not None and estimate.coverage > MIN_COVERAGE_TO_PROPAGATE:
                 filled = scale_to_confident(self.fill(ref_image), confident, estimate.confidence)
                 surfel_depth = np.where(confident > 0, confident, filled).astype(np.float32)
-            elif self.propagation is not None and estimate.coverage > MIN_COVERAGE_TO_PROPAGATE:
-                result = fill_depth(confident, ref_image, self.propagation)
-                surfel_depth, propagated = result.depth, torch.from_numpy(result.filled)
-                self.fill_stats.append(result.fill_fraction)
-                log.debug("keyframe %d: %.0f%% of the pixels given a propagated depth", kf.kf_id,
-                          100 * result.fill_fraction)
+            elif self.propagation is not None:
+                if estimate.coverage > MIN_COVERAGE_TO_PROPAGATE:
+                    result = fill_depth(confident, ref_image, self.propagation)
+                    surfel_depth, propagated = result.depth, result.filled
+                if self.plane_memory is not None:  # in world units, as the poses
+                    self.plane_memory.add(kf.kf_id, estimate.depth, ref_pose, K)
+                    planed, on_planes = fill_from_planes(surfel_depth * scale, ref_image, self.plane_memory.planes(),
+                                                         ref_pose, K, self.plane_memory.settings)
+                    surfel_depth = planed / scale
+                    propagated = on_planes if propagated is None else propagated | on_planes
+                if propagated is not None:
+                    self.fill_stats.append(float(propagated.mean()))
+                    log.debug("keyframe %d: %.0f%% of the pixels given a propagated depth", kf.kf_id,
+                              100 * propagated.mean())
+                    propagated = torch.from_numpy(propagated)
             # The refinement's depth term sees the confident depth only.
             grid = grid_from_depth(image, torch.from_numpy(surfel_depth), Kt, fill_holes=False)
             if propagated is not None:
@@ -148,6 +166,7 @@ class KeyframeDepth:
     # ------------------------------------------------------------------------------------------ snapshot/restore
     def state_dict(self) -> dict[str, Any]:
         return {"indices": list(self.images), "images": list(self.images.values()),
+                "planes": None if self.plane_memory is None else self.plane_memory.state_dict(),
                 "recent_hint": [self.recent_hint[0], self.recent_hint[1]],
                 "pending": [{"kf_id": p.kf_id, "K": p.K, "depth_range": p.depth_range, "scene_depth": p.scene_depth}
                             for p in self.pending]}
@@ -155,6 +174,8 @@ class KeyframeDepth:
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.images = OrderedDict((int(i), np.asarray(img, np.uint8)) for i, img in zip(state["indices"],
                                                                                           state["images"]))
+        if self.plane_memory is not None and state.get("planes") is not None:
+            self.plane_memory.load_state_dict(state["planes"])
         hint_range, hint_depth = state.get("recent_hint") or (None, None)
         self.recent_hint = (None if hint_range is None else tuple(hint_range), hint_depth)
         self.pending = [PendingKeyframe(int(p["kf_id"]), np.asarray(p["K"], np.float64),
