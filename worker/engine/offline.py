@@ -60,8 +60,10 @@ def run_sequence(
 
     Recorded frames can wait for the map, so by default the mapping stage sheds nothing: it refines every keyframe
     as it comes (in order, behind tracking by up to OFFLINE_MAPPING_BACKLOG keyframes) and the map, hence PSNR, does
-    not depend on the machine's load. `live_pacing` keeps a live session's load shedding (fewer refinement
-    iterations, then merge only, when mapping falls behind) to study what a live stream gets."""
+    not depend on the machine's load; and visual odometry may spend seconds on LighterGlue (`learned_glue`) where
+    XFeat places a lost frame nowhere. `live_pacing` keeps a live session's load shedding (fewer refinement
+    iterations, then merge only, when mapping falls behind) and its tracking budget, to study what a live stream
+    gets."""
     from worker.data import open_source
     from worker.slam import SlamSystem
 
@@ -69,7 +71,7 @@ def run_sequence(
     out.mkdir(parents=True, exist_ok=True)
     # Depth is always read when the dataset has it (the evaluation needs it); the engine uses it only when asked.
     config = config.model_copy(update={"input": config.input.model_copy(update={"use_depth": use_gt_depth})})
-    if not live_pacing:  # and visual odometry may spend seconds on LighterGlue where XFeat finds no keyframe
+    if not live_pacing:
         visual = config.tracking.visual.model_copy(update={"learned_glue": True})
         config = config.model_copy(update={
             "queue_size": max(config.queue_size, OFFLINE_MAPPING_BACKLOG),
