@@ -57,6 +57,10 @@ class FrontendConfig(_Section):
     keyframe_min_overlap: float = Field(
         0.7, ge=0, lt=1, description="engine-chosen keyframes: or once less than this fraction of the last "
         "keyframe's view (a grid of its pixels at their depth) is inside the frame; 0 = not judged")
+    keyframe_approach: float = Field(
+        0.1, ge=0, lt=1, description="engine-chosen keyframes: or once the camera came this fraction of their depth "
+        "closer to the last keyframe's view (driving forward: what it saw from afar is now seen magnified); 0 = not "
+        "judged")
     keyframe_rotation_deg: float = Field(15.0, gt=0, description="or turned this much")
     keyframe_blur_ratio: float = Field(
         0.5, ge=0, lt=1, description="a due keyframe waits (up to keyframe_blur_delay frames) while the frame's "

@@ -97,7 +97,7 @@ class SlamSystem:
         self.tracking_stage = TrackingStage(
             MotionKeyframeSelector(fc.keyframe_every, fc.keyframe_translation, fc.keyframe_rotation_deg,
                                    fc.keyframe_blur_ratio, fc.keyframe_blur_delay, depth_ratio=fc.keyframe_parallax,
-                                   min_overlap=fc.keyframe_min_overlap),
+                                   min_overlap=fc.keyframe_min_overlap, approach=fc.keyframe_approach),
             publish_keyframe=lambda node: self.loop_stage.submit(node), timings=self.timings,
             max_side=self.config.tracking.max_side)
         self._traj = self.tracking_stage.trajectory

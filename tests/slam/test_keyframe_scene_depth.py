@@ -128,3 +128,21 @@ def test_engine_keyframes_do_not_depend_on_the_unit_of_poses_and_depth(pose_mode
         system.close()
     assert chosen[0] == chosen[1]
     assert 4 <= sum(chosen[0]) <= 20
+
+
+def drive(scale: float, frames: int = 12) -> list[tuple[np.ndarray, np.ndarray]]:
+    """A car driving 0.8 m a frame toward a scene 12 m ahead (in units of `scale` metres)."""
+    return [(pose(z=0.8 * k * scale), np.full((CAMERA.height, CAMERA.width), (12.0 - 0.8 * k) * scale, np.float32))
+            for k in range(frames)]
+
+
+def test_driving_forward_makes_a_keyframe_once_the_view_is_seen_closer() -> None:
+    chosen = flags(selector(approach=0.1), drive(1.0))
+    assert chosen == flags(selector(approach=0.1), drive(0.05))  # the same in the units of visual odometry
+    assert chosen[:6] == [True, False, True, False, True, False]  # 1.6 m on 12 m: the view seen 13 % closer
+    # parallax and overlap alone wait longer along the view (the rule before): the test can fail
+    assert flags(selector(), drive(1.0))[:6] == [True, False, False, True, False, True]
+    view = KeyframeView.plane(12.0, CAMERA)
+    assert view.approach(pose(z=1.2)) == pytest.approx(0.1)
+    assert abs(view.approach(pose(x=1.2))) < 1e-9  # sideways: no closer
+    assert view.approach(pose(z=-1.2)) < 0

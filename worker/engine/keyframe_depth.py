@@ -115,13 +115,9 @@ class KeyframeDepth:
             return None
         world_pose = pose_of(kf.kf_id)
         ref_pose = se3_part(world_pose)
-        depth_range, scene_depth = (kf.depth_range, kf.scene_depth) if kf.scene_depth else self.recent_hint
         candidates = [i for i in self.images if i != kf.kf_id]
         poses = [se3_part(pose_of(i)) for i in candidates]
-        if scene_depth is None:  # no depth yet (posed RGB's first keyframes, textureless ones): where the views look
-            scene_depth = looked_at_depth(ref_pose, poses)
-        chosen = select_neighbours(ref_pose, poses, self.config, scene_depth=scene_depth)
-        neighbours = [(self.images[candidates[c]], poses[c]) for c in chosen]
+        images = [self.images[i] for i in candidates]
         config, K = self.config, kf.K
         image = torch.from_numpy(ref_image).to(torch.float32) / 255.0
         Kt = torch.from_numpy(K).to(torch.float32)
@@ -129,6 +125,13 @@ class KeyframeDepth:
         scale = float(np.cbrt(np.linalg.det(world_pose[:3, :3])))
 
         def build() -> tuple[torch.Tensor, dict[str, torch.Tensor], torch.Tensor]:
+            # Without a hint from the pose source, the newest estimated keyframe's, read now (builds run in keyframe
+            # order): at job time the keyframes before this one may not be built yet.
+            depth_range, scene_depth = (kf.depth_range, kf.scene_depth) if kf.scene_depth else self.recent_hint
+            if scene_depth is None:  # no depth yet (posed RGB's first keyframes, textureless ones): where views look
+                scene_depth = looked_at_depth(ref_pose, poses)
+            chosen = select_neighbours(ref_pose, poses, config, scene_depth=scene_depth)
+            neighbours = [(images[c], poses[c]) for c in chosen]
             estimate = estimate_depth(ref_image, K, ref_pose, neighbours, depth_range=depth_range, config=config)
             log.debug("keyframe %d: multi-view depth from %d views covers %.0f%%", kf.kf_id, len(neighbours),
                       100 * estimate.coverage)

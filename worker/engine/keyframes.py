@@ -5,8 +5,11 @@ since the last keyframe (used where the pose source leaves the choice to the eng
 moves 0.8 m a frame, a hand-held camera over a desk 3 mm): the last keyframe's view is a grid of its pixels at their
 depth (the keyframe's sensor depth or its source's, else a plane at the median depth multi-view stereo found for a
 recent keyframe); a keyframe is due when the median parallax of those points (the angle between the rays from the
-two camera centres, about the motion over the depth, less for motion along the view) passes a limit, or when less
-than a share of them is left inside the frame. Until any depth is known, an absolute distance in pose units.
+two camera centres, about the motion over the depth, less for motion along the view) passes a limit, when less
+than a share of them is left inside the frame, or when the camera came closer to them by a share of their depth
+(driving forward moves the view along its axis: little parallax, but what the last keyframe saw from afar is now
+seen magnified, finer than its surfels; a car at 0.8 m a frame with the scene 12 m ahead needs a keyframe every 2
+frames, not every 5). Until any depth is known, an absolute distance in pose units.
 
 A blurred frame makes a poor keyframe (its colours smear into the map and its depth is worse): when a keyframe is
 due and the frame is markedly blurrier than the recent frames (sharpness below `blur_ratio` times their median),
@@ -45,17 +48,20 @@ class MotionKeyframeSelector:
     """Decides, frame by frame, whether a pose starts a new keyframe (see the module docstring)."""
 
     def __init__(self, every: int, translation: float, rotation_deg: float, blur_ratio: float = 0.0,
-                 blur_delay: int = 2, depth_ratio: float | None = None, min_overlap: float = 0.0) -> None:
+                 blur_delay: int = 2, depth_ratio: float | None = None, min_overlap: float = 0.0,
+                 approach: float = 0.0) -> None:
         """`every`: a keyframe at least every N frames; `translation` (pose units): the motion that makes a keyframe
         while no scene depth is known; `depth_ratio`: once one is, the parallax (radians, about the motion over the
         depth) of the last keyframe's view that makes one (None: always `translation`); `min_overlap`: a keyframe
-        once less than this fraction of that view is in the frame (0: not judged). `blur_ratio` 0 never delays a
-        keyframe for blur."""
+        once less than this fraction of that view is in the frame (0: not judged); `approach`: a keyframe once
+        the median depth of that view's points in the frame has shrunk by this fraction (0: not judged).
+        `blur_ratio` 0 never delays a keyframe for blur."""
         self.every = every
         self.translation = translation
         self.rotation = math.radians(rotation_deg)
         self.depth_ratio = depth_ratio
         self.min_overlap = min_overlap
+        self.approach = approach
         self.blur_ratio = blur_ratio
         self.blur_delay = blur_delay
         self.last_pose: np.ndarray | None = None
@@ -124,6 +130,8 @@ class MotionKeyframeSelector:
         rel = rel.numpy()
         if view.parallax(rel[:3, 3]) > self.depth_ratio:
             return True
+        if self.approach > 0 and view.approach(rel) > self.approach:
+            return True
         return self.min_overlap > 0 and camera is not None and view.overlap(rel, camera) < self.min_overlap
 
     def state_dict(self) -> dict:
@@ -181,6 +189,17 @@ class KeyframeView:
         b = self.points - np.asarray(centre, np.float64)
         b /= np.maximum(np.linalg.norm(b, axis=1, keepdims=True), 1e-12)
         return float(np.median(np.arccos(np.clip((a * b).sum(axis=1), -1.0, 1.0))))
+
+    def approach(self, relative: np.ndarray) -> float:
+        """How much closer a camera at `relative` (its c2w pose in the keyframe's camera frame) is to the points
+        than the keyframe: 1 - the median ratio of their depths in that camera to their depths in the keyframe,
+        over the points in front of it (0 when none is, negative when it moved away)."""
+        w2c = np.linalg.inv(relative)
+        z = self.points @ w2c[2, :3] + w2c[2, 3]
+        ahead = z > 1e-9
+        if not ahead.any():
+            return 0.0
+        return float(1.0 - np.median(z[ahead] / self.points[ahead, 2]))
 
     def overlap(self, relative: np.ndarray, camera: Intrinsics) -> float:
         """The fraction of the points a camera at `relative` (its c2w pose in the keyframe's camera frame) sees
