@@ -186,3 +186,13 @@ def test_the_engine_fills_a_uniform_floor_from_the_plane_of_a_rug_on_it(floor_wi
     assert len(covered) == 4
     assert np.mean(covered_before) < 0.6  # stereo and local propagation reach a band around the rug
     assert np.mean(covered) > np.mean(covered_before) + 0.25 and np.mean(covered) > 0.85
+
+
+def test_a_keyframe_its_own_stereo_covers_well_keeps_its_depth(floor_with_a_rug) -> None:
+    """Above `max_coverage` of confident multi-view depth the planes fill nothing (textured scenes keep the depth
+    of what stands in front of their walls); the same keyframes below it are filled."""
+    frames, poses, K = floor_with_a_rug
+    without = _keyframe_depths(frames, poses, K, None)
+    gated = _keyframe_depths(frames, poses, K, PlaneSettings(max_coverage=0.0))
+    for (_, grid), (_, grid_before) in zip(gated, without, strict=True):
+        assert np.array_equal(_grid_depth(grid), _grid_depth(grid_before))

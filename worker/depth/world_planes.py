@@ -45,6 +45,10 @@ class PlaneSettings:
     min_incidence: float = 0.1  # |cos| of the angle between a pixel's ray and the plane's normal
     depth_margin: float = 1.5  # filled depth at most this times the supported depths' 99th percentile
     close_radius: int = 2  # holes this thin inside a plane's region (morphological closing) take the plane
+    # A keyframe whose confident multi-view depth covers more than this keeps its own (and its local propagation):
+    # on textured scenes the dominant planes would paint over the furniture in front of them (ICL posed RGB: depth
+    # L1 4.18 -> 4.60 cm, -0.26 dB when every keyframe was filled); textureless views (the cabinet's 8-26 %) take them.
+    max_coverage: float = 0.5
 
 
 @dataclass(frozen=True)

@@ -148,6 +148,7 @@ class KeyframeDepth:
                     surfel_depth, propagated = result.depth, result.filled
                 if self.plane_memory is not None:  # in world units, as the poses
                     self.plane_memory.add(kf.kf_id, estimate.depth, ref_pose, K)
+                if self.plane_memory is not None and estimate.coverage <= self.plane_memory.settings.max_coverage:
                     planed, on_planes = fill_from_planes(surfel_depth * scale, ref_image, self.plane_memory.planes(),
                                                          ref_pose, K, self.plane_memory.settings)
                     surfel_depth = planed / scale
