@@ -65,3 +65,12 @@ def test_an_offline_run_refines_every_keyframe_unless_paced_like_a_live_stream(t
     else:
         assert shed == {"reduced": 0, "merge_only": 0, "dropped": 0}
         assert refined == metrics["num_keyframes"] >= 6
+
+
+def test_complete_pacing_turns_lighterglue_on_unless_the_config_set_it():
+    from worker.engine.offline import complete_pacing
+
+    paced = complete_pacing(SlamConfig.preset("rgbd"))
+    assert paced.tracking.visual.learned_glue and paced.mapping.shed_backlog == 0 and paced.queue_size >= 256
+    kept = complete_pacing(SlamConfig.preset("rgbd", tracking={"visual": {"learned_glue": False}}))
+    assert not kept.tracking.visual.learned_glue and kept.mapping.shed_backlog == 0

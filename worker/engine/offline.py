@@ -72,11 +72,7 @@ def run_sequence(
     # Depth is always read when the dataset has it (the evaluation needs it); the engine uses it only when asked.
     config = config.model_copy(update={"input": config.input.model_copy(update={"use_depth": use_gt_depth})})
     if not live_pacing:
-        visual = config.tracking.visual.model_copy(update={"learned_glue": True})
-        config = config.model_copy(update={
-            "queue_size": max(config.queue_size, OFFLINE_MAPPING_BACKLOG),
-            "mapping": config.mapping.model_copy(update={"shed_backlog": 0}),
-            "tracking": config.tracking.model_copy(update={"visual": visual})})
+        config = complete_pacing(config)
     src = open_source(str(source), stride=stride, max_frames=max_frames, resize=resize, use_gt_depth=True,
                       use_gt_poses=use_gt_poses, pingpong=pingpong)
     try:
@@ -153,6 +149,18 @@ def run_sequence(
     finally:
         system.close()
     return metrics
+
+
+def complete_pacing(config: SlamConfig) -> SlamConfig:
+    """An offline run's settings: mapping sheds nothing (a backlog of up to OFFLINE_MAPPING_BACKLOG keyframes) and
+    visual odometry may try LighterGlue where XFeat places a lost frame nowhere, unless `config` set it."""
+    visual = config.tracking.visual
+    if "learned_glue" not in visual.model_fields_set:
+        visual = visual.model_copy(update={"learned_glue": True})
+    return config.model_copy(update={
+        "queue_size": max(config.queue_size, OFFLINE_MAPPING_BACKLOG),
+        "mapping": config.mapping.model_copy(update={"shed_backlog": 0}),
+        "tracking": config.tracking.model_copy(update={"visual": visual})})
 
 
 def _event_counts(results: list) -> dict[str, int]:
