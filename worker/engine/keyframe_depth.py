@@ -146,11 +146,12 @@ class KeyframeDepth:
                 if estimate.coverage > MIN_COVERAGE_TO_PROPAGATE:
                     result = fill_depth(confident, ref_image, self.propagation)
                     surfel_depth, propagated = result.depth, result.filled
-                if self.plane_memory is not None:  # in world units, as the poses
-                    self.plane_memory.add(kf.kf_id, estimate.depth, ref_pose, K)
-                if self.plane_memory is not None and estimate.coverage <= self.plane_memory.settings.max_coverage:
-                    planed, on_planes = fill_from_planes(surfel_depth * scale, ref_image, self.plane_memory.planes(),
-                                                         ref_pose, K, self.plane_memory.settings)
+                memory = self.plane_memory
+                if memory is not None:  # in world units, as the poses
+                    memory.add(kf.kf_id, estimate.depth, ref_pose, K)
+                if memory is not None and estimate.coverage <= memory.settings.max_coverage:
+                    planed, on_planes = fill_from_planes(surfel_depth * scale, ref_image, memory.planes(), ref_pose,
+                                                         K, memory.settings)
                     surfel_depth = planed / scale
                     propagated = on_planes if propagated is None else propagated | on_planes
                 if propagated is not None:
