@@ -2,9 +2,12 @@
 
 Corners tracked (Lucas-Kanade) from frame i to i+s and i+2s are triangulated from frames i and i+s with the given
 poses and projected into frame i+2s; the median distance to where they were tracked, in pixels at the working
-size, over triples spread along the sequence. Exact poses leave the tracking noise (a few tenths of a pixel);
-device poses whose steps disagree with the images (scale along the motion, jitter) leave more, and multi-view
-stereo and the map built on them inherit it (issue 21 point 1: posed RGB below RGB only on KITTI and VAMR).
+size, over triples spread along the sequence, beside the same points' error with frame i+2s's pose fitted to them
+(what the images allow) and the ratio of the two: the figure `pose_mode: auto` judges posed RGB sessions by
+(`worker.tracking.pose_agreement`, the one implementation). Exact poses leave the tracking noise (a few tenths of a
+pixel, ratio about 1); device poses whose steps disagree with the images (scale along the motion, jitter) leave
+more, and multi-view stereo and the map built on them inherit it (issue 21 point 1: posed RGB below RGB only on
+KITTI and VAMR).
 
     python -m bench pose_consistency --source DIR [--source DIR ...] [--width 320] [--step 2] [--triples 25]
 """
@@ -13,34 +16,15 @@ from __future__ import annotations
 
 import argparse
 
-import cv2
 import numpy as np
+
+from worker.tracking.pose_agreement import sequence_errors, verdict
 
 
 def reprojection_errors(frames: list, K: np.ndarray, step: int, triples: int) -> list[float]:
     """Median 3-view reprojection error (pixels) of each triple (i, i+step, i+2 step) of `frames` (with poses)."""
-    errors = []
-    last = len(frames) - 2 * step
-    for i in np.linspace(0, max(0, last - 1), min(triples, max(1, last))).astype(int):
-        grey = [cv2.cvtColor(frames[j].image, cv2.COLOR_RGB2GRAY) for j in (i, i + step, i + 2 * step)]
-        corners = cv2.goodFeaturesToTrack(grey[0], 1500, 0.01, 5)
-        if corners is None:
-            continue
-        second, ok1, _ = cv2.calcOpticalFlowPyrLK(grey[0], grey[1], corners, None)
-        third, ok2, _ = cv2.calcOpticalFlowPyrLK(grey[0], grey[2], corners, None)
-        ok = (ok1.ravel() == 1) & (ok2.ravel() == 1)
-        x0, x1, x2 = corners[ok, 0], second[ok, 0], third[ok, 0]
-        w2c = [np.linalg.inv(np.asarray(frames[j].pose, np.float64)) for j in (i, i + step, i + 2 * step)]
-        points = cv2.triangulatePoints(K @ w2c[0][:3], K @ w2c[1][:3], x0.T.astype(np.float64),
-                                       x1.T.astype(np.float64))
-        points = points[:3] / points[3]
-        depth = (w2c[0][:3, :3] @ points + w2c[0][:3, 3:])[2]
-        projected = K @ (w2c[2][:3, :3] @ points + w2c[2][:3, 3:])
-        error = np.linalg.norm(projected[:2].T / projected[2][:, None] - x2, axis=1)
-        usable = (depth > 0) & (projected[2] > 0) & (np.linalg.norm(x1 - x0, axis=1) > 1.5)  # some parallax
-        if usable.sum() >= 20:
-            errors.append(float(np.median(error[usable])))
-    return errors
+    return [e.given_px for e in sequence_errors([f.image for f in frames], [f.pose for f in frames], K, step,
+                                                 triples)]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -52,6 +36,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--step", type=int, default=2, help="frames between the views of a triple")
     parser.add_argument("--triples", type=int, default=25)
     parser.add_argument("--max-frames", type=int, default=None)
+    parser.add_argument("--max-ratio", type=float, default=2.0, help="the ratio above which poses disagree")
     args = parser.parse_args(argv)
     for source in args.source:
         probe = open_source(source, use_gt_poses=True, max_frames=1)
@@ -60,7 +45,14 @@ def main(argv: list[str] | None = None) -> int:
         src = open_source(source, use_gt_poses=True, max_frames=args.max_frames, resize=size)
         frames = [f for f in src if f.pose is not None]
         K = src.intrinsics.matrix().numpy().astype(np.float64)
-        errors = reprojection_errors(frames, K, args.step, args.triples)
+        errors = sequence_errors([f.image for f in frames], [f.pose for f in frames], K, args.step, args.triples)
+        if not errors:
+            print(f"{source}: no triple with parallax")
+            continue
+        result = verdict(errors, args.max_ratio)
+        given = [e.given_px for e in errors]
         print(f"{source}: {size[0]}x{size[1]}, step {args.step}: 3-view reprojection error median "
-              f"{np.median(errors):.2f} px (p90 {np.percentile(errors, 90):.2f}) over {len(errors)} triples")
+              f"{result.given_px:.2f} px (p90 {np.percentile(given, 90):.2f}), fitted {result.fitted_px:.2f} px, "
+              f"ratio {result.ratio:.2f} over {result.triples} triples: "
+              f"{'agree' if result.agree else 'disagree'} (max ratio {args.max_ratio})")
     return 0

@@ -18,7 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from worker.data.registration_config import DepthCameraConfig
 from worker.depth.config import MultiViewDepthConfig
 from worker.tracking.rgbd_config import RgbdOdometryConfig
-from worker.tracking.seeded_config import DevicePoseConfig
+from worker.tracking.seeded_config import DevicePoseConfig, PoseChoiceConfig
 from worker.tracking.vo_config import VisualOdometryConfig
 
 log = logging.getLogger(__name__)
@@ -180,10 +180,14 @@ class InputConfig(_Section):
     pose_mode: Literal["auto", "ignore", "prior", "fixed", "seeded"] = Field(
         "auto", description="frames carrying poses: ignore them, use them as the odometry (priors in PGO), keep them "
         "(fixed), or seeded: RGB-D / visual odometry tracks from the device's motion, the device poses are "
-        "pose-graph priors (`device_poses`) and their jumps are detected. auto: seeded with depth, prior without "
-        "(on ICL, visual odometry does not beat the device's poses; RGB-D odometry does beat drifting ones)")
+        "pose-graph priors (`device_poses`) and their jumps are detected. auto: seeded with depth; without, prior "
+        "where the device poses agree with the images, else seeded (`pose_choice`; on ICL visual odometry does not "
+        "beat the exact poses, on KITTI it beats the GPS/IMU ones; RGB-D odometry does beat drifting ones)")
     device_poses: DevicePoseConfig = Field(default_factory=DevicePoseConfig,
                                            description="pose_mode seeded: the device poses' uncertainty and jumps")
+    pose_choice: PoseChoiceConfig = Field(
+        default_factory=PoseChoiceConfig, description="pose_mode auto without depth: prior or seeded, chosen by how "
+        "well the device poses agree with the images over the first frames (a `pose_source_chosen` event)")
     depth_camera: DepthCameraConfig | None = Field(
         None, description="the depth camera's intrinsics and depth-to-colour extrinsic: depth is registered to the "
         "colour camera before use (worker.data.registration); without it, misregistration is detected and reported")

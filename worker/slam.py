@@ -14,7 +14,8 @@ chosen once per session from `frontend.tracking` and the first frame (see `choos
 - device (frames carry `pose` and `input.pose_mode != "ignore"`, mode "posed"): the given poses are the odometry,
   used as priors in the pose graph ("prior", loop closures can still correct them) or kept as they are ("fixed");
   with "seeded" (and "auto" with depth), RGB-D or visual odometry tracks from the device's motion and the device
-  poses are keyframe priors (worker.tracking.seeded);
+  poses are keyframe priors (worker.tracking.seeded); "auto" without depth is "prior" where the first frames show
+  the device poses agree with the images, else "seeded" (worker.tracking.pose_choice);
 - rgbd_odometry (depth, no poses): dense photometric + geometric alignment to a reference keyframe;
 - visual_odometry (RGB only): features, PnP against a local map, windowed bundle adjustment;
 - model (mode "monocular"): the feed-forward model tracks submaps (worker.frontend.tracker), the paper's path.
@@ -250,7 +251,20 @@ class SlamSystem:
                 "num_gaussians": self.num_gaussians, "fps": frames / wall if wall > 0 else 0.0,
                 "backend_pending": 0 if self.backend is None else self.backend.pending,
                 "backend_seconds": 0.0 if self.backend is None else self.backend.busy_seconds,
-                **self.live_stats(), "runtime_breakdown": self.timings.breakdown(int(frames))}
+                **self.live_stats(), "pose_source": self.pose_source_choice()["pose_source"],
+                "runtime_breakdown": self.timings.breakdown(int(frames))}
+
+    def pose_source_choice(self) -> dict[str, Any]:
+        """How the session uses the frames' device poses: `pose_source` (prior, fixed or seeded; None when it does
+        not use them) and, for `pose_mode` auto without depth, whether it was judged yet and the agreement figures
+        it was chosen by (`worker.tracking.pose_choice`)."""
+        if self.tracking != "device":
+            return {"pose_source": None, "pose_agreement": None}
+        summary = getattr(self.pose_source, "summary", None)
+        if summary is not None:
+            return summary()
+        pose_mode = self.config.input.pose_mode
+        return {"pose_source": "seeded" if pose_mode == "auto" else pose_mode, "pose_agreement": None}
 
     def live_stats(self) -> dict[str, Any]:
         """What a live client watches, cheap to read while frames stream: how far mapping lags (keyframes waiting,
@@ -611,6 +625,13 @@ class SlamSystem:
             from worker.tracking.seeded import seeded_tracking
 
             return seeded_tracking(self.config, self._with_depth, lambda prior: self.loop_stage.submit(prior))
+        if tracking == "device" and pose_mode == "auto":
+            from worker.tracking.pose_choice import ChosenDevicePoses
+            from worker.tracking.seeded import seeded_tracking
+
+            return ChosenDevicePoses(lambda: seeded_tracking(self.config, False,
+                                                             lambda prior: self.loop_stage.submit(prior)),
+                                     self.config.input.pose_choice)
         if tracking == "device":
             return DevicePoses()
         if tracking == "model":

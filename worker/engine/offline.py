@@ -126,7 +126,7 @@ def run_sequence(
                                          "seconds": lag_at_last_pose["mapping_lag_s"]},
             "keyframes_shed": system.live_stats()["keyframes_shed"], "live_pacing": live_pacing,
             "use_gt_depth": use_gt_depth, "use_gt_poses": use_gt_poses, "tracking": system.tracking,
-            "depth_source": system.depth_source,
+            "depth_source": system.depth_source, **system.pose_source_choice(),
             "intrinsics": intrinsics.to_dict() if intrinsics else None,
             "intrinsics_estimated": given_intrinsics is None,
             "drift": None if drift is None else drift.to_dict(),

@@ -48,3 +48,21 @@ class DevicePoseConfig(BaseModel):
     resume_after_s: float = Field(
         0.3, ge=0, description="... and no restart before the odometry has been lost this long (seconds of frame "
         "time): a short loss is left to relocalise against the odometry's references, from the device's pose")
+
+
+class PoseChoiceConfig(BaseModel):
+    """pose_mode auto without depth: how the device poses are judged against the images over the first frames
+    (`worker.tracking.pose_choice`)."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+    max_ratio: float = Field(
+        1.5, gt=0, description="the device poses are the odometry (prior) while their three-view reprojection error "
+        "is at most this times the error of poses fitted to the same tracks from the images alone (a ratio, free of "
+        "scale and resolution: about 0.4-0.7 for exact poses, 1 where the device is as good as three frames' own "
+        "fit); above it, visual odometry tracks from the device's motion and the device poses are priors (seeded)")
+    triples: int = Field(8, ge=1, le=100, description="frame triples with parallax the verdict waits for ...")
+    within_frames: int = Field(
+        30, ge=0, le=1000, description="... or at most this many frames, judged on the triples measured by then (none: "
+        "prior); 0: no judging, always prior")
+    step: int = Field(2, ge=1, le=30, description="frames between the views of a triple")

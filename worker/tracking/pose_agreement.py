@@ -1,0 +1,232 @@
+"""How well given poses agree with the images: the three-view reprojection error, against what the images allow.
+
+Corners of a frame a, tracked (pyramidal Lucas-Kanade) into two later frames b and c, are triangulated from a and b
+with the given poses and projected into c with c's given pose: the median distance to where they were tracked is
+`given_px`. The same points projected with c's pose fitted to them instead (PnP: RANSAC, then Levenberg-Marquardt)
+leave `fitted_px`: what the tracking noise and the a-b geometry allow, the error a visual odometry's own pose of c
+would leave on the same points. Their ratio is scale-free and resolution-free: about 1 where the given poses are as
+good as the images can tell (ICL's exact poses: 0.24 px at 320x240), several where the steps between the poses
+disagree with the images (KITTI's GPS/IMU poses: 2.3 px at 620x188). Multi-view stereo and the map built on such
+poses inherit the disagreement (`bench/RESULTS.md`, issue 21 point 1).
+
+`PoseAgreement` judges a session online from its first frames (`worker.tracking.pose_choice`);
+`python -m bench pose_consistency` measures whole sequences with the same `triple_error`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+MAX_CORNERS = 1500
+MIN_POINTS = 20  # points with parallax a triple needs to count
+MIN_FLOW_PX = 1.5  # a point's motion from a to b below this gives no parallax to triangulate from
+FB_MAX_PX = 0.5  # a corner tracked one frame ahead and back must come back this close
+
+
+@dataclass(frozen=True)
+class TripleError:
+    """One triple's median reprojection errors in its third view (pixels): with the given pose, with a fitted one."""
+
+    given_px: float
+    fitted_px: float
+    points: int
+
+
+@dataclass(frozen=True)
+class AgreementVerdict:
+    """Whether given poses agree with the images: medians over the triples measured and their ratio."""
+
+    given_px: float
+    fitted_px: float
+    triples: int
+    max_ratio: float
+
+    @property
+    def ratio(self) -> float:
+        return self.given_px / max(self.fitted_px, 1e-6)
+
+    @property
+    def agree(self) -> bool:
+        return self.ratio <= self.max_ratio
+
+    def to_dict(self) -> dict[str, float | int | bool]:
+        return {"reprojection_px": round(self.given_px, 3), "fitted_px": round(self.fitted_px, 3),
+                "ratio": round(self.ratio, 2), "max_ratio": self.max_ratio, "triples": self.triples,
+                "agree": self.agree}
+
+
+def grey(image: np.ndarray) -> np.ndarray:
+    """An RGB uint8 image (or a grey one) as grey uint8."""
+    return image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+
+
+def track_corners(greys: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray] | None:
+    """Corners of greys[0] followed frame by frame through `greys` (pyramidal Lucas-Kanade, each step checked by
+    tracking back: a corner that does not come back within FB_MAX_PX is dropped): (positions [frames, n, 2], kept
+    [n]); None without corners."""
+    corners = cv2.goodFeaturesToTrack(greys[0], MAX_CORNERS, 0.01, 5)
+    if corners is None or len(corners) < MIN_POINTS:
+        return None
+    corners = cv2.cornerSubPix(greys[0], corners.astype(np.float32), (3, 3), (-1, -1),
+                               (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 20, 0.01))
+    positions, kept = [corners], np.ones(len(corners), bool)
+    for previous, current in zip(greys, greys[1:]):
+        ahead, found, _ = cv2.calcOpticalFlowPyrLK(previous, current, positions[-1], None)
+        back, returned, _ = cv2.calcOpticalFlowPyrLK(current, previous, ahead, None)
+        kept &= (found.ravel() == 1) & (returned.ravel() == 1)
+        kept &= np.linalg.norm((back - positions[-1])[:, 0], axis=1) < FB_MAX_PX
+        positions.append(ahead)
+    return np.stack([p[:, 0] for p in positions]).astype(np.float64), kept
+
+
+def triple_error(greys: list[np.ndarray], poses_c2w: tuple[np.ndarray, np.ndarray, np.ndarray],
+                 K: np.ndarray) -> TripleError | None:
+    """The reprojection errors of the triple (first, middle, last frame of `greys`, grey images of consecutive
+    frames, an odd number of them) with its given camera-to-world poses and with poses fitted to the images;
+    None where fewer than MIN_POINTS tracked points have parallax (after the rotation is taken out: a turn in place
+    tells nothing about positions) in front of the cameras, or a fit fails."""
+    tracks = track_corners(greys)
+    if tracks is None:
+        return None
+    positions, kept = tracks
+    x0, x1, x2 = (positions[j][kept] for j in (0, len(greys) // 2, -1))
+    K = np.asarray(K, np.float64)
+    fitted = _fitted_views(x0, x1, K)
+    if fitted is None:
+        return None
+    fitted_b, keep = fitted
+    x0, x1, x2 = x0[keep], x1[keep], x2[keep]
+    w2c = [np.linalg.inv(np.asarray(p, np.float64)) for p in poses_c2w]
+    given = _third_view_errors(x0, x1, x2, K, w2c[0], w2c[1], w2c[2])
+    ours = _third_view_errors(x0, x1, x2, K, np.eye(4), fitted_b, None)
+    if given is None or ours is None:
+        return None
+    return TripleError(float(np.median(given)), float(np.median(ours)), int(len(x0)))
+
+
+def _fitted_views(x0: np.ndarray, x1: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The second view's pose (world to camera, the first view at the origin, unit baseline) fitted to the tracks
+    by the essential matrix, and the tracks to judge by: its inliers with parallax once its rotation is taken out
+    (None with fewer than MIN_POINTS)."""
+    if len(x0) < MIN_POINTS:
+        return None
+    E, mask = cv2.findEssentialMat(x0, x1, K, cv2.RANSAC, 0.999, 1.0)
+    if E is None or E.shape != (3, 3):
+        return None
+    _, R, t, mask = cv2.recoverPose(E, x0, x1, K, mask=mask)
+    rotated = (K @ R @ np.linalg.inv(K) @ np.c_[x0, np.ones(len(x0))].T).T
+    parallax = np.linalg.norm(rotated[:, :2] / rotated[:, 2:] - x1, axis=1)
+    keep = (mask.ravel() > 0) & (parallax > MIN_FLOW_PX)
+    if keep.sum() < MIN_POINTS:
+        return None
+    pose = np.eye(4)
+    pose[:3, :3], pose[:3, 3] = R, t.ravel()
+    return pose, keep
+
+
+def _third_view_errors(x0: np.ndarray, x1: np.ndarray, x2: np.ndarray, K: np.ndarray, w2c_a: np.ndarray,
+                       w2c_b: np.ndarray, w2c_c: np.ndarray | None) -> np.ndarray | None:
+    """Errors in the third view of the points triangulated from the first two (world-to-camera poses): projected
+    with `w2c_c`, or with the pose fitted to them (PnP) where it is None. None when fewer than MIN_POINTS points lie
+    in front of the cameras."""
+    points = cv2.triangulatePoints(K @ w2c_a[:3], K @ w2c_b[:3], x0.T, x1.T)
+    points = (points[:3] / np.where(np.abs(points[3]) > 1e-12, points[3], 1e-12)).T
+    in_front = (points @ w2c_a[:3, :3].T + w2c_a[:3, 3])[:, 2] > 0
+    if w2c_c is not None:
+        in_front &= (points @ w2c_c[:3, :3].T + w2c_c[:3, 3])[:, 2] > 0
+    if in_front.sum() < MIN_POINTS:
+        return None
+    points, observed = points[in_front], x2[in_front]
+    if w2c_c is None:
+        w2c_c = _pnp(points, observed, K)
+        if w2c_c is None:
+            return None
+    rvec, _ = cv2.Rodrigues(w2c_c[:3, :3])
+    projected, _ = cv2.projectPoints(points, rvec, w2c_c[:3, 3].reshape(3, 1), K, None)
+    errors = np.linalg.norm(projected[:, 0] - observed, axis=1)
+    return errors if np.all(np.isfinite(errors)) else None
+
+
+def _pnp(points: np.ndarray, observed: np.ndarray, K: np.ndarray) -> np.ndarray | None:
+    """The world-to-camera pose that fits `points` to `observed` best (RANSAC, then Levenberg-Marquardt on its
+    inliers)."""
+    ok, rvec, tvec, inliers = cv2.solvePnPRansac(points, observed, K, None, iterationsCount=200,
+                                                 reprojectionError=2.0, confidence=0.999, flags=cv2.SOLVEPNP_EPNP)
+    if not ok or inliers is None or len(inliers) < 6:
+        return None
+    inliers = inliers.ravel()
+    rvec, tvec = cv2.solvePnPRefineLM(points[inliers], observed[inliers], K, None, rvec, tvec)
+    pose = np.eye(4)
+    pose[:3, :3], pose[:3, 3] = cv2.Rodrigues(rvec)[0], tvec.ravel()
+    return pose
+
+
+def verdict(errors: list[TripleError], max_ratio: float) -> AgreementVerdict | None:
+    """The medians over `errors` (None without any)."""
+    if not errors:
+        return None
+    return AgreementVerdict(float(np.median([e.given_px for e in errors])),
+                            float(np.median([e.fitted_px for e in errors])), len(errors), max_ratio)
+
+
+def sequence_errors(images: list[np.ndarray], poses_c2w: list[np.ndarray], K: np.ndarray, step: int,
+                    triples: int) -> list[TripleError]:
+    """The errors of up to `triples` triples (i, i + step, i + 2 step) spread along a sequence."""
+    last = len(images) - 2 * step
+    errors = []
+    for i in np.linspace(0, max(0, last - 1), min(triples, max(1, last))).astype(int):
+        if i + 2 * step >= len(images):
+            continue
+        greys = [grey(image) for image in images[i:i + 2 * step + 1]]
+        error = triple_error(greys, (poses_c2w[i], poses_c2w[i + step], poses_c2w[i + 2 * step]), K)
+        if error is not None:
+            errors.append(error)
+    return errors
+
+
+class PoseAgreement:
+    """Judges a stream's poses from its first frames: each frame completes the triple that started `step` x 2
+    frames before it; a verdict once `triples` triples are measured, or at frame `within_frames` from what was."""
+
+    def __init__(self, step: int = 2, triples: int = 6, within_frames: int = 30, max_ratio: float = 2.0) -> None:
+        self.step, self.triples, self.within_frames, self.max_ratio = step, triples, within_frames, max_ratio
+        self.recent: list[tuple[np.ndarray, np.ndarray]] = []  # (grey image, pose) of the last 2 step + 1 frames
+        self.errors: list[TripleError] = []
+        self.frames = 0
+
+    def add(self, image: np.ndarray, pose_c2w: np.ndarray, K: np.ndarray) -> bool:
+        """Take the next frame (RGB or grey, its pose, the camera); True once judged (`result`). A triple ends
+        every `step` frames (its first frame is the middle of the one before)."""
+        self.frames += 1
+        self.recent.append((grey(image), np.asarray(pose_c2w, np.float64)))
+        if len(self.recent) == 2 * self.step + 1:
+            error = triple_error([g for g, _ in self.recent], tuple(self.recent[j][1] for j in (0, self.step, -1)),
+                                 K)
+            if error is not None:
+                self.errors.append(error)
+            self.recent = self.recent[self.step:]
+        if len(self.errors) < self.triples and self.frames < self.within_frames:
+            return False
+        self.recent = []
+        return True
+
+    @property
+    def result(self) -> AgreementVerdict | None:
+        """The medians over the triples measured so far (None before any had parallax)."""
+        return verdict(self.errors, self.max_ratio)
+
+    def forget_frames(self) -> None:
+        """A gap in the stream (a frame without a pose): triples start again after it."""
+        self.recent = []
+
+    def state_dict(self) -> dict:
+        """The measured triples and the frame count (not the images: judging goes on with the next frames)."""
+        return {"errors": [[e.given_px, e.fitted_px, e.points] for e in self.errors], "frames": self.frames}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.errors = [TripleError(float(g), float(f), int(n)) for g, f, n in state["errors"]]
+        self.frames = int(state["frames"])
+        self.recent = []

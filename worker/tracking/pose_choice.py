@@ -1,0 +1,125 @@
+"""`pose_mode: auto` without depth: the device's poses, or visual odometry seeded by them, chosen per session.
+
+Where device poses agree with the images to what the images themselves allow (ICL's exact poses, COLMAP's), they
+are the best odometry there is: `prior` (ICL posed RGB 28.7 dB, where visual odometry gives 27.5). Where they do not
+(KITTI's GPS/IMU poses: the map on them renders 14.2 dB, on the visual odometry's 17.3), visual odometry should track
+and the device poses only seed and constrain it: `seeded` (worker.tracking.seeded).
+
+The session starts with the device's poses while the first frames judge them (worker.tracking.pose_agreement: the
+three-view reprojection error with the device's poses over that of poses fitted to the same tracks from the images
+alone, a scale-free ratio; `input.pose_choice`). The verdict comes within `within_frames` frames (on ICL and KITTI
+after 18) as a `pose_source_chosen` event with its figures. `seeded` starts at the frame of the verdict from that
+frame's device pose, which is where the session's poses already are: nothing jumps; the keyframes made before keep
+their device poses.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from worker.data.frame import Frame
+from worker.geometry import Intrinsics
+from worker.tracking.base import TrackingResult
+from worker.tracking.pose_agreement import AgreementVerdict, PoseAgreement
+from worker.tracking.seeded_config import PoseChoiceConfig
+from worker.tracking.sources import DevicePoses
+
+log = logging.getLogger(__name__)
+
+
+class ChosenDevicePoses:
+    """The device's poses (`prior`) until the first frames show they disagree with the images, then seeded visual
+    odometry (module docstring). `new_seeded` builds the seeded source when it is chosen."""
+
+    name = "device"
+
+    def __init__(self, new_seeded: Callable[[], Any], config: PoseChoiceConfig | None = None) -> None:
+        self.config = config or PoseChoiceConfig()
+        self.new_seeded = new_seeded
+        self.device = DevicePoses()
+        self.seeded = None  # the seeded source, once chosen
+        c = self.config
+        self.agreement = PoseAgreement(c.step, c.triples, c.within_frames, c.max_ratio)
+        self.choice: str | None = None if c.within_frames > 0 else "prior"  # "prior" or "seeded" once judged
+        self.verdict: AgreementVerdict | None = None
+        self.reason = None if self.choice is None else "pose_choice.within_frames is 0: not judged"
+
+    @property
+    def source(self):
+        """The source tracking now."""
+        return self.device if self.seeded is None else self.seeded
+
+    @property
+    def estimated_intrinsics(self) -> Intrinsics | None:
+        return getattr(self.source, "estimated_intrinsics", None)
+
+    @property
+    def calibrating(self) -> bool:
+        return bool(getattr(self.source, "calibrating", False))
+
+    def track(self, frame: Frame, intrinsics: Intrinsics | None) -> TrackingResult:
+        if self.seeded is not None:
+            return self.seeded.track(frame, intrinsics)
+        result = self.device.track(frame, intrinsics)
+        if self.choice is not None:
+            return result
+        if frame.pose is None:  # a gap: triples do not span it
+            self.agreement.forget_frames()
+            return result
+        if intrinsics is None:
+            return self._decide("prior", frame.index, result, "no camera intrinsics to judge the poses with")
+        if not self.agreement.add(frame.image, result.pose, intrinsics.matrix().numpy()):
+            return result
+        self.verdict = self.agreement.result
+        if self.verdict is None:
+            return self._decide("prior", frame.index, result, "no frame triple with parallax to judge the poses by")
+        v = self.verdict
+        if v.agree:
+            return self._decide("prior", frame.index, result,
+                                f"device poses agree with the images: {v.given_px:.2f} px three-view reprojection "
+                                f"error, {v.ratio:.2f} times the images' own fit ({v.fitted_px:.2f} px), at most "
+                                f"{v.max_ratio:g} allowed")
+        self.seeded = self.new_seeded()
+        seeded = self.seeded.track(frame, intrinsics)  # from this frame's device pose: where the session is now
+        return self._decide("seeded", frame.index, seeded,
+                            f"device poses disagree with the images: {v.given_px:.2f} px three-view reprojection "
+                            f"error, {v.ratio:.2f} times the images' own fit ({v.fitted_px:.2f} px), above "
+                            f"{v.max_ratio:g}: visual odometry tracks, the device poses are priors")
+
+    def _decide(self, choice: str, index: int, result: TrackingResult, reason: str) -> TrackingResult:
+        self.choice, self.reason = choice, reason
+        log.info("frame %d: pose source %s (%s)", index, choice, reason)
+        event = {"type": "pose_source_chosen", "frame": int(index), "pose_source": choice, "reason": reason,
+                 **(self.verdict.to_dict() if self.verdict is not None else {})}
+        result.events = [event, *result.events]
+        return result
+
+    def keyframe_added(self, frame: Frame, pose: np.ndarray) -> None:
+        self.source.keyframe_added(frame, pose)
+
+    def summary(self) -> dict[str, Any]:
+        """The choice (prior while still judging) and the figures it was made by."""
+        figures = {} if self.verdict is None else self.verdict.to_dict()
+        return {"pose_source": self.choice or "prior",
+                "pose_agreement": {"judged": self.choice is not None, "reason": self.reason, **figures}}
+
+    def state_dict(self) -> dict[str, Any]:
+        v = self.verdict
+        return {"choice": self.choice, "reason": self.reason, "device": self.device.state_dict(),
+                "agreement": self.agreement.state_dict(),
+                "verdict": None if v is None else [v.given_px, v.fitted_px, v.triples, v.max_ratio],
+                "seeded": None if self.seeded is None else self.seeded.state_dict()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.choice, self.reason = state["choice"], state["reason"]
+        self.device.load_state_dict(state["device"])
+        self.agreement.load_state_dict(state["agreement"])
+        v = state["verdict"]
+        self.verdict = None if v is None else AgreementVerdict(float(v[0]), float(v[1]), int(v[2]), float(v[3]))
+        if state["seeded"] is not None:
+            self.seeded = self.new_seeded()
+            self.seeded.load_state_dict(state["seeded"])
