@@ -12,11 +12,13 @@ from service.presets import PresetName, preset_field_description
 SessionStatus = Literal["created", "streaming", "finishing", "finished", "failed", "abandoned"]
 PoseMode = Literal["prior", "fixed", "ignore", "seeded"]
 POSE_MODE_DOC = ("what the engine does with the device poses frames carry (default: `seeded` when the frames carry "
-                 "depth, else `prior`): `prior` uses them as the odometry, refined by loop closures, `fixed` keeps "
-                 "them exactly as sent (accurate ARKit/ARCore poses: no loop correction), `ignore` tracks from the "
-                 "images (and depth) alone, `seeded` tracks from the images (RGB-D or visual odometry) starting from "
-                 "the device's motion, with the device poses as priors in the pose graph; a device pose that jumps "
-                 "(relocalisation) gets a `device_pose_jump` message and is left out")
+                 "depth, else `prior` where the first frames show that the poses agree with the images and `seeded` "
+                 "where they do not, said by a `pose_source_chosen` message): `prior` uses them as the odometry, "
+                 "refined by loop closures, `fixed` keeps them exactly as sent (accurate ARKit/ARCore poses: no loop "
+                 "correction), `ignore` tracks from the images (and depth) alone, `seeded` tracks from the images "
+                 "(RGB-D or visual odometry) starting from the device's motion, with the device poses as priors in "
+                 "the pose graph; a device pose that jumps (relocalisation) gets a `device_pose_jump` message and is "
+                 "left out")
 # A depth camera sits centimetres from the colour one: a longer translation is a unit mistake (Azure Kinect's
 # calibration is in millimetres).
 MAX_DEPTH_BASELINE_M = 1.0

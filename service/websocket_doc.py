@@ -208,6 +208,20 @@ WEBSOCKET_DOC = {
                 "description": "pose_mode seeded: the device pose of frame `seq` jumped (ARKit/ARCore relocalising, a "
                                "glitch); the session's poses do not follow the jump and the next keyframe gets no "
                                "device prior"},
+            "pose_source_chosen": {"type": "object", "properties": {
+                "type": {"const": "pose_source_chosen"}, "seq": {"type": "integer"},
+                "pose_source": {"enum": ["prior", "seeded"]}, "reason": {"type": "string"},
+                "reprojection_px": {"type": "number", "description": "median three-view reprojection error of "
+                                                                     "tracked corners with the device's poses"},
+                "fitted_px": {"type": "number", "description": "... with poses fitted to the same tracks"},
+                "ratio": {"type": "number"}, "max_ratio": {"type": "number"},
+                "triples": {"type": "integer", "description": "frame triples measured"}},
+                "additionalProperties": True,
+                "description": "pose_mode auto, frames with poses and no depth: over the first frames (at most "
+                               "input.pose_choice.within_frames, 30) the device poses were judged against the images; "
+                               "`prior`: they are the odometry; `seeded`: visual odometry tracks from this frame on, "
+                               "from the device's motion, the device poses are pose-graph priors (also in the "
+                               "session's warnings)"},
             "depth_misregistered": {"type": "object", "properties": {
                 "type": {"const": "depth_misregistered"}, "seq": {"type": "integer"},
                 "shift_dx": {"type": "integer"}, "shift_dy": {"type": "integer"}, "message": {"type": "string"}},
@@ -239,7 +253,8 @@ WEBSOCKET_DOC = {
     "/v1/sessions/{session_id}/events": {
         "description": "A read-only feed for viewers that do not send the frames (the web viewer): the messages the "
                        "session's stream gets (pose, loop_closed, maps_merged, tracking_lost, relocalized, "
-                       "initializing, initialized, new_map, rotation_only, device_pose_jump, depth_misregistered, "
+                       "initializing, initialized, new_map, rotation_only, device_pose_jump, pose_source_chosen, "
+                       "depth_misregistered, "
                        "error, finishing, finished) "
                        "from the "
                        "moment of connection; the trajectory endpoint has the earlier ones. A session already "

@@ -39,9 +39,9 @@ from worker.serialization import pack, unpack
 
 # Pose-source events forwarded to the clients as their own messages.
 TRACKING_EVENTS = ("tracking_lost", "relocalized", "initialized", "initializing", "new_map", "rotation_only")
-# Notices about the input, forwarded as their own messages (tracking goes on); a misregistration is also kept in
-# the session record's `warnings`.
-INPUT_EVENTS = ("device_pose_jump", "depth_misregistered")
+# Notices about the input, forwarded as their own messages (tracking goes on); a misregistration, and device poses
+# that disagree with the images, are also kept in the session record's `warnings`.
+INPUT_EVENTS = ("device_pose_jump", "depth_misregistered", "pose_source_chosen")
 MAP_EVENTS = ("maps_merged",)  # published with the revision they made; the tracking state stays as it is
 
 log = logging.getLogger(__name__)
@@ -463,6 +463,8 @@ class SessionRunner(threading.Thread):
                 self._publish_tracking_event(seq, event)
                 if event["type"] == "depth_misregistered":
                     self._add_warning(str(event.get("message", "depth is not registered to the colour image")))
+                if event["type"] == "pose_source_chosen" and event.get("pose_source") == "seeded":
+                    self._add_warning(str(event.get("reason", "device poses disagree with the images")))
         self._tracking_state = self._tracking_state or "tracking"
         if not self._session.get("estimated_intrinsics") or any(
                 e.get("type") == "initialized" and e.get("intrinsics") for e in result.events):  # (re-)estimated
