@@ -110,3 +110,11 @@ def test_an_explicit_pose_mode_is_not_judged(frames, noisy) -> None:
     assert not _chosen(results) and system.pose_source_choice() == {"pose_source": "prior", "pose_agreement": None}
     for result, pose in zip(results, noisy):
         np.testing.assert_allclose(result.pose, pose, atol=1e-9)
+
+
+def test_without_parallax_the_device_poses_are_kept(frames, noisy) -> None:
+    still = [replace(frames[0], index=k, timestamp=k / 30) for k in range(31)]  # a camera that does not move
+    system, results = _session(still, noisy[:31])
+    [(at, event)] = _chosen(results)
+    assert at == 29 and event["pose_source"] == "prior" and "parallax" in event["reason"]
+    assert system.pose_source_choice()["pose_agreement"]["judged"]

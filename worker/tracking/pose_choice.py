@@ -78,6 +78,10 @@ class ChosenDevicePoses:
         if self.verdict is None:
             return self._decide("prior", frame.index, result, "no frame triple with parallax to judge the poses by")
         v = self.verdict
+        if v.triples < self.config.min_triples:
+            return self._decide("prior", frame.index, result,
+                                f"only {v.triples} frame triple(s) with parallax within {self.agreement.frames} "
+                                f"frames, fewer than {self.config.min_triples}: too few to judge the poses by")
         if v.agree:
             return self._decide("prior", frame.index, result,
                                 f"device poses agree with the images: {v.given_px:.2f} px three-view reprojection "

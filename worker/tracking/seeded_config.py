@@ -63,6 +63,9 @@ class PoseChoiceConfig(BaseModel):
         "fit); above it, visual odometry tracks from the device's motion and the device poses are priors (seeded)")
     triples: int = Field(8, ge=1, le=100, description="frame triples with parallax the verdict waits for ...")
     within_frames: int = Field(
-        30, ge=0, le=1000, description="... or at most this many frames, judged on the triples measured by then (none: "
-        "prior); 0: no judging, always prior")
+        30, ge=0, le=1000, description="... or at most this many frames, judged on the triples measured by then; 0: no "
+        "judging, always prior")
+    min_triples: int = Field(
+        3, ge=1, le=100, description="with fewer triples than this by then (a slow start, sparse views), the device "
+        "poses are kept (prior): one or two triples' median is no evidence against them")
     step: int = Field(2, ge=1, le=30, description="frames between the views of a triple")
