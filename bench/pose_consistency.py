@@ -10,6 +10,7 @@ more, and multi-view stereo and the map built on them inherit it (issue 21 point
 KITTI and VAMR).
 
     python -m bench pose_consistency --source DIR [--source DIR ...] [--width 320] [--step 2] [--triples 25]
+        [--max-ratio 1.5]
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import argparse
 import numpy as np
 
 from worker.tracking.pose_agreement import sequence_errors, verdict
+from worker.tracking.seeded_config import PoseChoiceConfig
 
 
 def reprojection_errors(frames: list, K: np.ndarray, step: int, triples: int) -> list[float]:
@@ -36,7 +38,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--step", type=int, default=2, help="frames between the views of a triple")
     parser.add_argument("--triples", type=int, default=25)
     parser.add_argument("--max-frames", type=int, default=None)
-    parser.add_argument("--max-ratio", type=float, default=2.0, help="the ratio above which poses disagree")
+    parser.add_argument("--max-ratio", type=float, default=PoseChoiceConfig().max_ratio,
+                        help="the ratio above which poses disagree (the engine's input.pose_choice.max_ratio)")
     args = parser.parse_args(argv)
     for source in args.source:
         probe = open_source(source, use_gt_poses=True, max_frames=1)

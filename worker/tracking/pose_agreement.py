@@ -24,6 +24,7 @@ MAX_CORNERS = 1500
 MIN_POINTS = 20  # points with parallax a triple needs to count
 MIN_FLOW_PX = 1.5  # a point's motion from a to b below this gives no parallax to triangulate from
 FB_MAX_PX = 0.5  # a corner tracked one frame ahead and back must come back this close
+LK_PARAMS = {"winSize": (21, 21), "maxLevel": 3}  # OpenCV's defaults, named
 
 
 @dataclass(frozen=True)
@@ -63,36 +64,85 @@ def grey(image: np.ndarray) -> np.ndarray:
     return image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
 
 
-def track_corners(greys: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray] | None:
-    """Corners of greys[0] followed frame by frame through `greys` (pyramidal Lucas-Kanade, each step checked by
-    tracking back: a corner that does not come back within FB_MAX_PX is dropped): (positions [frames, n, 2], kept
-    [n]); None without corners."""
-    corners = cv2.goodFeaturesToTrack(greys[0], MAX_CORNERS, 0.01, 5)
+def _corners(image: np.ndarray) -> np.ndarray | None:
+    """Corners to follow in a grey image ([n, 1, 2] float32, sub-pixel), None with fewer than MIN_POINTS."""
+    corners = cv2.goodFeaturesToTrack(image, MAX_CORNERS, 0.01, 5)
     if corners is None or len(corners) < MIN_POINTS:
         return None
-    corners = cv2.cornerSubPix(greys[0], corners.astype(np.float32), (3, 3), (-1, -1),
-                               (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 20, 0.01))
-    positions, kept = [corners], np.ones(len(corners), bool)
-    for previous, current in zip(greys, greys[1:]):
-        ahead, found, _ = cv2.calcOpticalFlowPyrLK(previous, current, positions[-1], None)
-        back, returned, _ = cv2.calcOpticalFlowPyrLK(current, previous, ahead, None)
-        kept &= (found.ravel() == 1) & (returned.ravel() == 1)
-        kept &= np.linalg.norm((back - positions[-1])[:, 0], axis=1) < FB_MAX_PX
-        positions.append(ahead)
-    return np.stack([p[:, 0] for p in positions]).astype(np.float64), kept
+    return cv2.cornerSubPix(image, corners.astype(np.float32), (3, 3), (-1, -1),
+                            (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 20, 0.01))
 
 
-def triple_error(greys: list[np.ndarray], poses_c2w: tuple[np.ndarray, np.ndarray, np.ndarray],
-                 K: np.ndarray) -> TripleError | None:
-    """The reprojection errors of the triple (first, middle, last frame of `greys`, grey images of consecutive
-    frames, an odd number of them) with its given camera-to-world poses and with poses fitted to the images;
-    None where fewer than MIN_POINTS tracked points have parallax (after the rotation is taken out: a turn in place
-    tells nothing about positions) in front of the cameras, or a fit fails."""
-    tracks = track_corners(greys)
-    if tracks is None:
-        return None
-    positions, kept = tracks
-    x0, x1, x2 = (positions[j][kept] for j in (0, len(greys) // 2, -1))
+@dataclass
+class _OpenTriple:
+    """A triple whose last frame has not come yet: its corners where they started, in its middle frame and now."""
+
+    start: np.ndarray
+    poses: list[np.ndarray]
+    current: np.ndarray
+    kept: np.ndarray
+    frames: int = 1
+    middle: np.ndarray | None = None
+
+
+class TripleTracker:
+    """Frame triples (a, a + step, a + 2 step) of a stream, one starting every `every` frames (0: at the first frame
+    only). The corners of a are followed frame by frame (pyramidal Lucas-Kanade, each step checked by tracking back:
+    a corner that does not come back within FB_MAX_PX is dropped), the open triples' corners in one call a frame."""
+
+    def __init__(self, step: int, every: int = 0) -> None:
+        self.step, self.every = step, every
+        self.previous: np.ndarray | None = None
+        self.open: list[_OpenTriple] = []
+        self.count = 0
+
+    def add(self, image: np.ndarray, pose_c2w: np.ndarray, K: np.ndarray) -> list[TripleError]:
+        """Take the next frame (grey, its pose, the camera); returns the errors of the triples it completes."""
+        pose = np.asarray(pose_c2w, np.float64)
+        completed = []
+        if self.open:
+            self._follow(image)
+            for triple in self.open:
+                triple.frames += 1
+                if triple.frames == self.step + 1:
+                    triple.middle = triple.current.copy()
+                    triple.poses.append(pose)
+            for triple in [t for t in self.open if t.frames == 2 * self.step + 1]:
+                self.open.remove(triple)
+                completed.append(triple_error(triple.start[triple.kept, 0], triple.middle[triple.kept, 0],
+                                              triple.current[triple.kept, 0], (*triple.poses, pose), K))
+        if self.count == 0 or (self.every and self.count % self.every == 0):
+            corners = _corners(image)
+            if corners is not None:
+                self.open.append(_OpenTriple(corners, [pose], corners.copy(), np.ones(len(corners), bool)))
+        self.previous = image
+        self.count += 1
+        return [e for e in completed if e is not None]
+
+    def _follow(self, image: np.ndarray) -> None:
+        current = np.concatenate([t.current for t in self.open])
+        ahead, found, _ = cv2.calcOpticalFlowPyrLK(self.previous, image, current, None, **LK_PARAMS)
+        back, returned, _ = cv2.calcOpticalFlowPyrLK(image, self.previous, ahead, None, **LK_PARAMS)
+        ok = (found.ravel() == 1) & (returned.ravel() == 1)
+        ok &= np.linalg.norm((back - current)[:, 0], axis=1) < FB_MAX_PX
+        first = 0
+        for triple in self.open:
+            last = first + len(triple.current)
+            triple.current, triple.kept = ahead[first:last], triple.kept & ok[first:last]
+            first = last
+
+    def reset(self) -> None:
+        """A gap in the stream: the open triples are dropped, the next frame starts one."""
+        self.previous, self.open, self.count = None, [], 0
+
+
+def triple_error(x0: np.ndarray, x1: np.ndarray, x2: np.ndarray,
+                 poses_c2w: tuple[np.ndarray, np.ndarray, np.ndarray], K: np.ndarray) -> TripleError | None:
+    """The reprojection errors of a triple (the points tracked in its three frames, [n, 2] each, and the frames'
+    camera-to-world poses) with the given poses and with poses fitted to the images; None where fewer than
+    MIN_POINTS points have parallax (after the rotation is taken out: a turn in place tells nothing about
+    positions) in front of the cameras, or a fit fails."""
+    x0, x1, x2 = (np.asarray(x, np.float64) for x in (x0, x1, x2))
     K = np.asarray(K, np.float64)
     fitted = _fitted_views(x0, x1, K)
     if fitted is None:
@@ -178,39 +228,30 @@ def sequence_errors(images: list[np.ndarray], poses_c2w: list[np.ndarray], K: np
     last = len(images) - 2 * step
     errors = []
     for i in np.linspace(0, max(0, last - 1), min(triples, max(1, last))).astype(int):
-        if i + 2 * step >= len(images):
-            continue
-        greys = [grey(image) for image in images[i:i + 2 * step + 1]]
-        error = triple_error(greys, (poses_c2w[i], poses_c2w[i + step], poses_c2w[i + 2 * step]), K)
-        if error is not None:
-            errors.append(error)
+        tracker = TripleTracker(step)
+        for j in range(i, min(i + 2 * step + 1, len(images))):
+            errors += tracker.add(grey(images[j]), poses_c2w[j], K)
     return errors
 
 
 class PoseAgreement:
-    """Judges a stream's poses from its first frames: each frame completes the triple that started `step` x 2
-    frames before it; a verdict once `triples` triples are measured, or at frame `within_frames` from what was."""
+    """Judges a stream's poses from its first frames: a triple starts every `step` frames (its first frame is the
+    middle of the one before); a verdict once `triples` triples are measured, or at frame `within_frames` from what
+    was."""
 
-    def __init__(self, step: int = 2, triples: int = 6, within_frames: int = 30, max_ratio: float = 2.0) -> None:
-        self.step, self.triples, self.within_frames, self.max_ratio = step, triples, within_frames, max_ratio
-        self.recent: list[tuple[np.ndarray, np.ndarray]] = []  # (grey image, pose) of the last 2 step + 1 frames
+    def __init__(self, step: int = 2, triples: int = 8, within_frames: int = 30, max_ratio: float = 1.5) -> None:
+        self.triples, self.within_frames, self.max_ratio = triples, within_frames, max_ratio
+        self.tracker = TripleTracker(step, every=step)
         self.errors: list[TripleError] = []
         self.frames = 0
 
     def add(self, image: np.ndarray, pose_c2w: np.ndarray, K: np.ndarray) -> bool:
-        """Take the next frame (RGB or grey, its pose, the camera); True once judged (`result`). A triple ends
-        every `step` frames (its first frame is the middle of the one before)."""
+        """Take the next frame (RGB or grey, its pose, the camera); True once judged (`result`)."""
         self.frames += 1
-        self.recent.append((grey(image), np.asarray(pose_c2w, np.float64)))
-        if len(self.recent) == 2 * self.step + 1:
-            error = triple_error([g for g, _ in self.recent], tuple(self.recent[j][1] for j in (0, self.step, -1)),
-                                 K)
-            if error is not None:
-                self.errors.append(error)
-            self.recent = self.recent[self.step:]
+        self.errors += self.tracker.add(grey(image), pose_c2w, K)
         if len(self.errors) < self.triples and self.frames < self.within_frames:
             return False
-        self.recent = []
+        self.tracker.reset()
         return True
 
     @property
@@ -220,7 +261,7 @@ class PoseAgreement:
 
     def forget_frames(self) -> None:
         """A gap in the stream (a frame without a pose): triples start again after it."""
-        self.recent = []
+        self.tracker.reset()
 
     def state_dict(self) -> dict:
         """The measured triples and the frame count (not the images: judging goes on with the next frames)."""
@@ -229,4 +270,4 @@ class PoseAgreement:
     def load_state_dict(self, state: dict) -> None:
         self.errors = [TripleError(float(g), float(f), int(n)) for g, f, n in state["errors"]]
         self.frames = int(state["frames"])
-        self.recent = []
+        self.tracker.reset()
