@@ -156,6 +156,12 @@ class SlamSystem:
         return self.tracking_stage.pose_source
 
     @property
+    def needs_every_frame(self) -> bool:
+        """Whether a live stream should skip no frame now: while device poses are judged over the first frames
+        (their triples need the frames as the camera took them; skipped ones would make a different verdict)."""
+        return bool(getattr(self.pose_source, "judging", False))
+
+    @property
     def selector(self) -> MotionKeyframeSelector:
         return self.tracking_stage.selector
 

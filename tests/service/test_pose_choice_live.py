@@ -1,7 +1,9 @@
 """The live path makes the same pose-source choice as an offline run: posed RGB frames (no depth) streamed to a real
 stack (gateway, a worker with the SLAM engine, Redis) in the default pose_mode; exact ICL poses get a
 `pose_source_chosen` message saying `prior`, the same poses with every position off by a fifth of a frame's step one
-saying `seeded` (and a warning in the session record), within the first 30 frames, and every pose stays finite."""
+saying `seeded` (and a warning in the session record), within the first 30 frames, and every pose stays finite. The
+frames are sent at once to a live session (skip_frames): none before the verdict is skipped (the triples need them
+all), so the verdict is the one an offline run makes."""
 
 from __future__ import annotations
 
@@ -40,16 +42,19 @@ def test_the_stream_is_told_which_pose_source_the_device_poses_earned(stack, noi
     frames = icl_frames(FRAMES)
     frames = _noisy(frames) if noisy else frames
     with httpx.Client(base_url=stack.base_url, timeout=60) as api:
-        sid = api.post("/v1/sessions", json={"intrinsics": ICL_INTRINSICS, "preset": "fast"}).json()["id"]
+        sid = api.post("/v1/sessions", json={"intrinsics": ICL_INTRINSICS, "preset": "fast",
+                                             "skip_frames": True}).json()["id"]
         with connect(f"{stack.ws_url}/v1/sessions/{sid}/stream", open_timeout=30) as ws:
             for seq, frame in enumerate(frames):
                 ws.send(frame_message(seq, frame, with_pose=True))
-            messages = receive_until(ws, lambda m: m["type"] == "pose" and m["seq"] == FRAMES - 1, timeout_s=180)
+            messages = receive_until(ws, lambda m: m["type"] in ("pose", "skipped") and m["seq"] == FRAMES - 1,
+                                     timeout_s=180)
         warnings = api.get(f"/v1/sessions/{sid}").json()["warnings"]
     assert not of_type(messages, "error"), of_type(messages, "error")
     [chosen] = of_type(messages, "pose_source_chosen")
     assert chosen["pose_source"] == expected and chosen["seq"] <= 20 and chosen["triples"] >= 1
     assert (chosen["ratio"] > chosen["max_ratio"]) == noisy
+    assert not [m for m in of_type(messages, "skipped") if m["seq"] <= chosen["seq"]]
     assert (warnings == [chosen["reason"]]) if noisy else warnings == []
     poses = [np.reshape(m["pose"], (4, 4)) for m in of_type(messages, "pose")]
-    assert len(poses) == FRAMES and all(np.isfinite(p).all() for p in poses)
+    assert len(poses) + len(of_type(messages, "skipped")) == FRAMES and all(np.isfinite(p).all() for p in poses)

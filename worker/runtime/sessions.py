@@ -343,8 +343,11 @@ class SessionRunner(threading.Thread):
     # --- live tracking ------------------------------------------------------------------------------------------
     def _should_skip(self, entry_id: bytes, fields: dict[bytes, bytes], newest_frame: bytes | None) -> bool:
         """Newest first wins: a frame that waited longer than `skip_after_ms` while a newer frame is waiting is
-        skipped (never the session's first frame, a frame already counted, or more than a few in a row)."""
+        skipped (never the session's first frame, a frame already counted, more than a few in a row, or while the
+        engine needs every frame: judging device poses over the first frames, worker.tracking.pose_choice)."""
         limit = self.config.skip_after_ms if self._session.get("skip_frames") == "1" else 0
+        if getattr(self.engine, "needs_every_frame", False):
+            limit = 0
         if (limit <= 0 or newest_frame is None or entry_id == newest_frame or fields.get(b"kind", b"frame") != b"frame"
                 or not self._done_seqs or self._consecutive_skips >= self.config.max_consecutive_skips
                 or int(fields[b"seq"]) in self._done_seqs):

@@ -49,6 +49,11 @@ class ChosenDevicePoses:
         self.reason = None if self.choice is None else "pose_choice.within_frames is 0: not judged"
 
     @property
+    def judging(self) -> bool:
+        """Whether the device poses are still being judged (a live stream should skip no frame meanwhile)."""
+        return self.choice is None
+
+    @property
     def source(self):
         """The source tracking now."""
         return self.device if self.seeded is None else self.seeded
