@@ -118,3 +118,15 @@ def test_without_parallax_the_device_poses_are_kept(frames, noisy) -> None:
     [(at, event)] = _chosen(results)
     assert at == 29 and event["pose_source"] == "prior" and "parallax" in event["reason"]
     assert system.pose_source_choice()["pose_agreement"]["judged"]
+
+
+def test_a_snapshot_from_before_the_choice_resumes_on_the_device_poses(frames) -> None:
+    from worker.tracking.pose_choice import ChosenDevicePoses
+    from worker.tracking.sources import DevicePoses
+
+    old = DevicePoses()
+    old.track(frames[0], frames[0].intrinsics)
+    chosen = ChosenDevicePoses(new_seeded=lambda: None)
+    chosen.load_state_dict(old.state_dict())  # what a worker without the choice snapshot
+    assert chosen.summary()["pose_source"] == "prior" and not chosen.judging
+    np.testing.assert_allclose(chosen.track(frames[1], frames[1].intrinsics).pose, frames[1].pose)

@@ -124,6 +124,10 @@ class ChosenDevicePoses:
                 "seeded": None if self.seeded is None else self.seeded.state_dict()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        if "choice" not in state:  # a session snapshot by a worker without the choice: it used the device's poses
+            self.device.load_state_dict(state)
+            self.choice, self.reason = "prior", "resumed from a snapshot made before pose sources were judged"
+            return
         self.choice, self.reason = state["choice"], state["reason"]
         self.device.load_state_dict(state["device"])
         self.agreement.load_state_dict(state["agreement"])
