@@ -1,16 +1,17 @@
 """How well given poses agree with the images: the three-view reprojection error, against what the images allow.
 
-Corners of a frame a, tracked (pyramidal Lucas-Kanade) into two later frames b and c, are triangulated from a and b
-with the given poses and projected into c with c's given pose: the median distance to where they were tracked is
-`given_px`. The same points projected with c's pose fitted to them instead (PnP: RANSAC, then Levenberg-Marquardt)
-leave `fitted_px`: what the tracking noise and the a-b geometry allow, the error a visual odometry's own pose of c
-would leave on the same points. Their ratio is scale-free and resolution-free: about 1 where the given poses are as
-good as the images can tell (ICL's exact poses: 0.24 px at 320x240), several where the steps between the poses
-disagree with the images (KITTI's GPS/IMU poses: 2.3 px at 620x188). Multi-view stereo and the map built on such
-poses inherit the disagreement (`bench/RESULTS.md`, issue 21 point 1).
+Corners of a frame a, followed frame by frame (pyramidal Lucas-Kanade, each step checked by tracking back) into two
+later frames b and c, are triangulated from a and b with the given poses and projected into c with c's given pose:
+the median distance to where they were tracked is `given_px`. The same tracks with poses fitted to them from the
+images alone (the essential matrix for a -> b, PnP for c) leave `fitted_px`: what three frames of visual odometry
+would achieve on them. Only tracks with parallax once the fitted rotation is taken out count. The ratio
+given / fitted is free of scale and resolution: below 1 for exact poses (they carry no noise, the fit does: ICL
+0.67-0.72 at 320x240), above it where the steps between the poses disagree with the images (KITTI's GPS/IMU poses
+over its first 18 frames: 2.8 at 620x188). Multi-view stereo and the map built on such poses inherit the
+disagreement (`bench/RESULTS.md`, issue 21 point 1).
 
-`PoseAgreement` judges a session online from its first frames (`worker.tracking.pose_choice`);
-`python -m bench pose_consistency` measures whole sequences with the same `triple_error`.
+`PoseAgreement` judges a stream from its first frames (`worker.tracking.pose_choice`); `sequence_errors` measures
+triples spread over a recorded sequence (`python -m bench pose_consistency`); both through `TripleTracker`.
 """
 
 from __future__ import annotations
