@@ -208,6 +208,16 @@ WEBSOCKET_DOC = {
                 "description": "pose_mode seeded: the device pose of frame `seq` jumped (ARKit/ARCore relocalising, a "
                                "glitch); the session's poses do not follow the jump and the next keyframe gets no "
                                "device prior"},
+            "odometry_slip": {"type": "object", "properties": {
+                "type": {"const": "odometry_slip"}, "seq": {"type": "integer"},
+                "photometric_rms": {"type": "array", "items": {"type": "number"},
+                                    "description": "robust intensity residual of the odometry's pose, then of the "
+                                                   "pose tracked again from the device's motion"},
+                "geometric_rms": {"type": "array", "items": {"type": "number"}}},
+                "additionalProperties": True,
+                "description": "pose_mode seeded with depth: the device and the RGB-D odometry disagreed on frame "
+                               "`seq` and the images sided with the device (the odometry had settled in a wrong "
+                               "place): the frame was tracked again from the device's motion; no device jump"},
             "depth_misregistered": {"type": "object", "properties": {
                 "type": {"const": "depth_misregistered"}, "seq": {"type": "integer"},
                 "shift_dx": {"type": "integer"}, "shift_dy": {"type": "integer"}, "message": {"type": "string"}},
@@ -239,7 +249,8 @@ WEBSOCKET_DOC = {
     "/v1/sessions/{session_id}/events": {
         "description": "A read-only feed for viewers that do not send the frames (the web viewer): the messages the "
                        "session's stream gets (pose, loop_closed, maps_merged, tracking_lost, relocalized, "
-                       "initializing, initialized, new_map, rotation_only, device_pose_jump, depth_misregistered, "
+                       "initializing, initialized, new_map, rotation_only, device_pose_jump, odometry_slip, "
+                       "depth_misregistered, "
                        "error, finishing, finished) "
                        "from the "
                        "moment of connection; the trajectory endpoint has the earlier ones. A session already "
