@@ -31,31 +31,42 @@ class DirectSettings:
     min_overlap: float = 0.4  # share of the used reference pixels that land in the current image
     min_inliers: float = 0.6  # share of those whose residual is within 2.5 robust sigmas
     min_correlation: float = 0.75  # zero-normalised correlation of the aligned images, at least
-    max_axis_sigma_deg: float = 0.25  # the best-measured axis must be known to this (image alone), degrees
+    max_axis_sigma_deg: float = 0.25  # the best-measured direction must be known to this (image alone), degrees
     min_gradient: float = 2.0 / 255.0  # gradients weaker than this (intensity per pixel) carry no information
+    min_information_ratio: float = 1e-3  # directions measured this much worse than the best are left to the prior
 
 
 @dataclass
 class DirectFit:
     """An alignment: `rotation` takes reference-camera rays to current-camera rays (R, X_cur = R X_ref + t);
-    `axis_sigma_deg` [3] is the turn's standard deviation about the current camera's x, y, z axes from the image
-    alone (inf: not measured); `correlation` (over the pixels that agree), `overlap` and `residual` (RMS, 0-1
-    intensities) describe the fit at the finest level; `accepted` says
-    whether it passed the settings' tests, `reason` why not."""
+    `information` [3, 3] is what the image alone measured of the turn about the current camera's axes (radians^-2,
+    zero along the directions it does not measure); `correlation` (over the pixels that agree), `overlap` and
+    `residual` (RMS, 0-1 intensities) describe the fit at the finest level; `accepted` says whether it passed the
+    settings' tests, `reason` why not."""
 
     rotation: np.ndarray
     translation: np.ndarray
-    axis_sigma_deg: np.ndarray
+    information: np.ndarray
     correlation: float
     overlap: float
     residual: float
     accepted: bool
     reason: str = ""
 
+    def sigma_deg(self, axis: np.ndarray) -> float:
+        """Standard deviation (degrees) of the turn about the unit `axis` (current camera) from the image alone."""
+        info = float(axis @ self.information @ axis)
+        return float(np.degrees(1.0 / np.sqrt(info))) if info > 0 else float("inf")
+
+    @property
+    def axis_sigma_deg(self) -> np.ndarray:
+        """`sigma_deg` about the current camera's x (pitch), y (yaw) and z (roll) axes."""
+        return np.array([self.sigma_deg(axis) for axis in np.eye(3)])
+
     @property
     def measured_axes(self) -> int:
-        """How many camera axes the image pinned down (sigma below the prior's half)."""
-        return int((self.axis_sigma_deg < 0.5).sum())
+        """How many independent directions of the turn the image pinned down to better than half a degree."""
+        return int((np.linalg.eigvalsh(self.information) > np.radians(0.5) ** -2).sum())
 
 
 def _skew(v: np.ndarray) -> np.ndarray:
@@ -153,6 +164,15 @@ class _Level:
         return r, np.concatenate([J, dI], axis=1), inside
 
 
+def _measured(H: np.ndarray, g: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray]:
+    """The normal equations (H, g) kept to the directions the image measures: eigen-directions of H whose
+    information is below `ratio` of the strongest are dropped (there, blur and sampling, not the scene, decide the
+    minimum; the prior holds them)."""
+    values, vectors = np.linalg.eigh(H)
+    kept = vectors[:, values >= ratio * max(float(values[-1]), 1e-300)]
+    return kept @ (kept.T @ H @ kept) @ kept.T, kept @ (kept.T @ g)
+
+
 def _huber_weights(r: np.ndarray) -> tuple[np.ndarray, float]:
     scale = max(1.4826 * float(np.median(np.abs(r))), 1.0 / 255.0)
     k = 1.345 * scale
@@ -191,8 +211,8 @@ def align_rotation(reference: np.ndarray, current: np.ndarray, K: np.ndarray, pr
                 break
             w, sigma = _huber_weights(r[inside])
             Ji, ri = J[inside, :dof], r[inside]
-            H = (Ji * w[:, None]).T @ Ji / sigma ** 2
-            g = (Ji * w[:, None]).T @ ri / sigma ** 2
+            H, g = _measured((Ji * w[:, None]).T @ Ji / sigma ** 2, (Ji * w[:, None]).T @ ri / sigma ** 2,
+                             s.min_information_ratio)
             # the priors' residuals: the turn about the current camera's axes, the centre moved (a step dt moves
             # the centre by -R^T dt, so its prior pulls dt towards R (centre - predicted centre))
             error = _log(R @ prior_rotation.T)
@@ -206,12 +226,13 @@ def align_rotation(reference: np.ndarray, current: np.ndarray, K: np.ndarray, pr
                 break
         last = (r, inside, data.intensity)
     if last is None:
-        return DirectFit(R, t, np.full(3, np.inf), 0.0, 0.0, float("inf"), False, "no image gradient")
+        return DirectFit(R, t, np.zeros((3, 3)), 0.0, 0.0, float("inf"), False, "no image gradient")
     r, J, inside = data.residuals(R, t, depth)
     overlap = float(inside.mean())
     if inside.sum() >= 20:
         w, sigma = _huber_weights(r[inside])
-        H_image = (J[inside, :3] * w[:, None]).T @ J[inside, :3] / sigma ** 2
+        H_image = _measured((J[inside, :3] * w[:, None]).T @ J[inside, :3] / sigma ** 2, np.zeros(3),
+                            s.min_information_ratio)[0]
         agree = np.abs(r[inside]) <= 2.5 * sigma  # parallax and occlusions are outliers, not a poor fit
         inliers = float(agree.mean())
         a, b = data.intensity[inside][agree], (r[inside] + data.intensity[inside])[agree]
@@ -222,17 +243,16 @@ def align_rotation(reference: np.ndarray, current: np.ndarray, K: np.ndarray, pr
     else:
         correlation, residual, inliers, H_image = 0.0, float("inf"), 0.0, np.zeros((3, 3))
     # Pixels are not independent (neighbours share noise and blur): the image's information is counted per 8x8 cell.
-    info = np.diag(H_image) / 64.0
-    axis_sigma = np.degrees(1.0 / np.sqrt(np.maximum(info, 1e-300)))
-    fit = DirectFit(R, t, axis_sigma, correlation, overlap, residual, False)
+    fit = DirectFit(R, t, H_image / 64.0, correlation, overlap, residual, False)
+    best_sigma = float(np.degrees(1.0 / np.sqrt(max(float(np.linalg.eigvalsh(fit.information)[-1]), 1e-300))))
     if not np.all(np.isfinite(R)):
         fit.reason = "non-finite rotation"
     elif overlap < s.min_overlap:
         fit.reason = f"overlap {overlap:.2f} < {s.min_overlap}"
     elif inliers < s.min_inliers:
         fit.reason = f"{inliers:.2f} of the pixels agree < {s.min_inliers}"
-    elif float(axis_sigma.min()) > s.max_axis_sigma_deg:
-        fit.reason = f"the image measures no turn (best axis +-{float(axis_sigma.min()):.2f} deg)"
+    elif best_sigma > s.max_axis_sigma_deg:
+        fit.reason = f"the image measures no turn (best direction +-{best_sigma:.2f} deg)"
     elif correlation < s.min_correlation:
         fit.reason = f"correlation {correlation:.2f} < {s.min_correlation}"
     else:

@@ -533,6 +533,7 @@ class VisualOdometry:
         self.previous_gray = gray
         self.velocity = rigid(invert_pose(self.pose) @ pose)
         self.frames_since_keyframe += 1
+        self.direct_since = None  # the tracks measure the turn again: a run of aligned frames ends
         last = self.map.keyframes[-1] if self.map.keyframes else None
         if (self.rotation_since is None or last is None
                 or len(self.tracks) < c.rotation_keyframe_share * len(last.track_ids)):
