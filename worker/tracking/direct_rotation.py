@@ -34,6 +34,7 @@ class DirectSettings:
     max_axis_sigma_deg: float = 0.25  # the best-measured direction must be known to this (image alone), degrees
     min_gradient: float = 2.0 / 255.0  # gradients weaker than this (intensity per pixel) carry no information
     min_information_ratio: float = 1e-3  # directions measured this much worse than the best are left to the prior
+    max_correction_deg: float = 6.0  # a fit this far from the predicted turn left the basin of the alignment
 
 
 @dataclass
@@ -198,7 +199,7 @@ def align_rotation(reference: np.ndarray, current: np.ndarray, K: np.ndarray, pr
                                np.full(3, translation_sigma ** -2.0 if moves else 0.0)])[:dof, :dof]
     refs, curs = _pyramid(reference, s.levels), _pyramid(current, s.levels)
     levels = min(len(refs), len(curs))
-    last: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    last: _Level | None = None
     for level in range(levels - 1, -1, -1):
         scale = 0.5 ** level
         K_level = np.diag([scale, scale, 1.0]) @ K
@@ -224,9 +225,10 @@ def align_rotation(reference: np.ndarray, current: np.ndarray, K: np.ndarray, pr
             R, t = turn @ R, turn @ t + (step[3:] if moves else 0.0)
             if np.linalg.norm(step) < 1e-6:
                 break
-        last = (r, inside, data.intensity)
+        last = data
     if last is None:
         return DirectFit(R, t, np.zeros((3, 3)), 0.0, 0.0, float("inf"), False, "no image gradient")
+    data = last
     r, J, inside = data.residuals(R, t, depth)
     overlap = float(inside.mean())
     if inside.sum() >= 20:
@@ -247,6 +249,9 @@ def align_rotation(reference: np.ndarray, current: np.ndarray, K: np.ndarray, pr
     best_sigma = float(np.degrees(1.0 / np.sqrt(max(float(np.linalg.eigvalsh(fit.information)[-1]), 1e-300))))
     if not np.all(np.isfinite(R)):
         fit.reason = "non-finite rotation"
+    elif (correction := float(np.degrees(np.linalg.norm(_log(R @ np.asarray(prior_rotation).T))))) > \
+            s.max_correction_deg:
+        fit.reason = f"{correction:.1f} deg from the predicted turn (> {s.max_correction_deg})"
     elif overlap < s.min_overlap:
         fit.reason = f"overlap {overlap:.2f} < {s.min_overlap}"
     elif inliers < s.min_inliers:

@@ -568,8 +568,12 @@ class VisualOdometry:
         if self.direct_since is None:  # the scene depth where the run begins (its keyframes have few points)
             self.direct_depth = self._scene_depth()
         depth = self.direct_depth
+        baseline = float(np.linalg.norm(step[:3, 3])) / max(depth, 1e-9)
+        if baseline > c.direct_max_baseline:
+            return f"the predicted move is {baseline:.3f} of the scene depth (> {c.direct_max_baseline}): not a turn"
         settings = DirectSettings(prior_deg=c.direct_prior_deg, min_correlation=c.direct_min_correlation,
-                                  max_axis_sigma_deg=c.direct_max_axis_sigma_deg)
+                                  max_axis_sigma_deg=c.direct_max_axis_sigma_deg,
+                                  max_correction_deg=c.direct_max_correction_deg)
         fit = align_rotation(self.previous_gray, gray, K, prior, -prior @ step[:3, 3], depth, settings=settings)
         held = fit.accepted
         if not held and c.direct_translation_sigma > 0:

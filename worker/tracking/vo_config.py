@@ -111,6 +111,14 @@ class VisualOdometryConfig(BaseModel):
                                                                              "the aligned images, at least")
     direct_max_axis_sigma_deg: float = Field(0.25, gt=0.0, description="... the image must measure the turn about "
                                                                        "one camera axis at least this well")
+    # object orbits from photos step 0.09-0.23 of the scene depth a frame (the fox), the synthetic rooms' walk
+    # 0.044-0.055
+    direct_max_baseline: float = Field(0.075, gt=0.0, description="... only while the predicted move per frame is "
+                                                                   "at most this share of the scene depth (a turn: "
+                                                                   "the plane the fit assumes hides little parallax)")
+    direct_max_correction_deg: float = Field(6.0, gt=0.0, description="... a fit further than this from the "
+                                                                      "predicted turn is refused (outside the basin "
+                                                                      "of a local alignment)")
     direct_translation_sigma: float = Field(0.01, ge=0.0, description="... when the fit with the predicted move "
                                                                       "fails, it is tried again with the move free "
                                                                       "within this share of the scene depth (the "
