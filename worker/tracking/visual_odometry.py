@@ -166,6 +166,7 @@ class VisualOdometry:
         self.rotation_since: int | None = None  # first frame of the current rotation-only run
         self.direct_since: int | None = None  # first frame of the current run placed by image alignment ...
         self.direct_depth = 1.0  # ... and the scene depth where it began
+        self.parallax_seen = False  # whether this frame's tracks showed the rotation-only run's translation
         self.last_tracked = -1  # index of the last tracked frame
         self.mapped_at_loss = 0  # tracks of map points when tracking was lost
         self.anchor: Anchor | None = None  # the last tracked frame's tracks, while lost: a map restarts from them
@@ -418,10 +419,14 @@ class VisualOdometry:
         mapped_before = int(self.tracks.mapped.sum())
         found = self._follow(gray, predicted, K)
         if found is None or found[2] < max(c.min_tracked, c.min_survival * mapped_before):
+            self.parallax_seen = False
             turned = self._follow_rotation(index, gray, K, predicted) if c.rotation_bridge else None
             if turned is not None:
                 return turned
-            aligned = self._follow_direct(index, gray, K, predicted) if c.direct_fallback else ""
+            aligned = ""
+            if c.direct_fallback:
+                aligned = ("the tracks show translation adding up, not a turn" if self.parallax_seen
+                           else self._follow_direct(index, gray, K, predicted))
             if isinstance(aligned, TrackingResult):
                 return aligned
             refused = f"; image alignment: {aligned}" if aligned else ""
@@ -528,6 +533,7 @@ class VisualOdometry:
         pose = rigid(pose)
         tracks = Tracks(t.ids[keep], uv[keep], t.rows[keep])
         if self.rotation_since is not None and not self._still_a_turn(tracks, pose, K, tolerance):
+            self.parallax_seen = True  # translation adds up: no turn model may place this frame
             return None
         self.tracks = tracks
         self.previous_gray = gray
