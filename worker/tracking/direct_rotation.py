@@ -70,14 +70,6 @@ class DirectFit:
         return int((np.linalg.eigvalsh(self.information) > np.radians(0.5) ** -2).sum())
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    """[N, 3, 3] cross-product matrices of vectors [N, 3]."""
-    out = np.zeros((len(v), 3, 3))
-    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
-    out[:, 1, 0], out[:, 2, 0], out[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
-    return out
-
-
 def _pyramid(gray: np.ndarray, levels: int) -> list[np.ndarray]:
     """Float images (0-1), finest first, each lightly smoothed (the warp samples between pixels)."""
     image = cv2.GaussianBlur(gray.astype(np.float32) / 255.0, (3, 3), 0.8)
@@ -95,23 +87,26 @@ def _gradients(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _reference_pixels(image: np.ndarray, count: int, min_gradient: float) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel centres [N, 2] (project convention, +0.5) of the strongest gradients, at most `count`, chosen per cell of
-    a grid so that they spread over the image, and their intensities [N]."""
+    """Pixel centres [N, 2] (project convention, +0.5) and intensities [N] of the strongest gradient of each cell of
+    a grid (cells of 4x4, 2x2 or 1 pixel: the largest that still gives `count` cells), so that they spread over the
+    image: the strongest `count` of them above `min_gradient`."""
     gx, gy = _gradients(image)
     magnitude = np.hypot(gx, gy)
-    h, w = image.shape
     border = 2
     magnitude[:border], magnitude[-border:], magnitude[:, :border], magnitude[:, -border:] = 0, 0, 0, 0
-    strong = magnitude > min_gradient
-    rows, cols = np.nonzero(strong)
-    if len(rows) > count:  # the strongest of each 8x8 cell, then the second strongest of each, ...
-        values = magnitude[rows, cols]
-        cell = (rows // 8) * ((w + 7) // 8) + cols // 8
-        order = np.lexsort((-values, cell))
-        starts = np.r_[0, np.flatnonzero(np.diff(cell[order])) + 1]
-        rank = np.arange(len(order)) - np.repeat(starts, np.diff(np.r_[starts, len(order)]))
-        keep = order[np.lexsort((-values[order], rank))[:count]]
-        rows, cols = rows[keep], cols[keep]
+    h, w = image.shape
+    cell = next((size for size in (4, 2) if (h // size) * (w // size) >= count), 1)
+    rows_c, cols_c = h // cell, w // cell
+    blocks = magnitude[:rows_c * cell, :cols_c * cell].reshape(rows_c, cell, cols_c, cell).transpose(0, 2, 1, 3)
+    blocks = blocks.reshape(rows_c, cols_c, cell * cell)
+    best = blocks.argmax(axis=2)
+    values = np.take_along_axis(blocks, best[..., None], axis=2)[..., 0]
+    r0, c0 = np.nonzero(values > min_gradient)
+    values, best = values[r0, c0], best[r0, c0]
+    if len(values) > count:
+        keep = np.argpartition(-values, count)[:count]
+        r0, c0, best = r0[keep], c0[keep], best[keep]
+    rows, cols = r0 * cell + best // cell, c0 * cell + best % cell
     uv = np.column_stack([cols + 0.5, rows + 0.5])
     return uv, image[rows, cols]
 
@@ -161,7 +156,7 @@ class _Level:
         du = np.column_stack([K[0, 0] / zs, np.zeros_like(zs), -K[0, 0] * Y[:, 0] / zs ** 2])
         dv = np.column_stack([np.zeros_like(zs), K[1, 1] / zs, -K[1, 1] * Y[:, 1] / zs ** 2])
         dI = gx[:, None] * du + gy[:, None] * dv  # d intensity / d Y  [N, 3]
-        J = -np.einsum("ni,nij->nj", dI, _skew(Y))
+        J = np.cross(Y, dI)  # d intensity / d omega = -dI^T [Y]_x
         return r, np.concatenate([J, dI], axis=1), inside
 
 
@@ -223,7 +218,7 @@ def align_rotation(reference: np.ndarray, current: np.ndarray, K: np.ndarray, pr
             step = np.linalg.solve(H + prior_info, -g)
             turn = _exp(step[:3])
             R, t = turn @ R, turn @ t + (step[3:] if moves else 0.0)
-            if np.linalg.norm(step) < 1e-6:
+            if np.linalg.norm(step) < 1e-5:
                 break
         last = data
     if last is None:
