@@ -14,7 +14,9 @@ recognises an older keyframe (`map_join`: the map moves, the poses handed out do
 event carries the Sim(3) edge for the pose graph). When the camera comes back, a keyframe VO takes for its own map
 is not offered to the engine (`keyframe_hint=False`) if an engine keyframe at least `reuse_min_age` frames old lies
 near and sees most of the frame's tracked map points: a place walked through again keeps the keyframes of its first
-visit.
+visit. A turn faster than points can be triangulated is followed by the rotation the tracks agree on
+(`rotation_only`); where too few tracks survive (stripes, a plain wall, blur) the whole image is aligned to the last
+tracked frame's (`direct_rotation`: the turn measured, the position predicted), and only then is the frame lost.
 
 Poses are camera-to-world rigid 4x4 matrices (a Sim(3) with s = 1); the world is the camera of the frame the map
 was initialised from and the scale makes that map's median depth 1. Poses handed out are the map's moved by the
