@@ -161,7 +161,8 @@ class VisualOdometry:
         self.pending_orientation: dict[int, np.ndarray] = {}  # frame index -> orientation held while waiting
         self.init_state = ""  # what initialisation waits for ("rotation_only", "waiting_for_parallax", ...)
         self.pose = np.eye(4)
-        self.velocity = np.eye(4)  # camera motion of the last frame (previous^-1 @ current)
+        self.velocity = np.eye(4)  # camera motion of the last frame (previous^-1 @ current) ...
+        self.velocity_at = -1  # ... and the frame it was measured at (by two tracked frames; resets do not count)
         self.frames_since_keyframe = 0
         self.tracked_at_keyframe = 0
         self.lost_since: int | None = None
@@ -353,6 +354,7 @@ class VisualOdometry:
             between.append([i, previous.tolist()])
         self.pending, self.pending_orientation, self.init_state = [], {}, ""
         self.velocity = invert_pose(previous) @ pose
+        self.velocity_at = index
         self.status = "tracking"
         # After a loss the waiting frames were reported lost; the new map poses them now (`map` > 1: the engine
         # ties them to this map's first keyframe, so that they move with it when the maps are joined).
@@ -440,7 +442,7 @@ class VisualOdometry:
         pose, tracks, inliers = found
         self.rotation_since = self.direct_since = None
         self.tracks, self.previous_gray = tracks, gray
-        self.velocity = rigid(invert_pose(self.pose) @ pose)
+        self.velocity, self.velocity_at = rigid(invert_pose(self.pose) @ pose), index
         self.frames_since_keyframe += 1
         quality = min(1.0, inliers / max(self.tracked_at_keyframe, 1))
         if not self._needs_keyframe(pose, inliers):
@@ -539,7 +541,7 @@ class VisualOdometry:
             return None
         self.tracks = tracks
         self.previous_gray = gray
-        self.velocity = rigid(invert_pose(self.pose) @ pose)
+        self.velocity, self.velocity_at = rigid(invert_pose(self.pose) @ pose), index
         self.frames_since_keyframe += 1
         self.direct_since = None  # the tracks measure the turn again: a run of aligned frames ends
         last = self.map.keyframes[-1] if self.map.keyframes else None
@@ -569,6 +571,8 @@ class VisualOdometry:
         c, t = self.config, self.tracks
         if self.previous_gray is None:
             return "no previous image"
+        if self.velocity_at != self.last_tracked:  # just relocalised or restarted: the motion model is a guess
+            return "no measured motion to predict the move from"
         if self.direct_since is not None and index - self.direct_since >= c.direct_max_frames:
             return f"the run of aligned frames reached {c.direct_max_frames}"
         step = invert_pose(self.pose) @ predicted  # the predicted motion, previous camera -> this one
@@ -599,7 +603,7 @@ class VisualOdometry:
         ok[t.mapped] &= np.linalg.norm(uv[t.mapped] - guess[t.mapped], axis=1) <= c.direct_track_tolerance_px
         self.tracks = Tracks(t.ids[ok], uv[ok], t.rows[ok])
         self.previous_gray = gray
-        self.velocity = rigid(invert_pose(self.pose) @ pose)
+        self.velocity, self.velocity_at = rigid(invert_pose(self.pose) @ pose), index
         self.frames_since_keyframe += 1
         self.rotation_since = None
         last = self.map.keyframes[-1] if self.map.keyframes else None
@@ -1245,7 +1249,7 @@ class VisualOdometry:
             "lost_since": -1 if self.lost_since is None else self.lost_since,
             "rotation_since": -1 if self.rotation_since is None else self.rotation_since,
             "direct_since": -1 if self.direct_since is None else self.direct_since,
-            "direct_depth": self.direct_depth,
+            "direct_depth": self.direct_depth, "velocity_at": self.velocity_at,
             "image_size": [] if self.image_size is None else list(self.image_size),
             "focal": self.focal.state_dict(),
             "estimated_intrinsics": {} if self.estimated_intrinsics is None else self.estimated_intrinsics.to_dict(),
@@ -1277,6 +1281,7 @@ class VisualOdometry:
         self.rotation_since = None if int(state.get("rotation_since", -1)) < 0 else int(state["rotation_since"])
         self.direct_since = None if int(state.get("direct_since", -1)) < 0 else int(state["direct_since"])
         self.direct_depth = float(state.get("direct_depth", 1.0))
+        self.velocity_at = int(state.get("velocity_at", -1))
         self.image_size = tuple(int(v) for v in state["image_size"]) or None
         self.focal.load_state_dict(state["focal"])
         if state["estimated_intrinsics"]:
