@@ -183,7 +183,14 @@ WEBSOCKET_DOC = {
             "rotation_only": {"type": "object", "properties": {
                 "type": {"const": "rotation_only"}, "seq": {"type": "integer"},
                 "tracks": {"type": "integer", "description": "tracks that agree on the rotation"},
-                "map_points": {"type": "integer", "description": "map points that measured the position (0: held)"}},
+                "map_points": {"type": "integer", "description": "map points that measured the position (0: held)"},
+                "method": {"const": "photometric", "description": "present when no track survived (a fast turn "
+                                                                  "over weak or striped texture): the turn comes "
+                                                                  "from aligning the whole image, `quality` at "
+                                                                  "most 0.4"},
+                "correlation": {"type": "number"},
+                "measured_axes": {"type": "integer", "description": "photometric: rotation axes the image measured "
+                                                                    "(the others follow the predicted turn)"}},
                 "additionalProperties": True,
                 "description": "RGB-only sessions: a turn too fast for new points to be triangulated; from frame "
                                "`seq` the poses follow the rotation every track agrees on, the position from the "
