@@ -2,9 +2,12 @@
 
 Nodes are keyframe camera-to-world similarities T_k^W. An edge (i, j) carries the measured relative similarity
 H = T_i^-1 T_j (the pose of j in the frame of i) and penalises log(H^-1 T_i^-1 T_j) in sim(3) with a diagonal
-information matrix. Three kinds of edges exist: sequential (consecutive keyframes inside one submap),
-inter-submap (through the overlap frame) and loop. Loop edges get a robust kernel by default so a single wrong
-loop is down-weighted instead of bending the whole trajectory; a prior pins the first keyframe (the gauge).
+information matrix. Edge translations are measured in the scene's length unit (`length_unit`, the median depth
+of the first keyframe whose depth is known: worker.geometry.scene_units): the same scene in metres or in
+millimetres weighs rotation against translation and rejects loops alike. Three kinds of edges exist: sequential
+(consecutive keyframes inside one submap), inter-submap (through the overlap frame) and loop. Loop edges get a
+robust kernel by default so a single wrong loop is down-weighted instead of bending the whole trajectory; a prior
+pins the first keyframe (the gauge).
 Absolute priors (`PosePrior`, e.g. a device's pose of a keyframe with its stated uncertainty) pull single nodes
 towards measured world poses, through the same robust kernel as loop edges.
 
@@ -27,6 +30,7 @@ import torch
 
 from worker.geometry import relative_transform, sim3_decompose
 from worker.geometry.gtsam_bridge import sim3_to_gtsam
+from worker.geometry.scene_units import valid_unit
 
 from .incremental import IncrementalSolver
 
@@ -41,15 +45,19 @@ DIVERGED_COST_RATIO = 1.05  # an incremental solve ending this much above its st
 
 @dataclass(frozen=True)
 class EdgeSigmas:
-    """Standard deviations of one edge kind in sim(3) tangent space: rotation (rad), translation (map units),
-    log-scale. GTSAM orders the tangent as (rotation, translation, log-scale)."""
+    """Standard deviations of one edge kind in sim(3) tangent space: rotation (rad), translation (scene length
+    units for edges, pose units for priors), log-scale. GTSAM orders the tangent as (rotation, translation,
+    log-scale)."""
 
     rotation: float = 0.01
     translation: float = 0.02
     log_scale: float = 0.01
 
-    def vector(self, weight: float = 1.0) -> np.ndarray:
-        sig = np.array([self.rotation] * 3 + [self.translation] * 3 + [self.log_scale], dtype=np.float64)
+    def vector(self, weight: float = 1.0, length_unit: float = 1.0) -> np.ndarray:
+        """The 7 standard deviations, the translation's in pose units (`length_unit` pose units each), for an
+        information scaled by `weight`."""
+        sig = np.array([self.rotation] * 3 + [self.translation * length_unit] * 3 + [self.log_scale],
+                       dtype=np.float64)
         if weight <= 0:
             raise ValueError(f"edge weight must be positive, got {weight}")
         return sig / np.sqrt(weight)
@@ -169,7 +177,9 @@ class Sim3PoseGraph:
     robust: "cauchy", "huber" or None; applied to the edge kinds in `robust_kinds` (loop edges by default) with
     threshold `robust_k` on the whitened residual norm. incremental: solve with iSAM2 after the first (batch)
     solve; False solves every time with batch Levenberg-Marquardt. relinearize_threshold: iSAM2 relinearises a
-    node whose step exceeds this tangent-space norm. The methods may be called from several threads (one lock).
+    node whose step exceeds this tangent-space norm. length_unit: pose units per scene length unit, the unit of
+    the edges' translation sigmas (None: 1, until `set_length_unit`). The methods may be called from several
+    threads (one lock).
     """
 
     def __init__(
@@ -181,6 +191,7 @@ class Sim3PoseGraph:
         prior_sigma: float = 1e-6,
         incremental: bool = True,
         relinearize_threshold: float = 0.001,
+        length_unit: float | None = None,
     ) -> None:
         if robust not in ("cauchy", "huber", None):
             raise ValueError(f"robust kernel must be 'cauchy', 'huber' or None, got {robust!r}")
@@ -193,6 +204,7 @@ class Sim3PoseGraph:
         self.prior_sigma = prior_sigma
         self.incremental = incremental
         self.relinearize_threshold = relinearize_threshold
+        self.length_unit = valid_unit(length_unit)  # pose units per scene length unit; None: not known yet (1)
         self.nodes: dict[int, np.ndarray] = {}
         self.edges: list[PoseGraphEdge] = []
         self.priors: list[PosePrior] = []
@@ -202,6 +214,21 @@ class Sim3PoseGraph:
 
     def __len__(self) -> int:
         return len(self.nodes)
+
+    def set_length_unit(self, unit: float | None) -> None:
+        """Measure edge translations in units of `unit` pose units (the scene's median depth); None or an invalid
+        value: 1. A change re-weighs every edge, so the next solve is a batch one."""
+        unit = valid_unit(unit)
+        with self._lock:
+            if unit == self.length_unit:
+                return
+            self.length_unit = unit
+            self._noises = {kind: self._noise_model(kind) for kind in EDGE_KINDS}
+            self._drop_solver()
+
+    def _edge_sigmas(self, kind: str, weight: float = 1.0) -> np.ndarray:
+        """The standard deviations of an edge of `kind` in pose units."""
+        return self.sigmas[kind].vector(weight, 1.0 if self.length_unit is None else self.length_unit)
 
     def add_node(self, key: int, pose: np.ndarray | torch.Tensor) -> None:
         """Add (or re-initialise) keyframe `key` with its current world pose (4x4 Sim(3) c2w)."""
@@ -246,7 +273,7 @@ class Sim3PoseGraph:
         return [e for e in self.edges if e.kind == kind]
 
     def _noise_model(self, kind: str, weight: float = 1.0) -> gtsam.noiseModel.Base:
-        base = gtsam.noiseModel.Diagonal.Sigmas(self.sigmas[kind].vector(weight))
+        base = gtsam.noiseModel.Diagonal.Sigmas(self._edge_sigmas(kind, weight))
         if self.robust is None or kind not in self.robust_kinds:
             return base
         estimator = (gtsam.noiseModel.mEstimator.Cauchy if self.robust == "cauchy"
@@ -310,7 +337,7 @@ class Sim3PoseGraph:
         for edge in self.edges_of_kind("loop"):
             err = values.atSimilarity3(edge.i).between(values.atSimilarity3(edge.j))
             delta = gtsam.Similarity3.Logmap(sim3_to_gtsam(edge.relative).between(err))
-            loop_residuals[(edge.i, edge.j)] = float(np.linalg.norm(delta / self.sigmas["loop"].vector(edge.weight)))
+            loop_residuals[(edge.i, edge.j)] = float(np.linalg.norm(delta / self._edge_sigmas("loop", edge.weight)))
         if update:
             self.nodes.update(poses)
         return PoseGraphResult(poses, float(initial_error), float(final_error), iterations, loop_residuals)
@@ -439,7 +466,8 @@ class Sim3PoseGraph:
             keys = sorted(self.nodes)
             return {"keys": np.asarray(keys, np.int64),
                     "poses": np.stack([self.nodes[k] for k in keys]) if keys else np.zeros((0, 4, 4)),
-                    "edges": [e.to_dict() for e in self.edges], "priors": [p.to_dict() for p in self.priors]}
+                    "edges": [e.to_dict() for e in self.edges], "priors": [p.to_dict() for p in self.priors],
+                    "length_unit": self.length_unit}
 
     def load_state_dict(self, state: Mapping) -> None:
         """Restore nodes and edges. iSAM2 is rebuilt by the next `optimize`, a batch solve that seeds it."""
@@ -449,6 +477,8 @@ class Sim3PoseGraph:
             self.nodes = {int(k): poses[n] for n, k in enumerate(keys)}
             self.edges = [PoseGraphEdge.from_dict(d) for d in state["edges"]]
             self.priors = [PosePrior.from_dict(d) for d in state.get("priors", [])]
+            self.length_unit = valid_unit(state.get("length_unit"))
+            self._noises = {kind: self._noise_model(kind) for kind in EDGE_KINDS}
             self._drop_solver()
 
 
