@@ -63,10 +63,14 @@ class EdgeSigmas:
         return sig / np.sqrt(weight)
 
 
+# Translations in scene length units (the first keyframe's median depth): odometry edges 1 % of it, loops 2 %. They
+# were 0.02 and 0.04 pose units: in metres, 1.1 and 2.2 % of ICL's scene (first keyframe at 1.85 m), which keeps its
+# weights; in visual odometry's units (first keyframe at 1) 2 and 4 %, yet ICL RGB only measured the same with 1 and
+# 2 % (1.82 cm / 28.13 dB against 1.84 / 28.11; bench/RESULTS.md, "The map does not depend on the scene's units").
 DEFAULT_SIGMAS: dict[str, EdgeSigmas] = {
-    "sequential": EdgeSigmas(0.01, 0.02, 0.01),
-    "inter_submap": EdgeSigmas(0.01, 0.02, 0.01),
-    "loop": EdgeSigmas(0.02, 0.04, 0.02),
+    "sequential": EdgeSigmas(0.01, 0.01, 0.01),
+    "inter_submap": EdgeSigmas(0.01, 0.01, 0.01),
+    "loop": EdgeSigmas(0.02, 0.02, 0.02),
     # Between the last keyframe of a lost map and the first of the map begun after it: the new map was only placed
     # at the last pose with the old scene depth, so the edge holds it there until a loop gives the true Sim(3).
     "new_map": EdgeSigmas(1.0, 10.0, 1.0),
