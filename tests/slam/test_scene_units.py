@@ -43,7 +43,7 @@ def test_posed_rgb_maps_the_same_scene_alike_in_any_units() -> None:
     assert unit == pytest.approx(2.0, rel=0.2)  # ICL's first estimated keyframe: 2 m away
     for scale in (0.05, 20.0):
         # before, a keyframe every 0.2 pose units until a depth was known: 6 keyframes in metres (27.77 dB), 5 in
-        # 5 cm units (27.08 dB), 9 in 20 m units (27.52 dB)
+        # 20 m units (x0.05, 27.08 dB), 9 in 5 cm units (x20, 27.52 dB)
         same_keyframes, score, scaled_unit = posed_rgb_map(scale)
         assert same_keyframes == keyframes
         assert score == pytest.approx(reference, abs=0.1)
