@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One device session's GPU checks (run by the lead through the device tool; not part of CI):
 # the CUDA-only tests, gsplat 1.5.3 (JIT-compiled for sm_90) parity against the compiled CPU rasterizer,
-# the rasterizer and frontend timings on the GPU. Wheels for gsplat and plyfile travel in .whl/.
+# the rasterizer and frontend timings on the GPU. Wheels for gsplat and plyfile travel in .whl/ (bench/gpu_wheels.sh).
 # Usage: bash bench/gpu_session.sh OUT_DIR
 set -u
 out=${1:-/tmp/gpu_out}; mkdir -p "$out"

@@ -37,7 +37,8 @@ MODES = {"rgb": (False, False), "rgbd": (True, False), "posed_rgbd": (True, True
          "posed_rgbd_fixed": (True, True)}
 # modes that differ from another only in their settings (`posed_rgbd_fixed`: the device poses kept as they are)
 MODE_CONFIG = {"posed_rgbd_fixed": {"input": {"pose_mode": "fixed"}}}
-EVENT_TYPES = ("tracking_lost", "relocalized", "initialized", "device_pose_jump", "depth_misregistered")
+EVENT_TYPES = ("tracking_lost", "relocalized", "initialized", "device_pose_jump", "odometry_slip",
+               "depth_misregistered")
 
 
 def rotation_deg(a: np.ndarray, b: np.ndarray) -> float:

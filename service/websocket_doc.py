@@ -183,7 +183,14 @@ WEBSOCKET_DOC = {
             "rotation_only": {"type": "object", "properties": {
                 "type": {"const": "rotation_only"}, "seq": {"type": "integer"},
                 "tracks": {"type": "integer", "description": "tracks that agree on the rotation"},
-                "map_points": {"type": "integer", "description": "map points that measured the position (0: held)"}},
+                "map_points": {"type": "integer", "description": "map points that measured the position (0: held)"},
+                "method": {"const": "photometric", "description": "present when no track survived (a fast turn "
+                                                                  "over weak or striped texture): the turn comes "
+                                                                  "from aligning the whole image, `quality` at "
+                                                                  "most 0.4"},
+                "correlation": {"type": "number"},
+                "measured_axes": {"type": "integer", "description": "photometric: rotation axes the image measured "
+                                                                    "(the others follow the predicted turn)"}},
                 "additionalProperties": True,
                 "description": "RGB-only sessions: a turn too fast for new points to be triangulated; from frame "
                                "`seq` the poses follow the rotation every track agrees on, the position from the "
@@ -208,6 +215,16 @@ WEBSOCKET_DOC = {
                 "description": "pose_mode seeded: the device pose of frame `seq` jumped (ARKit/ARCore relocalising, a "
                                "glitch); the session's poses do not follow the jump and the next keyframe gets no "
                                "device prior"},
+            "odometry_slip": {"type": "object", "properties": {
+                "type": {"const": "odometry_slip"}, "seq": {"type": "integer"},
+                "photometric_rms": {"type": "array", "items": {"type": "number"},
+                                    "description": "robust intensity residual of the odometry's pose, then of the "
+                                                   "pose tracked again from the device's motion"},
+                "geometric_rms": {"type": "array", "items": {"type": "number"}}},
+                "additionalProperties": True,
+                "description": "pose_mode seeded with depth: the device and the RGB-D odometry disagreed on frame "
+                               "`seq` and the images sided with the device (the odometry had settled in a wrong "
+                               "place): the frame was tracked again from the device's motion; no device jump"},
             "depth_misregistered": {"type": "object", "properties": {
                 "type": {"const": "depth_misregistered"}, "seq": {"type": "integer"},
                 "shift_dx": {"type": "integer"}, "shift_dy": {"type": "integer"}, "message": {"type": "string"}},
@@ -239,7 +256,8 @@ WEBSOCKET_DOC = {
     "/v1/sessions/{session_id}/events": {
         "description": "A read-only feed for viewers that do not send the frames (the web viewer): the messages the "
                        "session's stream gets (pose, loop_closed, maps_merged, tracking_lost, relocalized, "
-                       "initializing, initialized, new_map, rotation_only, device_pose_jump, depth_misregistered, "
+                       "initializing, initialized, new_map, rotation_only, device_pose_jump, odometry_slip, "
+                       "depth_misregistered, "
                        "error, finishing, finished) "
                        "from the "
                        "moment of connection; the trajectory endpoint has the earlier ones. A session already "

@@ -41,7 +41,7 @@ from worker.serialization import pack, unpack
 TRACKING_EVENTS = ("tracking_lost", "relocalized", "initialized", "initializing", "new_map", "rotation_only")
 # Notices about the input, forwarded as their own messages (tracking goes on); a misregistration is also kept in
 # the session record's `warnings`.
-INPUT_EVENTS = ("device_pose_jump", "depth_misregistered")
+INPUT_EVENTS = ("device_pose_jump", "odometry_slip", "depth_misregistered")
 MAP_EVENTS = ("maps_merged",)  # published with the revision they made; the tracking state stays as it is
 
 log = logging.getLogger(__name__)

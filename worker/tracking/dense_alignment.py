@@ -102,6 +102,35 @@ class AlignmentResult:
     points_used: int
 
 
+def fit_at(reference: list[PyramidLevel], current: list[PyramidLevel], T: np.ndarray,
+           settings: AlignmentSettings | None = None) -> AlignmentResult:
+    """How well T_cur_ref fits as it stands (no step taken), on the finest level: the overlap and robust residual
+    scales `align` reports for the pose it settles on."""
+    s = settings or AlignmentSettings()
+    ops = kernels(s.backend)
+    T = np.array(T, np.float64, order="C")
+    samples = reference[0].samples(s.max_points, s.min_gradient)
+    cur = current[0]
+    photo = ops.photometric_system(samples.photometric_points, samples.intensity, T, cur.K, cur.grey, cur.grad_x,
+                                   cur.grad_y, s.photometric_floor, s.photometric_weight, MIN_POINTS)
+    geo = ops.geometric_system(samples.geometric_points, T, cur.K, cur.points, cur.normals, s.max_association,
+                               s.geometric_floor, s.geometric_weight, MIN_POINTS)
+    used = photo.used + geo.used
+    return AlignmentResult(T, geo.found / max(1, samples.geometric_points.shape[0]), float(photo.scale),
+                           float(geo.scale), used >= MIN_POINTS, int(used))
+
+
+def fits_clearly_better(candidate: AlignmentResult, incumbent: AlignmentResult, ratio: float = 0.9) -> bool:
+    """Whether `candidate` (the same frame aligned to the same reference from another guess) fits clearly better:
+    one robust residual scale (intensity or depth) at most `ratio` times the incumbent's, the other at most
+    1/`ratio` times it, and an overlap not smaller by more than 0.05."""
+    if not candidate.ok or candidate.overlap < incumbent.overlap - 0.05:
+        return False
+    photometric = candidate.photometric_rms / max(incumbent.photometric_rms, 1e-12)
+    geometric = candidate.geometric_rms / max(incumbent.geometric_rms, 1e-12)
+    return min(photometric, geometric) <= ratio and max(photometric, geometric) <= 1.0 / ratio
+
+
 def build_pyramid(grey: np.ndarray, depth: np.ndarray, K: np.ndarray, levels: int,
                   edge_ratio: float = 0.05, backend: Backend = "auto") -> list[PyramidLevel]:
     """Levels from full resolution (index 0) down by 2 each; `grey` float32 [0, 1], `depth` float32 (0 = none)."""

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import logging
 from collections import deque
+from dataclasses import dataclass
 from typing import Any
 
 import cv2
@@ -47,6 +48,21 @@ from worker.tracking.motion import motion_model_pose, relative_motion
 from worker.tracking.rgbd_config import RgbdOdometryConfig
 
 log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class OdometryCheckpoint:
+    """What tracking one frame may change (`RgbdOdometry.checkpoint`): restored, the frame is tracked again as if
+    for the first time (a place a come-back re-anchored gets its pose back)."""
+
+    references: tuple
+    place_poses: tuple
+    last_pose: np.ndarray | None
+    previous_pose: np.ndarray | None
+    lost: bool
+    last_overlap: float
+    typical_residual: float
+    last_alignment: AlignmentResult | None
 
 
 class _Current:
@@ -161,6 +177,7 @@ class RgbdOdometry:
         self.lost = False
         self.last_overlap = 1.0
         self.typical_residual = self.config.max_photometric_residual  # running mean of accepted alignments
+        self.last_alignment: AlignmentResult | None = None  # the fit of the last accepted alignment
         self.estimated_intrinsics: Intrinsics | None = None  # only when frames come without intrinsics
         self.calibrating = False  # tracking with a guessed focal length until it is estimated
         self._calibration: list[tuple[int, np.ndarray, np.ndarray]] = []  # (index, grey, depth) since the start
@@ -182,6 +199,21 @@ class RgbdOdometry:
         if self.calibrating and result.tracked:
             return self._calibration_step(frame, grey, depth, result)
         return result
+
+    def checkpoint(self) -> OdometryCheckpoint:
+        """The state one frame's tracking may change, to track that frame again from another guess (`restore`)."""
+        return OdometryCheckpoint(tuple(self.references), tuple((p, p.pose) for p in self.places), self.last_pose,
+                                  self.previous_pose, self.lost, self.last_overlap, self.typical_residual,
+                                  self.last_alignment)
+
+    def restore(self, checkpoint: OdometryCheckpoint) -> None:
+        """Back to the state of `checkpoint` (taken on this odometry since its last snapshot load)."""
+        self.references = deque(checkpoint.references, maxlen=self.config.reference_ring)
+        for place, pose in checkpoint.place_poses:
+            place.pose = pose
+        self.last_pose, self.previous_pose = checkpoint.last_pose, checkpoint.previous_pose
+        self.lost, self.last_overlap = checkpoint.lost, checkpoint.last_overlap
+        self.typical_residual, self.last_alignment = checkpoint.typical_residual, checkpoint.last_alignment
 
     def resume_from(self, frame: Frame, intrinsics: Intrinsics | None, pose: np.ndarray,
                     min_sharpness_ratio: float = 0.0, restart: bool = True) -> TrackingResult:
@@ -346,6 +378,7 @@ class RgbdOdometry:
             return None, f"the alignment jumped {jump:.2f} from the motion model"
         if result.photometric_rms <= c.max_photometric_residual:  # a blurred frame held by its depth is no norm
             self.typical_residual = 0.8 * self.typical_residual + 0.2 * result.photometric_rms
+        self.last_alignment = result
         return pose, ""
 
     def _fits_geometry(self, result: AlignmentResult, ref: _Reference) -> bool:

@@ -10,6 +10,9 @@ a depth camera's trajectory follows the depth camera. With them, the session's o
   `jump_translation` / `jump_rotation_deg` (grown by `jump_relative` of the tracked motion's own size: frames far
   apart carry an odometry error in proportion) is a device jump: a `device_pose_jump` event, the device world is
   re-anchored so that the jump does not reach the priors (`correction`), and the next keyframe gets no prior;
+- with depth, a disagreement is first put to the images (`arbitrate_jumps`): the frame is aligned again from the
+  device's motion, and where that alignment fits clearly better, the odometry slipped (an `odometry_slip` event;
+  the device's side is kept) rather than the device jumped;
 - each keyframe's device pose goes to the pose graph as an absolute prior with the stated uncertainty
   (`device_poses.prior_translation`, `prior_rotation_deg`), inflated where the device and the tracked poses
   disagree by more (`prior_inflation`): loop closures weigh it against the odometry.
@@ -37,7 +40,14 @@ from worker.data.frame import Frame
 from worker.geometry import Intrinsics
 from worker.loop.pose_graph import EdgeSigmas, PosePrior
 from worker.tracking.base import TrackingResult
-from worker.tracking.device_check import checked_device_pose, disagreement, motion_size, relative
+from worker.tracking.dense_alignment import fits_clearly_better
+from worker.tracking.device_check import (
+    MotionDisagreement,
+    checked_device_pose,
+    disagreement,
+    motion_size,
+    relative,
+)
 from worker.tracking.seeded_config import DevicePoseConfig
 
 log = logging.getLogger(__name__)
@@ -82,6 +92,7 @@ class SeededTracking:
         self.scale_marks: list[tuple[np.ndarray, np.ndarray]] = []
         self.lost_since: float | None = None  # timestamp of the first frame of the odometry's current loss
         self.jumps = 0
+        self.slips = 0  # disagreements the images laid on the odometry
         self.priors_sent = 0
         self.priors_dropped = 0
 
@@ -103,7 +114,10 @@ class SeededTracking:
         if not self.monocular and frame.depth is None:  # nothing to align: follow the device for this frame
             result = TrackingResult(np.eye(4), tracked=False, keyframe_hint=False)
         else:
+            before = self.odometry.checkpoint() if self._can_arbitrate(device_motion) else None
             result = self.odometry.track(frame, intrinsics, motion_guess=self._guess(device_motion))
+            if before is not None and result.tracked and self._jumped(device_motion, result.pose):
+                result = self._arbitrate(frame, intrinsics, device_motion, result, before)
             if not result.tracked and self._can_resume(device_motion):
                 result = self._resume(frame, intrinsics, device_motion, result)
             if result.tracked:
@@ -177,6 +191,52 @@ class SeededTracking:
                               events=lost.events + result.events,
                               keyframe_hint=result.keyframe_hint, quality=result.quality)
 
+    def _can_arbitrate(self, device_motion: np.ndarray | None) -> bool:
+        """Whether a disagreement on this frame can be put to the images (depth, an aligned world, the last frame
+        tracked, an odometry that can track a frame again)."""
+        return (self.config.arbitrate_jumps and not self.monocular and device_motion is not None
+                and self.alignment is not None and self.last_tracked and self.last_pose is not None
+                and hasattr(self.odometry, "checkpoint"))
+
+    def _jumped(self, device_motion: np.ndarray, odometry_pose: np.ndarray) -> bool:
+        """Whether the device's motion into the frame disagrees beyond a jump with the odometry's pose of it."""
+        return self._jump_gap(device_motion, relative(self.last_pose, self.to_session(odometry_pose))) is not None
+
+    def _jump_gap(self, device_motion: np.ndarray, tracked_motion: np.ndarray) -> MotionDisagreement | None:
+        """The two motions' disagreement where it exceeds the jump thresholds (grown with the motion), else None."""
+        c = self.config
+        gap = disagreement(device_motion, tracked_motion)
+        size = motion_size(tracked_motion)
+        beyond = gap.exceeds(c.jump_translation + c.jump_relative * size.translation,
+                             c.jump_rotation_deg + c.jump_relative * size.rotation_deg)
+        return gap if beyond else None
+
+    def _arbitrate(self, frame: Frame, intrinsics: Intrinsics | None, device_motion: np.ndarray,
+                   result: TrackingResult, before) -> TrackingResult:
+        """The device and the odometry disagree: the frame is tracked again from the device's motion. Where that
+        alignment fits the images clearly better and agrees with the device, the odometry slipped: the new result
+        replaces it (`odometry_slip`). Otherwise the odometry's result stands (the device jumped)."""
+        odometry_fit = self.odometry.last_alignment
+        after = self.odometry.checkpoint()
+        self.odometry.restore(before)
+        again = self.odometry.track(frame, intrinsics, motion_guess=_scaled(device_motion, 1.0 / self.scale))
+        device_fit = self.odometry.last_alignment
+        if (again.tracked and odometry_fit is not None and device_fit is not odometry_fit
+                and fits_clearly_better(device_fit, odometry_fit, self.config.slip_fit_ratio)
+                and not self._jumped(device_motion, again.pose)):
+            self.slips += 1
+            log.info("frame %d: the odometry slipped (intensity residual %.4f -> %.4f from the device's motion): "
+                     "re-tracked from the device", frame.index, odometry_fit.photometric_rms,
+                     device_fit.photometric_rms)
+            event = {"type": "odometry_slip", "frame": int(frame.index),
+                     "photometric_rms": [round(odometry_fit.photometric_rms, 5), round(device_fit.photometric_rms, 5)],
+                     "geometric_rms": [round(odometry_fit.geometric_rms, 5), round(device_fit.geometric_rms, 5)],
+                     "action": "re-tracked from the device's motion"}
+            return TrackingResult(again.pose, tracked=True, depth=again.depth, events=[*again.events, event],
+                                  keyframe_hint=again.keyframe_hint, quality=again.quality)
+        self.odometry.restore(after)
+        return result
+
     def _waiting_for_world(self, initialized: list[dict[str, Any]]) -> bool:
         """A monocular odometry still initialising (its poses are placeholders)."""
         return self.monocular and not initialized and getattr(self.odometry, "status", "tracking") == "initializing"
@@ -202,11 +262,8 @@ class SeededTracking:
                     ) -> list[dict[str, Any]]:
         """A `device_pose_jump` event when the device's motion disagrees with the tracked one; the device world
         is then re-anchored so that this frame's device pose continues the tracked motion."""
-        c = self.config
-        gap = disagreement(device_motion, tracked_motion)
-        size = motion_size(tracked_motion)
-        if not gap.exceeds(c.jump_translation + c.jump_relative * size.translation,
-                           c.jump_rotation_deg + c.jump_relative * size.rotation_deg):
+        gap = self._jump_gap(device_motion, tracked_motion)
+        if gap is None:
             return []
         self.correction = self.correction @ self.last_device @ tracked_motion @ np.linalg.inv(device)
         self.skip_next_prior = True
@@ -308,7 +365,7 @@ class SeededTracking:
                 "correction": self.correction, "last_device": self.last_device, "last_index": self.last_index,
                 "last_pose": self.last_pose, "previous_pose": self.previous_pose, "last_tracked": self.last_tracked,
                 "waiting": [[i, p, d] for i, (p, d) in self.waiting.items()], "skip_next_prior": self.skip_next_prior,
-                "counts": [self.jumps, self.priors_sent, self.priors_dropped],
+                "counts": [self.jumps, self.priors_sent, self.priors_dropped, self.slips],
                 "scale_marks": [[d, o] for d, o in self.scale_marks], "lost_since": self.lost_since}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -324,7 +381,8 @@ class SeededTracking:
         self.waiting = {int(i): (matrix(p), matrix(d)) for i, p, d in state["waiting"]}
         self.skip_next_prior = bool(state["skip_next_prior"])
         self.lost_since = state.get("lost_since")
-        self.jumps, self.priors_sent, self.priors_dropped = (int(v) for v in state["counts"])
+        counts = [*state["counts"], 0][:4]  # snapshots before odometry slips were counted have three
+        self.jumps, self.priors_sent, self.priors_dropped, self.slips = (int(v) for v in counts)
         self.scale_marks = [(np.asarray(d, np.float64), np.asarray(o, np.float64))
                             for d, o in state.get("scale_marks", [])]
 

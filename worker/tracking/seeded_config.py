@@ -29,6 +29,14 @@ class DevicePoseConfig(BaseModel):
         0.25, ge=0, le=10, description="... both thresholds grow by this fraction of the tracked motion's own "
         "distance and angle: frames far apart (sparse keyframes, a dropped stretch of the stream) carry an odometry "
         "error in proportion to their motion, which is not a jump (0: absolute thresholds only)")
+    arbitrate_jumps: bool = Field(
+        True, description="with depth: before a disagreement is called a device jump, the frame is aligned again "
+        "from the device's motion; where that alignment fits the images clearly better (`slip_fit_ratio`), the "
+        "odometry slipped, not the device: its pose is replaced (`odometry_slip` event) and the device kept")
+    slip_fit_ratio: float = Field(
+        0.9, gt=0, le=1, description="... clearly better: one robust residual (intensity or depth) at most this times "
+        "the odometry's, the other at most 1/this times it, and the overlap with the reference not smaller by more "
+        "than 0.05")
     scale_keyframes: int = Field(
         8, ge=0, le=256, description="monocular: the odometry's scale is measured again at each keyframe, as the "
         "device's over the odometry's distances between the last this many keyframes (no jump between them), and "

@@ -14,7 +14,9 @@ recognises an older keyframe (`map_join`: the map moves, the poses handed out do
 event carries the Sim(3) edge for the pose graph). When the camera comes back, a keyframe VO takes for its own map
 is not offered to the engine (`keyframe_hint=False`) if an engine keyframe at least `reuse_min_age` frames old lies
 near and sees most of the frame's tracked map points: a place walked through again keeps the keyframes of its first
-visit.
+visit. A turn faster than points can be triangulated is followed by the rotation the tracks agree on
+(`rotation_only`); where too few tracks survive (stripes, a plain wall, blur) the whole image is aligned to the last
+tracked frame's (`direct_rotation`: the turn measured, the position predicted), and only then is the frame lost.
 
 Poses are camera-to-world rigid 4x4 matrices (a Sim(3) with s = 1); the world is the camera of the frame the map
 was initialised from and the scale makes that map's median depth 1. Poses handed out are the map's moved by the
@@ -38,6 +40,7 @@ from . import schur_native
 from .base import TrackingResult
 from .bundle_adjustment import Observations, bundle_adjust, reprojection_chi2
 from .covisibility import LocalWindow, covisible_window
+from .direct_rotation import DirectSettings, align_rotation
 from .features import Features, OrbExtractor
 from .learned_places import LearnedPlaces, nearest_within
 from .local_map import Keyframe, LocalMap
@@ -158,11 +161,15 @@ class VisualOdometry:
         self.pending_orientation: dict[int, np.ndarray] = {}  # frame index -> orientation held while waiting
         self.init_state = ""  # what initialisation waits for ("rotation_only", "waiting_for_parallax", ...)
         self.pose = np.eye(4)
-        self.velocity = np.eye(4)  # camera motion of the last frame (previous^-1 @ current)
+        self.velocity = np.eye(4)  # camera motion of the last frame (previous^-1 @ current) ...
+        self.velocity_at = -1  # ... and the frame it was measured at (by two tracked frames; resets do not count)
         self.frames_since_keyframe = 0
         self.tracked_at_keyframe = 0
         self.lost_since: int | None = None
         self.rotation_since: int | None = None  # first frame of the current rotation-only run
+        self.direct_since: int | None = None  # first frame of the current run placed by image alignment ...
+        self.direct_depth = 1.0  # ... and the scene depth where it began
+        self.parallax_seen = False  # whether this frame's tracks showed the rotation-only run's translation
         self.last_tracked = -1  # index of the last tracked frame
         self.mapped_at_loss = 0  # tracks of map points when tracking was lost
         self.anchor: Anchor | None = None  # the last tracked frame's tracks, while lost: a map restarts from them
@@ -347,6 +354,7 @@ class VisualOdometry:
             between.append([i, previous.tolist()])
         self.pending, self.pending_orientation, self.init_state = [], {}, ""
         self.velocity = invert_pose(previous) @ pose
+        self.velocity_at = index
         self.status = "tracking"
         # After a loss the waiting frames were reported lost; the new map poses them now (`map` > 1: the engine
         # ties them to this map's first keyframe, so that they move with it when the maps are joined).
@@ -415,19 +423,26 @@ class VisualOdometry:
         mapped_before = int(self.tracks.mapped.sum())
         found = self._follow(gray, predicted, K)
         if found is None or found[2] < max(c.min_tracked, c.min_survival * mapped_before):
+            self.parallax_seen = False
             turned = self._follow_rotation(index, gray, K, predicted) if c.rotation_bridge else None
             if turned is not None:
                 return turned
-        if found is None:
-            return self._lose_or_restart(index, gray, camera,
-                                         "too few map points tracked (sudden motion, occlusion or a new view)")
+            aligned = ""
+            if c.direct_fallback:
+                aligned = ("the tracks show translation adding up, not a turn" if self.parallax_seen
+                           else self._follow_direct(index, gray, K, predicted))
+            if isinstance(aligned, TrackingResult):
+                return aligned
+            refused = f"; image alignment: {aligned}" if aligned else ""
+            if found is None:
+                return self._lose_or_restart(index, gray, camera, "too few map points tracked (sudden motion, "
+                                             f"occlusion or a new view){refused}")
+            return self._lose_or_restart(index, gray, camera, f"{found[2]} of {mapped_before} tracked points found "
+                                         f"again (a sudden change){refused}")
         pose, tracks, inliers = found
-        if inliers < max(c.min_tracked, c.min_survival * mapped_before):
-            return self._lose_or_restart(index, gray, camera,
-                                         f"{inliers} of {mapped_before} tracked points found again (a sudden change)")
-        self.rotation_since = None
+        self.rotation_since = self.direct_since = None
         self.tracks, self.previous_gray = tracks, gray
-        self.velocity = rigid(invert_pose(self.pose) @ pose)
+        self.velocity, self.velocity_at = rigid(invert_pose(self.pose) @ pose), index
         self.frames_since_keyframe += 1
         quality = min(1.0, inliers / max(self.tracked_at_keyframe, 1))
         if not self._needs_keyframe(pose, inliers):
@@ -522,11 +537,13 @@ class VisualOdometry:
         pose = rigid(pose)
         tracks = Tracks(t.ids[keep], uv[keep], t.rows[keep])
         if self.rotation_since is not None and not self._still_a_turn(tracks, pose, K, tolerance):
+            self.parallax_seen = True  # translation adds up: no turn model may place this frame
             return None
         self.tracks = tracks
         self.previous_gray = gray
-        self.velocity = rigid(invert_pose(self.pose) @ pose)
+        self.velocity, self.velocity_at = rigid(invert_pose(self.pose) @ pose), index
         self.frames_since_keyframe += 1
+        self.direct_since = None  # the tracks measure the turn again: a run of aligned frames ends
         last = self.map.keyframes[-1] if self.map.keyframes else None
         if (self.rotation_since is None or last is None
                 or len(self.tracks) < c.rotation_keyframe_share * len(last.track_ids)):
@@ -542,6 +559,82 @@ class VisualOdometry:
                            "map_points": measured})
         return TrackingResult(pose, tracked=True, keyframe_hint=False, events=events,
                               quality=0.5 * float(agree.mean()))
+
+    def _follow_direct(self, index: int, gray: np.ndarray, K: np.ndarray, predicted: np.ndarray
+                       ) -> TrackingResult | str:
+        """Track a frame the tracks cannot place (stripes, a plain wall, blur) by aligning its whole image to the
+        last tracked frame's (`direct_rotation`): the turn measured where the image constrains it and predicted
+        where it does not, the position from the constant-velocity motion; why not when the fit is poor or the
+        image measures nothing (the frame is then lost). The tracks the flow follows carry on, and VO keyframes (not
+        offered to the engine) start new ones, so that points are triangulated on the poses of the run and feature
+        tracking takes over again as soon as they measure enough of them."""
+        c, t = self.config, self.tracks
+        if self.previous_gray is None:
+            return "no previous image"
+        if self.velocity_at != self.last_tracked:  # just relocalised or restarted: the motion model is a guess
+            return "no measured motion to predict the move from"
+        if self.direct_since is not None and index - self.direct_since >= c.direct_max_frames:
+            return f"the run of aligned frames reached {c.direct_max_frames}"
+        step = invert_pose(self.pose) @ predicted  # the predicted motion, previous camera -> this one
+        prior = step[:3, :3].T
+        if self.direct_since is None:  # the scene depth where the run begins (its keyframes have few points)
+            self.direct_depth = self._scene_depth()
+        depth = self.direct_depth
+        baseline = float(np.linalg.norm(step[:3, 3])) / max(depth, 1e-9)
+        if baseline > c.direct_max_baseline:
+            return f"the predicted move is {baseline:.3f} of the scene depth (> {c.direct_max_baseline}): not a turn"
+        settings = DirectSettings(prior_deg=c.direct_prior_deg, min_correlation=c.direct_min_correlation,
+                                  max_axis_sigma_deg=c.direct_max_axis_sigma_deg,
+                                  max_correction_deg=c.direct_max_correction_deg)
+        fit = align_rotation(self.previous_gray, gray, K, prior, -prior @ step[:3, 3], depth, settings=settings)
+        held = fit.accepted
+        if not held and c.direct_translation_sigma > 0:
+            # the predicted move may be wrong (it came from the frames before the tracks failed): let the centre
+            # move too, as a nuisance of the fit, and keep only the turn (the image's move assumes a plane)
+            fit = align_rotation(self.previous_gray, gray, K, prior, -prior @ step[:3, 3], depth,
+                                 c.direct_translation_sigma * depth, settings)
+        if not fit.accepted:
+            return fit.reason
+        motion = np.eye(4)
+        motion[:3, :3], motion[:3, 3] = fit.rotation.T, step[:3, 3]  # the turn measured, the centre predicted
+        pose = rigid(self.pose @ motion)
+        guess = predicted_pixels(t.uv, self.map.positions[t.rows[t.mapped]], t.mapped, self.pose, pose, K)
+        uv, ok = self._flow(gray, guess)
+        ok[t.mapped] &= np.linalg.norm(uv[t.mapped] - guess[t.mapped], axis=1) <= c.direct_track_tolerance_px
+        self.tracks = Tracks(t.ids[ok], uv[ok], t.rows[ok])
+        self.previous_gray = gray
+        self.velocity, self.velocity_at = rigid(invert_pose(self.pose) @ pose), index
+        self.frames_since_keyframe += 1
+        self.rotation_since = None
+        last = self.map.keyframes[-1] if self.map.keyframes else None
+        if (self.direct_since is None or last is None
+                or len(self.tracks) < c.rotation_keyframe_share * len(last.track_ids)):
+            self._new_keyframe(index, pose, gray)
+            self._triangulate(K, self.map.keyframes[-(c.window + c.fixed_keyframes + 1):])
+            self._retire(self.map.slide(c.map_keyframes if c.covisibility_ba else c.window + c.fixed_keyframes))
+            self._remap(self.map.forget_unobserved())
+            self.tracked_at_keyframe = max(int(self.tracks.mapped.sum()), 1)
+        events = []
+        if self.direct_since is None:
+            self.direct_since = index
+            events.append({"type": "rotation_only", "frame": index, "method": "photometric", "tracks": 0,
+                           "map_points": 0, "correlation": round(fit.correlation, 3),
+                           "measured_axes": fit.measured_axes})
+        return TrackingResult(pose, tracked=True, keyframe_hint=False, events=events,
+                              quality=(0.4 if held else 0.2) * max(fit.correlation, 0.0))
+
+    def _scene_depth(self) -> float:
+        """Median depth of the map points the last frame's tracks measure; else the newest keyframe's with points;
+        else the map's."""
+        t = self.tracks
+        if t.mapped.sum() >= self.config.min_tracked:
+            depth = to_camera(self.map.positions[t.rows[t.mapped]], self.pose)[:, 2]
+            if (depth > 0).sum() >= self.config.min_tracked:
+                return float(np.median(depth[depth > 0]))
+        for kf in reversed(self.map.keyframes):
+            if (kf.point_ids >= 0).sum() >= self.config.min_tracked:
+                return self._median_depth(kf)
+        return self.map_depth
 
     def _still_a_turn(self, tracks: Tracks, pose: np.ndarray, K: np.ndarray, tolerance: float) -> bool:
         """Whether the tracks shared with the last keyframe (made in this rotation-only run) still agree with a
@@ -879,7 +972,7 @@ class VisualOdometry:
         if was_tracking:
             self.mapped_at_loss = int(self.tracks.mapped.sum())
         self.status = "lost"
-        self.lost_since, self.rotation_since = index, None
+        self.lost_since, self.rotation_since, self.direct_since = index, None, None
         self.anchor = None
         if self.config.reinit_after_loss and self.previous_gray is not None and was_tracking:
             self._replenish(self.previous_gray)  # the anchor's corners, not only its surviving tracks
@@ -1155,6 +1248,8 @@ class VisualOdometry:
             "tracked_at_keyframe": self.tracked_at_keyframe,
             "lost_since": -1 if self.lost_since is None else self.lost_since,
             "rotation_since": -1 if self.rotation_since is None else self.rotation_since,
+            "direct_since": -1 if self.direct_since is None else self.direct_since,
+            "direct_depth": self.direct_depth, "velocity_at": self.velocity_at,
             "image_size": [] if self.image_size is None else list(self.image_size),
             "focal": self.focal.state_dict(),
             "estimated_intrinsics": {} if self.estimated_intrinsics is None else self.estimated_intrinsics.to_dict(),
@@ -1184,6 +1279,9 @@ class VisualOdometry:
         self.tracked_at_keyframe = int(state["tracked_at_keyframe"])
         self.lost_since = None if int(state["lost_since"]) < 0 else int(state["lost_since"])
         self.rotation_since = None if int(state.get("rotation_since", -1)) < 0 else int(state["rotation_since"])
+        self.direct_since = None if int(state.get("direct_since", -1)) < 0 else int(state["direct_since"])
+        self.direct_depth = float(state.get("direct_depth", 1.0))
+        self.velocity_at = int(state.get("velocity_at", -1))
         self.image_size = tuple(int(v) for v in state["image_size"]) or None
         self.focal.load_state_dict(state["focal"])
         if state["estimated_intrinsics"]:

@@ -98,6 +98,35 @@ class VisualOdometryConfig(BaseModel):
                                                                              "keyframe) when fewer tracks than this "
                                                                              "share of the last keyframe's are left")
 
+    # turns over walls too plain or too striped for point tracks (worker/tracking/direct_rotation.py)
+    direct_fallback: bool = Field(True, description="a frame neither the tracks nor their rotation can place is "
+                                                    "aligned to the last tracked frame by whole-image intensities: "
+                                                    "the turn measured, the position from the constant-velocity "
+                                                    "motion; a `rotation_only` event with method `photometric` "
+                                                    "says so, quality at most 0.4")
+    direct_max_frames: int = Field(60, ge=1, description="... frames one such run may last (the position is a guess)")
+    direct_prior_deg: float = Field(2.0, gt=0.0, description="... standard deviation of the predicted turn per axis "
+                                                             "(the axes the image does not measure stay there)")
+    direct_min_correlation: float = Field(0.75, gt=0.0, le=1.0, description="... zero-normalised correlation of "
+                                                                             "the aligned images, at least")
+    direct_max_axis_sigma_deg: float = Field(0.25, gt=0.0, description="... the image must measure the turn about "
+                                                                       "one camera axis at least this well")
+    # object orbits from photos step 0.09-0.23 of the scene depth a frame (the fox), the synthetic rooms' walk
+    # 0.044-0.055
+    direct_max_baseline: float = Field(0.075, gt=0.0, description="... only while the predicted move per frame is "
+                                                                   "at most this share of the scene depth (a turn: "
+                                                                   "the plane the fit assumes hides little parallax)")
+    direct_max_correction_deg: float = Field(6.0, gt=0.0, description="... a fit further than this from the "
+                                                                      "predicted turn is refused (outside the basin "
+                                                                      "of a local alignment)")
+    direct_translation_sigma: float = Field(0.01, ge=0.0, description="... when the fit with the predicted move "
+                                                                      "fails, it is tried again with the move free "
+                                                                      "within this share of the scene depth (the "
+                                                                      "turn kept, quality at most 0.2; 0: not)")
+    direct_track_tolerance_px: float = Field(4.0, gt=0.0, description="... a track followed into the frame is kept "
+                                                                      "within this distance of where the alignment "
+                                                                      "puts it")
+
     # relocalisation
     recover_share: float = Field(0.6, gt=0.0, le=1.0, description="share of the last tracked frame's map points "
                                                                   "that a lost frame must show to take up its tracks")
