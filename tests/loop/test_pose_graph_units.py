@@ -74,3 +74,25 @@ def test_the_loop_stage_takes_the_first_known_scene_depth_as_the_unit() -> None:
     assert stage.pose_graph.length_unit == pytest.approx(0.35)
     assert len(stage.pose_graph.edges) == 3
     stage.close()
+
+
+def test_incremental_solves_are_alike_in_any_units() -> None:
+    """Keyframes and loops arriving one by one (iSAM2 after the first solve): GTSAM solves in scene length units,
+    so its relinearisation threshold means the same in any pose units (in pose units it made ICL's posed RGB x10
+    render 27.16 dB against 28.72 in metres)."""
+    problem = make_loop_problem(n=120, laps=1.3, n_loops=12, trans_sigma=0.02, seed=3)
+
+    def incremental(scale: float) -> np.ndarray:
+        graph = Sim3PoseGraph(length_unit=scale)
+        for key, pose in sorted(problem.graph.nodes.items()):
+            graph.add_node(key, scaled(pose, scale))
+            for edge in (e for e in problem.graph.edges if e.j == key):
+                graph.add_edge(edge.i, edge.j, scaled(edge.relative, scale), edge.kind)
+                if edge.kind == "loop":
+                    graph.optimize(max_iterations=50)
+            graph.flush()
+        return np.stack([graph.nodes[k][:3, 3] for k in sorted(graph.nodes)]) / scale
+
+    reference = incremental(1.0)
+    for scale in (0.1, 10.0):
+        assert np.abs(incremental(scale) - reference).max() < 1e-6  # 2.5-5 mm apart in pose units

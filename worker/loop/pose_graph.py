@@ -2,9 +2,10 @@
 
 Nodes are keyframe camera-to-world similarities T_k^W. An edge (i, j) carries the measured relative similarity
 H = T_i^-1 T_j (the pose of j in the frame of i) and penalises log(H^-1 T_i^-1 T_j) in sim(3) with a diagonal
-information matrix. Edge translations are measured in the scene's length unit (`length_unit`, the median depth
-of the first keyframe whose depth is known: worker.geometry.scene_units): the same scene in metres or in
-millimetres weighs rotation against translation and rejects loops alike. Three kinds of edges exist: sequential
+information matrix. GTSAM solves in the scene's length unit (`length_unit`, the median depth of the first
+keyframe whose depth is known: worker.geometry.scene_units): translations are divided by it on the way in and
+multiplied on the way out, so that edge sigmas, the robust kernel and iSAM2's relinearisation threshold mean the
+same for the same scene in metres or in millimetres. Three kinds of edges exist: sequential
 (consecutive keyframes inside one submap), inter-submap (through the overlap frame) and loop. Loop edges get a
 robust kernel by default so a single wrong loop is down-weighted instead of bending the whole trajectory; a prior
 pins the first keyframe (the gauge).
@@ -29,7 +30,6 @@ import numpy as np
 import torch
 
 from worker.geometry import relative_transform, sim3_decompose
-from worker.geometry.gtsam_bridge import sim3_to_gtsam
 from worker.geometry.scene_units import valid_unit
 
 from .incremental import IncrementalSolver
@@ -231,8 +231,23 @@ class Sim3PoseGraph:
             self._drop_solver()
 
     def _edge_sigmas(self, kind: str, weight: float = 1.0) -> np.ndarray:
-        """The standard deviations of an edge of `kind` in pose units."""
-        return self.sigmas[kind].vector(weight, 1.0 if self.length_unit is None else self.length_unit)
+        """The standard deviations of an edge of `kind` in scene length units (GTSAM's units: `_to_gtsam`)."""
+        return self.sigmas[kind].vector(weight)
+
+    def _to_gtsam(self, T: np.ndarray) -> list[gtsam.Similarity3]:
+        """[N,4,4] poses or measurements as GTSAM sees them: translations in scene length units, so that the
+        solve (iSAM2's relinearisation threshold, its convergence) is the same in any pose units."""
+        T = np.array(T, np.float64)
+        if self.length_unit is not None:
+            T[:, :3, 3] /= self.length_unit
+        return sim3_batch_to_gtsam(T)
+
+    def _from_gtsam(self, values: list[gtsam.Similarity3]) -> np.ndarray:
+        """GTSAM's similarities back in pose units, [N,4,4]."""
+        T = sim3_batch_from_gtsam(values)
+        if self.length_unit is not None:
+            T[:, :3, 3] *= self.length_unit
+        return T
 
     def add_node(self, key: int, pose: np.ndarray | torch.Tensor) -> None:
         """Add (or re-initialise) keyframe `key` with its current world pose (4x4 Sim(3) c2w)."""
@@ -285,15 +300,16 @@ class Sim3PoseGraph:
         return gtsam.noiseModel.Robust.Create(estimator, base)
 
     def _add_edge_factors(self, graph: gtsam.NonlinearFactorGraph, edges: list[PoseGraphEdge]) -> None:
-        measured = sim3_batch_to_gtsam(np.stack([e.relative for e in edges])) if edges else []
+        measured = self._to_gtsam(np.stack([e.relative for e in edges])) if edges else []
         for edge, meas in zip(edges, measured):
             noise = self._noises[edge.kind] if edge.weight == 1.0 else self._noise_model(edge.kind, edge.weight)
             graph.add(gtsam.BetweenFactorSimilarity3(edge.i, edge.j, meas, noise))
 
     def _add_prior_factors(self, graph: gtsam.NonlinearFactorGraph, priors: list[PosePrior]) -> None:
-        measured = sim3_batch_to_gtsam(np.stack([p.pose for p in priors])) if priors else []
-        for prior, meas in zip(priors, measured):
-            noise = gtsam.noiseModel.Diagonal.Sigmas(prior.sigmas.vector())
+        measured = self._to_gtsam(np.stack([p.pose for p in priors])) if priors else []
+        unit = 1.0 if self.length_unit is None else self.length_unit
+        for prior, meas in zip(priors, measured):  # a prior's translation sigma is in pose units
+            noise = gtsam.noiseModel.Diagonal.Sigmas(prior.sigmas.vector(1.0, 1.0 / unit))
             if self.robust is not None:
                 estimator = (gtsam.noiseModel.mEstimator.Cauchy if self.robust == "cauchy"
                              else gtsam.noiseModel.mEstimator.Huber).Create(self.robust_k)
@@ -303,7 +319,7 @@ class Sim3PoseGraph:
     def _values(self, keys: list[int]) -> gtsam.Values:
         values = gtsam.Values()
         if keys:
-            for key, pose in zip(keys, sim3_batch_to_gtsam(np.stack([self.nodes[k] for k in keys]))):
+            for key, pose in zip(keys, self._to_gtsam(np.stack([self.nodes[k] for k in keys]))):
                 values.insert(key, pose)
         return values
 
@@ -335,12 +351,12 @@ class Sim3PoseGraph:
         """The result over `values`; nodes in `unsolved` (not in `values`) keep their poses."""
         unsolved = unsolved or {}
         keys = [k for k in self.nodes if k not in unsolved]
-        poses = dict(zip(keys, sim3_batch_from_gtsam([values.atSimilarity3(k) for k in keys])))
+        poses = dict(zip(keys, self._from_gtsam([values.atSimilarity3(k) for k in keys])))
         poses.update({k: self.nodes[k] for k in unsolved})
         loop_residuals = {}
         for edge in self.edges_of_kind("loop"):
             err = values.atSimilarity3(edge.i).between(values.atSimilarity3(edge.j))
-            delta = gtsam.Similarity3.Logmap(sim3_to_gtsam(edge.relative).between(err))
+            delta = gtsam.Similarity3.Logmap(self._to_gtsam(edge.relative[None])[0].between(err))
             loop_residuals[(edge.i, edge.j)] = float(np.linalg.norm(delta / self._edge_sigmas("loop", edge.weight)))
         if update:
             self.nodes.update(poses)
