@@ -49,8 +49,9 @@ class FrontendConfig(_Section):
     keyframe_depth_ratio: float = Field(
         0.10, gt=0, description="monocular: a keyframe once the camera moved this fraction of the scene depth")
     keyframe_translation: float = Field(
-        0.2, gt=0, description="engine-chosen keyframes: or when it moved this far (pose units) while no scene depth "
-        "is known yet")
+        0.2, gt=0, description="keyframe selectors without a scene-depth rule: or when it moved this far (pose "
+        "units); engine-chosen keyframes never use it (until a scene depth is known, turns and keyframe_every make "
+        "them, the same in any pose units)")
     keyframe_parallax: float = Field(
         0.08, gt=0, description="engine-chosen keyframes: or once the camera moved this fraction of the scene depth "
         "(the median depth of the last keyframe: sensor, or the newest multi-view depth)")
@@ -112,7 +113,9 @@ class LoopConfig(_Section):
     depth_alignment: bool = Field(
         True, description="posed RGB-D: refine each loop edge by ICP on the two keyframes' depth")
     alignment_min_inliers: float = Field(0.3, ge=0, le=1, description="ICP: fraction of points with a close match")
-    alignment_max_rms: float = Field(0.01, gt=0, description="ICP: largest RMS point-to-plane residual (metres)")
+    alignment_max_rms: float = Field(
+        0.005, gt=0, description="ICP: largest RMS point-to-plane residual, in scene length units (the median depth "
+        "of the first keyframe with depth; ICL, 1.85 m: 0.9 cm), so that it holds in any pose units")
 
 
 class MappingConfig(_Section):

@@ -294,7 +294,7 @@ class SlamSystem:
         """The keyframe pose graph; `metric` (given poses and depth) leaves the scale no freedom."""
         lc = self.config.loop
         sigmas = {kind: EdgeSigmas(s.rotation, s.translation, METRIC_LOG_SCALE_SIGMA if metric else s.log_scale)
-                  for kind, s in {**DEFAULT_SIGMAS, "loop": EdgeSigmas(0.02, 0.04, 0.02)}.items()}
+                  for kind, s in {**DEFAULT_SIGMAS, "loop": EdgeSigmas(0.02, 0.02, 0.02)}.items()}
         return Sim3PoseGraph(robust=None if lc.robust_kernel == "none" else lc.robust_kernel, robust_k=lc.robust_k,
                              sigmas=sigmas)
 

@@ -29,6 +29,9 @@ def add_run_options(parser: argparse.ArgumentParser) -> None:
                         "metrics.json and intrinsics.json)")
     parser.add_argument("--pingpong", type=int, default=1, metavar="N",
                         help="play a dataset folder forward and back N sweeps (a long session revisiting places)")
+    parser.add_argument("--scale", type=float, default=1.0, metavar="S",
+                        help="multiply every pose and depth by S: the same scene in other length units (a map that "
+                        "follows the scene renders the same; ATE and depth L1 come out S times larger)")
     parser.add_argument("--finish-budget", type=float, default=0.0, metavar="SECONDS",
                         help="bound the final refinement at the end of the run (default 0: no bound, an offline run "
                         "completes its passes, at most passes x held keyframe images iterations; live sessions keep "
@@ -86,7 +89,7 @@ def run_one(args: argparse.Namespace, source: str, out_dir: str) -> dict:
         return run_sequence(source, out_dir, config, use_gt_depth=args.use_gt_depth, use_gt_poses=args.use_gt_poses,
                             max_frames=args.max_frames, stride=args.stride, resize=args.resize, drift=drift,
                             progress=progress, unknown_intrinsics=args.unknown_intrinsics,
-                            pingpong=args.pingpong, live_pacing=args.live_pacing)
+                            pingpong=args.pingpong, live_pacing=args.live_pacing, scale=args.scale)
     finally:
         bar.close()
 

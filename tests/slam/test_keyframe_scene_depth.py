@@ -1,6 +1,6 @@
 """Keyframes chosen by the engine follow the scene, not the pose units: parallax and overlap of the last keyframe's
-view (its depth, or a plane at the median scene depth known from multi-view stereo), an absolute distance only
-while no depth is known."""
+view (its depth, or a plane at the median scene depth known from multi-view stereo); while no depth is known,
+only turns and the every-N floor (never a distance in pose units)."""
 
 from __future__ import annotations
 
@@ -86,8 +86,11 @@ def test_without_depth_the_scene_depth_comes_later_from_multi_view_stereo() -> N
     sequence = walk(10.0, frames=60)
     sel = selector()
     chosen = flags(sel, sequence[:20], with_depth=False)
-    # no depth known: 0.2 units (0.06 a frame here), every 4th frame
-    assert chosen[:9] == [True, False, False, False, True, False, False, False, True]
+    # no depth known: no distance in pose units decides (0.2 units made every 4th frame a keyframe here, every
+    # frame at ten times the scale): only turns and the every-N floor, the same in any unit
+    assert chosen == [True] + [False] * 19
+    for scale in (0.1, 1000.0):
+        assert flags(selector(), walk(scale, frames=20), with_depth=False) == chosen
     sel.set_scene_depth(10.0)  # e.g. the multi-view depth of a recent keyframe
     assert sum(flags(sel, sequence[20:], with_depth=False)) <= 5
     for bad in (None, float("nan"), -1.0, 0.0):

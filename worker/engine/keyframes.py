@@ -9,7 +9,10 @@ two camera centres, about the motion over the depth, less for motion along the v
 than a share of them is left inside the frame, or when the camera came closer to them by a share of their depth
 (driving forward moves the view along its axis: little parallax, but what the last keyframe saw from afar is now
 seen magnified, finer than its surfels; a car at 0.8 m a frame with the scene 12 m ahead needs a keyframe every 2
-frames, not every 5). Until any depth is known, an absolute distance in pose units.
+frames, not every 5). Until any depth is known (posed RGB's first frames, before multi-view stereo has estimated a
+keyframe), only turns and the every-N floor make keyframes: a distance in pose units would make every frame a
+keyframe in a scene measured in large units and none in small ones (ICL's poses x10: its first 18 frames were all
+keyframes). A selector without a parallax rule (`depth_ratio` None) judges `translation`.
 
 A blurred frame makes a poor keyframe (its colours smear into the map and its depth is worse): when a keyframe is
 due and the frame is markedly blurrier than the recent frames (sharpness below `blur_ratio` times their median),
@@ -28,20 +31,14 @@ import torch
 
 from worker.data.sharpness import sharpness
 from worker.geometry import Intrinsics, relative_transform, sim3_decompose, so3_log
+from worker.geometry.scene_units import median_depth
 
 SHARPNESS_HISTORY = 8  # recent frames whose median sharpness a frame is compared with
 MIN_HISTORY = 3  # frames needed before a frame can be judged blurred
 VIEW_GRID = (16, 12)  # the pixels (columns, rows) a keyframe's view is judged by
 MIN_VIEW_POINTS = 20  # valid depths needed to judge the view by the keyframe's own depth
 
-
-def median_depth(depth: np.ndarray | None) -> float | None:
-    """The median of a z-depth map's valid values (0, negative or non-finite = unknown); None with too few."""
-    if depth is None:
-        return None
-    values = np.asarray(depth)[::2, ::2]
-    values = values[np.isfinite(values) & (values > 0)]
-    return float(np.median(values)) if values.size >= MIN_VIEW_POINTS else None
+__all__ = ["KeyframeView", "MotionKeyframeSelector", "median_depth"]
 
 
 class MotionKeyframeSelector:
@@ -51,10 +48,10 @@ class MotionKeyframeSelector:
                  blur_delay: int = 2, depth_ratio: float | None = None, min_overlap: float = 0.0,
                  approach: float = 0.0) -> None:
         """`every`: a keyframe at least every N frames; `translation` (pose units): the motion that makes a keyframe
-        while no scene depth is known; `depth_ratio`: once one is, the parallax (radians, about the motion over the
-        depth) of the last keyframe's view that makes one (None: always `translation`); `min_overlap`: a keyframe
-        once less than this fraction of that view is in the frame (0: not judged); `approach`: a keyframe once
-        the median depth of that view's points in the frame has shrunk by this fraction (0: not judged).
+        when there is no parallax rule; `depth_ratio`: the parallax (radians, about the motion over the depth) of the
+        last keyframe's view that makes one once a scene depth is known (None: always `translation`); `min_overlap`:
+        a keyframe once less than this fraction of that view is in the frame (0: not judged); `approach`: a keyframe
+        once the median depth of that view's points in the frame has shrunk by this fraction (0: not judged).
         `blur_ratio` 0 never delays a keyframe for blur."""
         self.every = every
         self.translation = translation
@@ -117,13 +114,15 @@ class MotionKeyframeSelector:
     def _moved(self, pose: np.ndarray, camera: Intrinsics | None) -> bool:
         """Whether the camera turned, or moved enough for the scene it sees: the parallax of the last keyframe's
         view (its depth, else a plane at the scene's median depth), the share of that view still in the frame;
-        while no depth is known, an absolute distance."""
+        while no depth is known, nothing but the turn (module docstring)."""
         rel = relative_transform(torch.from_numpy(self.last_pose), torch.from_numpy(np.asarray(pose, np.float64)))
         _, R, t = sim3_decompose(rel)
         if float(so3_log(R).norm()) > self.rotation:
             return True
-        if self.depth_ratio is None or self.scene_depth is None:
+        if self.depth_ratio is None:
             return float(t.norm()) > self.translation
+        if self.scene_depth is None:
+            return False
         view = self.view or (None if camera is None else KeyframeView.plane(self.scene_depth, camera))
         if view is None:
             return float(t.norm()) > self.depth_ratio * self.scene_depth

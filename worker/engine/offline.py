@@ -55,6 +55,7 @@ def run_sequence(
     unknown_intrinsics: bool = False,
     pingpong: int = 1,
     live_pacing: bool = False,
+    scale: float = 1.0,
 ) -> dict[str, Any]:
     """Run one sequence end to end and evaluate it (see the module docstring).
 
@@ -63,7 +64,7 @@ def run_sequence(
     not depend on the machine's load; and visual odometry may spend seconds on LighterGlue (`learned_glue`) where
     XFeat places a lost frame nowhere. `live_pacing` keeps a live session's load shedding (fewer refinement
     iterations, then merge only, when mapping falls behind) and its tracking budget, to study what a live stream
-    gets."""
+    gets. `scale` multiplies every pose and depth of the source (the same scene in other length units)."""
     from worker.data import open_source
     from worker.slam import SlamSystem
 
@@ -74,7 +75,7 @@ def run_sequence(
     if not live_pacing:
         config = complete_pacing(config)
     src = open_source(str(source), stride=stride, max_frames=max_frames, resize=resize, use_gt_depth=True,
-                      use_gt_poses=use_gt_poses, pingpong=pingpong)
+                      use_gt_poses=use_gt_poses, pingpong=pingpong, scale=scale)
     try:
         total = len(src)
     except TypeError:
@@ -125,7 +126,7 @@ def run_sequence(
             "mapping_lag_at_last_pose": {"keyframes": lag_at_last_pose["mapping_lag_keyframes"],
                                          "seconds": lag_at_last_pose["mapping_lag_s"]},
             "keyframes_shed": system.live_stats()["keyframes_shed"], "live_pacing": live_pacing,
-            "use_gt_depth": use_gt_depth, "use_gt_poses": use_gt_poses, "tracking": system.tracking,
+            "use_gt_depth": use_gt_depth, "use_gt_poses": use_gt_poses, "scale": scale, "tracking": system.tracking,
             "depth_source": system.depth_source, **system.pose_source_choice(),
             "intrinsics": intrinsics.to_dict() if intrinsics else None,
             "intrinsics_estimated": given_intrinsics is None,

@@ -17,7 +17,7 @@ from worker.geometry import make_sim3, so3_exp
 @dataclass
 class IcpResult:
     """The refined pose of frame j in frame i (T_i^-1 T_j), the fraction of j's points that found a close
-    neighbour in i, and the RMS point-to-plane residual of those (metres)."""
+    neighbour in i, and the RMS point-to-plane residual of those (pose units)."""
 
     relative: torch.Tensor
     inlier_fraction: float
@@ -26,7 +26,8 @@ class IcpResult:
 
 def refine_relative_pose(points_i: torch.Tensor, points_j: torch.Tensor, K: torch.Tensor, relative: torch.Tensor,
                          iterations: int = 15, max_distance: float = 0.05) -> IcpResult:
-    """Point-to-plane ICP of j's camera-frame points [H,W,3] onto i's, starting from `relative` (4x4, SE(3))."""
+    """Point-to-plane ICP of j's camera-frame points [H,W,3] onto i's, starting from `relative` (4x4, SE(3)); points
+    farther than `max_distance` (pose units) from their match are not paired."""
     H, W = points_i.shape[:2]
     normals_i = depth_normals(points_i.float()).double()
     target = points_i.double()

@@ -80,7 +80,7 @@ class TrackingStage:
         the odometry edge from the previous keyframe, of kind `edge_kind` when given); returns its world pose."""
         kf_id, previous = frame.index, self.last_keyframe
         world = self.trajectory.add_keyframe(kf_id, tracked_pose, reference=previous)
-        node = GraphKeyframe(kf_id, world.copy())
+        node = GraphKeyframe(kf_id, world.copy(), scene_depth=self.selector.scene_depth)
         if previous is not None:
             node.previous = previous
             node.relative = (sim3_inverse(torch.from_numpy(self.trajectory.tracked_keyframe_poses[previous]))

@@ -2,9 +2,13 @@
 
 Nodes are keyframe camera-to-world similarities T_k^W. An edge (i, j) carries the measured relative similarity
 H = T_i^-1 T_j (the pose of j in the frame of i) and penalises log(H^-1 T_i^-1 T_j) in sim(3) with a diagonal
-information matrix. Three kinds of edges exist: sequential (consecutive keyframes inside one submap),
-inter-submap (through the overlap frame) and loop. Loop edges get a robust kernel by default so a single wrong
-loop is down-weighted instead of bending the whole trajectory; a prior pins the first keyframe (the gauge).
+information matrix. GTSAM solves in the scene's length unit (`length_unit`, the median depth of the first
+keyframe whose depth is known: worker.geometry.scene_units): translations are divided by it on the way in and
+multiplied on the way out, so that edge sigmas, the robust kernel and iSAM2's relinearisation threshold mean the
+same for the same scene in metres or in millimetres. Three kinds of edges exist: sequential
+(consecutive keyframes inside one submap), inter-submap (through the overlap frame) and loop. Loop edges get a
+robust kernel by default so a single wrong loop is down-weighted instead of bending the whole trajectory; a prior
+pins the first keyframe (the gauge).
 Absolute priors (`PosePrior`, e.g. a device's pose of a keyframe with its stated uncertainty) pull single nodes
 towards measured world poses, through the same robust kernel as loop edges.
 
@@ -26,7 +30,7 @@ import numpy as np
 import torch
 
 from worker.geometry import relative_transform, sim3_decompose
-from worker.geometry.gtsam_bridge import sim3_to_gtsam
+from worker.geometry.scene_units import valid_unit
 
 from .incremental import IncrementalSolver
 
@@ -41,24 +45,32 @@ DIVERGED_COST_RATIO = 1.05  # an incremental solve ending this much above its st
 
 @dataclass(frozen=True)
 class EdgeSigmas:
-    """Standard deviations of one edge kind in sim(3) tangent space: rotation (rad), translation (map units),
-    log-scale. GTSAM orders the tangent as (rotation, translation, log-scale)."""
+    """Standard deviations of one edge kind in sim(3) tangent space: rotation (rad), translation (scene length
+    units for edges, pose units for priors), log-scale. GTSAM orders the tangent as (rotation, translation,
+    log-scale)."""
 
     rotation: float = 0.01
     translation: float = 0.02
     log_scale: float = 0.01
 
-    def vector(self, weight: float = 1.0) -> np.ndarray:
-        sig = np.array([self.rotation] * 3 + [self.translation] * 3 + [self.log_scale], dtype=np.float64)
+    def vector(self, weight: float = 1.0, length_unit: float = 1.0) -> np.ndarray:
+        """The 7 standard deviations, the translation's in pose units (`length_unit` pose units each), for an
+        information scaled by `weight`."""
+        sig = np.array([self.rotation] * 3 + [self.translation * length_unit] * 3 + [self.log_scale],
+                       dtype=np.float64)
         if weight <= 0:
             raise ValueError(f"edge weight must be positive, got {weight}")
         return sig / np.sqrt(weight)
 
 
+# Translations in scene length units (the first keyframe's median depth): odometry edges 1 % of it, loops 2 %. They
+# were 0.02 and 0.04 pose units: in metres, 1.1 and 2.2 % of ICL's scene (first keyframe at 1.85 m), which keeps its
+# weights; in visual odometry's units (first keyframe at 1) 2 and 4 %, yet ICL RGB only measured the same with 1 and
+# 2 % (1.82 cm / 28.13 dB against 1.84 / 28.11; bench/RESULTS.md, "The map does not depend on the scene's units").
 DEFAULT_SIGMAS: dict[str, EdgeSigmas] = {
-    "sequential": EdgeSigmas(0.01, 0.02, 0.01),
-    "inter_submap": EdgeSigmas(0.01, 0.02, 0.01),
-    "loop": EdgeSigmas(0.02, 0.04, 0.02),
+    "sequential": EdgeSigmas(0.01, 0.01, 0.01),
+    "inter_submap": EdgeSigmas(0.01, 0.01, 0.01),
+    "loop": EdgeSigmas(0.02, 0.02, 0.02),
     # Between the last keyframe of a lost map and the first of the map begun after it: the new map was only placed
     # at the last pose with the old scene depth, so the edge holds it there until a loop gives the true Sim(3).
     "new_map": EdgeSigmas(1.0, 10.0, 1.0),
@@ -169,7 +181,9 @@ class Sim3PoseGraph:
     robust: "cauchy", "huber" or None; applied to the edge kinds in `robust_kinds` (loop edges by default) with
     threshold `robust_k` on the whitened residual norm. incremental: solve with iSAM2 after the first (batch)
     solve; False solves every time with batch Levenberg-Marquardt. relinearize_threshold: iSAM2 relinearises a
-    node whose step exceeds this tangent-space norm. The methods may be called from several threads (one lock).
+    node whose step exceeds this tangent-space norm. length_unit: pose units per scene length unit, the unit of
+    the edges' translation sigmas (None: 1, until `set_length_unit`). The methods may be called from several
+    threads (one lock).
     """
 
     def __init__(
@@ -181,6 +195,7 @@ class Sim3PoseGraph:
         prior_sigma: float = 1e-6,
         incremental: bool = True,
         relinearize_threshold: float = 0.001,
+        length_unit: float | None = None,
     ) -> None:
         if robust not in ("cauchy", "huber", None):
             raise ValueError(f"robust kernel must be 'cauchy', 'huber' or None, got {robust!r}")
@@ -193,6 +208,7 @@ class Sim3PoseGraph:
         self.prior_sigma = prior_sigma
         self.incremental = incremental
         self.relinearize_threshold = relinearize_threshold
+        self.length_unit = valid_unit(length_unit)  # pose units per scene length unit; None: not known yet (1)
         self.nodes: dict[int, np.ndarray] = {}
         self.edges: list[PoseGraphEdge] = []
         self.priors: list[PosePrior] = []
@@ -202,6 +218,36 @@ class Sim3PoseGraph:
 
     def __len__(self) -> int:
         return len(self.nodes)
+
+    def set_length_unit(self, unit: float | None) -> None:
+        """Measure edge translations in units of `unit` pose units (the scene's median depth); None or an invalid
+        value: 1. A change re-weighs every edge, so the next solve is a batch one."""
+        unit = valid_unit(unit)
+        with self._lock:
+            if unit == self.length_unit:
+                return
+            self.length_unit = unit
+            self._noises = {kind: self._noise_model(kind) for kind in EDGE_KINDS}
+            self._drop_solver()
+
+    def _edge_sigmas(self, kind: str, weight: float = 1.0) -> np.ndarray:
+        """The standard deviations of an edge of `kind` in scene length units (GTSAM's units: `_to_gtsam`)."""
+        return self.sigmas[kind].vector(weight)
+
+    def _to_gtsam(self, T: np.ndarray) -> list[gtsam.Similarity3]:
+        """[N,4,4] poses or measurements as GTSAM sees them: translations in scene length units, so that the
+        solve (iSAM2's relinearisation threshold, its convergence) is the same in any pose units."""
+        T = np.array(T, np.float64)
+        if self.length_unit is not None:
+            T[:, :3, 3] /= self.length_unit
+        return sim3_batch_to_gtsam(T)
+
+    def _from_gtsam(self, values: list[gtsam.Similarity3]) -> np.ndarray:
+        """GTSAM's similarities back in pose units, [N,4,4]."""
+        T = sim3_batch_from_gtsam(values)
+        if self.length_unit is not None:
+            T[:, :3, 3] *= self.length_unit
+        return T
 
     def add_node(self, key: int, pose: np.ndarray | torch.Tensor) -> None:
         """Add (or re-initialise) keyframe `key` with its current world pose (4x4 Sim(3) c2w)."""
@@ -246,7 +292,7 @@ class Sim3PoseGraph:
         return [e for e in self.edges if e.kind == kind]
 
     def _noise_model(self, kind: str, weight: float = 1.0) -> gtsam.noiseModel.Base:
-        base = gtsam.noiseModel.Diagonal.Sigmas(self.sigmas[kind].vector(weight))
+        base = gtsam.noiseModel.Diagonal.Sigmas(self._edge_sigmas(kind, weight))
         if self.robust is None or kind not in self.robust_kinds:
             return base
         estimator = (gtsam.noiseModel.mEstimator.Cauchy if self.robust == "cauchy"
@@ -254,15 +300,16 @@ class Sim3PoseGraph:
         return gtsam.noiseModel.Robust.Create(estimator, base)
 
     def _add_edge_factors(self, graph: gtsam.NonlinearFactorGraph, edges: list[PoseGraphEdge]) -> None:
-        measured = sim3_batch_to_gtsam(np.stack([e.relative for e in edges])) if edges else []
+        measured = self._to_gtsam(np.stack([e.relative for e in edges])) if edges else []
         for edge, meas in zip(edges, measured):
             noise = self._noises[edge.kind] if edge.weight == 1.0 else self._noise_model(edge.kind, edge.weight)
             graph.add(gtsam.BetweenFactorSimilarity3(edge.i, edge.j, meas, noise))
 
     def _add_prior_factors(self, graph: gtsam.NonlinearFactorGraph, priors: list[PosePrior]) -> None:
-        measured = sim3_batch_to_gtsam(np.stack([p.pose for p in priors])) if priors else []
-        for prior, meas in zip(priors, measured):
-            noise = gtsam.noiseModel.Diagonal.Sigmas(prior.sigmas.vector())
+        measured = self._to_gtsam(np.stack([p.pose for p in priors])) if priors else []
+        unit = 1.0 if self.length_unit is None else self.length_unit
+        for prior, meas in zip(priors, measured):  # a prior's translation sigma is in pose units
+            noise = gtsam.noiseModel.Diagonal.Sigmas(prior.sigmas.vector(1.0, 1.0 / unit))
             if self.robust is not None:
                 estimator = (gtsam.noiseModel.mEstimator.Cauchy if self.robust == "cauchy"
                              else gtsam.noiseModel.mEstimator.Huber).Create(self.robust_k)
@@ -272,7 +319,7 @@ class Sim3PoseGraph:
     def _values(self, keys: list[int]) -> gtsam.Values:
         values = gtsam.Values()
         if keys:
-            for key, pose in zip(keys, sim3_batch_to_gtsam(np.stack([self.nodes[k] for k in keys]))):
+            for key, pose in zip(keys, self._to_gtsam(np.stack([self.nodes[k] for k in keys]))):
                 values.insert(key, pose)
         return values
 
@@ -304,13 +351,13 @@ class Sim3PoseGraph:
         """The result over `values`; nodes in `unsolved` (not in `values`) keep their poses."""
         unsolved = unsolved or {}
         keys = [k for k in self.nodes if k not in unsolved]
-        poses = dict(zip(keys, sim3_batch_from_gtsam([values.atSimilarity3(k) for k in keys])))
+        poses = dict(zip(keys, self._from_gtsam([values.atSimilarity3(k) for k in keys])))
         poses.update({k: self.nodes[k] for k in unsolved})
         loop_residuals = {}
         for edge in self.edges_of_kind("loop"):
             err = values.atSimilarity3(edge.i).between(values.atSimilarity3(edge.j))
-            delta = gtsam.Similarity3.Logmap(sim3_to_gtsam(edge.relative).between(err))
-            loop_residuals[(edge.i, edge.j)] = float(np.linalg.norm(delta / self.sigmas["loop"].vector(edge.weight)))
+            delta = gtsam.Similarity3.Logmap(self._to_gtsam(edge.relative[None])[0].between(err))
+            loop_residuals[(edge.i, edge.j)] = float(np.linalg.norm(delta / self._edge_sigmas("loop", edge.weight)))
         if update:
             self.nodes.update(poses)
         return PoseGraphResult(poses, float(initial_error), float(final_error), iterations, loop_residuals)
@@ -439,7 +486,8 @@ class Sim3PoseGraph:
             keys = sorted(self.nodes)
             return {"keys": np.asarray(keys, np.int64),
                     "poses": np.stack([self.nodes[k] for k in keys]) if keys else np.zeros((0, 4, 4)),
-                    "edges": [e.to_dict() for e in self.edges], "priors": [p.to_dict() for p in self.priors]}
+                    "edges": [e.to_dict() for e in self.edges], "priors": [p.to_dict() for p in self.priors],
+                    "length_unit": self.length_unit}
 
     def load_state_dict(self, state: Mapping) -> None:
         """Restore nodes and edges. iSAM2 is rebuilt by the next `optimize`, a batch solve that seeds it."""
@@ -449,6 +497,8 @@ class Sim3PoseGraph:
             self.nodes = {int(k): poses[n] for n, k in enumerate(keys)}
             self.edges = [PoseGraphEdge.from_dict(d) for d in state["edges"]]
             self.priors = [PosePrior.from_dict(d) for d in state.get("priors", [])]
+            self.length_unit = valid_unit(state.get("length_unit"))
+            self._noises = {kind: self._noise_model(kind) for kind in EDGE_KINDS}
             self._drop_solver()
 
 

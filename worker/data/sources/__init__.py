@@ -55,16 +55,22 @@ def open_source(path_or_uri: str | Path, format: str | None = None, **options: A
 
     Common options: stride, max_frames, resize=(width, height), use_gt_poses (copy ground truth into Frame.pose),
     use_gt_depth (attach depth, default True), intrinsics (override the camera), pingpong=N (a dataset folder played
-    forward and back N sweeps, `PingPongSource`). Format-specific options are passed on (e.g. fps for image folders,
+    forward and back N sweeps, `PingPongSource`), scale=s (every pose and depth multiplied by s: the same scene in
+    other length units, `ScaledSource`). Format-specific options are passed on (e.g. fps for image folders,
     max_difference for TUM, poses_file for KITTI). `format` forces a reader.
     """
     sweeps = options.pop("pingpong", None)
+    scale = options.pop("scale", None)
     source = _open(path_or_uri, format, **options)
-    if sweeps is None or int(sweeps) == 1:
-        return source
-    from .pingpong import PingPongSource
+    if sweeps is not None and int(sweeps) != 1:
+        from .pingpong import PingPongSource
 
-    return PingPongSource(source, int(sweeps))
+        source = PingPongSource(source, int(sweeps))
+    if scale is not None and float(scale) != 1.0:
+        from .scaled import ScaledSource
+
+        source = ScaledSource(source, float(scale))
+    return source
 
 
 def _open(path_or_uri: str | Path, format: str | None, **options: Any) -> FrameSource:
