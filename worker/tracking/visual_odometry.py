@@ -544,14 +544,7 @@ class VisualOdometry:
         self.velocity, self.velocity_at = rigid(invert_pose(self.pose) @ pose), index
         self.frames_since_keyframe += 1
         self.direct_since = None  # the tracks measure the turn again: a run of aligned frames ends
-        last = self.map.keyframes[-1] if self.map.keyframes else None
-        if (self.rotation_since is None or last is None
-                or len(self.tracks) < c.rotation_keyframe_share * len(last.track_ids)):
-            self._new_keyframe(index, pose, gray)
-            self._triangulate(K, self.map.keyframes[-(c.window + c.fixed_keyframes + 1):])
-            self._retire(self.map.slide(c.map_keyframes if c.covisibility_ba else c.window + c.fixed_keyframes))
-            self._remap(self.map.forget_unobserved())
-            self.tracked_at_keyframe = max(int(self.tracks.mapped.sum()), 1)
+        self._turn_keyframe(index, pose, gray, K, run_began=self.rotation_since is not None)
         events = []
         if self.rotation_since is None:
             self.rotation_since = index
@@ -559,6 +552,20 @@ class VisualOdometry:
                            "map_points": measured})
         return TrackingResult(pose, tracked=True, keyframe_hint=False, events=events,
                               quality=0.5 * float(agree.mean()))
+
+    def _turn_keyframe(self, index: int, pose: np.ndarray, gray: np.ndarray, K: np.ndarray, run_began: bool
+                       ) -> None:
+        """A keyframe where a turn model placed the frame: at a run's first frame, and again whenever the tracks
+        fall below `rotation_keyframe_share` of the last keyframe's (the view has turned on)."""
+        c = self.config
+        last = self.map.keyframes[-1] if self.map.keyframes else None
+        if run_began and last is not None and len(self.tracks) >= c.rotation_keyframe_share * len(last.track_ids):
+            return
+        self._new_keyframe(index, pose, gray)
+        self._triangulate(K, self.map.keyframes[-(c.window + c.fixed_keyframes + 1):])
+        self._retire(self.map.slide(c.map_keyframes if c.covisibility_ba else c.window + c.fixed_keyframes))
+        self._remap(self.map.forget_unobserved())
+        self.tracked_at_keyframe = max(int(self.tracks.mapped.sum()), 1)
 
     def _follow_direct(self, index: int, gray: np.ndarray, K: np.ndarray, predicted: np.ndarray
                        ) -> TrackingResult | str:
@@ -606,14 +613,7 @@ class VisualOdometry:
         self.velocity, self.velocity_at = rigid(invert_pose(self.pose) @ pose), index
         self.frames_since_keyframe += 1
         self.rotation_since = None
-        last = self.map.keyframes[-1] if self.map.keyframes else None
-        if (self.direct_since is None or last is None
-                or len(self.tracks) < c.rotation_keyframe_share * len(last.track_ids)):
-            self._new_keyframe(index, pose, gray)
-            self._triangulate(K, self.map.keyframes[-(c.window + c.fixed_keyframes + 1):])
-            self._retire(self.map.slide(c.map_keyframes if c.covisibility_ba else c.window + c.fixed_keyframes))
-            self._remap(self.map.forget_unobserved())
-            self.tracked_at_keyframe = max(int(self.tracks.mapped.sum()), 1)
+        self._turn_keyframe(index, pose, gray, K, run_began=self.direct_since is not None)
         events = []
         if self.direct_since is None:
             self.direct_since = index
