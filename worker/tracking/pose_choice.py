@@ -101,6 +101,7 @@ class ChosenDevicePoses:
 
     def _decide(self, choice: str, index: int, result: TrackingResult, reason: str) -> TrackingResult:
         self.choice, self.reason = choice, reason
+        self.agreement.forget_frames()  # judging is over: its tracked frames' images are not needed any more
         log.info("frame %d: pose source %s (%s)", index, choice, reason)
         event = {"type": "pose_source_chosen", "frame": int(index), "pose_source": choice, "reason": reason,
                  **(self.verdict.to_dict() if self.verdict is not None else {})}
