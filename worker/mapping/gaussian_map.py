@@ -25,6 +25,7 @@ import torch
 
 from worker.geometry import make_sim3, sim3_decompose, sim3_inverse
 
+from .archive_thinning import thin
 from .exposure import apply_exposure, fit_exposure, identity_exposure, remove_exposure
 from .fusion import FusionThresholds, attribute_errors, densify_mask, prune_mask
 from .hole_closing import HoleClosingSettings, hole_surfels, widened_camera
@@ -50,7 +51,7 @@ class MapConfig:
     refine: RefineSettings = field(default_factory=RefineSettings)
     min_opacity: float = 0.005  # surfels fading below this after refinement are removed
     # Keyframes outside the window whose image and depth stay (compact: keyframe_archive) for refinement; when more
-    # have left the window, every second one (oldest first) is thinned out. 0 = keep only the window's.
+    # have left the window, the most redundant views are let go (archive_thinning). 0 = keep only the window's.
     archived_images: int = 0
     # Each refinement also trains against this many archived keyframes drawn at random (seeded), with their
     # surfels: the online map keeps the views the window has left (MonoGS-style random past keyframes).
@@ -501,14 +502,28 @@ class GaussianMap:
         return fit_exposure(render.rgb, image, covered, settings.exposure_prior, threshold=settings.exposure_threshold)
 
     def _archive_old_images(self) -> None:
-        """Keyframes that left the window: archive their images, thinning to at most `archived_images`."""
+        """Keyframes that left the window: archive their images; beyond `archived_images`, the most redundant views
+        are let go one by one (worker.mapping.archive_thinning)."""
         archived = [k for k in self.keyframe_ids[: -self.config.window] if self._keyframes[k].held]
-        while len(archived) > self.config.archived_images:
-            for kf_id in archived[0::2]:
-                self._keyframes[kf_id].drop()
-            archived = archived[1::2]
+        if len(archived) > self.config.archived_images:
+            held = [k for k in self.keyframe_ids if self._keyframes[k].held]
+            centres, axes = self._camera_centres_and_axes(held)
+            scene_depth = self._scene_scale(self.keyframe_ids[-self.config.window:])
+            let_go = thin(centres, axes, [held.index(k) for k in archived], self.config.archived_images, scene_depth)
+            for index in let_go:
+                self._keyframes[held[index]].drop()
+            archived = [k for k in archived if self._keyframes[k].held]
         for kf_id in archived:
             self._keyframes[kf_id].archive()
+
+    def _camera_centres_and_axes(self, kf_ids: list[int]) -> tuple[np.ndarray, np.ndarray]:
+        """([N, 3] camera centres, [N, 3] unit optical axes) of keyframes, in world coordinates."""
+        centres, axes = [], []
+        for kf_id in kf_ids:
+            _, R, t = sim3_decompose(self._keyframes[kf_id].pose.to(torch.float64))
+            centres.append(t.cpu().numpy())
+            axes.append(R[:, 2].cpu().numpy())
+        return np.asarray(centres, np.float64).reshape(-1, 3), np.asarray(axes, np.float64).reshape(-1, 3)
 
     def _in_view(self, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int) -> torch.Tensor:
         """[N] bool: the map's surfels a render from this camera can touch."""
