@@ -75,6 +75,10 @@ async def render_view(
     cx: Annotated[float | None, Query()] = None,
     cy: Annotated[float | None, Query()] = None,
     kind: Annotated[Literal["color", "depth"], Query()] = "color",
+    exposure_of: Annotated[int | None, Query(ge=0, description="a frame's seq: the colours under the exposure the "
+                                             "camera had at that frame (interpolated between the keyframes around "
+                                             "it), as its photo shows them; default: the map's exposure-normalised "
+                                             "colours")] = None,
     principal: Principal = Depends(caller),
     reg: Registry = Depends(registry),
 ) -> Response:
@@ -83,6 +87,8 @@ async def render_view(
     record = await session_for(reg, principal, session_id, write=False)
     params = render_params(record, pose, width, height, fx, fy, cx, cy, kind,
                            request.app.state.settings.max_render_pixels)
+    if exposure_of is not None:
+        params["exposure_of"] = exposure_of
     return await _ask_worker(request, reg, session_id, record, "render", params)
 
 

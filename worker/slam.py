@@ -228,9 +228,11 @@ class SlamSystem:
         """[(index, timestamp, c2w pose 4x4)] of "all" frames or the "keyframes", at the current revision."""
         return self._traj.listing(which)
 
-    def render_view(self, pose_c2w: np.ndarray, K: np.ndarray | torch.Tensor, width: int, height: int
-                    ) -> tuple[np.ndarray, np.ndarray]:
-        """Render the map: (rgb uint8 [h,w,3], depth float32 [h,w]) seen from c2w `pose_c2w` with intrinsics K."""
+    def render_view(self, pose_c2w: np.ndarray, K: np.ndarray | torch.Tensor, width: int, height: int,
+                    as_captured_at: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Render the map: (rgb uint8 [h,w,3], depth float32 [h,w]) seen from c2w `pose_c2w` with intrinsics K, in
+        the map's exposure-normalised colours or, with `as_captured_at` (a frame index), under the exposure the
+        camera had at that frame (interpolated between its keyframes: what the photo of that frame shows)."""
         if self.backend is None:
             raise ValueError("mapping is disabled in this session's config")
         pose = np.asarray(pose_c2w, np.float64)
@@ -239,7 +241,7 @@ class SlamSystem:
             raise ValueError("render_view needs a 4x4 pose and a 3x3 K")
         if not (0 < width <= 8192 and 0 < height <= 8192):
             raise ValueError(f"render size must be within 1..8192, got {width}x{height}")
-        out = self.backend.render(pose, Km, int(width), int(height))
+        out = self.backend.render(pose, Km, int(width), int(height), as_captured_at)
         rgb = (out.rgb.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
         return rgb, out.depth.to(torch.float32).cpu().numpy()
 

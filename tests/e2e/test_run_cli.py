@@ -29,7 +29,7 @@ def test_run_writes_trajectories_map_renders_and_metrics(data_dir: Path, tmp_pat
                      "--no-progress")
     assert proc.returncode == 0, proc.stderr[-3000:]
     metrics = json.loads((out / "metrics.json").read_text())
-    for key in ("ate_rmse", "psnr", "ssim", "depth_l1", "fps", "num_gaussians"):
+    for key in ("ate_rmse", "psnr", "psnr_normalised", "ssim", "depth_l1", "fps", "num_gaussians"):
         assert metrics[key] is not None, key
     assert "lpips" in metrics and (metrics["lpips"] is not None or metrics["lpips_note"])
     assert metrics["ate_rmse"] < 1e-6  # fixed ground-truth poses

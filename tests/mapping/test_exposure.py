@@ -139,3 +139,38 @@ def test_exposure_changes_over_a_sequence_merged_without_refinement_are_removed(
     ours = [psnr(gmap.render(pose, intrinsics(), WIDTH, HEIGHT).rgb, t) for pose, t in zip(POSES, truth)]
     theirs = [psnr(plain.render(pose, intrinsics(), WIDTH, HEIGHT).rgb, t) for pose, t in zip(POSES, truth)]
     assert min(ours) > 28 and sum(ours) / len(ours) > sum(theirs) / len(theirs) + 5, (ours, theirs)
+
+
+def test_the_exposure_of_a_frame_between_keyframes_is_interpolated_and_renders_as_its_photo():
+    """Keyframes at frames 0, 10, 20, 30, 40 with their own gains: a frame between two has the exposure between
+    theirs (log gains linear in the frame index), the ends keep their nearest keyframe's; a render "as captured" at
+    a held-out frame under auto-exposure matches its photo where the normalised render does not."""
+    from worker.config import MappingConfig as EngineMappingConfig
+    from worker.engine.mapping_stage import MappingStage
+    from worker.mapping.exposure import interpolate_exposure
+
+    gains = [1.0, 0.75, 0.75, 0.6, 0.6]  # the camera darkens
+    stage = MappingStage(EngineMappingConfig(refine_keyframes=3, refine_iterations=15, voxel_cap=0), threaded=False,
+                         max_backlog=4)
+    for kf, gain in enumerate(gains):
+        surfels = voxelized_surfels(POSES[kf], kf)
+        surfels.colors = (surfels.colors * gain).clamp(0, 1)
+        photo = (view(POSES[kf])["image"] * gain).clamp(0, 1)
+        stage.map.add_keyframe(10 * kf, POSES[kf], intrinsics(), photo, surfels, view(POSES[kf])["depth"])
+    stage.map.refine_global(iterations=4 * len(gains), budget_s=float("inf"))
+    gmap = stage.map
+    assert torch.equal(gmap.exposure_at(10), gmap.keyframe_exposure(10))
+    assert torch.equal(gmap.exposure_at(-3), gmap.keyframe_exposure(0))
+    assert torch.equal(gmap.exposure_at(75), gmap.keyframe_exposure(40))
+    midway = gmap.exposure_at(25)
+    expected = interpolate_exposure(gmap.keyframe_exposure(20), gmap.keyframe_exposure(30), 0.5)
+    assert torch.allclose(midway, expected)
+    assert abs(float(midway[0]) - (0.75 * 0.6) ** 0.5) < 0.06, midway  # the geometric mean of the two gains
+    # a held-out frame 25 at keyframe 3's pose, photographed with the gain between its neighbours'
+    pose = POSES[3]
+    photo = (view(pose)["image"] * (0.75 * 0.6) ** 0.5).clamp(0, 1)
+    captured = stage.render(pose, intrinsics(), WIDTH, HEIGHT, as_captured_at=25).rgb
+    normalised = stage.render(pose, intrinsics(), WIDTH, HEIGHT).rgb
+    assert psnr(captured, photo) > 28 and psnr(captured, photo) > psnr(normalised, photo) + 3, (
+        psnr(captured, photo), psnr(normalised, photo))
+    assert torch.equal(normalised, gmap.render(pose, intrinsics(), WIDTH, HEIGHT).rgb)

@@ -84,3 +84,36 @@ def test_stream_icl_trajectory_render_and_export_with_the_real_engine(engine_sta
         assert ply.status_code == 200 and ply.headers["content-type"] == "application/octet-stream"
         vertices = PlyData.read(io.BytesIO(ply.content))["vertex"]
         assert vertices.count > 0
+
+
+def test_a_frame_is_rendered_as_its_photo_shows_it_under_auto_exposure(engine_stack):
+    """The camera darkens to 0.6 of its gain halfway (auto-exposure): the map keeps normalised colours, and a render
+    with `exposure_of` a late frame's seq shows them as that frame's photo does (darker); a bad seq is refused."""
+    frames = icl_frames(FRAMES, scale=SCALE)
+    gain = 0.6
+    for frame in frames[FRAMES // 2:]:
+        bgr = decode_png(frame["jpeg"], cv2.IMREAD_COLOR)
+        darker = (bgr * gain).round().astype(np.uint8)
+        frame["jpeg"] = cv2.imencode(".jpg", darker, [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes()
+    with httpx.Client(base_url=engine_stack.base_url, timeout=180) as api:
+        sid = api.post("/v1/sessions", json={"intrinsics": INTRINSICS, "preset": "test", "name": "exposure"}
+                       ).json()["id"]
+        with connect(f"{engine_stack.ws_url}/v1/sessions/{sid}/stream", open_timeout=30) as ws:
+            for seq, frame in enumerate(frames):
+                ws.send(frame_message(seq, frame, with_pose=True, with_depth=True))
+            ws.send(json.dumps({"type": "finish"}))
+            messages = receive_until(ws, lambda m: m["type"] == "finished", timeout_s=240)
+            assert not of_type(messages, "error"), of_type(messages, "error")
+        last = ",".join(f"{v:.9g}" for v in frames[-1]["pose"])
+
+        def mean_brightness(**params) -> float:
+            reply = api.get(f"/v1/sessions/{sid}/render", params={"pose": last, **params})
+            assert reply.status_code == 200, reply.text
+            return float(decode_png(reply.content, cv2.IMREAD_COLOR).mean())
+
+        normalised, early = mean_brightness(), mean_brightness(exposure_of=0)
+        late = mean_brightness(exposure_of=FRAMES - 1)
+        photo = float(decode_png(frames[-1]["jpeg"], cv2.IMREAD_COLOR).mean())
+        assert abs(early - normalised) < 1.0  # the first keyframe fixes the map's colour scale
+        assert late < 0.8 * normalised and abs(late - photo) < 0.1 * photo, (normalised, late, photo)
+        assert api.get(f"/v1/sessions/{sid}/render", params={"pose": last, "exposure_of": -1}).status_code == 422

@@ -26,6 +26,7 @@ from worker.config import MappingConfig
 from worker.engine.backend import KeyframeJob, PoseUpdateJob, build_gaussian_map, unmerged_surfels
 from worker.engine.stage_thread import QueuedStage, StageThread
 from worker.engine.stage_times import StageTimes
+from worker.mapping.exposure import apply_exposure
 from worker.mapping.voxelize import voxelize
 
 SHED_KINDS = ("reduced", "merge_only", "dropped")
@@ -160,9 +161,16 @@ class MappingStage(QueuedStage):
                 self.map.refine_global(passes * self.map.held_images, budget_s=budget_s)
 
     # -- reads ---------------------------------------------------------------------------------------------------
-    def render(self, pose_c2w: np.ndarray, K: torch.Tensor, width: int, height: int) -> Any:
+    def render(self, pose_c2w: np.ndarray, K: torch.Tensor, width: int, height: int,
+               as_captured_at: int | None = None) -> Any:
+        """The map seen from `pose_c2w`: exposure-normalised colours, or with `as_captured_at` (a frame index) the
+        colours under the exposure the camera had at that frame (`GaussianMap.exposure_at`)."""
         with self.lock, torch.no_grad():
-            return self.map.render(torch.as_tensor(pose_c2w), K, width, height)
+            out = self.map.render(torch.as_tensor(pose_c2w), K, width, height)
+            if as_captured_at is None:
+                return out
+            exposure = self.map.exposure_at(int(as_captured_at)).to(out.rgb.device)
+            return out._replace(rgb=apply_exposure(out.rgb, exposure).clamp(0, 1))
 
     def num_gaussians(self) -> int:
         with self.lock:

@@ -220,7 +220,9 @@ def _trajectory_metrics(frames: list[Frame], poses: list, drift: PoseDrift | Non
 def _render_metrics(system, frames: list[Frame], results, poses, intrinsics, out: Path, every: int,
                     hold_every: int = 1) -> dict[str, Any]:
     """PSNR/SSIM/LPIPS and depth L1 on non-keyframes rendered from their estimated poses (those held: every
-    `hold_every`-th frame)."""
+    `hold_every`-th frame), under the exposure the camera had at each (interpolated between the keyframes around
+    it: the photo's own exposure is never fitted); `psnr_normalised` / `ssim_normalised` score the map's
+    exposure-normalised colours (the first keyframe's exposure) against the same photos."""
     import cv2
     import torch
 
@@ -242,15 +244,24 @@ def _render_metrics(system, frames: list[Frame], results, poses, intrinsics, out
 
     eval_frames = [frames[i] for i in chosen]
     eval_poses = [se3_part(poses[i][2]) for i in chosen]
+    captured_at = iter([frame.index for frame in eval_frames])
+
+    def render_as_captured(pose: np.ndarray, _intr) -> tuple[np.ndarray, np.ndarray]:
+        # evaluate_renders renders the frames once each, in order: the next index is this frame's
+        return system.render_view(pose, K, intrinsics.width, intrinsics.height, as_captured_at=next(captured_at))
+
     for i, frame, pose in zip(chosen, eval_frames, eval_poses):
         if i in saved:
-            rgb, _ = render(pose, None)
+            rgb, _ = system.render_view(pose, K, intrinsics.width, intrinsics.height, as_captured_at=frame.index)
             side = np.concatenate([rgb, frame.image], axis=1)
             cv2.imwrite(str(out / "renders" / f"{frame.index:05d}.png"), cv2.cvtColor(side, cv2.COLOR_RGB2BGR))
-    scores = evaluate_renders(render, eval_frames, eval_poses, depth_scaling="none" if metric_depth else "median")
+    depth_scaling = "none" if metric_depth else "median"
+    scores = evaluate_renders(render_as_captured, eval_frames, eval_poses, depth_scaling=depth_scaling)
+    normalised = evaluate_renders(render, eval_frames, eval_poses, depth_scaling=depth_scaling)
     holes = [hole_shares(system.backend.render(pose, torch.as_tensor(K, dtype=torch.float32), intrinsics.width,
                                                intrinsics.height).alpha.cpu().numpy()) for pose in eval_poses]
     return {"psnr": scores.psnr, "ssim": scores.ssim, "lpips": scores.lpips, "lpips_note": scores.lpips_note,
+            "psnr_normalised": normalised.psnr, "ssim_normalised": normalised.ssim,
             "depth_l1": scores.depth_l1, "depth_scaling": "none" if metric_depth else "median",
             "eval_frames": scores.num_frames,
             "uncovered_share": float(np.mean([h[0] for h in holes])) if holes else None,

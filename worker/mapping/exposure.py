@@ -96,3 +96,11 @@ def _blocks(image: torch.Tensor, block: int) -> torch.Tensor:
     if block == 1:
         return image
     return F.avg_pool2d(image.permute(2, 0, 1)[None], block)[0].permute(1, 2, 0)
+
+
+def interpolate_exposure(first: torch.Tensor, second: torch.Tensor, weight: float) -> torch.Tensor:
+    """[6] exposure a `weight` (0 = `first`, 1 = `second`) of the way between two: the log gains and the biases
+    linearly (a camera's auto-exposure moves its gain by factors)."""
+    w = min(max(float(weight), 0.0), 1.0)
+    log_gain = (1 - w) * torch.log(first[:3]) + w * torch.log(second[:3])
+    return torch.cat([torch.exp(log_gain), (1 - w) * first[3:] + w * second[3:]])

@@ -15,6 +15,7 @@ Renders use the normalised colours.
 
 from __future__ import annotations
 
+import bisect
 import math
 import time
 from dataclasses import asdict, dataclass, field
@@ -26,7 +27,7 @@ import torch
 from worker.geometry import make_sim3, sim3_decompose, sim3_inverse
 
 from .archive_thinning import thin
-from .exposure import apply_exposure, fit_exposure, identity_exposure, remove_exposure
+from .exposure import apply_exposure, fit_exposure, identity_exposure, interpolate_exposure, remove_exposure
 from .fusion import FusionThresholds, attribute_errors, densify_mask, prune_mask
 from .hole_closing import HoleClosingSettings, hole_surfels, widened_camera
 from .keyframe_archive import ArchivedKeyframe
@@ -255,6 +256,22 @@ class GaussianMap:
         """[6] affine exposure (gain, bias per channel) of a keyframe (the identity unless estimated)."""
         exposure = self._keyframes[int(kf_id)].exposure
         return identity_exposure(self.device) if exposure is None else exposure.clone()
+
+    def exposure_at(self, frame_index: int) -> torch.Tensor:
+        """[6] the exposure the camera had at frame `frame_index` as far as the map knows (keyframe ids are frame
+        indices): a keyframe's own, else interpolated between the nearest keyframes before and after it (the
+        nearest one's beyond the ends); the identity without keyframes."""
+        ids = sorted(self._keyframes)
+        if not ids:
+            return identity_exposure(self.device)
+        position = bisect.bisect_left(ids, frame_index)
+        if position < len(ids) and ids[position] == frame_index:
+            return self.keyframe_exposure(frame_index)
+        if position == 0 or position == len(ids):
+            return self.keyframe_exposure(ids[min(position, len(ids) - 1)])
+        before, after = ids[position - 1], ids[position]
+        return interpolate_exposure(self.keyframe_exposure(before), self.keyframe_exposure(after),
+                                    (frame_index - before) / (after - before))
 
     def estimate_exposure(self, kf_id: int) -> bool:
         """Re-estimate a held keyframe's exposure (with `refine.exposure`; the first keyframe's excepted) against

@@ -35,8 +35,8 @@ class SessionEngine(Protocol):
 
     def trajectory(self, which: str = "all") -> list[tuple[int, float, np.ndarray]]: ...
 
-    def render_view(self, pose_c2w: np.ndarray, K: np.ndarray, width: int, height: int
-                    ) -> tuple[np.ndarray, np.ndarray]: ...
+    def render_view(self, pose_c2w: np.ndarray, K: np.ndarray, width: int, height: int,
+                    as_captured_at: int | None = None) -> tuple[np.ndarray, np.ndarray]: ...
 
     def export_ply(self) -> bytes: ...
 
@@ -159,8 +159,8 @@ class PassthroughEngine:
             raise ValueError("which must be 'all' or 'keyframes'")
         return [(i, t, p) for i, t, p, kf in self._poses if which == "all" or kf]
 
-    def render_view(self, pose_c2w: np.ndarray, K: np.ndarray, width: int, height: int
-                    ) -> tuple[np.ndarray, np.ndarray]:
+    def render_view(self, pose_c2w: np.ndarray, K: np.ndarray, width: int, height: int,
+                    as_captured_at: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         mean = np.mean(self._colors, axis=0) if self._colors else np.zeros(3)
         rgb = np.broadcast_to(mean.astype(np.uint8), (height, width, 3)).copy()
         depth = np.full((height, width), 1.0 + float(np.linalg.norm(pose_c2w[:3, 3])), dtype=np.float32)

@@ -44,7 +44,9 @@ def serve_request(engine: SessionEngine, kind: str, params: dict[str, Any]) -> t
     pose = np.asarray(params["pose"], dtype=np.float64).reshape(4, 4)
     width, height = int(params["width"]), int(params["height"])
     K = np.array([[params["fx"], 0.0, params["cx"]], [0.0, params["fy"], params["cy"]], [0.0, 0.0, 1.0]])
-    rgb, depth = engine.render_view(pose, K, width, height)
+    exposure_of = params.get("exposure_of")
+    rgb, depth = engine.render_view(pose, K, width, height,
+                                    as_captured_at=None if exposure_of is None else int(exposure_of))
     if params.get("kind", "color") == "depth":
         mm = np.clip(np.nan_to_num(np.asarray(depth, dtype=np.float64)) * 1000.0, 0, 65535).round().astype(np.uint16)
         ok, buf = cv2.imencode(".png", mm)
