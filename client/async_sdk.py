@@ -513,9 +513,10 @@ class AsyncFlashMonoClient:
         return await self._call(rest.trajectory_tum(session_id, which))
 
     async def render(self, session_id: str, pose: Any, *, width: int, height: int, fx: float, fy: float,
-                     cx: float, cy: float, kind: str = "color") -> bytes:
-        """PNG bytes of the map seen from c2w `pose` (depth: 16-bit PNG in millimetres)."""
-        return await self._call(rest.render(session_id, pose, width, height, fx, fy, cx, cy, kind))
+                     cx: float, cy: float, kind: str = "color", exposure_of: int | None = None) -> bytes:
+        """PNG bytes of the map seen from c2w `pose` (depth: 16-bit PNG in millimetres); colours normalised, or
+        with `exposure_of` (a frame's seq) as that frame's photo shows them."""
+        return await self._call(rest.render(session_id, pose, width, height, fx, fy, cx, cy, kind, exposure_of))
 
     async def render_array(self, session_id: str, pose: Any, *, kind: str = "color", **camera: Any) -> np.ndarray:
         """Like `render`, decoded: RGB uint8 [H, W, 3] or depth in metres float32 [H, W]."""

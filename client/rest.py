@@ -125,13 +125,17 @@ def trajectory_tum(session_id: str, which: str = "all") -> Call:
 
 
 def render(session_id: str, pose: Any, width: int, height: int, fx: float, fy: float, cx: float, cy: float,
-           kind: str = "color") -> Call:
+           kind: str = "color", exposure_of: int | None = None) -> Call:
     if kind not in ("color", "depth"):
         raise ValueError(f"kind must be 'color' or 'depth', got {kind!r}")
     if width <= 0 or height <= 0:
         raise ValueError("width and height must be positive")
+    if exposure_of is not None and exposure_of < 0:
+        raise ValueError("exposure_of must be a frame's seq (>= 0)")
     params = {"pose": ",".join(repr(v) for v in pose_to_list(pose)), "width": int(width), "height": int(height),
               "fx": float(fx), "fy": float(fy), "cx": float(cx), "cy": float(cy), "kind": kind}
+    if exposure_of is not None:
+        params["exposure_of"] = int(exposure_of)
     return Call("GET", _session_path(session_id, "/render"), lambda r: r.content, params=params)
 
 

@@ -84,6 +84,12 @@ def test_sync_client_streams_and_fetches_results(stack, frames) -> None:
 
         color = client.render_array(session.id, trajectory.poses[-1].pose, **_camera(frames))
         assert color.shape == (120, 160, 3) and color.dtype == np.uint8
+        # as the last frame's photo shows it: these frames share one exposure, so nearly the same colours
+        captured = client.render_array(session.id, trajectory.poses[-1].pose, exposure_of=trajectory.poses[-1].seq,
+                                       **_camera(frames))
+        assert captured.shape == color.shape and np.abs(captured.astype(int) - color).mean() < 3
+        with pytest.raises(ValueError):
+            client.render(session.id, trajectory.poses[-1].pose, exposure_of=-1, **_camera(frames))
         depth = client.render_array(session.id, trajectory.poses[-1].pose, kind="depth", **_camera(frames))
         assert depth.shape == (120, 160) and depth.dtype == np.float32
         ply = client.download_map(session.id)
