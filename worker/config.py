@@ -175,6 +175,10 @@ class MappingConfig(_Section):
         0.03, ge=0, le=0.5, description="exposure: estimated log-gain changes within this are shrunk to none, larger "
         "ones nearly kept (view-dependent shading alone makes a keyframe's median brightness differ by up to 2 % "
         "from the map on ICL; normalising that away compounds from keyframe to keyframe)")
+    exposure_channels: Literal["shared", "per_channel"] = Field(
+        "shared", description="exposure: one gain for the three channels (an exposure change), or a gain per channel "
+        "(also white balance; on real footage whose colours are steady the per-channel gains drifted apart from "
+        "keyframe to keyframe, turning the map's colours: -2 to -3 dB on an iPhone and a RealSense sequence)")
 
 
 class InputConfig(_Section):

@@ -28,7 +28,9 @@ def _surfels(kf: int):
 
 
 def _map(exposure: bool) -> GaussianMap:
-    gmap = GaussianMap(MapConfig(window=3, iterations=15, voxel_cap=0, refine=RefineSettings(exposure=exposure)))
+    """The five keyframes mapped with per-channel exposures (BRIGHT is a gain per channel)."""
+    refine = RefineSettings(exposure=exposure, exposure_shared=False)
+    gmap = GaussianMap(MapConfig(window=3, iterations=15, voxel_cap=0, refine=refine))
     for kf in range(len(POSES)):
         gmap.add_keyframe(kf, POSES[kf], intrinsics(), _photo(kf), _surfels(kf), view(POSES[kf])["depth"])
         gmap.refine()
@@ -58,6 +60,22 @@ def test_fit_ignores_view_dependent_tiles_and_render_noise():
     assert (fitted[:3] - GAIN).abs().max() < 0.01, fitted
     least_squares = (noisy * photo).sum((0, 1)) / (noisy * noisy).sum((0, 1))
     assert (least_squares - GAIN).abs().max() > 0.03, least_squares
+
+
+def test_a_shared_gain_follows_the_brightness_and_leaves_a_colour_cast_alone():
+    """One gain for the three channels: an exposure change (every channel alike) is recovered; a shift of white
+    balance (red up, blue down, brightness kept) is not an exposure and leaves the identity after the shrinkage,
+    where per-channel gains take it as one (and, on real footage, drift into hues from keyframe to keyframe)."""
+    image = view(camera_pose())["image"]
+    covered = torch.ones(HEIGHT, WIDTH, dtype=torch.bool)
+    brighter = fit_exposure(image, (image * 1.2).clamp(0, 1), covered, prior=0.0, shared=True)
+    assert torch.allclose(brighter[:3], torch.full((3,), 1.2), atol=0.01) and torch.equal(brighter[3:], torch.zeros(3))
+    cast = image * torch.tensor([1.08, 1.0, 0.92])
+    luminance_kept = cast * (image.sum() / cast.sum())
+    shared = fit_exposure(image, luminance_kept, covered, prior=0.0, threshold=0.03, shared=True)
+    per_channel = fit_exposure(image, luminance_kept, covered, prior=0.0, threshold=0.03)
+    assert torch.equal(shared, identity_exposure()), shared
+    assert per_channel[0] > 1.04 and per_channel[2] < 0.96, per_channel
 
 
 def test_small_exposure_changes_are_shrunk_to_none_and_large_ones_kept():

@@ -59,10 +59,12 @@ def _garrote(x: torch.Tensor, threshold: float) -> torch.Tensor:
 
 
 def fit_exposure(render: torch.Tensor, photo: torch.Tensor, mask: torch.Tensor, prior: float = 0.002,
-                 block: int = BLOCK, threshold: float = 0.0) -> torch.Tensor | None:
+                 block: int = BLOCK, threshold: float = 0.0, shared: bool = False) -> torch.Tensor | None:
     """[6] exposure (gain per channel, bias 0) of `photo` against `render`: per channel, the median over
     `block` x `block` tiles of sum(photo) / sum(render) over the tile's usable pixels, weighed against the identity
     with weight `prior`, kept in GAIN_RANGE and shrunk toward the identity by `threshold` (`shrink_exposure`).
+    `shared`: one gain for the three channels, from the tiles' sums over the channels (an exposure change scales
+    every channel alike; per-channel gains also follow white balance, and on real footage they drift into hues).
 
     render, photo: [H, W, 3] in [0, 1]; mask: [H, W] bool (pixels the render covers). A pixel is usable where the
     mask holds and the photo is not saturated (within SATURATED of 0 or 1: clipped, so not proportional to the
@@ -73,18 +75,23 @@ def fit_exposure(render: torch.Tensor, photo: torch.Tensor, mask: torch.Tensor, 
     """
     photo = photo.detach().to(render.dtype)
     usable = (mask[..., None] & (photo > SATURATED) & (photo < 1 - SATURATED)).to(render.dtype)  # [H, W, 3]
+    render = render.detach()
+    if shared:  # a pixel takes part where every channel is usable; the sums over the channels make one ratio
+        usable = usable.amin(-1, keepdim=True)
+        render, photo = render.sum(-1, keepdim=True), photo.sum(-1, keepdim=True)
+    channels = render.shape[-1]
     fill = _blocks(usable, block)
-    render_sum, photo_sum = _blocks(render.detach() * usable, block), _blocks(photo * usable, block)
-    tiles = (fill >= MIN_BLOCK_FILL) & (render_sum > 1e-3 * fill)  # [h, w, 3]
-    counts = tiles.reshape(-1, 3).sum(0)
+    render_sum, photo_sum = _blocks(render * usable, block), _blocks(photo * usable, block)
+    tiles = (fill >= MIN_BLOCK_FILL) & (render_sum > 1e-3 * fill)  # [h, w, channels]
+    counts = tiles.reshape(-1, channels).sum(0)
     if not bool((counts >= MIN_BLOCKS).any()):
         return None
-    ratios = (photo_sum / render_sum.clamp_min(1e-12)).reshape(-1, 3)
-    gain = torch.ones(3, dtype=render.dtype, device=render.device)
-    for c in range(3):
+    ratios = (photo_sum / render_sum.clamp_min(1e-12)).reshape(-1, channels)
+    gain = torch.ones(channels, dtype=render.dtype, device=render.device)
+    for c in range(channels):
         if counts[c] >= MIN_BLOCKS:
-            gain[c] = ratios[tiles.reshape(-1, 3)[:, c], c].median()
-    gain = ((gain + prior) / (1 + prior)).clamp(*GAIN_RANGE)
+            gain[c] = ratios[tiles.reshape(-1, channels)[:, c], c].median()
+    gain = ((gain + prior) / (1 + prior)).clamp(*GAIN_RANGE).expand(3)
     exposure = torch.cat([gain, torch.zeros_like(gain)])
     return shrink_exposure(exposure, threshold).to(render.device, torch.float32)
 

@@ -516,7 +516,8 @@ class GaussianMap:
             return None
         # The composite itself, not divided by its alpha: refinement makes surfels translucent and brightens their
         # colours to match the photos (dividing made every ICL keyframe 3-5 % darker than the map).
-        return fit_exposure(render.rgb, image, covered, settings.exposure_prior, threshold=settings.exposure_threshold)
+        return fit_exposure(render.rgb, image, covered, settings.exposure_prior, threshold=settings.exposure_threshold,
+                            shared=settings.exposure_shared)
 
     def _archive_old_images(self) -> None:
         """Keyframes that left the window: archive their images; beyond `archived_images`, the most redundant views

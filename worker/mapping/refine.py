@@ -50,6 +50,7 @@ class RefineSettings:
     exposure_prior: float = 0.002  # estimates: weight of the identity gain against the fitted one
     exposure_min_alpha: float = 0.95  # estimates: pixels the render covers at least this much take part
     exposure_threshold: float = 0.03  # estimates: log-gain changes within this are shrunk away (shrink_exposure)
+    exposure_shared: bool = True  # estimates: one gain for the three channels (fit_exposure's `shared`)
 
 
 @dataclass
