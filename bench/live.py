@@ -372,7 +372,9 @@ def _process_of(worker_id: str | None, processes: list) -> Any:
 
 
 async def _live_psnr(http, sid, frames, poses, keyframe_seqs, intrinsics, every: int, se3_part) -> tuple[float, int]:
-    """Mean PSNR of every `every`-th non-keyframe rendered by the service (GET render) from its final pose."""
+    """Mean PSNR of every `every`-th non-keyframe rendered by the service (GET render) from its final pose, as
+    captured (`exposure_of` its seq: under the exposure interpolated between its keyframes, as `flashmono run`
+    scores)."""
     from client.async_sdk import decode_png
     from worker.eval import non_keyframe_indices, psnr
 
@@ -383,7 +385,7 @@ async def _live_psnr(http, sid, frames, poses, keyframe_seqs, intrinsics, every:
     for i in chosen:
         pose = se3_part(poses[i])
         params = {"pose": ",".join(f"{v:.9g}" for v in pose.reshape(-1)), "width": k.width, "height": k.height,
-                  "fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy}
+                  "fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy, "exposure_of": i}
         response = await http.get(f"/v1/sessions/{sid}/render", params=params)
         if response.status_code != 200:
             continue
