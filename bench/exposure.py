@@ -40,6 +40,7 @@ def exposure_at(t: int, amplitude: float, period: float) -> tuple[np.ndarray, np
 def _run(frames, truth, intrinsics, exposure: str, passes: int) -> dict:
     """Map the frames with exposure estimation `exposure` (off, shared, per_channel) and score the held-out frames."""
     from worker.config import SlamConfig
+    from worker.engine.offline import renderer_as_captured
     from worker.eval import evaluate_renders, non_keyframe_indices
     from worker.geometry import se3_part
     from worker.slam import SlamSystem
@@ -62,12 +63,8 @@ def _run(frames, truth, intrinsics, exposure: str, passes: int) -> dict:
     poses = [se3_part(frames[i].pose) for i in chosen]
     original = evaluate_renders(render, [truth[i] for i in chosen], poses, depth_scaling="none")
     given = evaluate_renders(render, [frames[i] for i in chosen], poses, depth_scaling="none")
-    captured_at = iter(chosen)
-
-    def render_as_captured(pose, _):  # evaluate_renders renders the frames once each, in order
-        return system.render_view(pose, K, intrinsics.width, intrinsics.height, as_captured_at=next(captured_at))
-
-    as_captured = evaluate_renders(render_as_captured, [frames[i] for i in chosen], poses, depth_scaling="none")
+    as_captured = evaluate_renders(renderer_as_captured(system, K, intrinsics.width, intrinsics.height, chosen),
+                                   [frames[i] for i in chosen], poses, depth_scaling="none")
     gmap = system.backend.map
     gains = {k: gmap.keyframe_exposure(k)[:3].numpy() for k in gmap.keyframe_ids}
     system.close()

@@ -217,6 +217,18 @@ def _trajectory_metrics(frames: list[Frame], poses: list, drift: PoseDrift | Non
     return out
 
 
+def renderer_as_captured(system, K: np.ndarray, width: int, height: int, frame_indices: list[int]):
+    """A render callable for `evaluate_renders` whose n-th call renders under the exposure the camera had at frame
+    `frame_indices[n]` (`SlamSystem.render_view(as_captured_at=)`): evaluate_renders renders its frames once each,
+    in order."""
+    captured_at = iter(frame_indices)
+
+    def render(pose: np.ndarray, _intrinsics) -> tuple[np.ndarray, np.ndarray]:
+        return system.render_view(pose, K, width, height, as_captured_at=next(captured_at))
+
+    return render
+
+
 def _render_metrics(system, frames: list[Frame], results, poses, intrinsics, out: Path, every: int,
                     hold_every: int = 1) -> dict[str, Any]:
     """PSNR/SSIM/LPIPS and depth L1 on non-keyframes rendered from their estimated poses (those held: every
@@ -244,12 +256,8 @@ def _render_metrics(system, frames: list[Frame], results, poses, intrinsics, out
 
     eval_frames = [frames[i] for i in chosen]
     eval_poses = [se3_part(poses[i][2]) for i in chosen]
-    captured_at = iter([frame.index for frame in eval_frames])
-
-    def render_as_captured(pose: np.ndarray, _intr) -> tuple[np.ndarray, np.ndarray]:
-        # evaluate_renders renders the frames once each, in order: the next index is this frame's
-        return system.render_view(pose, K, intrinsics.width, intrinsics.height, as_captured_at=next(captured_at))
-
+    render_as_captured = renderer_as_captured(system, K, intrinsics.width, intrinsics.height,
+                                              [frame.index for frame in eval_frames])
     for i, frame, pose in zip(chosen, eval_frames, eval_poses):
         if i in saved:
             rgb, _ = system.render_view(pose, K, intrinsics.width, intrinsics.height, as_captured_at=frame.index)
