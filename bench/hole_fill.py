@@ -43,11 +43,12 @@ def largest_hole(empty: np.ndarray) -> float:
 def bench_icl(args) -> list[str]:
     from worker.data import open_source
     from worker.depth import MultiViewDepthConfig, estimate_depth, select_neighbours
+    from worker.depth.border_planes import fill_from_borders
     from worker.depth.hole_fill import fill_depth
     from worker.depth.world_planes import PlaneMemory, fill_from_planes
 
     config = MultiViewDepthConfig()
-    frames = list(open_source(args.data, resize=(320, 240), use_gt_depth=True, use_gt_poses=True))
+    frames = list(open_source(args.data, resize=args.resize, use_gt_depth=True, use_gt_poses=True))
     K = _K(frames[0].intrinsics)
     rng = np.random.default_rng(0)
     rows = []
@@ -66,9 +67,13 @@ def bench_icl(args) -> list[str]:
         memory.add(k, stereo, frame.pose, K)
         planed, _ = fill_from_planes(result.depth, frame.image, memory.planes(), frame.pose, K, memory.settings)
         planes_ms = 1000 * (time.perf_counter() - start)
+        start = time.perf_counter()
+        bordered, _ = fill_from_borders(planed, frame.image, memory.planes(), frame.pose, K)
+        borders_ms = 1000 * (time.perf_counter() - start)
         gt = frame.depth
         filled = result.filled & (gt > 0)
         with_gt = (planed > 0) & (gt > 0)
+        bordered_gt = (bordered > 0) & (gt > 0)
         row = {"filled": result.fill_fraction, "cov_before": float((stereo > 0).mean()),
                "cov_after": float((result.depth > 0).mean()), "hole_before": largest_hole(stereo <= 0),
                "hole_after": largest_hole(result.depth <= 0), "ms": ms,
@@ -77,13 +82,17 @@ def bench_icl(args) -> list[str]:
                else float("nan"),
                "stereo_l1": float(np.abs(stereo[(stereo > 0) & (gt > 0)] - gt[(stereo > 0) & (gt > 0)]).mean()),
                "planes_l1": float(np.abs(planed[with_gt] - gt[with_gt]).mean()) if with_gt.any() else float("nan"),
-               "planes_cov": float(with_gt.sum() / max((gt > 0).sum(), 1)), "planes_ms": planes_ms}
+               "planes_cov": float(with_gt.sum() / max((gt > 0).sum(), 1)), "planes_ms": planes_ms,
+               "borders_l1": float(np.abs(bordered[bordered_gt] - gt[bordered_gt]).mean()) if bordered_gt.any()
+               else float("nan"),
+               "borders_cov": float(bordered_gt.sum() / max((gt > 0).sum(), 1)), "borders_ms": borders_ms}
         rows.append(row)
         print(f"  kf {k:>3}: filled {100 * row['filled']:5.1f} %  L1 filled {100 * row['l1']:5.2f} cm "
               f"(stereo {100 * row['stereo_l1']:5.2f})  coverage {100 * row['cov_before']:5.1f} -> "
               f"{100 * row['cov_after']:5.1f} %  largest hole {100 * row['hole_before']:5.1f} -> "
               f"{100 * row['hole_after']:5.1f} %  {ms:6.1f} ms | + planes: L1 {100 * row['planes_l1']:5.2f} cm @ "
-              f"{100 * row['planes_cov']:5.1f} % {planes_ms:6.1f} ms", flush=True)
+              f"{100 * row['planes_cov']:5.1f} % {planes_ms:6.1f} ms | + borders: L1 {100 * row['borders_l1']:5.2f} cm @ "
+              f"{100 * row['borders_cov']:5.1f} % {borders_ms:6.1f} ms", flush=True)
     l1 = [r["l1"] for r in rows if np.isfinite(r["l1"])]
     mean = {key: statistics.mean(r[key] for r in rows) for key in ("filled", "cov_before", "cov_after",
                                                                   "hole_before", "hole_after", "stereo_l1")}
@@ -100,7 +109,12 @@ def bench_icl(args) -> list[str]:
             f"{100 * statistics.mean(r['planes_l1'] for r in rows if np.isfinite(r['planes_l1'])):.2f} cm at "
             f"{100 * statistics.mean(r['planes_cov'] for r in rows):.1f} % coverage (mean over keyframes); keyframes "
             f"meeting <= 10 cm @ >= 70 %: {sum(r['planes_l1'] <= 0.1 and r['planes_cov'] >= 0.7 for r in rows)}/"
-            f"{len(rows)}; planes time median {statistics.median(r['planes_ms'] for r in rows):.0f} ms"]
+            f"{len(rows)}; planes time median {statistics.median(r['planes_ms'] for r in rows):.0f} ms",
+            f"+ border planes (border_planes): keyframe depth L1 "
+            f"{100 * statistics.mean(r['borders_l1'] for r in rows if np.isfinite(r['borders_l1'])):.2f} cm at "
+            f"{100 * statistics.mean(r['borders_cov'] for r in rows):.1f} % coverage; keyframes meeting <= 10 cm @ "
+            f">= 70 %: {sum(r['borders_l1'] <= 0.1 and r['borders_cov'] >= 0.7 for r in rows)}/{len(rows)}; time "
+            f"median {statistics.median(r['borders_ms'] for r in rows):.0f} ms"]
 
 
 def render_holes(folder: Path) -> str:
@@ -117,10 +131,17 @@ def render_holes(folder: Path) -> str:
             f"(worst {100 * max(holes):.2f} %) of the image")
 
 
+def _size(text: str) -> tuple[int, int]:
+    width, height = text.lower().split("x")
+    return int(width), int(height)
+
+
 def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench hole_fill", description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=DATA, help="ICL living room folder (Open3D/ICL format)")
     parser.add_argument("--every", type=int, default=6, help="every n-th frame is a keyframe")
+    parser.add_argument("--resize", type=_size, default=(320, 240), metavar="WxH",
+                        help="frame size (default 320x240; 240x320 for portrait captures)")
     parser.add_argument("--renders", type=Path, nargs="*", default=[], help="flashmono run output folders")
     parser.add_argument("--no-icl", action="store_true")
     args = parser.parse_args(argv)

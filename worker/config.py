@@ -220,6 +220,11 @@ class InputConfig(_Section):
     mvs_planes: bool = Field(
         True, description="mvs with propagate: holes of image regions lying on a dominant plane of the recent "
         "keyframes' confident points (a uniform floor or wall) take that plane's depth (worker.depth.world_planes)")
+    # A real iPhone LiDAR walk along a plain wall: posed RGB keyframe depth 2.49 cm at 62.0 % -> 2.53 cm at 77.0 %
+    mvs_border_planes: bool = Field(
+        True, description="mvs with planes: a large textureless region without supported pixels (a plain wall) "
+        "takes the plane its border points lie on, parallel or perpendicular to a dominant plane "
+        "(worker.depth.border_planes)")
 
 
 class TrackingConfig(_Section):

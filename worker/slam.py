@@ -43,6 +43,7 @@ import torch
 
 from worker.config import SlamConfig
 from worker.data.frame import Frame, FrameResult
+from worker.depth.border_planes import BorderSettings
 from worker.depth.world_planes import PlaneSettings
 from worker.engine.backend import KeyframeJob, PoseUpdateJob
 from worker.engine.depth_registration import DepthRegistration
@@ -553,7 +554,8 @@ class SlamSystem:
             fill = self._model_depth_filler() if cfg.input.mvs_fill == "model" else None
             self.keyframe_depth = KeyframeDepth(cfg.depth, cfg.input.mvs_buffer_frames, cfg.input.mvs_frames_after,
                                                 fill, propagate=cfg.input.mvs_fill == "propagate",
-                                                planes=PlaneSettings() if cfg.input.mvs_planes else None)
+                                                planes=PlaneSettings() if cfg.input.mvs_planes else None,
+                                                borders=BorderSettings() if cfg.input.mvs_border_planes else None)
         self.tracking_stage.pose_source = self._build_pose_source(tracking)
         self.tracking_stage.timing_stage = "frontend_inference" if tracking == "model" else "frontend_tracking"
         log.info("session tracking: %s (mode %s), surfels from %s", tracking, self.mode, self.depth_source)

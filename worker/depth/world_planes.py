@@ -60,7 +60,7 @@ class Plane:
     share: float
 
 
-def _rays(K: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+def camera_rays(K: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """Camera rays (z = 1) through the pixel centres, [H, W, 3]."""
     H, W = shape
     xs, ys = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
@@ -70,7 +70,7 @@ def _rays(K: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 def world_points(depth: np.ndarray, pose: np.ndarray, K: np.ndarray, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """(world points [n, 3], their depths [n]) of the pixels of `depth` > 0 on a grid of `stride` (camera-to-world
     `pose`, depth in its units)."""
-    rays = _rays(K, depth.shape)[::stride, ::stride]
+    rays = camera_rays(K, depth.shape)[::stride, ::stride]
     d = depth[::stride, ::stride]
     keep = np.isfinite(d) & (d > 0)
     cam = rays[keep] * d[keep][:, None]
@@ -135,7 +135,7 @@ def plane_depth(plane: Plane, pose: np.ndarray, K: np.ndarray, shape: tuple[int,
     R, t = pose[:3, :3], pose[:3, 3]
     normal = R.T @ plane.normal  # the plane in camera coordinates: normal . x + offset = 0
     offset = plane.normal @ t + plane.offset
-    rays = _rays(K, shape)
+    rays = camera_rays(K, shape)
     along = rays @ normal
     cos = np.abs(along) / np.linalg.norm(rays, axis=-1)
     z = np.where(cos > max(min_incidence, 1e-9), -offset / np.where(along != 0, along, 1.0), 0.0)

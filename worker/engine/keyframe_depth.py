@@ -9,7 +9,9 @@ with `propagate`, depth propagated from confident pixels of the same surface (wo
 `planes`, the depth of the dominant planes the recent keyframes' confident points show, over the image regions
 that lie on them (worker.depth.world_planes: uniform floors and walls): those surfels start at
 `PROPAGATED_OPACITY` of the usual opacity, so the refinement can fade and prune them where the photos disagree, and
-the refinement's depth term sees the confident pixels only.
+the refinement's depth term sees the confident pixels only. With `borders`, a large textureless region with no
+such support (a plain wall above its skirting board) takes the plane its border lies on, oriented by the dominant
+planes (worker.depth.border_planes), at any coverage.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ import numpy as np
 import torch
 
 from worker.depth import MultiViewDepthConfig, estimate_depth, scale_to_confident, select_neighbours
+from worker.depth.border_planes import BorderSettings, fill_from_borders
 from worker.depth.hole_fill import HoleFillSettings, fill_depth
 from worker.depth.neighbours import looked_at_depth
 from worker.depth.world_planes import PlaneMemory, PlaneSettings, fill_from_planes
@@ -70,15 +73,17 @@ class KeyframeDepth:
     def __init__(self, config: MultiViewDepthConfig, buffer_frames: int, frames_after: int,
                  fill: Callable[[np.ndarray], np.ndarray] | None = None,
                  propagate: bool = False, propagation: HoleFillSettings | None = None,
-                 planes: PlaneSettings | None = None) -> None:
+                 planes: PlaneSettings | None = None, borders: BorderSettings | None = None) -> None:
         """`fill(image) -> depth`: another depth (the model's) for the pixels stereo leaves without one, brought to
         the stereo depth's scale; else `propagate`: depth propagated into them from confident pixels of the same
-        surface (with `propagation`'s settings), then, with `planes`, from the recent keyframes' dominant planes;
-        neither leaves them without surfels."""
+        surface (with `propagation`'s settings), then, with `planes`, from the recent keyframes' dominant planes
+        and, with `borders` too, for textureless regions from the planes their borders lie on
+        (worker.depth.border_planes); neither leaves them without surfels."""
         self.config = config
         self.fill = fill
         self.propagation = (propagation or HoleFillSettings()) if propagate else None
         self.plane_memory = PlaneMemory(planes) if propagate and planes is not None else None
+        self.borders = borders if self.plane_memory is not None else None
         self.fill_stats: list[float] = []  # fraction of each keyframe's pixels given a propagated depth
         self.buffer_frames = buffer_frames
         self.frames_after = frames_after
@@ -154,6 +159,11 @@ class KeyframeDepth:
                                                          K, memory.settings)
                     surfel_depth = planed / scale
                     propagated = on_planes if propagated is None else propagated | on_planes
+                if self.borders is not None and memory.planes():  # only regions without support: any coverage
+                    bordered, on_borders = fill_from_borders(surfel_depth * scale, ref_image, memory.planes(),
+                                                             ref_pose, K, self.borders)
+                    surfel_depth = bordered / scale
+                    propagated = on_borders if propagated is None else propagated | on_borders
                 if propagated is not None:
                     self.fill_stats.append(float(propagated.mean()))
                     log.debug("keyframe %d: %.0f%% of the pixels given a propagated depth", kf.kf_id,
