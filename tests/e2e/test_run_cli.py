@@ -35,6 +35,16 @@ def test_run_writes_trajectories_map_renders_and_metrics(data_dir: Path, tmp_pat
     assert metrics["ate_rmse"] < 1e-6  # fixed ground-truth poses
     assert metrics["psnr"] > 18 and metrics["depth_l1"] < 0.1 and metrics["num_gaussians"] > 0
     assert metrics["num_frames"] == 6 and metrics["num_keyframes"] == 2
+    held = metrics["held_out"]  # per held-out frame, for comparing modes on the frames both held out
+    assert len(held["index"]) == len(held["psnr"]) == len(held["psnr_normalised"]) == metrics["eval_frames"] >= 2
+    assert np.isclose(np.mean(held["psnr"]), metrics["psnr"]) and np.isclose(np.mean(held["psnr_normalised"]),
+                                                                              metrics["psnr_normalised"])
+    from bench.held_out import common_scores
+
+    fewer = {key: values[1:] for key, values in held.items()}  # another run that mapped the first of these frames
+    common, means = common_scores({"a": held, "b": fewer})
+    assert common == held["index"][1:]
+    assert np.isclose(means["a"]["psnr"], np.mean(held["psnr"][1:])) and means["a"] == means["b"]
     assert len(read_tum(out / "trajectory_all.tum")) == 6
     assert len(read_tum(out / "trajectory_keyframes.tum")) == 2
     intr = json.loads((out / "intrinsics.json").read_text())

@@ -272,5 +272,8 @@ def _render_metrics(system, frames: list[Frame], results, poses, intrinsics, out
             "psnr_normalised": normalised.psnr, "ssim_normalised": normalised.ssim,
             "depth_l1": scores.depth_l1, "depth_scaling": "none" if metric_depth else "median",
             "eval_frames": scores.num_frames,
+            # per held-out frame, so that runs of different modes can be compared on the frames both held out
+            "held_out": {"index": [frame.index for frame in eval_frames], "psnr": list(scores.psnr_per_frame),
+                         "psnr_normalised": list(normalised.psnr_per_frame)},
             "uncovered_share": float(np.mean([h[0] for h in holes])) if holes else None,
             "largest_hole_share": float(max(h[1] for h in holes)) if holes else None}

@@ -259,6 +259,7 @@ class RenderingScores:
     depth_l1: float | None  # None when no frame had rendered and ground-truth depth in common
     num_frames: int
     lpips_note: str = ""
+    psnr_per_frame: tuple[float, ...] = ()  # in the order of the frames evaluated
 
 
 def hole_shares(alpha: np.ndarray, threshold: float = 0.5) -> tuple[float, float]:
@@ -308,5 +309,5 @@ def evaluate_renders(
         psnr=float(np.mean(psnrs)), ssim=float(np.mean(ssims)),
         lpips=float(np.mean(lpipss)) if lpipss else None,
         depth_l1=float(np.mean(depths)) if depths else None, num_frames=count,
-        lpips_note="" if lpips_metric.available else lpips_metric.reason,
+        lpips_note="" if lpips_metric.available else lpips_metric.reason, psnr_per_frame=tuple(map(float, psnrs)),
     )
