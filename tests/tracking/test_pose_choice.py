@@ -130,3 +130,15 @@ def test_a_snapshot_from_before_the_choice_resumes_on_the_device_poses(frames) -
     chosen.load_state_dict(old.state_dict())  # what a worker without the choice snapshot
     assert chosen.summary()["pose_source"] == "prior" and not chosen.judging
     np.testing.assert_allclose(chosen.track(frames[1], frames[1].intrinsics).pose, frames[1].pose)
+
+
+def test_too_few_triples_keep_the_device_poses_without_saying_they_disagree(frames, noisy) -> None:
+    # The noisy poses disagree, but with fewer triples than asked for the verdict is no judgement: `agree` is None.
+    config = SlamConfig.preset("default", threaded=False, mapping={"enabled": False},
+                               input={"pose_mode": "auto", "pose_choice": {"min_triples": 50}})
+    system = SlamSystem(config, intrinsics=frames[0].intrinsics)
+    results = [system.push(replace(f, pose=p.copy())) for f, p in zip(frames, noisy)]
+    [(_, event)] = _chosen(results)
+    assert event["pose_source"] == "prior" and "too few" in event["reason"]
+    assert event["triples"] < 50 and event["agree"] is None and event["ratio"] > event["max_ratio"]
+    assert system.pose_source_choice()["pose_agreement"]["agree"] is None

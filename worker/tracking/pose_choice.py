@@ -104,7 +104,7 @@ class ChosenDevicePoses:
         self.agreement.forget_frames()  # judging is over: its tracked frames' images are not needed any more
         log.info("frame %d: pose source %s (%s)", index, choice, reason)
         event = {"type": "pose_source_chosen", "frame": int(index), "pose_source": choice, "reason": reason,
-                 **(self.verdict.to_dict() if self.verdict is not None else {})}
+                 **self._figures()}
         result.events = [event, *result.events]
         return result
 
@@ -113,9 +113,18 @@ class ChosenDevicePoses:
 
     def summary(self) -> dict[str, Any]:
         """The choice (prior while still judging) and the figures it was made by."""
-        figures = {} if self.verdict is None else self.verdict.to_dict()
         return {"pose_source": self.choice or "prior",
-                "pose_agreement": {"judged": self.choice is not None, "reason": self.reason, **figures}}
+                "pose_agreement": {"judged": self.choice is not None, "reason": self.reason, **self._figures()}}
+
+    def _figures(self) -> dict[str, Any]:
+        """The verdict's figures; `agree` is None when they rest on too few frame triples to judge by (the device
+        poses are then kept by default, not found to agree or disagree)."""
+        if self.verdict is None:
+            return {}
+        figures = self.verdict.to_dict()
+        if self.verdict.triples < self.config.min_triples:
+            figures["agree"] = None
+        return figures
 
     def state_dict(self) -> dict[str, Any]:
         v = self.verdict
