@@ -30,7 +30,19 @@ def rotation_y(degrees: float) -> np.ndarray:
     return pose
 
 
-def _texture(seed: int, size: int = 256) -> np.ndarray:
+def looking_down(height: float, pitch_deg: float) -> np.ndarray:
+    """Camera-to-world pose (world z up, OpenCV camera axes) at `height` above the floor z = 0, looking along +y
+    and down by `pitch_deg`."""
+    p = np.radians(pitch_deg)
+    forward = np.array([0.0, np.cos(p), -np.sin(p)])
+    right = np.array([1.0, 0.0, 0.0])
+    pose = np.eye(4)
+    pose[:3, :3] = np.stack([right, np.cross(forward, right), forward], axis=1)
+    pose[:3, 3] = (0.0, 0.0, height)
+    return pose
+
+
+def texture(seed: int, size: int = 256) -> np.ndarray:
     """Smooth random grey levels in [0, 1], tiling (wrapped at the borders)."""
     noise = np.random.default_rng(seed).random((size, size)).astype(np.float32)
     blurred = cv2.GaussianBlur(np.tile(noise, (3, 3)), (0, 0), 1.2)[size:2 * size, size:2 * size]
@@ -49,7 +61,7 @@ class Scene:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        self._tex = _texture(self.seed)
+        self._tex = texture(self.seed)
 
     def _shade(self, a: np.ndarray, b: np.ndarray, offset: int) -> np.ndarray:
         if not self.textured:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+from scenes import looking_down, texture
 
 from worker.depth import MultiViewDepthConfig
 from worker.depth.border_planes import BorderSettings, border_plane, fill_from_borders
@@ -21,13 +22,7 @@ SKIRTING_TOP = 0.1  # metres above the floor
 
 def _pose(height: float = 1.0, pitch_deg: float = 30.0) -> np.ndarray:
     """Camera-to-world pose at `height` above the floor, looking along +y (at the wall) and down by `pitch_deg`."""
-    p = np.radians(pitch_deg)
-    forward = np.array([0.0, np.cos(p), -np.sin(p)])
-    right = np.array([1.0, 0.0, 0.0])
-    pose = np.eye(4)
-    pose[:3, :3] = np.stack([right, np.cross(forward, right), forward], axis=1)
-    pose[:3, 3] = (0.0, 0.0, height)
-    return pose
+    return looking_down(height, pitch_deg)
 
 
 def _room(skirting: float = SKIRTING_TOP, noise: float = 0.004):
@@ -119,13 +114,6 @@ def test_the_fill_does_not_reach_past_the_supported_depths() -> None:
     assert filled.any() and filled_depth[filled].max() <= far + 1e-6
 
 
-def _texture(seed: int, size: int = 256) -> np.ndarray:
-    """Smooth random grey levels in [0, 1] (float32 [size, size]), 1 cm texels."""
-    noise = np.random.default_rng(seed).random((size, size)).astype(np.float32)
-    blurred = cv2.GaussianBlur(noise, (0, 0), 1.5)
-    return (blurred - blurred.min()) / np.ptp(blurred)
-
-
 def _render_room(pose: np.ndarray, carpet: np.ndarray, board: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(RGB, true depth) of a carpeted floor and a plain wall with a grained skirting board, seen from `pose`."""
     floor = plane_depth(FLOOR, pose, K, (H, W))
@@ -144,7 +132,7 @@ def _render_room(pose: np.ndarray, carpet: np.ndarray, board: np.ndarray) -> tup
 def test_the_engine_completes_a_plain_wall_from_its_skirting_board() -> None:
     """Posed RGB keyframe depth as the engine builds it (stereo, propagation, planes): with border planes the
     plain wall, which stereo and the dominant planes leave empty, takes the wall's depth."""
-    carpet, board = _texture(0), _texture(1)
+    carpet, board = texture(0), texture(1)
     poses = []
     for i in range(16):
         pose = _pose(height=1.0, pitch_deg=35.0)

@@ -8,23 +8,13 @@ import cv2
 import numpy as np
 import pytest
 
+from scenes import looking_down
+
 from worker.depth import MultiViewDepthConfig
 from worker.depth.world_planes import PlaneSettings, fill_from_planes, fit_planes, plane_depth
 from worker.engine.keyframe_depth import KeyframeDepth
 
 FLOOR_GREY, BOX_GREY = 120, 40
-
-
-def _looking_down(height: float, pitch_deg: float) -> np.ndarray:
-    """Camera-to-world pose (world z up, OpenCV camera axes) at `height` above the floor z = 0, looking along +y
-    and down by `pitch_deg`."""
-    p = np.radians(pitch_deg)
-    forward = np.array([0.0, np.cos(p), -np.sin(p)])
-    right = np.array([1.0, 0.0, 0.0])
-    pose = np.eye(4)
-    pose[:3, :3] = np.stack([right, np.cross(forward, right), forward], axis=1)
-    pose[:3, 3] = (0.0, 0.0, height)
-    return pose
 
 
 def _floor_depth(pose: np.ndarray, K: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -41,7 +31,7 @@ def _floor_view(scale: float = 1.0):
     of the floor and on the box's front (off the floor plane)."""
     H, W = 120, 160
     K = np.array([[144.0, 0, 80.0], [0, 144.0, 60.0], [0, 0, 1.0]])
-    pose = _looking_down(1.5 * scale, 35.0)
+    pose = looking_down(1.5 * scale, 35.0)
     truth = _floor_depth(pose, K, (H, W))
     image = np.full((H, W, 3), FLOOR_GREY, np.uint8)
     image[55:85, 60:100] = BOX_GREY
@@ -144,7 +134,7 @@ def floor_with_a_rug():
     texture = _texture()
     poses = []
     for i in range(16):
-        pose = _looking_down(1.5, 55.0)
+        pose = looking_down(1.5, 55.0)
         pose[0, 3] = 0.02 * i
         poses.append(pose)
     frames = [(_render_floor(pose, K, (H, W), texture), _floor_depth(pose, K, (H, W))) for pose in poses]
