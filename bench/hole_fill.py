@@ -91,7 +91,8 @@ def bench_icl(args) -> list[str]:
               f"(stereo {100 * row['stereo_l1']:5.2f})  coverage {100 * row['cov_before']:5.1f} -> "
               f"{100 * row['cov_after']:5.1f} %  largest hole {100 * row['hole_before']:5.1f} -> "
               f"{100 * row['hole_after']:5.1f} %  {ms:6.1f} ms | + planes: L1 {100 * row['planes_l1']:5.2f} cm @ "
-              f"{100 * row['planes_cov']:5.1f} % {planes_ms:6.1f} ms | + borders: L1 {100 * row['borders_l1']:5.2f} cm @ "
+              f"{100 * row['planes_cov']:5.1f} % {planes_ms:6.1f} ms | + borders: L1 "
+              f"{100 * row['borders_l1']:5.2f} cm @ "
               f"{100 * row['borders_cov']:5.1f} % {borders_ms:6.1f} ms", flush=True)
     l1 = [r["l1"] for r in rows if np.isfinite(r["l1"])]
     mean = {key: statistics.mean(r[key] for r in rows) for key in ("filled", "cov_before", "cov_after",

@@ -7,7 +7,6 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-
 from scenes import looking_down
 
 from worker.depth import MultiViewDepthConfig
