@@ -59,6 +59,23 @@ def test_a_plain_wall_above_its_skirting_board_takes_the_wall_plane() -> None:
     assert not filled[depth > 0].any()
 
 
+def test_stray_matches_on_the_plain_wall_take_its_plane() -> None:
+    # A few scattered pixels of the wall region with a wrong depth (stereo's chance matches on a textureless
+    # surface): the region still counts as unsupported, and those pixels take the plane like its holes.
+    image, depth, truth, wall, pose = _room()
+    rng = np.random.default_rng(3)
+    inside = cv2.erode(wall.astype(np.uint8), np.ones((17, 17), np.uint8)) > 0  # away from the board's edge
+    rows, cols = np.nonzero(inside)
+    pick = rng.choice(len(rows), int(0.02 * len(rows)), replace=False)
+    stray = np.zeros_like(wall)
+    stray[rows[pick], cols[pick]] = True
+    depth = np.where(stray, 0.7 * truth, depth).astype(np.float32)
+    filled_depth, filled = fill_from_borders(depth, image, [FLOOR], pose, K)
+    assert filled[stray].all() and np.allclose(filled_depth[stray], truth[stray], rtol=0.02)
+    kept = (depth > 0) & ~stray
+    assert np.array_equal(filled_depth[kept], depth[kept]) and not filled[kept].any()
+
+
 def test_a_plain_wall_seen_only_where_it_meets_the_floor_stands_on_the_floor() -> None:
     # Without a skirting band, the wall region's border is floor along the junction: the region, cut off from the
     # floor by an edge and holding no support of its own, is not taken for more floor but for a wall standing there.

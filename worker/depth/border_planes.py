@@ -17,7 +17,9 @@ The hypotheses of the dominant plane that orients the one holding the most ring 
 their depth) are rivals when they hold nearly as many (`ambiguity`); the closest fit (median residual) is taken
 when it holds `min_inliers` of the ring and its inliers span the ring, unless a rival fits nearly as closely
 (`distinct_fit`) and puts the region elsewhere (`disagreement`). The region's holes then take the plane's depth,
-never beyond the supported depths' range or at grazing angles. Every tolerance is relative to depth (any pose scale).
+never beyond the supported depths' range or at grazing angles; its few supported pixels far off the plane
+(`stray`: chance matches on a textureless surface, no edge parts them from it) take the plane too. Every
+tolerance is relative to depth (any pose scale).
 """
 
 from __future__ import annotations
@@ -51,6 +53,7 @@ class BorderSettings:
     depth_margin: float = 1.5  # filled depth at most this times the supported depths' 99th percentile ...
     near_margin: float = 4.0  # ... and at least their 1st percentile over this (a wall may come close)
     close_radius: int = 2  # edge pixels this close to a filled region take its plane too
+    stray: float = 0.06  # a region's supported pixels this far (relative) off its border plane take the plane
 
 
 def _parallel(points: np.ndarray, tol: np.ndarray, normal: np.ndarray) -> tuple[Plane, np.ndarray]:
@@ -163,9 +166,10 @@ def fill_from_borders(depth: np.ndarray, image: np.ndarray, dominant: list[Plane
                       settings: BorderSettings | None = None,
                       regions: tuple[int, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(depth [H, W] float32 with the holes of weakly supported regions filled from their border's plane, filled
-    bool [H, W]) for a keyframe at camera-to-world `pose` with supported depth `depth` (> 0) and image `image`
-    (uint8 RGB); `dominant`: the map's planes (world coordinates) that orient the hypotheses; `regions`: the image's
-    regions when the caller has them (`image_regions`)."""
+    bool [H, W]: those holes, and the regions' supported pixels off the plane, which it replaces) for a keyframe
+    at camera-to-world `pose` with supported depth `depth` (> 0) and image `image` (uint8 RGB); `dominant`: the
+    map's planes (world coordinates) that orient the hypotheses; `regions`: the image's regions when the caller
+    has them (`image_regions`)."""
     settings = settings or BorderSettings()
     depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0).astype(np.float32)
     support = depth > 0
@@ -196,8 +200,12 @@ def fill_from_borders(depth: np.ndarray, image: np.ndarray, dominant: list[Plane
         if plane is None:
             continue
         z = plane_depth(plane, pose, K, depth.shape, settings.min_incidence)
-        reach = (z >= near) & (z <= far) & ~support & ~filled
-        take = region & reach
+        on_plane_range = (z >= near) & (z <= far) & ~filled
+        reach = on_plane_range & ~support
+        # The region's few supported pixels off its plane are stereo's chance matches on a textureless surface
+        # (no edge separates them from it): the plane replaces them.
+        stray = region & support & on_plane_range & (np.abs(depth - z) > settings.stray * z)
+        take = (region & reach) | stray
         if settings.close_radius > 0 and take.any():
             grown = cv2.dilate(take.astype(np.uint8), np.ones((2 * settings.close_radius + 1,) * 2, np.uint8)) > 0
             take |= grown & (labels == 0) & reach

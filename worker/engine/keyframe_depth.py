@@ -164,6 +164,7 @@ class KeyframeDepth:
                                                              ref_pose, K, self.borders)
                     surfel_depth = bordered / scale
                     propagated = on_borders if propagated is None else propagated | on_borders
+                    confident = np.where(on_borders, 0, confident).astype(np.float32)  # stray matches replaced
                 if propagated is not None:
                     self.fill_stats.append(float(propagated.mean()))
                     log.debug("keyframe %d: %.0f%% of the pixels given a propagated depth", kf.kf_id,
