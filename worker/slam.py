@@ -132,6 +132,9 @@ class SlamSystem:
         # (the `initialized` event of a new map, its frames' poses): applied once the map's first keyframe is in
         self._revise_on_keyframe: tuple[dict[str, Any], dict[int, np.ndarray]] | None = None
         self.last_frame_mapped: int | None = None  # the final frame's index when finish() mapped it too
+        # Frames pushed while the device poses are judged (pose_mode auto without depth): tracked by the device only
+        # and kept; the chosen source goes through them again from the first at the verdict (`_judge_frame`).
+        self._judged: list[Frame] = []
         self.finish_events: list[dict[str, Any]] = []  # loop events finish() applied (no frame result carries them)
         self.depth_registration = DepthRegistration(self.config.input.depth_camera,
                                                     self.config.input.detect_misregistration_frames)
@@ -338,6 +341,35 @@ class SlamSystem:
     # ---------------------------------------------------------------------------------------------- frame path
     def _push_frame(self, frame: Frame) -> FrameResult:
         """Pose source -> keyframe selection -> map job -> loop closure, the same for every source."""
+        if self.needs_every_frame:
+            return self._judge_frame(frame)
+        return self._track_and_map(frame)
+
+    def _judge_frame(self, frame: Frame) -> FrameResult:
+        """A frame while the device poses are judged: its pose is the device's (provisional), it is kept, and no
+        keyframe is made. At the verdict every kept frame goes through the chosen source from the first, as if the
+        session had begun with it: with `seeded`, the map never holds a keyframe on the device poses the images
+        disagreed with (the keyframes' multi-view depth is made on the visual odometry's poses). The verdict
+        frame's result carries the replayed frames' events and the new trajectory revision."""
+        tracking, pose = self.tracking_stage.track(frame, self.frame_intrinsics(frame))
+        self._judged.append(frame)
+        if self.needs_every_frame:
+            return FrameResult(frame.index, frame.timestamp, pose, False, tracking.submap_id, self.revision,
+                               [dict(e) for e in tracking.events], tracked=tracking.tracked)
+        judged, self._judged = self._judged, []
+        events: list[dict[str, Any]] = []
+        for kept in judged:
+            result = self._track_and_map(kept)
+            events += result.events
+        revision = self._traj.revise_frames({})  # the provisional poses of the judged frames are replaced
+        chosen = [{**e, "frames_replayed": len(judged), "revision": revision}
+                  for e in tracking.events if e.get("type") == "pose_source_chosen"]
+        result.events = chosen + [e for e in tracking.events if e.get("type") != "pose_source_chosen"] + events
+        result.revision = revision
+        return result
+
+    def _track_and_map(self, frame: Frame) -> FrameResult:
+        """One frame through the chosen pose source, the keyframe decision, mapping and loop closure."""
         intrinsics = self.frame_intrinsics(frame)
         events = self._apply_corrections()
         tracking, pose = self.tracking_stage.track(frame, intrinsics)
@@ -786,6 +818,7 @@ class SlamSystem:
             "bag": None if self.bag is None else self.bag.to_bytes(torch.float32),
             "keyframe_depth": None if self.keyframe_depth is None else self.keyframe_depth.state_dict(),
             "loop_after_depth": sorted(self._loop_after_depth),
+            "judged_frames": [_frame_state(f) for f in self._judged],
         }
 
     def _load_waiting_loops(self, state: dict[str, Any]) -> None:
@@ -839,9 +872,27 @@ class SlamSystem:
         if system.keyframe_depth is not None and state.get("keyframe_depth") is not None:
             system.keyframe_depth.load_state_dict(state["keyframe_depth"])
         system._load_waiting_loops(state)
+        system._judged = [_frame_from_state(f) for f in state.get("judged_frames") or []]
         if system.backend is not None and state["map"] is not None:
             system.backend.load_state_dict(state["map"])
         return system
+
+
+def _frame_state(frame: Frame) -> dict[str, Any]:
+    """A kept frame for a snapshot (arrays as they are; intrinsics as a dict)."""
+    return {"index": frame.index, "timestamp": frame.timestamp, "image": frame.image, "depth": frame.depth,
+            "pose": frame.pose, "gt_pose": frame.gt_pose,
+            "intrinsics": None if frame.intrinsics is None else frame.intrinsics.to_dict()}
+
+
+def _frame_from_state(state: dict[str, Any]) -> Frame:
+    def array(value: Any, dtype) -> np.ndarray | None:
+        return None if value is None else np.asarray(value, dtype)
+
+    return Frame(int(state["index"]), float(state["timestamp"]), np.asarray(state["image"], np.uint8),
+                 intrinsics=None if state["intrinsics"] is None else Intrinsics.from_dict(state["intrinsics"]),
+                 depth=array(state["depth"], np.float32), pose=array(state["pose"], np.float64),
+                 gt_pose=array(state["gt_pose"], np.float64))
 
 
 def _flat_snapshot(state: Any, arrays: Mapping[str, bytes] | None = None) -> dict[str, Any]:

@@ -84,14 +84,25 @@ def test_noisy_poses_hand_tracking_to_seeded_visual_odometry_without_a_jump(fram
     assert "disagree" in event["reason"] and f"{event['max_ratio']:g}" in event["reason"]
     summary = system.pose_source_choice()
     assert summary["pose_source"] == "seeded" and summary["pose_agreement"]["judged"]
-    np.testing.assert_allclose(results[at].pose, noisy[at], atol=1e-9)  # it starts where the session is
+    # While judging, frames get the device's poses (provisional) and no keyframe; at the verdict the seeded
+    # odometry goes through them again from the first frame's device pose, and the trajectory is revised.
+    for result, pose in zip(results[:at], noisy):
+        np.testing.assert_allclose(result.pose, pose, atol=1e-9)
+        assert not result.is_keyframe and result.revision == 0
+    assert event["frames_replayed"] == at + 1 and event["revision"] == results[at].revision > 0
+    trajectory = system.trajectory("all")
+    assert [index for index, _, _ in trajectory] == [f.index for f in frames]
+    assert trajectory[0][0] in {index for index, _, _ in system.trajectory("keyframes")}
+    np.testing.assert_allclose(trajectory[0][2], noisy[0], atol=1e-9)  # it starts where the session began
     true = np.stack([f.pose[:3, 3] for f in frames])
-    ours = np.stack([r.pose[:3, 3] for r in results])
+    ours = np.stack([pose[:3, 3] for _, _, pose in trajectory])
     step = np.median(np.linalg.norm(np.diff(true, axis=0), axis=1))
     assert np.linalg.norm(np.diff(ours, axis=0), axis=1).max() < 4 * step  # no jump, at the switch or after
+    assert np.linalg.norm(results[at].pose[:3, 3] - results[at - 1].pose[:3, 3]) < 4 * step
     # once visual odometry is initialised, the motion from frame to frame is the images', not the noisy device's
-    # (what multi-view stereo and the map need; the position drifts slowly instead, held by the device's priors)
-    later = slice(at + 6, None)
+    # (what multi-view stereo and the map need; the position drifts slowly instead, held by the device's priors):
+    # the judged frames' too
+    later = slice(6, None)
     true_steps = np.diff(true, axis=0)[later]
     ours_error = np.linalg.norm(np.diff(ours, axis=0)[later] - true_steps, axis=1).mean()
     device = np.stack([p[:3, 3] for p in noisy])
@@ -142,3 +153,16 @@ def test_too_few_triples_keep_the_device_poses_without_saying_they_disagree(fram
     assert event["pose_source"] == "prior" and "too few" in event["reason"]
     assert event["triples"] < 50 and event["agree"] is None and event["ratio"] > event["max_ratio"]
     assert system.pose_source_choice()["pose_agreement"]["agree"] is None
+
+
+def test_a_snapshot_while_judging_keeps_the_judged_frames_for_the_verdict(frames, noisy) -> None:
+    config = SlamConfig.preset("default", threaded=False, mapping={"enabled": False}, input={"pose_mode": "auto"})
+    system = SlamSystem(config, intrinsics=frames[0].intrinsics)
+    first = [system.push(replace(f, pose=p.copy())) for f, p in zip(frames[:8], noisy[:8])]
+    assert not _chosen(first) and system.needs_every_frame and system.trajectory("all") == []
+    restored = SlamSystem.restore(system.snapshot())
+    rest = [restored.push(replace(f, pose=p.copy())) for f, p in zip(frames[8:], noisy[8:])]
+    [(at, event)] = _chosen(rest)  # (the triples measured before the snapshot count; their tracks start again)
+    assert event["frames_replayed"] == at + 1 and event["pose_source"] == "seeded"
+    assert [index for index, _, _ in restored.trajectory("all")] == [f.index for f in frames]
+    np.testing.assert_allclose(restored.trajectory("all")[0][2], noisy[0], atol=1e-9)

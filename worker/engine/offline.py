@@ -243,7 +243,10 @@ def _render_metrics(system, frames: list[Frame], results, poses, intrinsics, out
 
     if intrinsics is None:
         return {"psnr": None, "ssim": None, "lpips": None, "depth_l1": None, "lpips_note": "no intrinsics"}
-    mapped = [r.is_keyframe or r.index == system.last_frame_mapped for r in results]  # the final view is mapped
+    # the keyframes as the trajectory holds them (frames judged before a pose source was chosen became keyframes
+    # after their results were returned); the final view is mapped too
+    keyframes = {index for index, _, _ in system.trajectory("keyframes")}
+    mapped = [r.index in keyframes or r.index == system.last_frame_mapped for r in results]
     chosen = [i for i in non_keyframe_indices(mapped, every) if i % hold_every == 0] or list(
         range(0, len(frames), hold_every))
     metric_depth = system.config.input.use_depth

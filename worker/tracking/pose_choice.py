@@ -8,9 +8,9 @@ and the device poses only seed and constrain it: `seeded` (worker.tracking.seede
 The session starts with the device's poses while the first frames judge them (worker.tracking.pose_agreement: the
 three-view reprojection error with the device's poses over that of poses fitted to the same tracks from the images
 alone, a scale-free ratio; `input.pose_choice`). The verdict comes within `within_frames` frames (on ICL and KITTI
-after 18) as a `pose_source_chosen` event with its figures. `seeded` starts at the frame of the verdict from that
-frame's device pose, which is where the session's poses already are: nothing jumps; the keyframes made before keep
-their device poses.
+after 18) as a `pose_source_chosen` event with its figures. Meanwhile the session makes no keyframe: at the verdict
+the engine (worker.slam) takes the judged frames through the chosen source from the first, so `seeded` starts at
+the first frame's device pose and no keyframe is ever made on device poses the images disagreed with.
 """
 
 from __future__ import annotations
@@ -92,9 +92,8 @@ class ChosenDevicePoses:
                                 f"device poses agree with the images: {v.given_px:.2f} px three-view reprojection "
                                 f"error, {v.ratio:.2f} times the images' own fit ({v.fitted_px:.2f} px), at most "
                                 f"{v.max_ratio:g} allowed")
-        self.seeded = self.new_seeded()
-        seeded = self.seeded.track(frame, intrinsics)  # from this frame's device pose: where the session is now
-        return self._decide("seeded", frame.index, seeded,
+        self.seeded = self.new_seeded()  # it tracks the judged frames again from the first (SlamSystem)
+        return self._decide("seeded", frame.index, result,
                             f"device poses disagree with the images: {v.given_px:.2f} px three-view reprojection "
                             f"error, {v.ratio:.2f} times the images' own fit ({v.fitted_px:.2f} px), above "
                             f"{v.max_ratio:g}: visual odometry tracks, the device poses are priors")
