@@ -135,7 +135,8 @@ class SlamSystem:
         # Frames pushed while the device poses are judged (pose_mode auto without depth): tracked by the device only
         # and kept; the chosen source goes through them again from the first at the verdict (`_judge_frame`).
         self._judged: list[Frame] = []
-        self.finish_events: list[dict[str, Any]] = []  # loop events finish() applied (no frame result carries them)
+        # events of finish() (no frame result carries them): a decision on the device poses, loops
+        self.finish_events: list[dict[str, Any]] = []
         self.depth_registration = DepthRegistration(self.config.input.depth_camera,
                                                     self.config.input.detect_misregistration_frames)
 
@@ -198,13 +199,16 @@ class SlamSystem:
         if self._finished:
             return
         started = time.perf_counter()
+        if self._judged:  # the stream ended while the device poses were judged: decide on what was measured
+            decision = self.pose_source.conclude(self._judged[-1].index)
+            self.finish_events += self._replay_judged(decision).events
         if self.backend is not None:
             self._map_last_frame()
             self._queue_depth_jobs(force=True)
             self._flush_map_jobs(force=True)
             self.backend.wait_idle()
         self.loop_stage.wait_idle()
-        self.finish_events = self._apply_corrections()  # loops the stage closed after the last frame
+        self.finish_events += self._apply_corrections()  # loops the stage closed after the last frame
         if self.finish_events and self.backend is not None:
             self.backend.wait_idle()
         if self.backend is not None:
@@ -356,6 +360,12 @@ class SlamSystem:
         if self.needs_every_frame:
             return FrameResult(frame.index, frame.timestamp, pose, False, tracking.submap_id, self.revision,
                                [dict(e) for e in tracking.events], tracked=tracking.tracked)
+        return self._replay_judged(tracking.events)
+
+    def _replay_judged(self, decision: list[dict[str, Any]]) -> FrameResult:
+        """The judged frames through the chosen source, from the first; the last one's result, carrying the
+        decision's `pose_source_chosen` event (with the frames replayed and the new revision) and the replayed
+        frames' events."""
         judged, self._judged = self._judged, []
         events: list[dict[str, Any]] = []
         for kept in judged:
@@ -363,8 +373,8 @@ class SlamSystem:
             events += result.events
         revision = self._traj.revise_frames({})  # the provisional poses of the judged frames are replaced
         chosen = [{**e, "frames_replayed": len(judged), "revision": revision}
-                  for e in tracking.events if e.get("type") == "pose_source_chosen"]
-        result.events = chosen + [e for e in tracking.events if e.get("type") != "pose_source_chosen"] + events
+                  for e in decision if e.get("type") == "pose_source_chosen"]
+        result.events = chosen + [dict(e) for e in decision if e.get("type") != "pose_source_chosen"] + events
         result.revision = revision
         return result
 

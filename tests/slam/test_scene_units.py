@@ -26,8 +26,10 @@ def posed_rgb_map(scale: float) -> tuple[list[int], float, float | None]:
     system = SlamSystem(config, source.intrinsics)
     try:
         frames = list(source)
-        keyframes = [f.index for f in frames if system.push(f).is_keyframe]
-        system.finish()
+        for frame in frames:
+            system.push(frame)
+        system.finish()  # (24 frames: the device poses are still judged; finish decides and maps them)
+        keyframes = [index for index, _, _ in system.trajectory("keyframes")]
         K = source.intrinsics.matrix().numpy()
         poses = {index: pose for index, _, pose in system.trajectory("all")}
         scores = [psnr(system.render_view(poses[f.index], K, *SIZE)[0], f.image) for f in frames

@@ -166,3 +166,13 @@ def test_a_snapshot_while_judging_keeps_the_judged_frames_for_the_verdict(frames
     assert event["frames_replayed"] == at + 1 and event["pose_source"] == "seeded"
     assert [index for index, _, _ in restored.trajectory("all")] == [f.index for f in frames]
     np.testing.assert_allclose(restored.trajectory("all")[0][2], noisy[0], atol=1e-9)
+
+
+def test_a_stream_that_ends_while_judging_is_decided_and_mapped_at_finish(frames, noisy) -> None:
+    system, results = _session(frames[:10], noisy[:10])
+    assert not _chosen(results) and system.trajectory("all") == []
+    system.finish()
+    [event] = [e for e in system.finish_events if e["type"] == "pose_source_chosen"]
+    assert event["frames_replayed"] == 10 and event["pose_source"] in ("prior", "seeded")
+    assert [index for index, _, _ in system.trajectory("all")] == [f.index for f in frames[:10]]
+    assert system.trajectory("keyframes")[0][0] == frames[0].index

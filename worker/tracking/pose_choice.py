@@ -79,21 +79,34 @@ class ChosenDevicePoses:
             return self._decide("prior", frame.index, result, "no camera intrinsics to judge the poses with")
         if not self.agreement.add(frame.image, result.pose, intrinsics.matrix().numpy()):
             return result
+        return self._judge(frame.index, result)
+
+    def conclude(self, index: int) -> list[dict[str, Any]]:
+        """The stream ended while judging: decide on the triples measured so far (the device's poses when too few);
+        returns the `pose_source_chosen` event (none when already decided)."""
+        if self.choice is not None:
+            return []
+        result = TrackingResult(np.eye(4))
+        self._judge(index, result)
+        return result.events
+
+    def _judge(self, index: int, result: TrackingResult) -> TrackingResult:
+        """Decide on the agreement's verdict; `result` (the device's) carries the event."""
         self.verdict = self.agreement.result
         if self.verdict is None:
-            return self._decide("prior", frame.index, result, "no frame triple with parallax to judge the poses by")
+            return self._decide("prior", index, result, "no frame triple with parallax to judge the poses by")
         v = self.verdict
         if v.triples < self.config.min_triples:
-            return self._decide("prior", frame.index, result,
+            return self._decide("prior", index, result,
                                 f"only {v.triples} frame triple(s) with parallax within {self.agreement.frames} "
                                 f"frames, fewer than {self.config.min_triples}: too few to judge the poses by")
         if v.agree:
-            return self._decide("prior", frame.index, result,
+            return self._decide("prior", index, result,
                                 f"device poses agree with the images: {v.given_px:.2f} px three-view reprojection "
                                 f"error, {v.ratio:.2f} times the images' own fit ({v.fitted_px:.2f} px), at most "
                                 f"{v.max_ratio:g} allowed")
         self.seeded = self.new_seeded()  # it tracks the judged frames again from the first (SlamSystem)
-        return self._decide("seeded", frame.index, result,
+        return self._decide("seeded", index, result,
                             f"device poses disagree with the images: {v.given_px:.2f} px three-view reprojection "
                             f"error, {v.ratio:.2f} times the images' own fit ({v.fitted_px:.2f} px), above "
                             f"{v.max_ratio:g}: visual odometry tracks, the device poses are priors")
