@@ -15,7 +15,8 @@ chosen once per session from `frontend.tracking` and the first frame (see `choos
   used as priors in the pose graph ("prior", loop closures can still correct them) or kept as they are ("fixed");
   with "seeded" (and "auto" with depth), RGB-D or visual odometry tracks from the device's motion and the device
   poses are keyframe priors (worker.tracking.seeded); "auto" without depth is "prior" where the first frames show
-  the device poses agree with the images, else "seeded" (worker.tracking.pose_choice);
+  the device poses agree with the images, else "seeded" (worker.tracking.pose_choice): those frames get the
+  device's poses meanwhile and no keyframe, and go through the chosen source from the first at the verdict;
 - rgbd_odometry (depth, no poses): dense photometric + geometric alignment to a reference keyframe;
 - visual_odometry (RGB only): features, PnP against a local map, windowed bundle adjustment;
 - model (mode "monocular"): the feed-forward model tracks submaps (worker.frontend.tracker), the paper's path.
