@@ -120,3 +120,23 @@ def visible_in(points_depth: np.ndarray, ref_pose: np.ndarray, pose: np.ndarray,
     inside = (z > 0) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
     col, row = np.clip(u.astype(int), 0, W - 1), np.clip(v.astype(int), 0, H - 1)
     return inside & (np.abs(view_depth[row, col] - z) < tol * z)
+
+
+def engine_keyframe_depths(images: list[np.ndarray], poses: list[np.ndarray], K: np.ndarray, planes=None,
+                           borders=None, every: int = 4) -> list[tuple[int, np.ndarray]]:
+    """(keyframe id, surfel z-depth [H, W], 0 where no surfel) of every `every`-th frame, as the engine's keyframe
+    depth builds it for posed RGB (multi-view stereo, propagation, with `planes` / `borders` settings)."""
+    from worker.depth import MultiViewDepthConfig
+    from worker.engine.keyframe_depth import KeyframeDepth
+
+    source = KeyframeDepth(MultiViewDepthConfig(), buffer_frames=16, frames_after=4, propagate=True, planes=planes,
+                           borders=borders)
+    depths = []
+    for i, image in enumerate(images):
+        source.add_frame(i, image)
+        if i % every == 0:
+            source.add_keyframe(i, K, None)
+        for job in source.ready_jobs(lambda j: poses[j], force=i == len(images) - 1):
+            _, grid, _ = job.build()
+            depths.append((job.kf_id, np.where(grid["valid"].numpy(), grid["means"][..., 2].numpy(), 0.0)))
+    return depths

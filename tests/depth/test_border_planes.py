@@ -6,12 +6,10 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-from scenes import looking_down, texture
+from scenes import engine_keyframe_depths, looking_down, texture
 
-from worker.depth import MultiViewDepthConfig
 from worker.depth.border_planes import BorderSettings, border_plane, fill_from_borders
 from worker.depth.world_planes import Plane, PlaneSettings, camera_rays, plane_depth
-from worker.engine.keyframe_depth import KeyframeDepth
 
 H, W = 120, 160
 K = np.array([[144.0, 0, 80.0], [0, 144.0, 60.0], [0, 0, 1.0]])
@@ -157,20 +155,9 @@ def test_the_engine_completes_a_plain_wall_from_its_skirting_board() -> None:
         poses.append(pose)
     frames = [_render_room(pose, carpet, board) for pose in poses]
 
-    def keyframe_depths(borders: BorderSettings | None) -> list[tuple[int, np.ndarray]]:
-        source = KeyframeDepth(MultiViewDepthConfig(), buffer_frames=16, frames_after=4, propagate=True,
-                               planes=PlaneSettings(), borders=borders)
-        depths = []
-        for i, (image, _) in enumerate(frames):
-            source.add_frame(i, image)
-            if i % 4 == 0:
-                source.add_keyframe(i, K, None)
-            for job in source.ready_jobs(lambda j: poses[j], force=i == len(frames) - 1):
-                _, grid, _ = job.build()
-                depths.append((job.kf_id, np.where(grid["valid"].numpy(), grid["means"][..., 2].numpy(), 0.0)))
-        return depths
-
-    with_borders, without = keyframe_depths(BorderSettings()), keyframe_depths(None)
+    images = [image for image, _ in frames]
+    with_borders = engine_keyframe_depths(images, poses, K, PlaneSettings(), BorderSettings())
+    without = engine_keyframe_depths(images, poses, K, PlaneSettings())
     covered, covered_before = [], []
     for (kf, depth), (_, before) in zip(with_borders, without, strict=True):
         image, truth = frames[kf]

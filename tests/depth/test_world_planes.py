@@ -7,11 +7,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-from scenes import looking_down
+from scenes import engine_keyframe_depths, looking_down
 
-from worker.depth import MultiViewDepthConfig
 from worker.depth.world_planes import PlaneSettings, fill_from_planes, fit_planes, plane_depth
-from worker.engine.keyframe_depth import KeyframeDepth
 
 FLOOR_GREY, BOX_GREY = 120, 40
 
@@ -140,23 +138,9 @@ def floor_with_a_rug():
     return frames, poses, K
 
 
-def _grid_depth(grid: dict) -> np.ndarray:
-    """The z-depth of a keyframe's surfel grid (0 where it has no surfel)."""
-    return np.where(grid["valid"].numpy(), grid["means"][..., 2].numpy(), 0.0)
-
-
-def _keyframe_depths(frames, poses, K, planes: PlaneSettings | None) -> list[tuple[int, dict]]:
-    """The surfel grid of every 4th frame as the engine's keyframe depth builds it (posed RGB, propagate)."""
-    source = KeyframeDepth(MultiViewDepthConfig(), buffer_frames=16, frames_after=4, propagate=True, planes=planes)
-    grids = []
-    for i, (image, _) in enumerate(frames):
-        source.add_frame(i, image)
-        if i % 4 == 0:
-            source.add_keyframe(i, K, None)
-        for job in source.ready_jobs(lambda j: poses[j], force=i == len(frames) - 1):
-            _, grid, _ = job.build()
-            grids.append((job.kf_id, grid))
-    return grids
+def _keyframe_depths(frames, poses, K, planes: PlaneSettings | None) -> list[tuple[int, np.ndarray]]:
+    """The surfel depth of every 4th frame as the engine's keyframe depth builds it (posed RGB, propagate)."""
+    return engine_keyframe_depths([image for image, _ in frames], poses, K, planes)
 
 
 def test_the_engine_fills_a_uniform_floor_from_the_plane_of_a_rug_on_it(floor_with_a_rug) -> None:
@@ -164,10 +148,9 @@ def test_the_engine_fills_a_uniform_floor_from_the_plane_of_a_rug_on_it(floor_wi
     with_planes = _keyframe_depths(frames, poses, K, PlaneSettings())
     without = _keyframe_depths(frames, poses, K, None)
     covered, covered_before = [], []
-    for (kf, grid), (_, grid_before) in zip(with_planes, without, strict=True):
+    for (kf, depth), (_, before) in zip(with_planes, without, strict=True):
         image, truth = frames[kf]
         plain = (image[..., 0] == image[0, 0, 0]) & (truth > 0)  # the uniform floor around the rug
-        depth, before = _grid_depth(grid), _grid_depth(grid_before)
         covered.append((depth[plain] > 0).mean())
         covered_before.append((before[plain] > 0).mean())
         both = plain & (depth > 0)
@@ -183,5 +166,5 @@ def test_a_keyframe_its_own_stereo_covers_well_keeps_its_depth(floor_with_a_rug)
     frames, poses, K = floor_with_a_rug
     without = _keyframe_depths(frames, poses, K, None)
     gated = _keyframe_depths(frames, poses, K, PlaneSettings(max_coverage=0.0))
-    for (_, grid), (_, grid_before) in zip(gated, without, strict=True):
-        assert np.array_equal(_grid_depth(grid), _grid_depth(grid_before))
+    for (_, depth), (_, before) in zip(gated, without, strict=True):
+        assert np.array_equal(depth, before)
