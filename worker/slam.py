@@ -368,6 +368,8 @@ class SlamSystem:
         decision's `pose_source_chosen` event (with the frames replayed and the new revision) and the replayed
         frames' events."""
         judged, self._judged = self._judged, []
+        # No keyframe has a multi-view depth yet to measure motion against: the judging's triangulated points do
+        self.tracking_stage.selector.set_scene_depth(getattr(self.pose_source, "scene_depth", None))
         events: list[dict[str, Any]] = []
         for kept in judged:
             result = self._track_and_map(kept)

@@ -30,11 +30,13 @@ LK_PARAMS = {"winSize": (21, 21), "maxLevel": 3}  # OpenCV's defaults, named
 
 @dataclass(frozen=True)
 class TripleError:
-    """One triple's median reprojection errors in its third view (pixels): with the given pose, with a fitted one."""
+    """One triple's median reprojection errors in its third view (pixels): with the given pose, with a fitted one;
+    `depth`: the median depth of its points in its first view, triangulated with the given poses (pose units)."""
 
     given_px: float
     fitted_px: float
     points: int
+    depth: float = float("nan")
 
 
 @dataclass(frozen=True)
@@ -155,7 +157,8 @@ def triple_error(x0: np.ndarray, x1: np.ndarray, x2: np.ndarray,
     ours = _third_view_errors(x0, x1, x2, K, np.eye(4), fitted_b, None)
     if given is None or ours is None:
         return None
-    return TripleError(float(np.median(given)), float(np.median(ours)), int(len(x0)))
+    return TripleError(float(np.median(given[0])), float(np.median(ours[0])), int(len(x0)),
+                       float(np.median(given[1])))
 
 
 def _fitted_views(x0: np.ndarray, x1: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
@@ -179,13 +182,14 @@ def _fitted_views(x0: np.ndarray, x1: np.ndarray, K: np.ndarray) -> tuple[np.nda
 
 
 def _third_view_errors(x0: np.ndarray, x1: np.ndarray, x2: np.ndarray, K: np.ndarray, w2c_a: np.ndarray,
-                       w2c_b: np.ndarray, w2c_c: np.ndarray | None) -> np.ndarray | None:
-    """Errors in the third view of the points triangulated from the first two (world-to-camera poses): projected
-    with `w2c_c`, or with the pose fitted to them (PnP) where it is None. None when fewer than MIN_POINTS points lie
-    in front of the cameras."""
+                       w2c_b: np.ndarray, w2c_c: np.ndarray | None) -> tuple[np.ndarray, np.ndarray] | None:
+    """(errors in the third view, depths in the first) of the points triangulated from the first two
+    (world-to-camera poses): projected with `w2c_c`, or with the pose fitted to them (PnP) where it is None. None
+    when fewer than MIN_POINTS points lie in front of the cameras."""
     points = cv2.triangulatePoints(K @ w2c_a[:3], K @ w2c_b[:3], x0.T, x1.T)
     points = (points[:3] / np.where(np.abs(points[3]) > 1e-12, points[3], 1e-12)).T
-    in_front = (points @ w2c_a[:3, :3].T + w2c_a[:3, 3])[:, 2] > 0
+    depth = (points @ w2c_a[:3, :3].T + w2c_a[:3, 3])[:, 2]
+    in_front = depth > 0
     if w2c_c is not None:
         in_front &= (points @ w2c_c[:3, :3].T + w2c_c[:3, 3])[:, 2] > 0
     if in_front.sum() < MIN_POINTS:
@@ -198,7 +202,7 @@ def _third_view_errors(x0: np.ndarray, x1: np.ndarray, x2: np.ndarray, K: np.nda
     rvec, _ = cv2.Rodrigues(w2c_c[:3, :3])
     projected, _ = cv2.projectPoints(points, rvec, w2c_c[:3, 3].reshape(3, 1), K, None)
     errors = np.linalg.norm(projected[:, 0] - observed, axis=1)
-    return errors if np.all(np.isfinite(errors)) else None
+    return (errors, depth[in_front]) if np.all(np.isfinite(errors)) else None
 
 
 def _pnp(points: np.ndarray, observed: np.ndarray, K: np.ndarray) -> np.ndarray | None:
@@ -256,6 +260,12 @@ class PoseAgreement:
         return True
 
     @property
+    def scene_depth(self) -> float | None:
+        """The median depth of the points the triples triangulated with the given poses (pose units), if any."""
+        depths = [e.depth for e in self.errors if np.isfinite(e.depth) and e.depth > 0]
+        return float(np.median(depths)) if depths else None
+
+    @property
     def result(self) -> AgreementVerdict | None:
         """The medians over the triples measured so far (None before any had parallax)."""
         return verdict(self.errors, self.max_ratio)
@@ -266,9 +276,10 @@ class PoseAgreement:
 
     def state_dict(self) -> dict:
         """The measured triples and the frame count (not the images: judging goes on with the next frames)."""
-        return {"errors": [[e.given_px, e.fitted_px, e.points] for e in self.errors], "frames": self.frames}
+        return {"errors": [[e.given_px, e.fitted_px, e.points, e.depth] for e in self.errors], "frames": self.frames}
 
     def load_state_dict(self, state: dict) -> None:
-        self.errors = [TripleError(float(g), float(f), int(n)) for g, f, n in state["errors"]]
+        self.errors = [TripleError(float(e[0]), float(e[1]), int(e[2]), float(e[3]) if len(e) > 3 else float("nan"))
+                       for e in state["errors"]]
         self.frames = int(state["frames"])
         self.tracker.reset()

@@ -54,6 +54,11 @@ class ChosenDevicePoses:
         return self.choice is None
 
     @property
+    def scene_depth(self) -> float | None:
+        """The scene's median depth the judging triangulated with the device poses (pose units), if any."""
+        return self.agreement.scene_depth
+
+    @property
     def source(self):
         """The source tracking now."""
         return self.device if self.seeded is None else self.seeded
