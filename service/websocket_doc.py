@@ -222,13 +222,18 @@ WEBSOCKET_DOC = {
                                                                      "tracked corners with the device's poses"},
                 "fitted_px": {"type": "number", "description": "... with poses fitted to the same tracks"},
                 "ratio": {"type": "number"}, "max_ratio": {"type": "number"},
-                "triples": {"type": "integer", "description": "frame triples measured"}},
+                "triples": {"type": "integer", "description": "frame triples measured"},
+                "agree": {"type": ["boolean", "null"], "description": "null: too few triples to judge by"},
+                "frames_replayed": {"type": "integer", "description": "the judged frames, tracked again by the "
+                                                                       "chosen source from the first"},
+                "revision": {"type": "integer", "description": "the trajectory revision with their new poses"}},
                 "additionalProperties": True,
                 "description": "pose_mode auto, frames with poses and no depth: over the first frames (at most "
-                               "input.pose_choice.within_frames, 30) the device poses were judged against the images; "
-                               "`prior`: they are the odometry; `seeded`: visual odometry tracks from this frame on, "
-                               "from the device's motion, the device poses are pose-graph priors (also in the "
-                               "session's warnings)"},
+                               "input.pose_choice.within_frames, 30) the device poses were judged against the images "
+                               "(meanwhile frames get the device's poses, provisionally, and no keyframe); "
+                               "`prior`: they are the odometry; `seeded`: visual odometry tracks from the device's "
+                               "motion, the device poses are pose-graph priors (also in the session's warnings); "
+                               "either way the judged frames go through the chosen source from the first"},
             "odometry_slip": {"type": "object", "properties": {
                 "type": {"const": "odometry_slip"}, "seq": {"type": "integer"},
                 "photometric_rms": {"type": "array", "items": {"type": "number"},

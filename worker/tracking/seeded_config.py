@@ -72,7 +72,8 @@ class PoseChoiceConfig(BaseModel):
     triples: int = Field(8, ge=1, le=100, description="frame triples with parallax the verdict waits for ...")
     within_frames: int = Field(
         30, ge=0, le=1000, description="... or at most this many frames, judged on the triples measured by then; 0: no "
-        "judging, always prior")
+        "judging, always prior. While judging, frames get the device's poses and no keyframe; at the verdict they go "
+        "through the chosen source from the first")
     min_triples: int = Field(
         3, ge=1, le=100, description="with fewer triples than this by then (a slow start, sparse views), the device "
         "poses are kept (prior): one or two triples' median is no evidence against them")
