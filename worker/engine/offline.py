@@ -114,7 +114,7 @@ def run_sequence(
         metrics: dict[str, Any] = {
             "sequence": src.name, "dataset": _dataset_name(source), "method": "Flash-Mono",
             "mode": system.mode, "preset": config.name, "num_frames": len(frames),
-            "num_keyframes": sum(r.is_keyframe for r in results), "loops": int(system.counters["loops"]),
+            "num_keyframes": len(system.trajectory("keyframes")), "loops": int(system.counters["loops"]),
             "frames_tracked": int(system.counters["frames_tracked"]),
             "events": _event_counts(results),
             "revision": system.revision, "runtime_s": runtime, "fps": len(frames) / runtime,
