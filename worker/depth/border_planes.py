@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from worker.depth.world_planes import Plane, camera_rays, image_regions, plane_depth, world_points
+from worker.depth.world_planes import Plane, camera_rays, image_regions, plane_depth, spans_a_plane, world_points
 
 
 @dataclass(frozen=True)
@@ -98,14 +98,6 @@ def _perpendicular(points: np.ndarray, tol: np.ndarray, up: np.ndarray, rng: np.
     return Plane(best, offset, 0.0), inliers
 
 
-def _spread_in_two_directions(points: np.ndarray, min_extent: float) -> bool:
-    """Whether `points` [n, 3] span a plane, not a line: their second spread at least `min_extent` of the first."""
-    if len(points) < 3:
-        return False
-    values = np.linalg.eigvalsh(np.cov(points.T))
-    return bool(np.sqrt(max(values[1], 0.0) / max(values[2], 1e-30)) >= min_extent)
-
-
 def _depth_along(plane: Plane, centre: np.ndarray, rays: np.ndarray) -> np.ndarray:
     """z-depth at which world `rays` [m, 3] (camera z = 1) from `centre` meet `plane` (inf where they do not)."""
     along = rays @ plane.normal
@@ -129,7 +121,8 @@ def border_plane(points: np.ndarray, depths: np.ndarray, pixels: np.ndarray, dom
         gap = np.abs(points @ plane.normal + plane.offset) / depths
         parallel = _parallel(points, tol, plane.normal)
         if (abs(parallel[0].offset - plane.offset) > settings.tolerance * float(np.median(depths))
-                and _spread_in_two_directions(points[parallel[1]], settings.min_extent)):
+                and parallel[1].sum() >= 3
+                and spans_a_plane(np.linalg.eigvalsh(np.cov(points[parallel[1]].T)), settings.min_extent)):
             hypotheses.append((index, *parallel))  # (the dominant plane itself is fill_from_planes' to give)
         if np.median(gap) <= settings.junction:
             found = _perpendicular(points, tol, plane.normal, rng, settings.iterations)

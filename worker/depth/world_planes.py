@@ -85,6 +85,12 @@ def _refit(points: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
     return normal, float(-normal @ centre), values
 
 
+def spans_a_plane(eigenvalues: np.ndarray, min_extent: float) -> bool:
+    """Whether points whose covariance has `eigenvalues` (ascending) span a plane, not a line: their second spread
+    at least `min_extent` of the first."""
+    return bool(np.sqrt(max(eigenvalues[1], 0.0) / max(eigenvalues[2], 1e-30)) >= min_extent)
+
+
 def fit_planes(points: np.ndarray, depths: np.ndarray, settings: PlaneSettings | None = None,
                seed: int = 0) -> list[Plane]:
     """The dominant planes of `points` [n, 3] (observed at `depths` [n]), largest first; see the module docstring."""
@@ -123,7 +129,7 @@ def fit_planes(points: np.ndarray, depths: np.ndarray, settings: PlaneSettings |
         if inliers.sum() < settings.min_share * total:
             break
         remaining &= ~inliers
-        if np.sqrt(max(values[1], 0.0) / max(values[2], 1e-30)) >= settings.min_extent:
+        if spans_a_plane(values, settings.min_extent):
             planes.append(Plane(normal, offset, float(inliers.sum() / total)))
     return planes
 
