@@ -29,7 +29,15 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from worker.depth.world_planes import Plane, camera_rays, image_regions, plane_depth, spans_a_plane, world_points
+from worker.depth.world_planes import (
+    Plane,
+    PlaneSettings,
+    camera_rays,
+    image_regions,
+    plane_depth,
+    spans_a_plane,
+    world_points,
+)
 
 
 @dataclass(frozen=True)
@@ -169,7 +177,8 @@ def fill_from_borders(depth: np.ndarray, image: np.ndarray, dominant: list[Plane
     filled = np.zeros(depth.shape, bool)
     if not dominant or support.sum() < settings.min_points or support.all():
         return depth, filled
-    count, labels = regions if regions is not None else image_regions(image, 5, 15)
+    edges = PlaneSettings()  # the same image regions as the dominant planes' fill
+    count, labels = regions if regions is not None else image_regions(image, edges.edge_low, edges.edge_high)
     near, far = np.percentile(depth[support], [1, 99])
     near, far = near / settings.near_margin, far * settings.depth_margin
     sizes = np.bincount(labels.ravel(), minlength=count)

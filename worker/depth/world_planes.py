@@ -178,7 +178,8 @@ def _region_spread(regions: np.ndarray, mask: np.ndarray, count: int) -> np.ndar
 
 
 def fill_from_planes(depth: np.ndarray, image: np.ndarray, planes: list[Plane], pose: np.ndarray, K: np.ndarray,
-                     settings: PlaneSettings | None = None) -> tuple[np.ndarray, np.ndarray]:
+                     settings: PlaneSettings | None = None,
+                     regions: tuple[int, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(depth [H, W] float32 with holes filled from `planes`, filled bool [H, W]) for a keyframe at `pose` whose
     supported depth (> 0: confident or propagated) is `depth` and image `image` (uint8 RGB); see the module
     docstring. An image region takes the plane that most of its supported pixels lie on, when they are enough and
@@ -190,7 +191,7 @@ def fill_from_planes(depth: np.ndarray, image: np.ndarray, planes: list[Plane], 
     if not planes or support.sum() < 3 or support.all():
         return depth, filled
     far = settings.depth_margin * float(np.percentile(depth[support], 99))
-    count, regions = image_regions(image, settings.edge_low, settings.edge_high)
+    count, regions = regions if regions is not None else image_regions(image, settings.edge_low, settings.edge_high)
     supported = np.bincount(regions[support], minlength=count)
     min_pixels, min_spread = settings.min_pixels * depth.size, settings.min_spread * max(depth.shape)
     zs, ons, scores = [], [], []

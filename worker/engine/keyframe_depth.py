@@ -29,7 +29,7 @@ from worker.depth import MultiViewDepthConfig, estimate_depth, scale_to_confiden
 from worker.depth.border_planes import BorderSettings, fill_from_borders
 from worker.depth.hole_fill import HoleFillSettings, fill_depth
 from worker.depth.neighbours import looked_at_depth
-from worker.depth.world_planes import PlaneMemory, PlaneSettings, fill_from_planes
+from worker.depth.world_planes import PlaneMemory, PlaneSettings, fill_from_planes, image_regions
 from worker.engine.backend import KeyframeJob
 from worker.engine.surfel_init import grid_from_depth
 from worker.geometry import se3_part
@@ -154,14 +154,18 @@ class KeyframeDepth:
                 memory = self.plane_memory
                 if memory is not None:  # in world units, as the poses
                     memory.add(kf.kf_id, estimate.depth, ref_pose, K)
+                regions = None  # the image's regions, cut once for both plane fills
+                if memory is not None and (self.borders is not None
+                                           or estimate.coverage <= memory.settings.max_coverage):
+                    regions = image_regions(ref_image, memory.settings.edge_low, memory.settings.edge_high)
                 if memory is not None and estimate.coverage <= memory.settings.max_coverage:
                     planed, on_planes = fill_from_planes(surfel_depth * scale, ref_image, memory.planes(), ref_pose,
-                                                         K, memory.settings)
+                                                         K, memory.settings, regions)
                     surfel_depth = planed / scale
                     propagated = on_planes if propagated is None else propagated | on_planes
                 if self.borders is not None and memory.planes():  # only regions without support: any coverage
                     bordered, on_borders = fill_from_borders(surfel_depth * scale, ref_image, memory.planes(),
-                                                             ref_pose, K, self.borders)
+                                                             ref_pose, K, self.borders, regions)
                     surfel_depth = bordered / scale
                     propagated = on_borders if propagated is None else propagated | on_borders
                     confident = np.where(on_borders, 0, confident).astype(np.float32)  # stray matches replaced
