@@ -7,15 +7,18 @@ pose latency (capture -> pose received, and last send -> pose) p50/p95/p99, fram
 re-sends after `backpressure`, message types seen (unknown ones counted, never fatal), `finish` time, the session's
 mapping lag (`mapping_lag_keyframes`, `mapping_lag_s`, `frames_skipped` of GET /v1/sessions/{id} when the engine
 reports them), the worker's and gateway's RSS over time, and at the end the ATE against the sequence's ground truth
-(SE(3)-aligned with depth, Sim(3) for RGB only) and the PSNR of rendered non-keyframes, beside the offline
-`flashmono run` engine (worker.engine.offline.run_sequence) on the same frames. `--kill-at F` SIGKILLs the owning
-worker once a fraction F of the frames is sent and poses are flowing (5 received), starts a new one at once (as
-`flashmono serve`'s supervisor does) and reports the gap until poses resume and whether any acked frame was lost or
-answered twice.
+(SE(3)-aligned with depth or device poses, Sim(3) for RGB only) and the PSNR of rendered non-keyframes, beside the
+offline `flashmono run` engine (worker.engine.offline.run_sequence) on the same frames. `--kill-at F` SIGKILLs the
+owning worker once a fraction F of the frames is sent and poses are flowing (5 received), starts a new one at once
+(as `flashmono serve`'s supervisor does) and reports the gap until poses resume and whether any acked frame was
+lost or answered twice. The posed modes send the sequence's poses as a phone's AR poses would come: the session
+judges them over its first frames and replays those frames through the chosen source, and the summary's
+`pose_source_chosen` says what that verdict cost the frame it came with.
 
-`python -m bench live [--source PATH] [--mode rgbd|rgb] [--size 320x240] [--fps 30] [--frames N] [--kill-at 0.5]
-[--no-offline] [--plot PATH] [--json PATH] [--write-results]`; PATH defaults to tests/data/icl_mini (any
-`worker.data.open_source` path with ground truth, e.g. /work/shared/data/icl_livingroom1_micro or a TUM folder).
+`python -m bench live [--source PATH] [--mode rgbd|rgb|posed-rgb|posed-rgbd] [--size 320x240] [--fps 30]
+[--frames N] [--kill-at 0.5] [--no-offline] [--plot PATH] [--json PATH] [--write-results]`; PATH defaults to
+tests/data/icl_mini (any `worker.data.open_source` path with ground truth, e.g.
+/work/shared/data/icl_livingroom1_micro or a TUM folder).
 """
 
 from __future__ import annotations
@@ -233,23 +236,34 @@ def _rss(pids: list[int]) -> float:
 
 
 # ---------------------------------------------------------------------------------------------------- frames
-def load_frames(source: str, size: tuple[int, int], max_frames: int | None, with_depth: bool):
+MODES = ("rgbd", "rgb", "posed-rgb", "posed-rgbd")
+
+
+def mode_inputs(mode: str) -> tuple[bool, bool]:
+    """(depth sent, device poses sent) for a `--mode`."""
+    return mode.endswith("rgbd"), mode.startswith("posed")
+
+
+def load_frames(source: str, size: tuple[int, int], max_frames: int | None, with_depth: bool,
+                with_pose: bool = False):
     from worker.data import open_source
 
-    src = open_source(source, resize=size, max_frames=max_frames, use_gt_depth=True, use_gt_poses=False)
+    src = open_source(source, resize=size, max_frames=max_frames, use_gt_depth=True, use_gt_poses=with_pose)
     frames = list(src)
-    if not with_depth:
-        for frame in frames:
+    for frame in frames:
+        if not with_depth:
             frame.depth = None
+        if not with_pose:
+            frame.pose = None
     if not frames:
         raise SystemExit(f"{source} yielded no frames")
     return frames, src.intrinsics
 
 
-def encode(frames, with_depth: bool) -> list[bytes]:
+def encode(frames, with_depth: bool, with_pose: bool = False) -> list[bytes]:
     from client.streaming import WireOptions, encode_frame_message
 
-    wire = WireOptions(send_intrinsics=True, send_depth=with_depth, send_pose=False)
+    wire = WireOptions(send_intrinsics=True, send_depth=with_depth, send_pose=with_pose)
     return [encode_frame_message(f, i, wire) for i, f in enumerate(frames)]
 
 
@@ -423,6 +437,8 @@ def summarize(run: LiveRun, samples: list[dict], record: dict, poses: dict, fram
         values = [s[key] for s in samples if s.get(key) is not None]
         out[f"{key}_max"] = max(values) if values else None
     out["frames_skipped_record"] = record.get("frames_skipped")
+    out["latency_max_ms"] = max(capture_lat, default=None)
+    out["pose_source_chosen"] = pose_source_verdict(run)
     out["ate_m"] = ate(poses, frames, rgb_only=args.mode == "rgb")
     if kill.get("at"):
         times = sorted(f.pose for f in logs if f.pose is not None)
@@ -436,6 +452,18 @@ def summarize(run: LiveRun, samples: list[dict], record: dict, poses: dict, fram
     return out
 
 
+def pose_source_verdict(run: LiveRun) -> dict[str, Any] | None:
+    """Posed modes: the `pose_source_chosen` event as received (source, frames replayed, at which frame) and what
+    the verdict cost the frame it came with (its capture -> pose latency: the replay of the judged frames)."""
+    chosen = next((m for _, m in run.events if m.get("type") == "pose_source_chosen"), None)
+    if chosen is None:
+        return None
+    seq = chosen.get("seq")
+    log = run.frames[int(seq)] if seq is not None and 0 <= int(seq) < len(run.frames) else None
+    return {"pose_source": chosen.get("pose_source"), "seq": seq, "frames_replayed": chosen.get("frames_replayed"),
+            "latency_ms": 1000 * (log.pose - log.capture) if log is not None and log.pose is not None else None}
+
+
 def run_offline(source: str, size, max_frames, args, out_dir: Path) -> dict[str, Any]:
     """The same frames through the offline engine (`flashmono run`), scored like the live run."""
     from worker.config import SlamConfig
@@ -444,7 +472,8 @@ def run_offline(source: str, size, max_frames, args, out_dir: Path) -> dict[str,
 
     start = time.perf_counter()
     config = SlamConfig.preset(args.preset, tracking={"max_side": args.tracking_side or 0})
-    metrics = run_sequence(source, out_dir, config, use_gt_depth=args.mode == "rgbd",
+    with_depth, with_pose = mode_inputs(args.mode)
+    metrics = run_sequence(source, out_dir, config, use_gt_depth=with_depth, use_gt_poses=with_pose,
                            max_frames=max_frames, resize=size, eval_every=max(1, args.psnr_every))
     wall = time.perf_counter() - start
     tum = read_tum(out_dir / "trajectory_all.tum")
@@ -537,8 +566,9 @@ def main(argv: list[str]) -> int:
 
     parser = argparse.ArgumentParser(prog="python -m bench live")
     parser.add_argument("--source", default=str(MINI), help="a sequence with ground truth (default: icl_mini)")
-    parser.add_argument("--mode", choices=("rgbd", "rgb"), default="rgbd",
-                        help="rgbd: send depth, no poses; rgb: images only")
+    parser.add_argument("--mode", choices=MODES, default="rgbd",
+                        help="rgbd: send depth, no poses; rgb: images only; posed-rgb / posed-rgbd: the sequence's "
+                        "poses sent as the device's (the session's pose_mode auto judges and seeds from them)")
     parser.add_argument("--size", default="320x240")
     parser.add_argument("--tracking-side", type=int, default=0,
                         help="the session's tracking resolution (long side; 0: the frames' size)")
@@ -560,8 +590,9 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--write-results", action="store_true", help="append the row to bench/RESULTS.md")
     args = parser.parse_args(argv)
     size = tuple(int(v) for v in args.size.split("x"))
-    frames, intrinsics = load_frames(args.source, size, args.frames, with_depth=args.mode == "rgbd")
-    messages = encode(frames, with_depth=args.mode == "rgbd")
+    with_depth, with_pose = mode_inputs(args.mode)
+    frames, intrinsics = load_frames(args.source, size, args.frames, with_depth=with_depth, with_pose=with_pose)
+    messages = encode(frames, with_depth=with_depth, with_pose=with_pose)
     label = args.label or (f"{Path(args.source).name} {args.mode} {args.size} @ {args.fps:g} fps"
                            + (f", tracked at {args.tracking_side} px" if args.tracking_side else "")
                            + (f", worker killed at {args.kill_at:.0%}" if args.kill_at is not None else ""))

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from live_stack import LiveStack
 
-from bench.live import LiveRun, summarize
+from bench.live import LiveRun, mode_inputs, pose_source_verdict, summarize
 from bench.long_session import ping_pong
 from client.streaming import WireOptions, encode_frame_message
 from worker.data.frame import Frame
@@ -62,3 +62,16 @@ def test_live_client_accounts_for_every_frame_under_backpressure() -> None:
     assert summary["resends"] > 0
     assert 0 < summary["latency_ms"][50] <= summary["latency_ms"][95] <= summary["latency_ms"][99]
     assert summary["finish_s"] is not None and summary["types"]["finished"] == 1
+
+
+def test_posed_modes_send_poses_and_report_the_verdict_stall() -> None:
+    assert mode_inputs("posed-rgb") == (False, True) and mode_inputs("posed-rgbd") == (True, True)
+    assert mode_inputs("rgb") == (False, False) and mode_inputs("rgbd") == (True, False)
+    run = LiveRun("ws://unused", [b""] * 3, FPS)
+    assert pose_source_verdict(run) is None  # no device poses judged
+    for i, log in enumerate(run.frames):
+        log.capture, log.pose = float(i), float(i) + (0.5 if i == 1 else 0.02)
+    run.events.append((1.5, {"type": "pose_source_chosen", "pose_source": "seeded", "seq": 1, "frames_replayed": 2}))
+    verdict = pose_source_verdict(run)
+    assert verdict["pose_source"] == "seeded" and verdict["frames_replayed"] == 2 and verdict["seq"] == 1
+    assert verdict["latency_ms"] == pytest.approx(500.0)

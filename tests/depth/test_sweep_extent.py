@@ -29,5 +29,15 @@ def test_sideways_motion_matches_the_disparity_formula():
     np.testing.assert_allclose(side, 200.0 * 0.1 * (1 / 1.0 - 1 / 10.0), rtol=1e-9)  # f b (1/near - 1/far)
 
 
-def test_a_view_behind_gives_no_sweep():
+def test_a_view_beyond_the_far_plane_gives_no_sweep():
     assert sweep_pixels(_view(np.array([0.0, 0.0, -20.0])), 320, 240, near=1.0, far=10.0) == 0.0
+
+
+def test_a_view_ahead_of_the_near_plane_sweeps_the_depths_it_sees():
+    """Driving forward, the next keyframe is further ahead than the nearest depths: those lie behind it, but it
+    still measures the rest of the range (and is not dropped as a view without parallax)."""
+    ahead = 2.0
+    sweep = sweep_pixels(_view(np.array([0.0, 0.0, -ahead])), 320, 240, near=1.0, far=10.0)
+    # the segments start where the view sees a point at half its reference depth: depth 2 x ahead
+    expected = sweep_pixels(_view(np.array([0.0, 0.0, -ahead])), 320, 240, near=2 * ahead, far=10.0)
+    assert sweep > 20.0 and np.isclose(sweep, expected)

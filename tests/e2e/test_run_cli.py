@@ -77,3 +77,29 @@ def test_runs_default_to_the_rgbd_preset() -> None:
     assert choose("--use-gt-depth") == "rgbd"  # RGB-D odometry maps like the posed RGB-D mode
     assert choose() == choose("--use-gt-poses") == "rgbd"  # multi-view depth too
     assert choose("--use-gt-depth", "--use-gt-poses", "--preset", "paper") == "paper"
+
+
+def test_deterministic_runs_repeat_exactly(data_dir: Path, tmp_path: Path) -> None:
+    """`--deterministic` runs the threaded preset's stages inline: two runs give the same map, poses and scores."""
+    import argparse
+
+    from client.commands.run import add_run_options, load_config
+
+    parser = argparse.ArgumentParser()
+    parser.add_argument("source")
+    add_run_options(parser)
+    assert load_config(parser.parse_args(["seq", "--out", "o"])).threaded  # the rgbd preset threads its stages
+    assert not load_config(parser.parse_args(["seq", "--out", "o", "--deterministic"])).threaded
+    runs = []
+    for name in ("a", "b"):
+        out = tmp_path / name
+        proc = flashmono("run", str(data_dir / "icl_mini"), "--out", str(out), "--use-gt-depth", "--deterministic",
+                         "--max-frames", "8", "--resize", "80x60", "--no-progress")
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        runs.append(out)
+    first, second = (json.loads((out / "metrics.json").read_text()) for out in runs)
+    assert first["threaded"] is False and first["psnr"] is not None
+    for key in ("psnr", "ate_rmse", "depth_l1", "num_gaussians", "held_out"):
+        assert first[key] == second[key], key
+    assert (runs[0] / "trajectory_all.tum").read_text() == (runs[1] / "trajectory_all.tum").read_text()
+    assert (runs[0] / "map.ply").read_bytes() == (runs[1] / "map.ply").read_bytes()

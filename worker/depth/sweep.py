@@ -45,19 +45,34 @@ def inverse_depths(near: float, far: float, count: int) -> np.ndarray:
     return np.linspace(1.0 / far, 1.0 / near, count)
 
 
+# A hypothesis counts towards a view's sweep only where the view sees it at least this fraction of its depth in the
+# reference camera: a neighbour ahead of the reference (moving forward) sees the nearest hypotheses behind it, and
+# its segments start where the points come into its view, not at the near plane.
+MIN_DEPTH_RATIO = 0.5
+
+
 def sweep_pixels(view: ViewGeometry, width: int, height: int, near: float, far: float) -> float:
     """Median length in pixels of the epipolar segments between depths `far` and `near` of a 5x5 grid of pixels
-    over the image (segments that go behind the view do not count; 0 if all do). Not the centre alone: moving
-    forward, the centre is the epipole, where no baseline gives parallax."""
+    over the image, each clipped to the depths the view sees in front of it (`MIN_DEPTH_RATIO`; a segment wholly
+    behind the view does not count; 0 if none counts). Not the centre alone: moving forward, the centre is the
+    epipole, where no baseline gives parallax."""
     grid = (np.arange(5) + 0.5) / 5.0
     u, v = np.meshgrid(grid * width, grid * height)
     p = np.stack([u.ravel(), v.ravel(), np.ones(u.size)])  # [3, 25]
-    far_end = view.A @ p + view.b[:, None] / far
-    near_end = view.A @ p + view.b[:, None] / near
-    ahead = np.minimum(far_end[2], near_end[2]) > 1e-9
-    if not ahead.any():
+    rotated = view.A @ p
+    # The view's depth over the reference's, for a point at inverse depth w: rotated_z + b_z w (linear in w).
+    lo, hi = np.full(p.shape[1], 1.0 / far), np.full(p.shape[1], 1.0 / near)
+    bz = float(view.b[2])
+    if bz < 0:  # the view is ahead: the ratio falls as points come nearer
+        hi = np.minimum(hi, (rotated[2] - MIN_DEPTH_RATIO) / -bz)
+    elif bz > 0:
+        lo = np.maximum(lo, (MIN_DEPTH_RATIO - rotated[2]) / bz)
+    seen = (lo < hi) & (rotated[2] + bz * lo >= MIN_DEPTH_RATIO - 1e-9)
+    if not seen.any():
         return 0.0
-    lengths = np.linalg.norm(near_end[:2, ahead] / near_end[2, ahead] - far_end[:2, ahead] / far_end[2, ahead], axis=0)
+    far_end = rotated[:, seen] + view.b[:, None] * lo[seen]
+    near_end = rotated[:, seen] + view.b[:, None] * hi[seen]
+    lengths = np.linalg.norm(near_end[:2] / near_end[2] - far_end[:2] / far_end[2], axis=0)
     return float(np.median(lengths))
 
 

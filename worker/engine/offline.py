@@ -126,6 +126,7 @@ def run_sequence(
             "mapping_lag_at_last_pose": {"keyframes": lag_at_last_pose["mapping_lag_keyframes"],
                                          "seconds": lag_at_last_pose["mapping_lag_s"]},
             "keyframes_shed": system.live_stats()["keyframes_shed"], "live_pacing": live_pacing,
+            "threaded": config.threaded,
             "use_gt_depth": use_gt_depth, "use_gt_poses": use_gt_poses, "scale": scale, "tracking": system.tracking,
             "depth_source": system.depth_source, **system.pose_source_choice(),
             "intrinsics": intrinsics.to_dict() if intrinsics else None,
