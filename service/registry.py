@@ -29,7 +29,7 @@ from worker.runtime.similarity import similarity_scale
 # Returns {code, value, resend_from}: 0 accepted (value = queue depth), -1 no session, -2 not accepting (status),
 # -3 seq not increasing (value = last seq; 5th item: the queue depth), -4 backpressure (value = queue depth),
 # -5 frame size differs from the session's (the first accepted frame's; 4th item "WxH"): the engine takes one frame
-# size per session.
+# size per session. An accepted first frame (the session was `created`: 6th item 1) starts the session.
 # Backpressure keeps the order: once frame N is refused for a full queue, every frame with a higher seq is refused
 # too ("resend_from" = N) until a frame with seq <= N is accepted, so a pipelining sender can always re-send N.
 _INGEST = """
@@ -51,15 +51,17 @@ if depth >= tonumber(ARGV[2]) then
   return {-4, depth, seq}
 end
 redis.call('XADD', KEYS[2], '*', 'kind', 'frame', 'seq', ARGV[1], 'msg', ARGV[4])
+local started = 0
 if fields[1] == 'created' then
   redis.call('HSET', h, 'last_seq', ARGV[1], 'status', 'streaming', 'updated_at', ARGV[3])
+  started = 1
 else
   redis.call('HSET', h, 'last_seq', ARGV[1], 'updated_at', ARGV[3])
 end
 if hold >= 0 then redis.call('HDEL', h, 'resend_from') end
 if not fields[7] and ARGV[5] ~= '' then redis.call('HSET', h, 'frame_size', ARGV[5]) end
 redis.call('HINCRBY', h, 'frames_received', 1)
-return {0, depth + 1, -1}
+return {0, depth + 1, -1, '', -1, started}
 """
 _FINISH = """
 local status = redis.call('HGET', KEYS[1], 'status')
@@ -99,6 +101,7 @@ class IngestResult:
     resend_from: int = -1  # with QUEUE_FULL: the seq the sender must re-send next
     frame_size: str = ""  # with SIZE_MISMATCH: the session's frame size, "WxH"
     queue_depth: int = -1  # with SEQ_NOT_INCREASING: the session's queue depth
+    started: bool = False  # accepted as the session's first frame: its status went from created to streaming
 
 
 class ArchiveUnavailable(Exception):
@@ -226,7 +229,7 @@ class Registry:
                 raise closed_transport(err) from err
         code, value, resend_from, *extra = reply
         return IngestResult(int(code), int(value), int(resend_from), extra[0].decode() if extra else "",
-                            int(extra[1]) if len(extra) > 1 else -1)
+                            int(extra[1]) if len(extra) > 1 else -1, bool(int(extra[2])) if len(extra) > 2 else False)
 
     async def _ingest_replicated(self, script_keys: list[str], args: list) -> list:
         """The ingest script then WAIT on the same connection (WAIT covers that connection's writes): on a cluster
@@ -271,8 +274,13 @@ class Registry:
         revived = int(await self._revive(keys=[keys.session(session_id)],
                                          args=[f"{time.time():.3f}", grace_s, now_iso()]))
         if revived == 1:
-            await self.client.xadd(keys.jobs(session_id), {"session_id": session_id})
+            await self.queue_job(session_id)
         return revived
+
+    async def queue_job(self, session_id: str) -> None:
+        """A job for the session: a worker runs it now (a created session's first job waits, deferred, until a
+        frame comes; the job queued when it came wakes a worker at once instead of at its next check)."""
+        await self.client.xadd(keys.jobs(session_id), {"session_id": session_id})
 
     async def last_outbox_id(self, session_id: str) -> str:
         entries = await self.client.xrevrange(keys.outbox(session_id), count=1)

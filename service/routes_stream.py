@@ -180,6 +180,18 @@ class _Stream:
             self.metrics.frames_ingested.inc()
             self.metrics.queue_depth.observe(result.value)
             self.metrics.ack_latency.observe(time.perf_counter() - t0)
+            if result.started:
+                await self._wake_a_worker()
+
+    async def _wake_a_worker(self) -> None:
+        """The session's first frame is queued: a job now, so that a worker starts it at once (its first job waits,
+        deferred, for the worker's next look at sessions without frames: up to a second of the first pose's
+        latency). Without Redis the deferred job still starts it."""
+        try:
+            await self.reg.queue_job(self.session_id)
+        except REDIS_DOWN as err:
+            log.warning("session %s: its first frame is queued but no worker was woken (%s): it starts at the "
+                        "next check", self.session_id, err)
 
     async def _ingest(self, seq: int, data: bytes, frame_size: str):
         """The registry's answer for this frame, or None after refusing it with `unavailable` (Redis down).

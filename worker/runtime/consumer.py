@@ -19,7 +19,7 @@ import redis
 from worker.runtime import keys
 from worker.runtime.archive import BlobStore, archive_finished
 from worker.runtime.engine import SessionEngine, close_engine, restore_engine, warm_up
-from worker.runtime.leases import Leases
+from worker.runtime.leases import Leases, lease_holder
 from worker.runtime.memory import over_budget
 from worker.runtime.outage import REDIS_DOWN, Backoff, OutageLog, wait_for_redis
 from worker.runtime.partitions import PartitionReader
@@ -221,7 +221,10 @@ class Worker:
                                                                    self.config.outbox_maxlen):
                     continue
             del self._deferred[session_id]
-            if status == b"streaming" and len(self.runners) >= self.config.max_sessions:
+            holder = lease_holder(self.client, session_id) if status == b"streaming" else None
+            if holder not in (None, self.worker_id):  # the job queued with its first frame runs it elsewhere
+                self.client.xack(keys.jobs(session_id), keys.GROUP, job_id)
+            elif status == b"streaming" and len(self.runners) >= self.config.max_sessions:
                 self._hand_back(session_id, job_id)  # full here: a worker with room reads it at once
             else:
                 self._take(session_id, job_id)  # streaming: run it; ended (or just abandoned): ack its job
