@@ -35,7 +35,9 @@ from client.errors import (
     stream_error_from_frame,
 )
 from client.models import (
+    INPUT_EVENT_TYPES,
     TRACKING_EVENT_TYPES,
+    InputEvent,
     LoopClosedEvent,
     PoseEvent,
     Session,
@@ -97,9 +99,9 @@ class AsyncFrameStream:
     """One WebSocket stream of frames into a session, with flow control and live events.
 
     Use as an async context manager (or call `connect()` / `close()`). `send(frame)` waits while the flow
-    control says the server has enough frames; `events()` yields PoseEvent / LoopClosedEvent / TrackingEvent as
-    they arrive and `on_event` is called for each (sync or async callable); `finish()` waits for every frame to
-    be processed. Per-frame errors (e.g. a corrupt image) are collected in `summary.errors` (raised with
+    control says the server has enough frames; `events()` yields PoseEvent / LoopClosedEvent / TrackingEvent /
+    InputEvent as they arrive and `on_event` is called for each (sync or async callable); `finish()` waits for
+    every frame to be processed. Per-frame errors (e.g. a corrupt image) are collected in `summary.errors` (raised with
     `raise_on_frame_error=True`); stream-level errors and a closed connection raise `StreamError`.
     """
 
@@ -378,7 +380,7 @@ class AsyncFrameStream:
             self.flow.on_ack(int(seq), depth)
             self.summary.frames_acked += 1
             self.summary.max_queue_depth = max(self.summary.max_queue_depth, int(depth or 0))
-        elif kind in ("pose", "loop_closed", *TRACKING_EVENT_TYPES):
+        elif kind in ("pose", "loop_closed", *TRACKING_EVENT_TYPES, *INPUT_EVENT_TYPES):
             event = event_from_message(message)
             if isinstance(event, PoseEvent):
                 self.flow.on_result(event.seq)
@@ -387,6 +389,8 @@ class AsyncFrameStream:
                 self.summary.loop_closures.append(event)
             elif isinstance(event, TrackingEvent):
                 self.summary.tracking_events.append(event)
+            elif isinstance(event, InputEvent):
+                self.summary.input_events.append(event)
             await self._publish(event)
         elif kind == "skipped" and seq is not None:  # the tracker dropped it for a newer frame: its result
             self.flow.on_result(int(seq))

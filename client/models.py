@@ -174,13 +174,28 @@ class TrackingEvent:
     data: dict[str, Any] = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class InputEvent:
+    """A notice about the session's input at frame `seq`; tracking goes on. Kind "pose_source_chosen" (posed RGB:
+    the device poses judged over the first frames are kept as `prior` or only seed visual odometry, `seeded`; the
+    judged frames were tracked again, see `data["revision"]` and `data["frames_replayed"]`), "device_pose_jump"
+    (a device pose left out as a jump), "odometry_slip" (the odometry slipped where the device did not) or
+    "depth_misregistered" (depth edges do not follow colour edges)."""
+
+    kind: str
+    seq: int
+    data: dict[str, Any] = field(default_factory=dict)
+
+
 TRACKING_EVENT_TYPES = ("tracking_lost", "relocalized", "initialized", "initializing", "new_map", "maps_merged",
                         "rotation_only")
-StreamEvent = PoseEvent | LoopClosedEvent | TrackingEvent
+INPUT_EVENT_TYPES = ("pose_source_chosen", "device_pose_jump", "odometry_slip", "depth_misregistered")
+StreamEvent = PoseEvent | LoopClosedEvent | TrackingEvent | InputEvent
 
 
 def event_from_message(message: dict[str, Any]) -> StreamEvent | None:
-    """The SDK event for a server message of type "pose", "loop_closed" or a tracking event (None for others)."""
+    """The SDK event for a server message of type "pose", "loop_closed", a tracking event or an input notice (None
+    for others)."""
     kind = message.get("type")
     if kind == "pose":
         return PoseEvent(seq=int(message["seq"]), timestamp=float(message.get("timestamp", 0.0)),
@@ -190,6 +205,8 @@ def event_from_message(message: dict[str, Any]) -> StreamEvent | None:
         return LoopClosedEvent(revision=int(message.get("revision") or 0), data=dict(message))
     if kind in TRACKING_EVENT_TYPES:
         return TrackingEvent(kind=str(kind), seq=int(message.get("seq", -1)), data=dict(message))
+    if kind in INPUT_EVENT_TYPES:
+        return InputEvent(kind=str(kind), seq=int(message.get("seq", -1)), data=dict(message))
     return None
 
 
@@ -203,6 +220,7 @@ class StreamSummary:
     poses: list[PoseEvent] = field(default_factory=list)
     loop_closures: list[LoopClosedEvent] = field(default_factory=list)
     tracking_events: list[TrackingEvent] = field(default_factory=list)
+    input_events: list[InputEvent] = field(default_factory=list)
     backpressure_retries: int = 0
     frames_dropped: int = 0  # refused for backpressure after a later frame got in: re-sending would reorder
     errors: list[dict[str, Any]] = field(default_factory=list)

@@ -38,6 +38,7 @@ from client.errors import (
     StreamError,
 )
 from client.models import (
+    InputEvent,
     LoopClosedEvent,
     PoseEvent,
     Session,
@@ -51,8 +52,8 @@ from client.streaming import WireOptions
 
 __all__ = [
     "AsyncFlashMonoClient", "AuthError", "BackpressureError", "BadRequestError", "ConflictError",
-    "FlashMonoClient", "FlashMonoError", "LoopClosedEvent", "NotFoundError", "PermissionDeniedError", "PoseEvent",
-    "RateLimitError", "ServerError", "ServerUnreachableError", "Session", "SessionPage", "StreamError",
+    "FlashMonoClient", "FlashMonoError", "InputEvent", "LoopClosedEvent", "NotFoundError", "PermissionDeniedError",
+    "PoseEvent", "RateLimitError", "ServerError", "ServerUnreachableError", "Session", "SessionPage", "StreamError",
     "StreamSummary", "TrackingEvent", "Trajectory", "TrajectoryPose", "WireOptions",
 ]
 
@@ -161,7 +162,7 @@ class FlashMonoClient:
         """Stream `source` (video, image folder, dataset path or URI, "webcam:N", or Frames) and finish.
 
         Blocks until the server has processed every frame. on_event gets each PoseEvent / LoopClosedEvent /
-        TrackingEvent live.
+        TrackingEvent / InputEvent live.
         Options: fps, stride, max_frames, resize, source_options, window, max_pending, max_retries, wire,
         idle_timeout_s, raise_on_frame_error (see AsyncFlashMonoClient.stream / open_stream).
         """

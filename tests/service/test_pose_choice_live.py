@@ -10,7 +10,7 @@ from __future__ import annotations
 import httpx
 import numpy as np
 import pytest
-from service_helpers import ICL_INTRINSICS, frame_message, icl_frames, of_type, receive_until
+from service_helpers import ICL_DIR, ICL_INTRINSICS, frame_message, icl_frames, of_type, receive_until
 from websockets.sync.client import connect
 
 from service.launcher import LocalStack
@@ -54,7 +54,28 @@ def test_the_stream_is_told_which_pose_source_the_device_poses_earned(stack, noi
     [chosen] = of_type(messages, "pose_source_chosen")
     assert chosen["pose_source"] == expected and chosen["seq"] <= 20 and chosen["triples"] >= 1
     assert (chosen["ratio"] > chosen["max_ratio"]) == noisy
+    # the verdict's replay revised the trajectory: its message says so, and no loop closure is announced for it
+    assert chosen["frames_replayed"] == chosen["seq"] + 1 and chosen["revision"] >= 1
+    assert not [m for m in of_type(messages, "loop_closed") if m["revision"] == chosen["revision"]]
     assert not [m for m in of_type(messages, "skipped") if m["seq"] <= chosen["seq"]]
     assert (warnings == [chosen["reason"]]) if noisy else warnings == []
     poses = [np.reshape(m["pose"], (4, 4)) for m in of_type(messages, "pose")]
     assert len(poses) + len(of_type(messages, "skipped")) == FRAMES and all(np.isfinite(p).all() for p in poses)
+
+
+def test_the_sdk_reports_the_verdict_as_an_input_event(stack) -> None:
+    from client.sdk import FlashMonoClient, InputEvent
+    from client.streaming import WireOptions, open_frames
+
+    frames = list(open_frames(str(ICL_DIR), max_frames=FRAMES, use_gt_depth=False, use_gt_poses=True))
+    seen = []
+    with FlashMonoClient(stack.base_url) as client:
+        session = client.create_session(intrinsics=frames[0].intrinsics, preset="fast")
+        summary = client.stream(session.id, frames, wire=WireOptions(send_depth=False, send_pose=True),
+                                on_event=lambda e: seen.append(e) if isinstance(e, InputEvent) else None)
+    [chosen] = [e for e in summary.input_events if e.kind == "pose_source_chosen"]
+    assert chosen.data["pose_source"] == "prior" and chosen.data["frames_replayed"] == chosen.seq + 1
+    assert seen == summary.input_events
+    # the poses after the verdict carry its revision; no loop closure is reported for it
+    assert all(p.revision >= chosen.data["revision"] for p in summary.poses if p.seq > chosen.seq)
+    assert not [e for e in summary.loop_closures if e.revision == chosen.data["revision"]]

@@ -43,6 +43,9 @@ TRACKING_EVENTS = ("tracking_lost", "relocalized", "initialized", "initializing"
 # that disagree with the images, are also kept in the session record's `warnings`.
 INPUT_EVENTS = ("device_pose_jump", "odometry_slip", "depth_misregistered", "pose_source_chosen")
 MAP_EVENTS = ("maps_merged",)  # published with the revision they made; the tracking state stays as it is
+# Events sent as their own messages: one that carries a revision (a pose source's verdict replaying the judged
+# frames, a new map's re-estimated frames) tells the clients about it; no loop closure is announced for it.
+PUBLISHED_EVENTS = TRACKING_EVENTS + INPUT_EVENTS + MAP_EVENTS
 
 log = logging.getLogger(__name__)
 
@@ -550,7 +553,7 @@ class SessionRunner(threading.Thread):
         self._revision = revision
         self._store_trajectory()
         loops = [e for e in events if e.get("type") == "loop_closed"]
-        if not loops and not any(e.get("type") in TRACKING_EVENTS + MAP_EVENTS and "revision" in e for e in events):
+        if not loops and not any(e.get("type") in PUBLISHED_EVENTS and "revision" in e for e in events):
             loops = [{"type": "loop_closed"}]
         for event in loops:
             message = {**{k: v for k, v in event.items() if isinstance(v, (int, float, str, bool))},
