@@ -216,3 +216,52 @@ def test_jump_thresholds_grow_with_the_motion_of_sparse_frames() -> None:
     jumped = PoseDrift(0.0, 0.0, 0.0, 0.0, seed=3, jump_frame=8, jump_translation=0.15,
                        jump_rotation_deg=4.0).apply_to_trajectory(np.stack(device))
     assert _jump_frames(sparse, list(jumped), jump_relative=0.25) == [sparse[8].index]
+
+
+class _TurnHoldingOdometry:
+    """Monocular odometry through a curve that, over frames `held`, follows the turn by rotation alone: the right
+    orientation, its position held (as visual odometry's turn models report, `translation_measured` False)."""
+
+    name = "turn_holding"
+    status = "tracking"
+
+    def __init__(self, truth: list[np.ndarray], held: range) -> None:
+        self.truth, self.held, self.position = truth, held, np.zeros(3)
+
+    def track(self, frame, intrinsics, motion_guess=None) -> TrackingResult:
+        n = frame.index
+        pose = self.truth[n].copy()
+        measured = n not in self.held
+        if measured:
+            self.position = pose[:3, 3].copy()
+        pose[:3, 3] = self.position
+        events = [{"type": "initialized", "frames": [[0, np.eye(4).tolist()], [1, self.truth[1].tolist()]]}] \
+            if n == 2 else []
+        return TrackingResult(pose, tracked=True, events=events, quality=1.0 if measured else 0.3,
+                              translation_measured=measured)
+
+    def keyframe_added(self, frame, pose) -> None:
+        pass
+
+
+def test_a_turn_followed_by_rotation_alone_takes_the_device_position_and_is_no_jump() -> None:
+    truth = []
+    for n in range(40):  # 1 m a frame round a curve, turning 3 degrees a frame
+        pose = np.eye(4)
+        yaw = np.radians(3.0 * n)
+        pose[:3, :3] = np.array([[np.cos(yaw), 0, np.sin(yaw)], [0, 1, 0], [-np.sin(yaw), 0, np.cos(yaw)]])
+        pose[:3, 3] = [n * np.sin(yaw / 2), 0.0, n * np.cos(yaw / 2)]
+        truth.append(pose)
+    truth[0] = np.eye(4)
+    truth[1][:3, :3] = np.eye(3)
+    held = range(20, 26)
+    tracking = SeededTracking(_TurnHoldingOdometry(truth, held), DevicePoseConfig(scale_keyframes=0), monocular=True)
+    results = [tracking.track(Frame(n, n / 10.0, np.zeros((4, 4, 3), np.uint8), pose=pose.copy()), None)
+               for n, pose in enumerate(truth)]
+    assert not [e for r in results for e in r.events if e["type"] == "device_pose_jump"]
+    positions = np.stack([r.pose[:3, 3] for r in results])
+    steps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
+    true_steps = np.linalg.norm(np.diff(np.stack([p[:3, 3] for p in truth]), axis=0), axis=1)
+    np.testing.assert_allclose(steps[15:], true_steps[15:], rtol=0.02)  # the held frames move with the device
+    for n in held:  # and keep the odometry's orientation
+        np.testing.assert_allclose(results[n].pose[:3, :3], truth[n][:3, :3], atol=1e-6)

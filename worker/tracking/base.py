@@ -28,7 +28,8 @@ class TrackingResult:
     submap_id: the model's submap (0 for other sources). prediction: the learned model's per-pixel output for this
     frame (its preprocessed image and surfels) when the model ran. quality: how well the pose is supported, 0 to 1
     (visual odometry: the pose's inliers as a share of the last keyframe's tracked points; 0 for a placeholder),
-    None when the source does not say.
+    None when the source does not say. translation_measured: False where only the orientation was measured and the
+    position was held or predicted (visual odometry's turn models): a device's motion knows it better.
     """
 
     pose: np.ndarray
@@ -39,6 +40,7 @@ class TrackingResult:
     submap_id: int = 0
     prediction: Any = None
     quality: float | None = None
+    translation_measured: bool = True
 
 
 class PoseSource(Protocol):

@@ -20,7 +20,9 @@ a depth camera's trajectory follows the depth camera. With them, the session's o
 The output lives in the device's world: the odometry's world is aligned to the device pose of its first frame
 (rigid with depth; for monocular visual odometry, also scaled by the device's baseline over its initialisation).
 While the odometry has no world yet (monocular initialisation) or is lost, poses follow the device's motion from
-the last output (never a jump, never a held pose while the device still moves). With depth, a frame the odometry
+the last output (never a jump, never a held pose while the device still moves); where visual odometry follows a
+turn by its rotation alone (the position held or predicted), the frame keeps that rotation and takes its position
+from the device's motion, and the difference is no device jump. With depth, a frame the odometry
 loses (a fast or sparse motion its own guess misses) is aligned again from the device's pose, and where that fails
 too the odometry restarts at the device's pose (`relocalized`, method `device_pose`, after the `tracking_lost`):
 tracking and keyframes go on instead of waiting for the view of the last reference to come back
@@ -131,13 +133,16 @@ class SeededTracking:
             self.alignment = self.correction @ device @ np.linalg.inv(result.pose)
         events += [self._in_session(e) for e in initialized]
         from_odometry = self.alignment is not None and result.tracked and not self._waiting_for_world(initialized)
+        device_step = None if self.last_pose is None or device_motion is None else self.last_pose @ device_motion
         if from_odometry:
             pose = self.to_session(result.pose)
-        elif self.last_pose is not None and device_motion is not None:
-            pose = self.last_pose @ device_motion
+            if not result.translation_measured and device_step is not None:
+                pose[:3, 3] = device_step[:3, 3]  # a turn the odometry followed by rotation alone: the device moved
+        elif device_step is not None:
+            pose = device_step
         else:
             pose = self.correction @ device
-        if from_odometry and self.last_tracked and device_motion is not None:
+        if from_odometry and self.last_tracked and device_motion is not None and result.translation_measured:
             events += self._check_jump(frame.index, device, device_motion, relative(self.last_pose, pose))
         if self.monocular and self.alignment is None:
             self.waiting[frame.index] = (pose.copy(), device)

@@ -551,7 +551,7 @@ class VisualOdometry:
             events.append({"type": "rotation_only", "frame": index, "tracks": int(agree.sum()),
                            "map_points": measured})
         return TrackingResult(pose, tracked=True, keyframe_hint=False, events=events,
-                              quality=0.5 * float(agree.mean()))
+                              quality=0.5 * float(agree.mean()), translation_measured=measured > 0)
 
     def _turn_keyframe(self, index: int, pose: np.ndarray, gray: np.ndarray, K: np.ndarray, run_began: bool
                        ) -> None:
@@ -621,7 +621,7 @@ class VisualOdometry:
                            "map_points": 0, "correlation": round(fit.correlation, 3),
                            "measured_axes": fit.measured_axes})
         return TrackingResult(pose, tracked=True, keyframe_hint=False, events=events,
-                              quality=(0.4 if held else 0.2) * max(fit.correlation, 0.0))
+                              quality=(0.4 if held else 0.2) * max(fit.correlation, 0.0), translation_measured=False)
 
     def _scene_depth(self) -> float:
         """Median depth of the map points the last frame's tracks measure; else the newest keyframe's with points;
