@@ -549,7 +549,8 @@ class SessionRunner(threading.Thread):
 
     def _publish_revision(self, revision: int, events: list[dict[str, Any]]) -> None:
         """A loop closure (or a pose source's re-estimate of past frames) rewrote the past: store the whole new
-        trajectory and tell the clients (a tracking event that rewrote it carries the revision itself)."""
+        trajectory and tell the clients (an event sent as its own message that rewrote it, such as `initialized`
+        or `pose_source_chosen`, carries the revision itself: no `loop_closed` is made up for it)."""
         self._revision = revision
         self._store_trajectory()
         loops = [e for e in events if e.get("type") == "loop_closed"]
