@@ -166,8 +166,10 @@ class TrackingEvent:
     "initialized" (RGB-only: the first map; earlier frames' poses were re-estimated, see `data["revision"]`) or
     "new_map" (RGB-only: the old map was not found again, a new one begins at the last pose, `data["map"]`) or
     "maps_merged" (RGB-only: a map restarted after a loss was joined to the older one, scale included; the restarted
-    map's poses moved, see `data["revision"]`) or "rotation_only" (RGB-only: a turn too fast for new points; poses
-    follow the tracks' rotation, the position held or measured, `quality` at most 0.5)."""
+    map's poses moved, see `data["revision"]`) or "drift_corrected" (posed RGB, seeded: the pose graph was solved
+    with the device's poses, moving past keyframes and the map toward them, see `data["revision"]`) or
+    "rotation_only" (RGB-only: a turn too fast for new points; poses follow the tracks' rotation, the position held
+    or measured, `quality` at most 0.5)."""
 
     kind: str
     seq: int
@@ -188,7 +190,7 @@ class InputEvent:
 
 
 TRACKING_EVENT_TYPES = ("tracking_lost", "relocalized", "initialized", "initializing", "new_map", "maps_merged",
-                        "rotation_only")
+                        "drift_corrected", "rotation_only")
 INPUT_EVENT_TYPES = ("pose_source_chosen", "device_pose_jump", "odometry_slip", "depth_misregistered")
 StreamEvent = PoseEvent | LoopClosedEvent | TrackingEvent | InputEvent
 

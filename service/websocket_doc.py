@@ -206,6 +206,15 @@ WEBSOCKET_DOC = {
                                "a place of the older map; a Sim(3) edge joined the two in the pose graph and the "
                                "restarted map's poses moved into the older map's frame, scale included: GET the "
                                "trajectory for revision `revision`"},
+            "drift_corrected": {"type": "object", "properties": {
+                "type": {"const": "drift_corrected"}, "seq": {"type": "integer"}, "revision": {"type": "integer"},
+                "keyframe": {"type": "integer", "description": "the newest keyframe whose device pose was used"}},
+                "additionalProperties": True,
+                "description": "posed RGB sessions where the device poses seed visual odometry (pose_source "
+                               "seeded): the pose graph was solved with the device's keyframe poses as priors, "
+                               "correcting the odometry's drift (its scale above all) between loop closures; past "
+                               "keyframes and their part of the map moved: GET the trajectory for revision "
+                               "`revision`"},
             "device_pose_jump": {"type": "object", "properties": {
                 "type": {"const": "device_pose_jump"}, "seq": {"type": "integer"},
                 "translation": {"type": "number", "description": "how far the device's motion into this frame is "
@@ -274,9 +283,9 @@ WEBSOCKET_DOC = {
     },
     "/v1/sessions/{session_id}/events": {
         "description": "A read-only feed for viewers that do not send the frames (the web viewer): the messages the "
-                       "session's stream gets (pose, loop_closed, maps_merged, tracking_lost, relocalized, "
-                       "initializing, initialized, new_map, rotation_only, device_pose_jump, odometry_slip, "
-                       "pose_source_chosen, "
+                       "session's stream gets (pose, loop_closed, maps_merged, drift_corrected, tracking_lost, "
+                       "relocalized, initializing, initialized, new_map, rotation_only, device_pose_jump, "
+                       "odometry_slip, pose_source_chosen, "
                        "depth_misregistered, "
                        "error, finishing, finished) "
                        "from the "

@@ -298,8 +298,11 @@ class SlamSystem:
                         depth_points: DepthKeyframePoints | None) -> LoopClosingStage:
         """The loop-closing stage; inline with the learned model, whose tracker state loop closure reads."""
         threaded = self.config.threaded and self.tracking != "model"
+        device_poses = self.config.input.device_poses
+        solve_priors_every = (device_poses.graph_solve_keyframes if device_poses.drift_correction == "pose_graph"
+                              and self.tracking == "device" and not self._with_depth else 0)
         return LoopClosingStage(self.config.loop, pose_graph, closer, depth_points, metric=self._metric_loops(),
-                                threaded=threaded, timings=self.timings)
+                                threaded=threaded, timings=self.timings, solve_priors_every=solve_priors_every)
 
     def _new_pose_graph(self, metric: bool = False) -> Sim3PoseGraph:
         """The keyframe pose graph; `metric` (given poses and depth) leaves the scale no freedom."""
@@ -780,7 +783,8 @@ class SlamSystem:
                 changed.pop(waiting.kf_id, None)  # their jobs are made later, at the then current pose
             if changed:
                 self.backend.submit(PoseUpdateJob(changed))
-        counter = "maps_merged" if correction.event.get("type") == "maps_merged" else "loops"
+        counter = {"maps_merged": "maps_merged", "drift_corrected": "drift_corrections"}.get(
+            correction.event.get("type"), "loops")
         self.counters[counter] = self.counters.get(counter, 0) + 1
         return {**correction.event, "revision": revision}
 

@@ -16,7 +16,7 @@ from worker.engine.drift import PoseDrift
 from worker.eval import absolute_trajectory_error
 from worker.slam import SlamSystem
 from worker.tracking.base import TrackingResult
-from worker.tracking.seeded import SeededTracking
+from worker.tracking.seeded import DRIFT_PRIOR_LOG_SCALE_SIGMA, SeededTracking
 from worker.tracking.seeded_config import DevicePoseConfig
 
 DATA = Path(__file__).parents[1] / "data" / "icl_mini"
@@ -136,6 +136,35 @@ def test_without_depth_visual_odometry_is_seeded_in_the_device_world_and_scale(f
     assert all(np.all(np.isfinite(r.pose)) for r in results)
 
 
+def test_without_depth_the_pose_graph_brings_the_keyframes_to_a_device_whose_scale_drifts(frames) -> None:
+    """drift_correction pose_graph through the engine, real ICL frames: device poses whose steps grow 1.5 % a frame
+    (the images keep their scale, so the odometry and the device part), stated at 1 cm. The graph is solved every
+    two priors: the session reports `drift_corrected` with the revision it made, and the corrected keyframes lie
+    nearer the device's poses than the odometry's."""
+    device = [frames[0].gt_pose.copy()]
+    for n in range(1, len(frames)):
+        step = np.linalg.inv(frames[n - 1].gt_pose) @ frames[n].gt_pose
+        step[:3, 3] *= 1.015 ** n
+        device.append(device[-1] @ step)
+    config = _config(use_depth=False, device_poses={"drift_correction": "pose_graph", "graph_solve_keyframes": 2,
+                                                    "prior_translation": 0.01, "prior_inflation": 0.0})
+    system, results = _run(frames, device, config)
+    corrected = [e for r in results for e in r.events if e["type"] == "drift_corrected"] + [
+        e for e in system.finish_events if e["type"] == "drift_corrected"]
+    assert corrected and all("revision" in e for e in corrected)
+    assert system.counters["drift_corrections"] == len(corrected)
+    trajectory = system.tracking_stage.trajectory
+    keyframes = sorted(trajectory.keyframe_poses)
+    assert len(keyframes) >= 4
+
+    def distance(poses: dict[int, np.ndarray]) -> float:
+        return float(np.mean([np.linalg.norm(poses[k][:3, 3] - device[k][:3, 3]) for k in keyframes]))
+
+    # the graph weighs the odometry's edges too (and priors far off through a robust kernel): nearer, not on them
+    assert distance(trajectory.keyframe_poses) < 0.8 * distance(trajectory.tracked_keyframe_poses)
+    assert all(np.all(np.isfinite(p)) for _, _, p in system.trajectory("all"))
+
+
 class _ScaleDriftingOdometry:
     """Monocular odometry reduced to its scale problem: the true motion at a scale that shrinks 0.5 % per frame
     (constructed geometry, no images); its map is made at frame 2, the frames before re-estimated."""
@@ -159,25 +188,37 @@ class _ScaleDriftingOdometry:
         pass
 
 
-@pytest.mark.parametrize("scale_keyframes", [8, 0])
-def test_without_depth_the_scale_follows_the_device_as_the_odometry_drifts(scale_keyframes: int) -> None:
-    steps = 80
+def _curve(steps: int = 80) -> list[np.ndarray]:
+    """A 4 m walk round a curve, turning 1 degree per frame."""
     truth = []
-    for n in range(steps):  # a 4 m walk round a curve, turning 1 degree per frame
+    for n in range(steps):
         pose = np.eye(4)
         yaw = np.radians(n)
         pose[:3, :3] = np.array([[np.cos(yaw), 0, np.sin(yaw)], [0, 1, 0], [-np.sin(yaw), 0, np.cos(yaw)]])
         pose[:3, 3] = [2.0 * np.sin(yaw), 0.0, 2.0 * (1 - np.cos(yaw))]
         truth.append(pose)
     truth[0][:3, :3] = np.eye(3)
-    tracking = SeededTracking(_ScaleDriftingOdometry(truth), DevicePoseConfig(scale_keyframes=scale_keyframes),
-                              monocular=True)
-    outputs = []
+    return truth
+
+
+def _track_drifting(truth: list[np.ndarray], config: DevicePoseConfig, publish_prior=None
+                    ) -> tuple[SeededTracking, list[TrackingResult]]:
+    """The scale-drifting odometry seeded with the true poses, a keyframe every third frame."""
+    tracking = SeededTracking(_ScaleDriftingOdometry(truth), config, monocular=True, publish_prior=publish_prior)
+    results = []
     for n, pose in enumerate(truth):
         frame = Frame(n, n / 30.0, np.zeros((4, 4, 3), np.uint8), pose=pose.copy())
-        outputs.append(tracking.track(frame, None).pose)
+        results.append(tracking.track(frame, None))
         if n % 3 == 0:
-            tracking.keyframe_added(frame, outputs[-1])
+            tracking.keyframe_added(frame, results[-1].pose)
+    return tracking, results
+
+
+@pytest.mark.parametrize("scale_keyframes", [8, 0])
+def test_without_depth_the_scale_follows_the_device_as_the_odometry_drifts(scale_keyframes: int) -> None:
+    truth = _curve()
+    _, results = _track_drifting(truth, DevicePoseConfig(scale_keyframes=scale_keyframes))
+    outputs = [r.pose for r in results]
     step = lambda poses: np.linalg.norm(np.diff(np.stack(poses)[-20:, :3, 3], axis=0), axis=1).sum()  # noqa: E731
     ratio = step(outputs) / step(truth)  # the last 20 frames: the odometry's scale is 0.7 of the first frames'
     if scale_keyframes:
@@ -187,6 +228,26 @@ def test_without_depth_the_scale_follows_the_device_as_the_odometry_drifts(scale
     assert all(np.all(np.isfinite(p)) for p in outputs)
     steps_out = np.linalg.norm(np.diff(np.stack(outputs)[:, :3, 3], axis=0), axis=1)
     assert steps_out.max() < 3 * np.median(steps_out)  # re-anchoring at keyframes never makes a pose jump
+
+
+def test_where_the_pose_graph_corrects_the_drift_the_odometry_keeps_its_scale_and_the_priors_leave_it_free(
+) -> None:
+    """drift_correction pose_graph: the output keeps the odometry's first scale (the map stays at one scale), the
+    device still measures the drifting scale (seeds, jump checks), so the drift is no device jump, and the
+    keyframe priors leave the node's scale to the odometry's edges."""
+    truth = _curve()
+    priors = []
+    tracking, results = _track_drifting(truth, DevicePoseConfig(drift_correction="pose_graph"), priors.append)
+    outputs = [r.pose for r in results]
+    step = lambda poses: np.linalg.norm(np.diff(np.stack(poses)[-20:, :3, 3], axis=0), axis=1).sum()  # noqa: E731
+    assert step(outputs) / step(truth) < 0.75  # the drift goes through to the output: the graph corrects it
+    drift = 0.995 ** 70  # the odometry's scale in the last frames over its scale at initialisation
+    assert tracking.measured_scale / tracking.scale == pytest.approx(1 / drift, rel=0.12)
+    assert not any(e["type"] == "device_pose_jump" for r in results for e in r.events)
+    assert len(priors) == len(range(0, 80, 3))  # every keyframe
+    assert all(p.sigmas.log_scale == DRIFT_PRIOR_LOG_SCALE_SIGMA for p in priors)
+    np.testing.assert_allclose(priors[-1].pose, truth[78], atol=1e-9)  # the device's pose, in the device world
+    assert all(np.all(np.isfinite(p)) for p in outputs)
 
 
 def _scaled_steps(poses: list[np.ndarray], factor: float) -> list[np.ndarray]:
@@ -265,3 +326,4 @@ def test_a_turn_followed_by_rotation_alone_takes_the_device_position_and_is_no_j
     np.testing.assert_allclose(steps[15:], true_steps[15:], rtol=0.02)  # the held frames move with the device
     for n in held:  # and keep the odometry's orientation
         np.testing.assert_allclose(results[n].pose[:3, :3], truth[n][:3, :3], atol=1e-6)
+

@@ -92,8 +92,12 @@ class LoopClosingStage(QueuedStage):
 
     def __init__(self, cfg: LoopConfig, pose_graph: Sim3PoseGraph, closer: LoopCloser | None,
                  depth_points: DepthKeyframePoints | None, metric: bool, threaded: bool,
-                 timings: StageTimes | None = None) -> None:
+                 timings: StageTimes | None = None, solve_priors_every: int = 0) -> None:
         self.cfg = cfg
+        # > 0: the graph is solved after this many device priors (a monocular odometry's drift corrected between
+        # loops: `drift_corrected`); 0: priors wait for the next loop
+        self.solve_priors_every = solve_priors_every
+        self.priors_unsolved = 0
         self.pose_graph = pose_graph
         self.closer = closer
         self.depth_points = depth_points
@@ -130,6 +134,9 @@ class LoopClosingStage(QueuedStage):
             if item.key in self.pose_graph.nodes:
                 self.pose_graph.add_prior(item.key, item.pose, item.sigmas)
                 self.pose_graph.flush()
+                self.priors_unsolved += 1
+                if self.solve_priors_every and self.priors_unsolved >= self.solve_priors_every:
+                    self._correct_drift(item.key)
             return
         if isinstance(item, CameraUpdate):
             if self.depth_points is not None:
@@ -174,6 +181,16 @@ class LoopClosingStage(QueuedStage):
         with self._corrections_lock:
             self._corrections.append(LoopCorrection(dict(result.poses), event))
 
+    def _correct_drift(self, key: int) -> None:
+        """Solve the graph with the device priors so far and hand the moved keyframes back (`drift_corrected`)."""
+        self.priors_unsolved = 0
+        with self.timings.measure("pgo"):
+            result = self.pose_graph.optimize(max_iterations=self.cfg.pgo_iterations)
+        event = {"type": "drift_corrected", "keyframe": int(key), "pgo_error_before": result.initial_error,
+                 "pgo_error_after": result.final_error}
+        with self._corrections_lock:
+            self._corrections.append(LoopCorrection(dict(result.poses), event))
+
     def _join_maps(self, join: MapJoin) -> None:
         """Add the Sim(3) edge joining two maps, solve, and hand the moved keyframes back (`maps_merged`)."""
         if join.i not in self.pose_graph.nodes or join.j not in self.pose_graph.nodes or join.i == join.j:
@@ -212,7 +229,7 @@ class LoopClosingStage(QueuedStage):
         return {"pose_graph": self.pose_graph.state_dict(),
                 "loop": None if self.closer is None else self.closer.state_dict(),
                 "depth_points": None if self.depth_points is None else self.depth_points.state_dict(),
-                "loops": self.loops}
+                "loops": self.loops, "priors_unsolved": self.priors_unsolved}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.pose_graph.load_state_dict(state["pose_graph"])
@@ -221,3 +238,4 @@ class LoopClosingStage(QueuedStage):
         if self.depth_points is not None and state.get("depth_points") is not None:
             self.depth_points.load_state_dict(state["depth_points"])
         self.loops = int(state.get("loops", 0))
+        self.priors_unsolved = int(state.get("priors_unsolved", 0))

@@ -42,7 +42,8 @@ TRACKING_EVENTS = ("tracking_lost", "relocalized", "initialized", "initializing"
 # Notices about the input, forwarded as their own messages (tracking goes on); a misregistration, and device poses
 # that disagree with the images, are also kept in the session record's `warnings`.
 INPUT_EVENTS = ("device_pose_jump", "odometry_slip", "depth_misregistered", "pose_source_chosen")
-MAP_EVENTS = ("maps_merged",)  # published with the revision they made; the tracking state stays as it is
+# published with the revision they made; the tracking state stays as it is
+MAP_EVENTS = ("maps_merged", "drift_corrected")
 # Events sent as their own messages: one that carries a revision (a pose source's verdict replaying the judged
 # frames, a new map's re-estimated frames) tells the clients about it; no loop closure is announced for it.
 PUBLISHED_EVENTS = TRACKING_EVENTS + INPUT_EVENTS + MAP_EVENTS

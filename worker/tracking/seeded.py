@@ -15,7 +15,11 @@ a depth camera's trajectory follows the depth camera. With them, the session's o
   the device's side is kept) rather than the device jumped;
 - each keyframe's device pose goes to the pose graph as an absolute prior with the stated uncertainty
   (`device_poses.prior_translation`, `prior_rotation_deg`), inflated where the device and the tracked poses
-  disagree by more (`prior_inflation`): loop closures weigh it against the odometry.
+  disagree by more (`prior_inflation`): loop closures weigh it against the odometry;
+- monocular: the odometry's scale drifts. By default (`drift_correction: reanchor`) it is measured again at each
+  keyframe over the last ones and the world re-anchored there; with `pose_graph` the world keeps one scale, the
+  priors leave each node's scale free, and the loop-closing stage solves the graph every few priors
+  (`drift_corrected`), moving past keyframes and their part of the map.
 
 The output lives in the device's world: the odometry's world is aligned to the device pose of its first frame
 (rigid with depth; for monocular visual odometry, also scaled by the device's baseline over its initialisation).
@@ -56,6 +60,9 @@ log = logging.getLogger(__name__)
 
 # Log-scale standard deviation of a device prior: device poses are metric.
 PRIOR_LOG_SCALE_SIGMA = 1e-3
+# ... where the pose graph corrects a monocular odometry's drift: a device pose places its keyframe but says nothing
+# of the scale its part of the map was built at (the odometry's edges carry that), so the node's scale is free.
+DRIFT_PRIOR_LOG_SCALE_SIGMA = 1.0
 
 
 def _scaled(pose: np.ndarray, scale: float) -> np.ndarray:
@@ -81,6 +88,7 @@ class SeededTracking:
         self.publish_prior = publish_prior
         self.alignment: np.ndarray | None = None  # session world <- odometry world (rigid), once it has one
         self.scale = 1.0  # session units per odometry unit
+        self.measured_scale = 1.0  # ... as the device last measured it (the same unless the pose graph corrects)
         self.correction = np.eye(4)  # session world <- device world: absorbs the device's jumps
         self.last_device: np.ndarray | None = None  # device pose of the last frame (device world)
         self.last_index: int | None = None
@@ -92,6 +100,7 @@ class SeededTracking:
         self.skip_next_prior = False
         # (device position, odometry position) of the last keyframes since a jump: the monocular scale's measure
         self.scale_marks: list[tuple[np.ndarray, np.ndarray]] = []
+        self.last_prior: tuple[np.ndarray, np.ndarray] | None = None  # (device, tracked) pose of the last prior
         self.lost_since: float | None = None  # timestamp of the first frame of the odometry's current loss
         self.jumps = 0
         self.slips = 0  # disagreements the images laid on the odometry
@@ -133,7 +142,8 @@ class SeededTracking:
             self.alignment = self.correction @ device @ np.linalg.inv(result.pose)
         events += [self._in_session(e) for e in initialized]
         from_odometry = self.alignment is not None and result.tracked and not self._waiting_for_world(initialized)
-        device_step = None if self.last_pose is None or device_motion is None else self.last_pose @ device_motion
+        device_step = (None if self.last_pose is None or device_motion is None
+                       else self.last_pose @ self._in_output_units(device_motion))
         if from_odometry:
             pose = self.to_session(result.pose)
             if not result.translation_measured and device_step is not None:
@@ -255,22 +265,23 @@ class SeededTracking:
         if device_motion is None or self.alignment is None or not self.last_tracked:
             return None
         if self.previous_pose is None:
-            return _scaled(device_motion, 1.0 / self.scale)
+            return _scaled(device_motion, 1.0 / self.measured_scale)
         c = self.config
-        recent = disagreement(device_motion, relative(self.previous_pose, self.last_pose))
+        recent = disagreement(self._in_output_units(device_motion), relative(self.previous_pose, self.last_pose))
         if recent.exceeds(c.jump_translation, c.jump_rotation_deg) or not recent.exceeds(c.seed_translation,
                                                                                         c.seed_rotation_deg):
             return None
-        return _scaled(device_motion, 1.0 / self.scale)
+        return _scaled(device_motion, 1.0 / self.measured_scale)
 
     def _check_jump(self, index: int, device: np.ndarray, device_motion: np.ndarray, tracked_motion: np.ndarray
                     ) -> list[dict[str, Any]]:
         """A `device_pose_jump` event when the device's motion disagrees with the tracked one; the device world
         is then re-anchored so that this frame's device pose continues the tracked motion."""
-        gap = self._jump_gap(device_motion, tracked_motion)
+        gap = self._jump_gap(self._in_output_units(device_motion), tracked_motion)
         if gap is None:
             return []
-        self.correction = self.correction @ self.last_device @ tracked_motion @ np.linalg.inv(device)
+        self.correction = (self.correction @ self.last_device @ _scaled(tracked_motion, self._drift())
+                           @ np.linalg.inv(device))
         self.skip_next_prior = True
         self.scale_marks = []  # distances across the jump measure nothing
         self.jumps += 1
@@ -295,6 +306,7 @@ class SeededTracking:
         odometry_anchor = frames.get(reference, np.eye(4))
         travelled = float(np.linalg.norm(relative(odometry_anchor, odometry_pose)[:3, 3]))
         self.scale = baseline / travelled if baseline > 1e-6 and travelled > 1e-9 else 1.0
+        self.measured_scale = self.scale
         self.alignment = anchor @ np.linalg.inv(_scaled(odometry_anchor, self.scale))
         self.waiting = {}
         log.info("seeded visual odometry: world aligned at frame %s, %.4f units per odometry unit", reference,
@@ -306,6 +318,18 @@ class SeededTracking:
             return dict(event)
         frames = [[int(i), self.to_session(np.asarray(p, np.float64)).tolist()] for i, p in event["frames"]]
         return {**event, "frames": frames}
+
+    def _corrects_in_graph(self) -> bool:
+        """Whether the pose graph, not a re-anchored world, corrects the monocular odometry's scale drift."""
+        return self.monocular and self.config.drift_correction == "pose_graph"
+
+    def _drift(self) -> float:
+        """The odometry's scale as last measured over the one its world keeps (1 unless the graph corrects)."""
+        return self.measured_scale / self.scale
+
+    def _in_output_units(self, device_motion: np.ndarray) -> np.ndarray:
+        """A device motion in the units of the output's world (the odometry's, while the graph corrects drift)."""
+        return _scaled(device_motion, 1.0 / self._drift())
 
     def to_session(self, odometry_pose: np.ndarray) -> np.ndarray:
         """An odometry pose in the session's (device) world."""
@@ -329,7 +353,9 @@ class SeededTracking:
             self.priors_dropped += 1
             return
         device = self.correction @ checked_device_pose(frame.pose, frame.index)
-        self.publish_prior(PosePrior(int(frame.index), device, self._prior_sigmas(device, pose)))
+        sigmas = self._drift_prior_sigmas(device, pose) if self._corrects_in_graph() else self._prior_sigmas(
+            device, pose)
+        self.publish_prior(PosePrior(int(frame.index), device, sigmas))
         self.priors_sent += 1
 
     def _measure_scale(self, device: np.ndarray, pose: np.ndarray) -> None:
@@ -352,7 +378,10 @@ class SeededTracking:
         measured = device_steps >= c.scale_min_baseline
         if measured.sum() < 2 or odometry_steps[measured].sum() <= 1e-9:
             return
-        self.scale = float(device_steps[measured].sum() / odometry_steps[measured].sum())
+        self.measured_scale = float(device_steps[measured].sum() / odometry_steps[measured].sum())
+        if self._corrects_in_graph():  # the world keeps its scale; the pose graph moves the past to the device
+            return
+        self.scale = self.measured_scale
         self.alignment = pose @ np.linalg.inv(_scaled(odometry, self.scale))
 
     def _prior_sigmas(self, device: np.ndarray, tracked: np.ndarray) -> EdgeSigmas:
@@ -364,6 +393,19 @@ class SeededTracking:
         return EdgeSigmas(max(math.radians(c.prior_rotation_deg), c.prior_inflation * math.radians(gap.rotation_deg)),
                           max(c.prior_translation, c.prior_inflation * gap.translation), PRIOR_LOG_SCALE_SIGMA)
 
+    def _drift_prior_sigmas(self, device: np.ndarray, tracked: np.ndarray) -> EdgeSigmas:
+        """A device prior where the pose graph corrects the odometry's drift: the tracked pose is off by the drift
+        itself, so the stated uncertainty is inflated by the disagreement of the motions since the last prior
+        (the device's against the tracked one at the measured scale), and the node's scale is left free."""
+        c = self.config
+        last, self.last_prior = self.last_prior, (device.copy(), np.asarray(tracked, np.float64).copy())
+        rotation, translation = math.radians(c.prior_rotation_deg), c.prior_translation
+        if last is not None:
+            gap = disagreement(relative(last[0], device), _scaled(relative(last[1], tracked), self._drift()))
+            rotation = max(rotation, c.prior_inflation * math.radians(gap.rotation_deg))
+            translation = max(translation, c.prior_inflation * gap.translation)
+        return EdgeSigmas(rotation, translation, DRIFT_PRIOR_LOG_SCALE_SIGMA)
+
     # -- snapshot ------------------------------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
         return {"odometry": self.odometry.state_dict(), "alignment": self.alignment, "scale": self.scale,
@@ -371,7 +413,9 @@ class SeededTracking:
                 "last_pose": self.last_pose, "previous_pose": self.previous_pose, "last_tracked": self.last_tracked,
                 "waiting": [[i, p, d] for i, (p, d) in self.waiting.items()], "skip_next_prior": self.skip_next_prior,
                 "counts": [self.jumps, self.priors_sent, self.priors_dropped, self.slips],
-                "scale_marks": [[d, o] for d, o in self.scale_marks], "lost_since": self.lost_since}
+                "scale_marks": [[d, o] for d, o in self.scale_marks], "lost_since": self.lost_since,
+                "measured_scale": self.measured_scale,
+                "last_prior": None if self.last_prior is None else list(self.last_prior)}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         def matrix(value) -> np.ndarray | None:
@@ -390,6 +434,9 @@ class SeededTracking:
         self.jumps, self.priors_sent, self.priors_dropped, self.slips = (int(v) for v in counts)
         self.scale_marks = [(np.asarray(d, np.float64), np.asarray(o, np.float64))
                             for d, o in state.get("scale_marks", [])]
+        self.measured_scale = float(state.get("measured_scale", self.scale))
+        last_prior = state.get("last_prior")
+        self.last_prior = None if last_prior is None else (matrix(last_prior[0]), matrix(last_prior[1]))
 
 
 def seeded_tracking(config, with_depth: bool, publish_prior: Callable[[PosePrior], None] | None) -> SeededTracking:
