@@ -101,6 +101,8 @@ class SeededTracking:
         # (device position, odometry position) of the last keyframes since a jump: the monocular scale's measure
         self.scale_marks: list[tuple[np.ndarray, np.ndarray]] = []
         self.last_prior: tuple[np.ndarray, np.ndarray] | None = None  # (device, tracked) pose of the last prior
+        # pose_graph: the scale was measured over a full `scale_keyframes` window and is kept from then on
+        self.scale_settled = False
         self.lost_since: float | None = None  # timestamp of the first frame of the odometry's current loss
         self.jumps = 0
         self.slips = 0  # disagreements the images laid on the odometry
@@ -379,10 +381,13 @@ class SeededTracking:
         if measured.sum() < 2 or odometry_steps[measured].sum() <= 1e-9:
             return
         self.measured_scale = float(device_steps[measured].sum() / odometry_steps[measured].sum())
-        if self._corrects_in_graph():  # the world keeps its scale; the pose graph moves the past to the device
+        if self.scale_settled:  # the world keeps its scale; the pose graph moves the past to the device
             return
         self.scale = self.measured_scale
         self.alignment = pose @ np.linalg.inv(_scaled(odometry, self.scale))
+        # pose_graph: the initialisation's two-view scale is re-measured over the first full window of keyframes
+        # (the graph's gauge holds the first keyframe's scale: a first scale far off would bend the map there)
+        self.scale_settled = self._corrects_in_graph() and len(self.scale_marks) > c.scale_keyframes
 
     def _prior_sigmas(self, device: np.ndarray, tracked: np.ndarray) -> EdgeSigmas:
         """The stated uncertainty of a device pose, inflated to `prior_inflation` times its disagreement with the
@@ -414,7 +419,7 @@ class SeededTracking:
                 "waiting": [[i, p, d] for i, (p, d) in self.waiting.items()], "skip_next_prior": self.skip_next_prior,
                 "counts": [self.jumps, self.priors_sent, self.priors_dropped, self.slips],
                 "scale_marks": [[d, o] for d, o in self.scale_marks], "lost_since": self.lost_since,
-                "measured_scale": self.measured_scale,
+                "measured_scale": self.measured_scale, "scale_settled": self.scale_settled,
                 "last_prior": None if self.last_prior is None else list(self.last_prior)}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -435,6 +440,7 @@ class SeededTracking:
         self.scale_marks = [(np.asarray(d, np.float64), np.asarray(o, np.float64))
                             for d, o in state.get("scale_marks", [])]
         self.measured_scale = float(state.get("measured_scale", self.scale))
+        self.scale_settled = bool(state.get("scale_settled", False))
         last_prior = state.get("last_prior")
         self.last_prior = None if last_prior is None else (matrix(last_prior[0]), matrix(last_prior[1]))
 
