@@ -16,10 +16,13 @@ a depth camera's trajectory follows the depth camera. With them, the session's o
 - each keyframe's device pose goes to the pose graph as an absolute prior with the stated uncertainty
   (`device_poses.prior_translation`, `prior_rotation_deg`), inflated where the device and the tracked poses
   disagree by more (`prior_inflation`): loop closures weigh it against the odometry;
-- monocular: the odometry's scale drifts. By default (`drift_correction: reanchor`) it is measured again at each
-  keyframe over the last ones and the world re-anchored there; with `pose_graph` the world keeps one scale, the
-  priors leave each node's scale free, and the loop-closing stage solves the graph every few priors
-  (`drift_corrected`), moving past keyframes and their part of the map.
+- monocular: the odometry's scale drifts (`drift_correction`). By default (`settle`) the initialisation's
+  two-view scale is measured again at each keyframe over the first full window of keyframes, then kept: the map
+  stays at one scale, and the trajectory drifts from the device's as the odometry does until a loop closure weighs
+  the priors. With `reanchor` the scale is measured again at every keyframe and the world re-anchored there (the
+  trajectory follows the device's scale; new keyframes and the map built before them differ in scale). With
+  `pose_graph` the scale settles as by default, the priors leave each node's scale free, and the loop-closing
+  stage solves the graph every few priors (`drift_corrected`), moving past keyframes and their part of the map.
 
 The output lives in the device's world: the odometry's world is aligned to the device pose of its first frame
 (rigid with depth; for monocular visual odometry, also scaled by the device's baseline over its initialisation).
@@ -101,7 +104,7 @@ class SeededTracking:
         # (device position, odometry position) of the last keyframes since a jump: the monocular scale's measure
         self.scale_marks: list[tuple[np.ndarray, np.ndarray]] = []
         self.last_prior: tuple[np.ndarray, np.ndarray] | None = None  # (device, tracked) pose of the last prior
-        # pose_graph: the scale was measured over a full `scale_keyframes` window and is kept from then on
+        # settle, pose_graph: the scale was measured over a full `scale_keyframes` window and is kept from then on
         self.scale_settled = False
         self.lost_since: float | None = None  # timestamp of the first frame of the odometry's current loss
         self.jumps = 0
@@ -381,13 +384,14 @@ class SeededTracking:
         if measured.sum() < 2 or odometry_steps[measured].sum() <= 1e-9:
             return
         self.measured_scale = float(device_steps[measured].sum() / odometry_steps[measured].sum())
-        if self.scale_settled:  # the world keeps its scale; the pose graph moves the past to the device
+        if self.scale_settled:  # the world keeps its scale (the map stays at one scale)
             return
         self.scale = self.measured_scale
         self.alignment = pose @ np.linalg.inv(_scaled(odometry, self.scale))
-        # pose_graph: the initialisation's two-view scale is re-measured over the first full window of keyframes
-        # (the graph's gauge holds the first keyframe's scale: a first scale far off would bend the map there)
-        self.scale_settled = self._corrects_in_graph() and len(self.scale_marks) > c.scale_keyframes
+        # settle, pose_graph: the initialisation's two-view scale is re-measured over the first full window of
+        # keyframes, then kept (in the graph, whose gauge holds the first keyframe's scale, a first scale far off
+        # would also bend the map there)
+        self.scale_settled = c.drift_correction != "reanchor" and len(self.scale_marks) > c.scale_keyframes
 
     def _prior_sigmas(self, device: np.ndarray, tracked: np.ndarray) -> EdgeSigmas:
         """The stated uncertainty of a device pose, inflated to `prior_inflation` times its disagreement with the
