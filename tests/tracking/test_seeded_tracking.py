@@ -232,7 +232,7 @@ def test_without_depth_the_scale_follows_the_device_as_the_odometry_drifts(scale
 
 @pytest.mark.parametrize("drift_correction", ["settle", "pose_graph"])
 def test_the_scale_settles_over_the_first_window_and_the_odometry_keeps_it(drift_correction: str) -> None:
-    """drift_correction settle (the default) and pose_graph: the scale is re-measured over the first full window of
+    """drift_correction settle and pose_graph: the scale is re-measured over the first full window of
     keyframes (the initialisation's is a two-view guess), then the output keeps it (the map stays at one scale)
     while the device still measures the drifting scale (seeds, jump checks), so the drift is no device jump. With
     pose_graph the keyframe priors leave the node's scale to the odometry's edges."""
