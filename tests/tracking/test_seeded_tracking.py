@@ -254,6 +254,28 @@ def test_the_scale_settles_over_the_first_window_and_the_odometry_keeps_it(drift
     assert all(np.all(np.isfinite(p)) for p in outputs)
 
 
+def test_a_device_jump_unsettles_the_scale_until_a_full_window_measures_it_again() -> None:
+    """drift_correction settle: a device jump (0.5 m at frame 45, after the scale settled) restarts the scale's
+    window: distances across it measure nothing, and the kept scale may be what made the odometry disagree."""
+    truth = _curve()
+    device = [p.copy() for p in truth]
+    for pose in device[45:]:
+        pose[:3, 3] += [0.5, 0.0, 0.0]
+    tracking = SeededTracking(_ScaleDriftingOdometry(truth), DevicePoseConfig(drift_correction="settle"),
+                              monocular=True, publish_prior=lambda prior: None)
+    settled, jumps = [], []
+    for n, pose in enumerate(device):
+        frame = Frame(n, n / 30.0, np.zeros((4, 4, 3), np.uint8), pose=pose.copy())
+        result = tracking.track(frame, None)
+        jumps += [n for e in result.events if e["type"] == "device_pose_jump"]
+        if n % 3 == 0:
+            tracking.keyframe_added(frame, result.pose)
+        settled.append(tracking.scale_settled)
+    assert jumps == [45]
+    assert settled[44] and not settled[45]  # settled before the jump, measured again after it
+    assert not any(settled[45:45 + 3 * 8]) and settled[-1]  # until a full window (9 keyframes) measured it
+
+
 def _scaled_steps(poses: list[np.ndarray], factor: float) -> list[np.ndarray]:
     """Poses whose every step moves `factor` times as far (a device whose scale is off)."""
     out = [poses[0].copy()]

@@ -289,6 +289,7 @@ class SeededTracking:
                            @ np.linalg.inv(device))
         self.skip_next_prior = True
         self.scale_marks = []  # distances across the jump measure nothing
+        self.scale_settled = False  # ... and the scale kept before it may be what made the jump: measured again
         self.jumps += 1
         log.warning("frame %d: the device pose jumped (%.3f, %.1f deg from the tracked motion): re-anchored, its "
                     "keyframe prior dropped", index, gap.translation, gap.rotation_deg)
