@@ -50,9 +50,9 @@ class DevicePoseConfig(BaseModel):
         "19.44 dB on the frames RGB only renders at 19.62, ATE 30 cm; live at 10 frames/s: 0.45 m); settle: the "
         "initialisation's two-view scale is measured again at each keyframe until a full `scale_keyframes` window "
         "measured it, then kept: the map stays at one scale and renders best offline, while the trajectory drifts "
-        "from the device's as the odometry does (19.70 dB, 1.7 m; live 3.4 m, worse than RGB only's 1.7 m: not "
-        "the default); pose_graph: settled, then the pose graph is solved with the device priors every "
-        "`graph_solve_keyframes` keyframes, moving past keyframes and their part of the map (Sim(3): scale "
+        "from the device's as the odometry does (19.70 dB, 1.7 m; live 1.7 m, as RGB only's: not the default); a "
+        "device jump measures it again; pose_graph: settled, then the pose graph is solved with the device priors "
+        "every `graph_solve_keyframes` keyframes, moving past keyframes and their part of the map (Sim(3): scale "
         "included) toward the device's trajectory (a `drift_corrected` revision): the trajectory follows the "
         "device closely at a cost in the renders (18.25 dB, 4 cm: the keyframes' parts of the map move apart; "
         "bench/RESULTS.md)")
