@@ -91,7 +91,7 @@ class SeededTracking:
         self.publish_prior = publish_prior
         self.alignment: np.ndarray | None = None  # session world <- odometry world (rigid), once it has one
         self.scale = 1.0  # session units per odometry unit
-        self.measured_scale = 1.0  # ... as the device last measured it (the same unless the pose graph corrects)
+        self.measured_scale = 1.0  # ... as the device last measured it (the same until the scale settles)
         self.correction = np.eye(4)  # session world <- device world: absorbs the device's jumps
         self.last_device: np.ndarray | None = None  # device pose of the last frame (device world)
         self.last_index: int | None = None
@@ -330,11 +330,11 @@ class SeededTracking:
         return self.monocular and self.config.drift_correction == "pose_graph"
 
     def _drift(self) -> float:
-        """The odometry's scale as last measured over the one its world keeps (1 unless the graph corrects)."""
+        """The odometry's scale as last measured over the one its world keeps (1 until the scale settles)."""
         return self.measured_scale / self.scale
 
     def _in_output_units(self, device_motion: np.ndarray) -> np.ndarray:
-        """A device motion in the units of the output's world (the odometry's, while the graph corrects drift)."""
+        """A device motion in the units of the output's world (the odometry's once the scale settled)."""
         return _scaled(device_motion, 1.0 / self._drift())
 
     def to_session(self, odometry_pose: np.ndarray) -> np.ndarray:
