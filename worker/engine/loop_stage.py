@@ -170,24 +170,23 @@ class LoopClosingStage(QueuedStage):
         if not kept:
             return
         best = kept[0]
-        with self.timings.measure("pgo"):
-            result = self.pose_graph.optimize(max_iterations=self.cfg.pgo_iterations)
         self.loops += 1
         event: dict[str, Any] = {"type": "loop_closed", "from_keyframe": int(best.j), "to_keyframe": int(best.i),
-                                 "pgo_error_before": result.initial_error, "pgo_error_after": result.final_error,
                                  "source": best.source, "scale": float(best.scale)}
         if len(kept) > 1:
             event["also_to_keyframes"] = [int(c.i) for c in kept[1:]]
-        with self._corrections_lock:
-            self._corrections.append(LoopCorrection(dict(result.poses), event))
+        self._solve(event)
 
     def _correct_drift(self, key: int) -> None:
         """Solve the graph with the device priors so far and hand the moved keyframes back (`drift_corrected`)."""
         self.priors_unsolved = 0
+        self._solve({"type": "drift_corrected", "keyframe": int(key)})
+
+    def _solve(self, event: dict[str, Any]) -> None:
+        """Optimise the graph and hand the optimised keyframe poses back with `event` (and the solve's costs)."""
         with self.timings.measure("pgo"):
             result = self.pose_graph.optimize(max_iterations=self.cfg.pgo_iterations)
-        event = {"type": "drift_corrected", "keyframe": int(key), "pgo_error_before": result.initial_error,
-                 "pgo_error_after": result.final_error}
+        event = {**event, "pgo_error_before": result.initial_error, "pgo_error_after": result.final_error}
         with self._corrections_lock:
             self._corrections.append(LoopCorrection(dict(result.poses), event))
 
@@ -196,13 +195,8 @@ class LoopClosingStage(QueuedStage):
         if join.i not in self.pose_graph.nodes or join.j not in self.pose_graph.nodes or join.i == join.j:
             return
         self.pose_graph.add_edge(join.i, join.j, join.relative, kind="map_join")
-        with self.timings.measure("pgo"):
-            result = self.pose_graph.optimize(max_iterations=self.cfg.pgo_iterations)
-        event = {**{k: v for k, v in join.event.items() if k not in ("relative", "correction")},
-                 "type": "maps_merged", "from_keyframe": int(join.j), "to_keyframe": int(join.i),
-                 "pgo_error_before": result.initial_error, "pgo_error_after": result.final_error}
-        with self._corrections_lock:
-            self._corrections.append(LoopCorrection(dict(result.poses), event))
+        self._solve({**{k: v for k, v in join.event.items() if k not in ("relative", "correction")},
+                     "type": "maps_merged", "from_keyframe": int(join.j), "to_keyframe": int(join.i)})
 
     def _align_depth(self, i: int, j: int, relative: np.ndarray, intrinsics: Intrinsics | None) -> np.ndarray | None:
         """A metric loop edge refined by ICP on the two keyframes' depth (half resolution), or None when the depth
