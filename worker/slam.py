@@ -604,6 +604,8 @@ class SlamSystem:
                                                 fill, propagate=cfg.input.mvs_fill == "propagate",
                                                 planes=PlaneSettings() if cfg.input.mvs_planes else None,
                                                 borders=BorderSettings() if cfg.input.mvs_border_planes else None)
+            if self.backend is not None:
+                self.backend.use_multiview_depth()
         self.tracking_stage.pose_source = self._build_pose_source(tracking)
         self.tracking_stage.timing_stage = "frontend_inference" if tracking == "model" else "frontend_tracking"
         log.info("session tracking: %s (mode %s), surfels from %s", tracking, self.mode, self.depth_source)

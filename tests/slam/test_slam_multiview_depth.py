@@ -4,6 +4,8 @@ neighbours; real ICL frames (tests/data/icl_mini), metric depth against the data
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from pathlib import Path
 
 import numpy as np
@@ -49,6 +51,32 @@ def test_posed_rgb_keyframes_are_mapped_from_multiview_depth(posed_rgb) -> None:
     assert covered.mean() > 0.5
     assert float(np.median(np.abs(depth[covered] - truth[k][covered]))) < 0.05  # metres, on real images
     system.close()
+
+
+def test_stereo_keyframes_are_pruned_where_sensor_keyframes_are_not(posed_rgb) -> None:
+    """The rgbd preset keeps pruning off (it cut holes in sensor maps); a session whose keyframe depth comes from
+    multi-view stereo prunes (`prune_multiview`), restored from a snapshot too, unless the config says no."""
+    frames, truth, intr = posed_rgb
+
+    def prunes(system: SlamSystem) -> bool:
+        thresholds = system.backend.map.config.thresholds
+        return math.isfinite(thresholds.rgb_error) and math.isfinite(thresholds.depth_error)
+
+    stereo = SlamSystem(_config(), intr)
+    assert not prunes(stereo)  # nothing known about the session's depth before its first frame
+    stereo.push(frames[0])
+    assert stereo.depth_source == "mvs" and prunes(stereo)
+    restored = SlamSystem.restore(stereo.snapshot())
+    assert prunes(restored)
+    sensor = SlamSystem(_config(), intr)
+    sensor.push(dataclasses.replace(frames[0], depth=truth[0]))
+    assert sensor.depth_source == "sensor" and not prunes(sensor)
+    declined = SlamSystem(_config().model_copy(update={"mapping": _config().mapping.model_copy(
+        update={"prune_multiview": False})}), intr)
+    declined.push(frames[0])
+    assert declined.depth_source == "mvs" and not prunes(declined)
+    for system in (stereo, restored, sensor, declined):
+        system.close()
 
 
 def test_snapshot_keeps_keyframes_waiting_for_neighbours(posed_rgb) -> None:

@@ -37,9 +37,16 @@ class PoseUpdateJob:
     poses: dict[int, np.ndarray]
 
 
+def fusion_thresholds(cfg: MappingConfig, prune: bool):
+    """The map's fusion thresholds: `cfg`'s pruning errors when `prune`, else none that prunes."""
+    from worker.mapping.fusion import FusionThresholds
+
+    return FusionThresholds(rgb_error=cfg.prune_rgb_error if prune else math.inf,
+                            depth_error=cfg.prune_depth_error if prune else math.inf, tau_accum=cfg.tau_accum)
+
+
 def build_gaussian_map(cfg: MappingConfig, device: str):
     """The map object with this engine's mapping settings."""
-    from worker.mapping.fusion import FusionThresholds
     from worker.mapping.gaussian_map import GaussianMap, MapConfig
     from worker.mapping.hole_closing import HoleClosingSettings
     from worker.mapping.refine import RefineSettings
@@ -47,9 +54,7 @@ def build_gaussian_map(cfg: MappingConfig, device: str):
     return GaussianMap(MapConfig(
         window=cfg.refine_keyframes,
         iterations=cfg.refine_iterations,
-        thresholds=FusionThresholds(rgb_error=cfg.prune_rgb_error if cfg.prune else math.inf,
-                                    depth_error=cfg.prune_depth_error if cfg.prune else math.inf,
-                                    tau_accum=cfg.tau_accum),
+        thresholds=fusion_thresholds(cfg, cfg.prune),
         refine=RefineSettings(lambda_ssim=cfg.ssim_weight, lambda_depth=cfg.depth_weight, exposure=cfg.exposure,
                               exposure_prior=cfg.exposure_prior, exposure_threshold=cfg.exposure_threshold,
                               exposure_shared=cfg.exposure_channels == "shared"),
@@ -58,6 +63,7 @@ def build_gaussian_map(cfg: MappingConfig, device: str):
         voxel_cap=cfg.voxel_cap,
         final_refine_budget_s=cfg.final_refine_budget_s or None,
         hole_closing=HoleClosingSettings(margin=cfg.hole_margin) if cfg.close_holes else None,
+        background=cfg.background,
         device=device,
     ))
 

@@ -23,7 +23,13 @@ import numpy as np
 import torch
 
 from worker.config import MappingConfig
-from worker.engine.backend import KeyframeJob, PoseUpdateJob, build_gaussian_map, unmerged_surfels
+from worker.engine.backend import (
+    KeyframeJob,
+    PoseUpdateJob,
+    build_gaussian_map,
+    fusion_thresholds,
+    unmerged_surfels,
+)
 from worker.engine.stage_thread import QueuedStage, StageThread
 from worker.engine.stage_times import StageTimes
 from worker.mapping.exposure import apply_exposure
@@ -62,6 +68,13 @@ class MappingStage(QueuedStage):
             with self._waiting_lock:
                 self._waiting.append((job.kf_id, time.monotonic()))
         self._stage.submit(job)
+
+    def use_multiview_depth(self) -> None:
+        """The session's keyframe depth comes from multi-view stereo: prune new keyframes' views when
+        `prune_multiview` asks for it (see MappingConfig)."""
+        if self.cfg.prune_multiview:
+            with self.lock:
+                self.map.config.thresholds = fusion_thresholds(self.cfg, prune=True)
 
     def lag(self) -> tuple[int, float]:
         """(keyframes waiting to be mapped, seconds the oldest of them has waited)."""
