@@ -27,6 +27,7 @@ import torch
 from worker.geometry import make_sim3, sim3_decompose, sim3_inverse
 
 from .archive_thinning import thin
+from .background import DirectionalBackground, composite
 from .exposure import apply_exposure, fit_exposure, identity_exposure, interpolate_exposure, remove_exposure
 from .fusion import FusionThresholds, attribute_errors, densify_mask, prune_mask
 from .hole_closing import HoleClosingSettings, hole_surfels, widened_camera
@@ -68,6 +69,9 @@ class MapConfig:
     final_refine_budget_s: float | None = 25.0
     # refine_global first closes the holes of every held keyframe's widened view (close_holes); None = it does not.
     hole_closing: HoleClosingSettings | None = None
+    # Renders and refinement show, behind the surfels, the colour keyframes saw in each world direction where the map
+    # left them uncovered (worker.mapping.background: the sky, surfaces without stereo depth); False = black.
+    background: bool = False
     device: str = "cpu"
 
     def to_dict(self) -> dict:
@@ -170,6 +174,7 @@ class GaussianMap:
         self._surfels = Surfels.empty(self.device)
         self._keyframes: dict[int, _Keyframe] = {}
         self._voxel_size: float | None = None  # world units, fixed by the first keyframe (see MapConfig.voxel_size)
+        self._background = DirectionalBackground() if self.config.background else None
 
     # -- read access -------------------------------------------------------------------------------------------
     @property
@@ -248,6 +253,11 @@ class GaussianMap:
         new = offered.select(add)
         new.keyframe_ids = torch.full((len(new),), kf_id, dtype=torch.int64, device=self.device)
         self._surfels = Surfels.concat([self._surfels, new])
+        if self._background is not None:
+            with torch.no_grad():
+                alpha = rasterize(Surfels.concat([local, new]), viewmat, kf.K, kf.width, kf.height).alpha
+            colours = kf.image if kf.exposure is None else remove_exposure(kf.image, kf.exposure).clamp(0, 1)
+            self._background.observe(pose, kf.K, colours, alpha)
         self._keyframes[kf_id] = kf
         self._archive_old_images()
         return FusionStats(pruned=pruned, added=len(new), skipped=len(surfels_cam) - len(new))
@@ -408,6 +418,10 @@ class GaussianMap:
                 deadline: float | None = None) -> RefineReport:
         """Refine against the keyframes `kf_ids`, each seen with its exposure (with `refine.exposure`)."""
         views = [self._keyframes[k].refine_view(self.config.refine.exposure) for k in kf_ids]
+        if self._background is not None:
+            for k, view in zip(kf_ids, views):
+                kf = self._keyframes[k]
+                view.background = self._background.image(kf.pose, kf.K, kf.width, kf.height, self.device)
         with torch.enable_grad():
             refined, report = refine_surfels(self._surfels, trainable, views, iterations, self.config.refine,
                                              scene_scale, deadline)
@@ -425,12 +439,18 @@ class GaussianMap:
 
     def render(self, pose_c2w: torch.Tensor, K: torch.Tensor, width: int, height: int,
                background: torch.Tensor | None = None) -> RenderResult:
-        """Render the map from a camera-to-world pose (depth in world units)."""
-        viewmat, _ = rigid_viewmat(_as_pose(pose_c2w, "pose_c2w"))
+        """Render the map from a camera-to-world pose (depth in world units), over the map's background (or over
+        the constant colour `background` when one is given)."""
+        pose = _as_pose(pose_c2w, "pose_c2w")
+        viewmat, _ = rigid_viewmat(pose)
         K = _as_K(K).to(self.device)
         with torch.no_grad():
-            return rasterize(self._surfels, viewmat.to(self.device, torch.float32), K, width, height,
-                             background=None if background is None else background.to(self.device))
+            out = rasterize(self._surfels, viewmat.to(self.device, torch.float32), K, width, height,
+                            background=None if background is None else background.to(self.device))
+            if background is not None or self._background is None:
+                return out
+            behind = self._background.image(pose, K, width, height, self.device)
+            return out._replace(rgb=composite(out.rgb, out.alpha, behind))
 
     def to_ply_bytes(self, variant: str = "3dgs", include_keyframe_id: bool = False) -> bytes:
         return surfels_to_ply_bytes(self._surfels, variant, include_keyframe_id)
@@ -454,6 +474,7 @@ class GaussianMap:
             "surfels": {k: v.detach().cpu().numpy() for k, v in self._surfels.tensors().items()},
             "keyframes": keyframes,
             "voxel_size": self._voxel_size,
+            "background": None if self._background is None else self._background.state_dict(),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -482,6 +503,9 @@ class GaussianMap:
         self._keyframes = keyframes
         voxel_size = state.get("voxel_size")
         self._voxel_size = None if voxel_size is None else float(voxel_size)
+        background = state.get("background")
+        if self._background is not None and background is not None:
+            self._background = DirectionalBackground.from_state(background)
         self._archive_old_images()
 
     @classmethod

@@ -27,6 +27,7 @@ import torch
 
 from . import raster_cpu
 from .exposure import apply_exposure
+from .background import composite
 from .losses import depth_l1, photometric_loss
 from .rasterize import rasterize, visible_mask
 from .surfels import Surfels
@@ -68,6 +69,7 @@ class RefineView:
     depth: torch.Tensor | None = None
     depth_scale: float = 1.0
     exposure: torch.Tensor | None = None
+    background: torch.Tensor | None = None  # [H, W, 3]: what the view sees behind the surfels (map's background)
 
 
 @dataclass
@@ -173,7 +175,7 @@ def _optimise(params: _RawParams, fixed: Surfels, views: list[RefineView], depth
         H, W = view.image.shape[:2]
         current = Surfels.concat([params.surfels(), fixed]) if len(fixed) else params.surfels()
         render = rasterize(current, view.viewmat, view.K, W, H)
-        rgb = render.rgb
+        rgb = composite(render.rgb, render.alpha, view.background)
         if settings.exposure and view.exposure is not None:
             rgb = apply_exposure(rgb, view.exposure)
         loss = photometric_loss(rgb, view.image, settings.lambda_ssim, settings.ssim_downsample)

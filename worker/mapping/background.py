@@ -1,0 +1,133 @@
+"""What a view sees where the map has no surface: colour by world direction (a cube map), as a sky box.
+
+Multi-view stereo gives no depth to the sky, to surfaces too far for any parallax, or to plain regions; renders were
+black there, and the refinement, whose target there is bright, grew nearby surfels into the empty pixels (floaters
+and smears across the sky of a street). The background remembers, per world direction, the colour keyframes saw where
+the map left their pixels uncovered, and every render (refinement, held-out views, the service's images) composites
+it behind the surfels: colour = surfels + (1 - alpha) * background. Depth and alpha stay the surfels' own, so holes
+are still measured as holes and depth is never invented.
+
+The cube map's six faces hold a running mean of exposure-normalised colour per cell (sum and weight); a direction
+no keyframe has seen through a hole renders black, as before. Directions are in the world frame: the background
+stands for things at infinity, so it does not move with the camera's position.
+"""
+
+from __future__ import annotations
+
+import torch
+
+# Cells per cube-face side: 90 degrees / 64 = 1.4 degrees a cell (the sky is smooth; a snapshot carries 6 x 64 x 64 x
+# 4 floats, 393 KB).
+FACE_CELLS = 64
+# Pixels whose map coverage (alpha) is below this count as seeing the background.
+UNCOVERED_ALPHA = 0.5
+
+
+def pixel_directions(pose_c2w: torch.Tensor, K: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """[H, W, 3] unit world directions of the rays through the pixel centres (x + 0.5, y + 0.5) of a camera."""
+    K = K.to(torch.float64).cpu()
+    ys, xs = torch.meshgrid(torch.arange(height, dtype=torch.float64) + 0.5,
+                            torch.arange(width, dtype=torch.float64) + 0.5, indexing="ij")
+    rays = torch.stack([(xs - K[0, 2]) / K[0, 0], (ys - K[1, 2]) / K[1, 1], torch.ones_like(xs)], -1)
+    R = pose_c2w.to(torch.float64).cpu()[:3, :3]
+    R = R / torch.linalg.norm(R[:, 0])  # a Sim(3) pose's scale does not turn a direction
+    world = rays @ R.T
+    return world / torch.linalg.norm(world, dim=-1, keepdim=True)
+
+
+def cube_coordinates(directions: torch.Tensor, face_cells: int = FACE_CELLS) -> tuple[torch.Tensor, torch.Tensor,
+                                                                                  torch.Tensor]:
+    """(face, row, col) of unit directions [..., 3] on a cube map of `face_cells` cells a side: the face is the
+    dominant axis and its sign, row and col (continuous, cell centres at whole numbers) the other two coordinates
+    over the dominant one."""
+    absolute = directions.abs()
+    axis = absolute.argmax(-1)
+    negative = torch.gather(directions, -1, axis.unsqueeze(-1)).squeeze(-1) < 0
+    face = 2 * axis + negative.long()
+    major = torch.gather(absolute, -1, axis.unsqueeze(-1)).squeeze(-1).clamp_min(1e-12)
+    u = torch.gather(directions, -1, torch.where(axis == 0, 1, 0).unsqueeze(-1)).squeeze(-1) / major
+    v = torch.gather(directions, -1, torch.where(axis == 2, 1, 2).unsqueeze(-1)).squeeze(-1) / major
+    return face, (v + 1) * 0.5 * face_cells - 0.5, (u + 1) * 0.5 * face_cells - 0.5
+
+
+def cube_cells(directions: torch.Tensor, face_cells: int = FACE_CELLS) -> torch.Tensor:
+    """[...] flat index (face * n * n + row * n + col) of the cell each unit direction [..., 3] falls in."""
+    face, row, col = cube_coordinates(directions, face_cells)
+    row = torch.round(row).long().clamp(0, face_cells - 1)
+    col = torch.round(col).long().clamp(0, face_cells - 1)
+    return (face * face_cells + row) * face_cells + col
+
+
+class DirectionalBackground:
+    """The map's background: mean colour per world direction of what keyframes saw through the map's holes."""
+
+    def __init__(self, face_cells: int = FACE_CELLS) -> None:
+        self.face_cells = face_cells
+        cells = 6 * face_cells * face_cells
+        self.colour_sum = torch.zeros(cells, 3, dtype=torch.float32)
+        self.weight = torch.zeros(cells, dtype=torch.float32)
+
+    @property
+    def cells_seen(self) -> int:
+        """Cells some keyframe saw the background through."""
+        return int((self.weight > 0).sum())
+
+    def observe(self, pose_c2w: torch.Tensor, K: torch.Tensor, image: torch.Tensor, alpha: torch.Tensor) -> int:
+        """Add a keyframe's colours (exposure-normalised, [H, W, 3] in [0, 1]) at the pixels the map leaves
+        uncovered (`alpha` [H, W] below UNCOVERED_ALPHA); returns how many pixels were taken."""
+        height, width = image.shape[:2]
+        uncovered = (alpha.detach().cpu() < UNCOVERED_ALPHA)
+        if not bool(uncovered.any()):
+            return 0
+        cells = cube_cells(pixel_directions(pose_c2w, K, width, height)[uncovered], self.face_cells)
+        colours = image.detach().cpu().to(torch.float32)[uncovered]
+        self.colour_sum.index_add_(0, cells, colours)
+        self.weight.index_add_(0, cells, torch.ones(len(cells), dtype=torch.float32))
+        return int(len(cells))
+
+    def image(self, pose_c2w: torch.Tensor, K: torch.Tensor, width: int, height: int,
+              device: torch.device | str = "cpu") -> torch.Tensor | None:
+        """[H, W, 3] background colours a camera sees (black where no keyframe has seen that direction); None
+        while the background is empty."""
+        seen = (self.weight > 0).to(torch.float32)
+        if not bool(seen.any()):
+            return None
+        colour = self.colour_sum / self.weight.clamp_min(1e-6).unsqueeze(-1)
+        n = self.face_cells
+        face, row, col = cube_coordinates(pixel_directions(pose_c2w, K, width, height), n)
+        row0, col0 = torch.floor(row), torch.floor(col)
+        total = torch.zeros(height, width, 3, dtype=torch.float32)
+        norm = torch.zeros(height, width, dtype=torch.float32)
+        # bilinear between the four nearest cell centres of the face, over the cells some keyframe has seen
+        for dr in (0, 1):
+            for dc in (0, 1):
+                weight = ((1 - (row - row0 - dr).abs()) * (1 - (col - col0 - dc).abs())).to(torch.float32)
+                r = (row0 + dr).long().clamp(0, n - 1)
+                c = (col0 + dc).long().clamp(0, n - 1)
+                cell = (face * n + r) * n + c
+                weight = weight * seen[cell]
+                total += weight.unsqueeze(-1) * colour[cell]
+                norm += weight
+        return (total / norm.clamp_min(1e-6).unsqueeze(-1)).to(device)
+
+    def state_dict(self) -> dict:
+        return {"face_cells": self.face_cells, "colour_sum": self.colour_sum.numpy(), "weight": self.weight.numpy()}
+
+    @classmethod
+    def from_state(cls, state: dict) -> DirectionalBackground:
+        import numpy as np
+
+        background = cls(int(state["face_cells"]))
+        colour_sum = torch.from_numpy(np.array(state["colour_sum"], np.float32)).reshape(-1, 3)
+        weight = torch.from_numpy(np.array(state["weight"], np.float32)).reshape(-1)
+        if colour_sum.shape != background.colour_sum.shape or weight.shape != background.weight.shape:
+            raise ValueError("background state does not match its cube map's size")
+        background.colour_sum, background.weight = colour_sum, weight
+        return background
+
+
+def composite(rgb: torch.Tensor, alpha: torch.Tensor, background: torch.Tensor | None) -> torch.Tensor:
+    """Surfel colour [H, W, 3] (rendered over black) with `background` [H, W, 3] behind it (None: as it is)."""
+    if background is None:
+        return rgb
+    return rgb + (1.0 - alpha).unsqueeze(-1).to(rgb.dtype) * background.to(rgb.dtype)
