@@ -82,7 +82,9 @@ async def render_view(
     principal: Principal = Depends(caller),
     reg: Registry = Depends(registry),
 ) -> Response:
-    """Render the session's map from any camera. Defaults: the session's intrinsics (scaled to width x height)."""
+    """Render the session's map from any camera. Defaults: the session's intrinsics (scaled to width x height).
+    Colour shows the surfels over the map's background (what keyframes saw in each direction where the map has no
+    surface, such as the sky); depth is the surfels' own (0 where there are none)."""
     request.app.state.auth.require(principal, "read", "stream")
     record = await session_for(reg, principal, session_id, write=False)
     params = render_params(record, pose, width, height, fx, fy, cx, cy, kind,

@@ -100,3 +100,27 @@ def test_refinement_sees_the_background_behind_the_surfels() -> None:
     explained = with_background.refine(4).losses
     unexplained = without.refine(4).losses
     assert explained[0] < 0.5 * unexplained[0]
+
+
+def test_directions_the_map_mostly_covers_are_not_background() -> None:
+    """A keyframe's border band (no stereo depth) that later keyframes cover stays out of the background, so the
+    refinement still fills it with surfels; the sky, never covered, stays in."""
+    background = DirectionalBackground()
+    K, pose = intrinsics(), turned(0.0)
+    colours = sky(pixel_directions(pose, K, WIDTH, HEIGHT))
+    border = torch.ones(HEIGHT, WIDTH)
+    border[:, -6:] = 0.0  # the first keyframe's right border band
+    background.observe(pose, K, colours, border)
+    band = background.image(pose, K, WIDTH, HEIGHT)[:, -3:]
+    assert float((band.max(-1).values > 0.1).float().mean()) > 0.9
+    covered = torch.ones(HEIGHT, WIDTH)
+    background.observe(pose, K, colours, covered)
+    background.observe(pose, K, colours, covered)
+    assert background.image(pose, K, WIDTH, HEIGHT) is None  # covered twice as often as seen through
+    sky_band = torch.ones(HEIGHT, WIDTH)
+    sky_band[:8] = 0.0  # the top rows: never covered
+    for _ in range(4):  # the top rows were covered three times so far: now seen through more often
+        background.observe(pose, K, colours, sky_band)
+    image = background.image(pose, K, WIDTH, HEIGHT)
+    assert float((image[:6].max(-1).values > 0.1).float().mean()) > 0.9
+    assert float(image[12:].max()) == 0.0

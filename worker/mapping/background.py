@@ -7,9 +7,12 @@ the map left their pixels uncovered, and every render (refinement, held-out view
 it behind the surfels: colour = surfels + (1 - alpha) * background. Depth and alpha stay the surfels' own, so holes
 are still measured as holes and depth is never invented.
 
-The cube map's six faces hold a running mean of exposure-normalised colour per cell (sum and weight); a direction
-no keyframe has seen through a hole renders black, as before. Directions are in the world frame: the background
-stands for things at infinity, so it does not move with the camera's position.
+The cube map's six faces hold a running mean of exposure-normalised colour per cell (sum and weight) and how often
+keyframes saw the map there instead. A direction belongs to the background only where keyframes mostly saw through
+the map (the sky: always): a keyframe's border band, which stereo leaves without depth but the next keyframes cover,
+stays a hole the refinement fills with surfels, as before. Directions never seen through the map render black.
+Directions are in the world frame: the background stands for things at infinity, so it does not move with the
+camera's position.
 """
 
 from __future__ import annotations
@@ -17,7 +20,7 @@ from __future__ import annotations
 import torch
 
 # Cells per cube-face side: 90 degrees / 64 = 1.4 degrees a cell (the sky is smooth; a snapshot carries 6 x 64 x 64 x
-# 4 floats, 393 KB).
+# 5 floats, 492 KB).
 FACE_CELLS = 64
 # Pixels whose map coverage (alpha) is below this count as seeing the background.
 UNCOVERED_ALPHA = 0.5
@@ -65,21 +68,29 @@ class DirectionalBackground:
         self.face_cells = face_cells
         cells = 6 * face_cells * face_cells
         self.colour_sum = torch.zeros(cells, 3, dtype=torch.float32)
-        self.weight = torch.zeros(cells, dtype=torch.float32)
+        self.weight = torch.zeros(cells, dtype=torch.float32)  # pixels that saw through the map
+        self.covered = torch.zeros(cells, dtype=torch.float32)  # pixels that saw the map
+
+    def _background_cells(self) -> torch.Tensor:
+        """[cells] float: 1 where keyframes saw through the map more often than they saw the map."""
+        return ((self.weight > 0) & (self.weight > self.covered)).to(torch.float32)
 
     @property
     def cells_seen(self) -> int:
-        """Cells some keyframe saw the background through."""
-        return int((self.weight > 0).sum())
+        """Cells that belong to the background."""
+        return int(self._background_cells().sum())
 
     def observe(self, pose_c2w: torch.Tensor, K: torch.Tensor, image: torch.Tensor, alpha: torch.Tensor) -> int:
         """Add a keyframe's colours (exposure-normalised, [H, W, 3] in [0, 1]) at the pixels the map leaves
         uncovered (`alpha` [H, W] below UNCOVERED_ALPHA); returns how many pixels were taken."""
         height, width = image.shape[:2]
         uncovered = (alpha.detach().cpu() < UNCOVERED_ALPHA)
+        all_cells = cube_cells(pixel_directions(pose_c2w, K, width, height), self.face_cells)
+        seen_map = all_cells[~uncovered]
+        self.covered.index_add_(0, seen_map, torch.ones(len(seen_map), dtype=torch.float32))
         if not bool(uncovered.any()):
             return 0
-        cells = cube_cells(pixel_directions(pose_c2w, K, width, height)[uncovered], self.face_cells)
+        cells = all_cells[uncovered]
         colours = image.detach().cpu().to(torch.float32)[uncovered]
         self.colour_sum.index_add_(0, cells, colours)
         self.weight.index_add_(0, cells, torch.ones(len(cells), dtype=torch.float32))
@@ -87,9 +98,9 @@ class DirectionalBackground:
 
     def image(self, pose_c2w: torch.Tensor, K: torch.Tensor, width: int, height: int,
               device: torch.device | str = "cpu") -> torch.Tensor | None:
-        """[H, W, 3] background colours a camera sees (black where no keyframe has seen that direction); None
-        while the background is empty."""
-        seen = (self.weight > 0).to(torch.float32)
+        """[H, W, 3] background colours a camera sees (black in directions outside the background); None while the
+        background is empty."""
+        seen = self._background_cells()
         if not bool(seen.any()):
             return None
         colour = self.colour_sum / self.weight.clamp_min(1e-6).unsqueeze(-1)
@@ -111,7 +122,8 @@ class DirectionalBackground:
         return (total / norm.clamp_min(1e-6).unsqueeze(-1)).to(device)
 
     def state_dict(self) -> dict:
-        return {"face_cells": self.face_cells, "colour_sum": self.colour_sum.numpy(), "weight": self.weight.numpy()}
+        return {"face_cells": self.face_cells, "colour_sum": self.colour_sum.numpy(), "weight": self.weight.numpy(),
+                "covered": self.covered.numpy()}
 
     @classmethod
     def from_state(cls, state: dict) -> DirectionalBackground:
@@ -120,9 +132,11 @@ class DirectionalBackground:
         background = cls(int(state["face_cells"]))
         colour_sum = torch.from_numpy(np.array(state["colour_sum"], np.float32)).reshape(-1, 3)
         weight = torch.from_numpy(np.array(state["weight"], np.float32)).reshape(-1)
-        if colour_sum.shape != background.colour_sum.shape or weight.shape != background.weight.shape:
+        covered = torch.from_numpy(np.array(state["covered"], np.float32)).reshape(-1)
+        if colour_sum.shape != background.colour_sum.shape or weight.shape != background.weight.shape or \
+                covered.shape != weight.shape:
             raise ValueError("background state does not match its cube map's size")
-        background.colour_sum, background.weight = colour_sum, weight
+        background.colour_sum, background.weight, background.covered = colour_sum, weight, covered
         return background
 
 
