@@ -26,8 +26,8 @@ from dataclasses import dataclass, field
 import torch
 
 from . import raster_cpu
-from .exposure import apply_exposure
 from .background import composite
+from .exposure import apply_exposure
 from .losses import depth_l1, photometric_loss
 from .rasterize import rasterize, visible_mask
 from .surfels import Surfels
