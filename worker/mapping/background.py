@@ -17,7 +17,10 @@ camera's position.
 
 from __future__ import annotations
 
+import numpy as np
 import torch
+
+from worker.geometry import pixel_grid
 
 # Cells per cube-face side: 90 degrees / 64 = 1.4 degrees a cell (the sky is smooth; a snapshot carries 6 x 64 x 64 x
 # 5 floats, 492 KB).
@@ -29,9 +32,9 @@ UNCOVERED_ALPHA = 0.5
 def pixel_directions(pose_c2w: torch.Tensor, K: torch.Tensor, width: int, height: int) -> torch.Tensor:
     """[H, W, 3] unit world directions of the rays through the pixel centres (x + 0.5, y + 0.5) of a camera."""
     K = K.to(torch.float64).cpu()
-    ys, xs = torch.meshgrid(torch.arange(height, dtype=torch.float64) + 0.5,
-                            torch.arange(width, dtype=torch.float64) + 0.5, indexing="ij")
-    rays = torch.stack([(xs - K[0, 2]) / K[0, 0], (ys - K[1, 2]) / K[1, 1], torch.ones_like(xs)], -1)
+    uv = pixel_grid(width, height, torch.float64)
+    rays = torch.stack([(uv[..., 0] - K[0, 2]) / K[0, 0], (uv[..., 1] - K[1, 2]) / K[1, 1],
+                        torch.ones(height, width, dtype=torch.float64)], -1)
     R = pose_c2w.to(torch.float64).cpu()[:3, :3]
     R = R / torch.linalg.norm(R[:, 0])  # a Sim(3) pose's scale does not turn a direction
     world = rays @ R.T
@@ -127,8 +130,6 @@ class DirectionalBackground:
 
     @classmethod
     def from_state(cls, state: dict) -> DirectionalBackground:
-        import numpy as np
-
         background = cls(int(state["face_cells"]))
         colour_sum = torch.from_numpy(np.array(state["colour_sum"], np.float32)).reshape(-1, 3)
         weight = torch.from_numpy(np.array(state["weight"], np.float32)).reshape(-1)
