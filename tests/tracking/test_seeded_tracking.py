@@ -353,3 +353,73 @@ def test_a_turn_followed_by_rotation_alone_takes_the_device_position_and_is_no_j
     for n in held:  # and keep the odometry's orientation
         np.testing.assert_allclose(results[n].pose[:3, :3], truth[n][:3, :3], atol=1e-6)
 
+
+
+class _RestartingOdometry:
+    """Monocular odometry (constructed geometry, no images) that loses its map at LOST_AT and makes a new one at
+    MAP_AT, continuing its old world at a tenth of the old scale from where it was lost: the new map's first
+    frame keeps the lost pose as a placeholder (as visual odometry's re-initialisation reports it), the others are
+    re-estimated at the new scale."""
+
+    name = "restarting"
+    LOST_AT, REFERENCE, MAP_AT, NEW_SCALE = 30, 33, 38, 0.1
+
+    def __init__(self, truth: list[np.ndarray]) -> None:
+        self.truth, self.status = truth, "tracking"
+        self.lost_pose: np.ndarray | None = None
+
+    def _at(self, n: int) -> np.ndarray:
+        """The odometry's pose of frame n: the old world at scale 0.5 before the loss, the new map after it."""
+        pose = self.truth[n].copy()
+        if n < self.LOST_AT:
+            pose[:3, 3] = 0.5 * self.truth[n][:3, 3]
+        else:
+            moved = self.truth[n][:3, 3] - self.truth[self.REFERENCE][:3, 3]
+            pose[:3, 3] = self.lost_pose[:3, 3] + self.NEW_SCALE * moved
+        return pose
+
+    def track(self, frame, intrinsics, motion_guess=None) -> TrackingResult:
+        n = frame.index
+        if n == self.LOST_AT:
+            self.lost_pose = self._at(n - 1)
+        events = [{"type": "initialized", "frames": [[0, np.eye(4).tolist()], [1, self._at(1).tolist()]]}] \
+            if n == 2 else []
+        if self.LOST_AT <= n < self.MAP_AT:
+            self.status = "initializing"
+            return TrackingResult(self.lost_pose.copy(), tracked=False)
+        if n == self.MAP_AT:
+            self.status = "tracking"
+            placeholder = self._at(self.REFERENCE)
+            placeholder[:3, :3] = self.truth[self.REFERENCE - 1][:3, :3]
+            frames = [[self.REFERENCE - 1, placeholder.tolist()]]
+            frames += [[i, self._at(i).tolist()] for i in range(self.REFERENCE, n)]
+            events = [{"type": "initialized", "frames": frames}]
+        return TrackingResult(self._at(n), tracked=True, events=events, quality=1.0)
+
+    def keyframe_added(self, frame, pose) -> None:
+        pass
+
+
+@pytest.mark.parametrize("drift_correction", ["settle", "reanchor"])
+def test_a_new_map_after_a_loss_takes_the_device_scale_again(drift_correction: str) -> None:
+    """Seeded visual odometry that lost its map makes a new one at a new scale, in its old world, its first
+    frame a placeholder: the new map is scaled from the device's steps over the frames it re-estimated (not over
+    the placeholder's), so the output keeps moving with the device, no device jump is called, and the scale's
+    window is measured again."""
+    truth = _curve(80)
+    odometry = _RestartingOdometry(truth)
+    tracking = SeededTracking(odometry, DevicePoseConfig(drift_correction=drift_correction), monocular=True,
+                              publish_prior=lambda prior: None)
+    results = []
+    for n, pose in enumerate(truth):
+        frame = Frame(n, n / 30.0, np.zeros((4, 4, 3), np.uint8), pose=pose.copy())
+        results.append(tracking.track(frame, None))
+        if n % 3 == 0:
+            tracking.keyframe_added(frame, results[-1].pose)
+        if n == odometry.MAP_AT:
+            assert not tracking.scale_settled and tracking.scale_marks == []
+    assert not [e for r in results for e in r.events if e["type"] == "device_pose_jump"]
+    steps = np.linalg.norm(np.diff(np.stack([r.pose[:3, 3] for r in results]), axis=0), axis=1)
+    true_steps = np.linalg.norm(np.diff(np.stack([p[:3, 3] for p in truth]), axis=0), axis=1)
+    np.testing.assert_allclose(steps[odometry.MAP_AT:], true_steps[odometry.MAP_AT:], rtol=0.02)
+    assert all(np.all(np.isfinite(r.pose)) for r in results)

@@ -16,13 +16,15 @@ a depth camera's trajectory follows the depth camera. With them, the session's o
 - each keyframe's device pose goes to the pose graph as an absolute prior with the stated uncertainty
   (`device_poses.prior_translation`, `prior_rotation_deg`), inflated where the device and the tracked poses
   disagree by more (`prior_inflation`): loop closures weigh it against the odometry;
-- monocular: the odometry's scale drifts (`drift_correction`). By default (`reanchor`) it is measured again at
-  each keyframe over the last ones and the world re-anchored there: the trajectory keeps the device's scale, while
-  new keyframes and the map built before them differ in scale. With `settle` the initialisation's two-view scale
-  is measured again only until a full window of keyframes measured it, then kept: the map stays at one scale, and
-  the trajectory drifts from the device's as the odometry does until a loop closure weighs the priors. With
-  `pose_graph` the scale settles likewise, the priors leave each node's scale free, and the loop-closing stage
-  solves the graph every few priors (`drift_corrected`), moving past keyframes and their part of the map.
+- monocular: the odometry's scale drifts (`drift_correction`). Seeded visual odometry runs where the device's poses
+  disagree with the images, so the images decide the map's local scale: by default (`settle`) the
+  initialisation's two-view scale is measured again only until a full window of keyframes measured it, then kept:
+  the map stays at one scale, and the trajectory drifts from the device's as the odometry does until a loop closure
+  weighs the priors. With `reanchor` it is measured again at each keyframe over the last ones and the world
+  re-anchored there: the trajectory keeps the device's scale, while new keyframes and the map built before them
+  differ in scale. With `pose_graph` the scale settles likewise, the priors leave each node's scale free, and the
+  loop-closing stage solves the graph every few priors (`drift_corrected`), moving past keyframes and their part of
+  the map.
 
 The output lives in the device's world: the odometry's world is aligned to the device pose of its first frame
 (rigid with depth; for monocular visual odometry, also scaled by the device's baseline over its initialisation).
@@ -61,6 +63,8 @@ from worker.tracking.seeded_config import DevicePoseConfig
 
 log = logging.getLogger(__name__)
 
+# Frames kept (output and device pose) while a monocular odometry initialises, to anchor its world at.
+MAX_WAITING_FRAMES = 300
 # Log-scale standard deviation of a device prior: device poses are metric.
 PRIOR_LOG_SCALE_SIGMA = 1e-3
 # ... where the pose graph corrects a monocular odometry's drift: a device pose places its keyframe but says nothing
@@ -98,7 +102,8 @@ class SeededTracking:
         self.last_pose: np.ndarray | None = None  # output of the last frame
         self.previous_pose: np.ndarray | None = None  # output of the frame before
         self.last_tracked = False  # whether the last output came from the odometry
-        # (output, device pose) of the frames before the odometry has a world (monocular initialisation)
+        # (output, device pose) of the frames while the odometry has no world (monocular initialisation, also after
+        # it lost its map and starts a new one): its world is anchored at one of them when it is made
         self.waiting: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.skip_next_prior = False
         # (device position, odometry position) of the last keyframes since a jump: the monocular scale's measure
@@ -159,8 +164,10 @@ class SeededTracking:
             pose = self.correction @ device
         if from_odometry and self.last_tracked and device_motion is not None and result.translation_measured:
             events += self._check_jump(frame.index, device, device_motion, relative(self.last_pose, pose))
-        if self.monocular and self.alignment is None:
+        if self.monocular and (self.alignment is None or self._waiting_for_world(initialized)):
             self.waiting[frame.index] = (pose.copy(), device)
+            while len(self.waiting) > MAX_WAITING_FRAMES:
+                del self.waiting[next(iter(self.waiting))]
         self.previous_pose, self.last_pose = self.last_pose, pose
         self.last_device, self.last_index, self.last_tracked = device, frame.index, from_odometry
         depth = None if result.depth is None or not from_odometry else result.depth * np.float32(self.scale)
@@ -297,24 +304,40 @@ class SeededTracking:
                  "rotation_deg": round(gap.rotation_deg, 3), "action": "prior dropped, device re-anchored"}]
 
     def _align_monocular(self, event: dict[str, Any], device: np.ndarray, odometry_pose: np.ndarray) -> None:
-        """Visual odometry made its map: its world is the reference frame's camera (identity pose) at an arbitrary
-        scale. Aligned to the reference frame's output so far, scaled by the device's baseline since it."""
+        """Visual odometry made its map: the first one's world is the reference frame's camera (identity pose) at
+        an arbitrary scale, aligned to the reference frame's output so far and scaled by the device's baseline
+        since it. A new map after a loss may continue the odometry's old world, its first frames holding a
+        placeholder pose: it is scaled by the median of the device's over the odometry's steps between the frames
+        it re-estimated and aligned at the last of them. Either way the scale's window starts again (a new map's
+        scale is a new two-view guess)."""
         frames = {int(i): np.asarray(p, np.float64) for i, p in event.get("frames", [])}
         reference = next((i for i, p in frames.items() if np.allclose(p, np.eye(4), atol=1e-9)), None)
-        if reference is None or reference not in self.waiting:
-            reference = min(self.waiting) if self.waiting else None
-        if reference is None:
-            anchor, anchor_device = (self.last_pose, self.last_device) if self.last_pose is not None else (
-                self.correction @ device, device)
+        shared = sorted(i for i in frames if i in self.waiting)
+        if reference in self.waiting or not shared:
+            if reference in self.waiting:
+                anchor, anchor_device = self.waiting[reference]
+            elif self.last_pose is not None and self.last_device is not None:
+                anchor, anchor_device = self.last_pose, self.last_device
+            else:
+                anchor, anchor_device = self.correction @ device, device
+            odometry_anchor = frames.get(reference, np.eye(4))
+            baseline = float(np.linalg.norm(relative(anchor_device, device)[:3, 3]))
+            travelled = float(np.linalg.norm(relative(odometry_anchor, odometry_pose)[:3, 3]))
+            self.scale = baseline / travelled if baseline > 1e-6 and travelled > 1e-9 else 1.0
         else:
-            anchor, anchor_device = self.waiting[reference]
-        baseline = float(np.linalg.norm(relative(anchor_device, device)[:3, 3]))
-        odometry_anchor = frames.get(reference, np.eye(4))
-        travelled = float(np.linalg.norm(relative(odometry_anchor, odometry_pose)[:3, 3]))
-        self.scale = baseline / travelled if baseline > 1e-6 and travelled > 1e-9 else 1.0
+            reference = shared[-1]
+            anchor, odometry_anchor = self.waiting[reference][0], frames[reference]
+            devices = [self.waiting[i][1] for i in shared] + [device]
+            odometries = [frames[i] for i in shared] + [odometry_pose]
+            ratios = [float(np.linalg.norm(relative(d0, d1)[:3, 3]) / np.linalg.norm(relative(o0, o1)[:3, 3]))
+                      for d0, d1, o0, o1 in zip(devices, devices[1:], odometries, odometries[1:])
+                      if np.linalg.norm(relative(o0, o1)[:3, 3]) > 1e-9]
+            ratios = [r for r in ratios if r > 1e-6]
+            self.scale = float(np.median(ratios)) if ratios else self.scale
         self.measured_scale = self.scale
         self.alignment = anchor @ np.linalg.inv(_scaled(odometry_anchor, self.scale))
         self.waiting = {}
+        self.scale_marks, self.scale_settled = [], False
         log.info("seeded visual odometry: world aligned at frame %s, %.4f units per odometry unit", reference,
                  self.scale)
 
