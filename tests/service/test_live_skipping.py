@@ -4,6 +4,8 @@ asks for every frame gets a pose for each, however late."""
 
 from __future__ import annotations
 
+import time
+
 import cv2
 import httpx
 import msgpack
@@ -28,14 +30,16 @@ def stack():
         yield local
 
 
-def _stream_burst(stack: LocalStack, body: dict) -> tuple[str, dict[int, str]]:
-    """Send FRAMES frames at once; returns the session id and each seq's result type (pose or skipped)."""
+def _stream_burst(stack: LocalStack, body: dict, every_s: float = 0.0) -> tuple[str, dict[int, str]]:
+    """Send FRAMES frames at once (or one every `every_s`); returns the session id and each seq's result type (pose
+    or skipped)."""
     with httpx.Client(base_url=stack.base_url, timeout=30) as api:
         sid = api.post("/v1/sessions", json=body).json()["id"]
     results: dict[int, str] = {}
     with connect(f"{stack.ws_url}/v1/sessions/{sid}/stream", open_timeout=20) as ws:
         for seq in range(FRAMES):
             ws.send(msgpack.packb({"type": "frame", "seq": seq, "timestamp": seq / 30.0, "image": JPEG}))
+            time.sleep(every_s)
 
         def record(message: dict) -> bool:
             if message["type"] in ("pose", "skipped"):
@@ -53,16 +57,31 @@ def test_a_stream_the_worker_cannot_keep_up_with_skips_old_frames_with_a_message
     skipped = sorted(s for s, kind in results.items() if kind == "skipped")
     assert skipped, "the worker fell behind, yet no frame was skipped"
     assert results[0] == "pose" and results[FRAMES - 1] == "pose"  # the first frame and the newest are tracked
-    run = longest = 0
-    for seq in range(FRAMES):
-        run = run + 1 if results[seq] == "skipped" else 0
-        longest = max(longest, run)
-    assert longest <= 3
+    assert _longest_skipped_run(results) <= 3
     with httpx.Client(base_url=stack.base_url, timeout=30) as api:
         session = api.get(f"/v1/sessions/{sid}").json()
     assert session["frames_skipped"] == len(skipped)
     assert session["frames_processed"] == FRAMES - len(skipped)
     assert session["skip_frames"] is True and session["tracking_state"] == "tracking"
+
+
+def _longest_skipped_run(results: dict[int, str]) -> int:
+    run = longest = 0
+    for seq in range(FRAMES):
+        run = run + 1 if results[seq] == "skipped" else 0
+        longest = max(longest, run)
+    return longest
+
+
+def test_frames_skipped_in_a_row_span_no_more_time_than_the_limit():
+    """A stream of frames 50 ms apart (a 20 frames/s camera) that the worker falls behind: frames are skipped, but
+    never two in a row, as the second would have arrived 100 ms after the last tracked frame, over the 80 ms the
+    worker allows (`FLASHMONO_MAX_SKIPPED_SPAN_MS`): the motion across a gap grows with its time."""
+    env = {**WORKER_ENV, "FLASHMONO_MAX_CONSECUTIVE_SKIPS": "5", "FLASHMONO_MAX_SKIPPED_SPAN_MS": "80"}
+    with LocalStack(workers=1, worker_env=env) as local:
+        _, results = _stream_burst(local, {"name": "live", "skip_frames": True}, every_s=0.05)
+    assert "skipped" in results.values(), "the worker fell behind, yet no frame was skipped"
+    assert _longest_skipped_run(results) == 1
 
 
 def test_a_session_by_default_gets_a_pose_for_every_frame(stack):

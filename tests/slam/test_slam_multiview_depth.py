@@ -55,7 +55,8 @@ def test_posed_rgb_keyframes_are_mapped_from_multiview_depth(posed_rgb) -> None:
 
 def test_stereo_keyframes_are_pruned_where_sensor_keyframes_are_not(posed_rgb) -> None:
     """The rgbd preset keeps pruning off (it cut holes in sensor maps); a session whose keyframe depth comes from
-    multi-view stereo prunes (`prune_multiview`), restored from a snapshot too, unless the config says no."""
+    multi-view stereo prunes (`prune_multiview`) and keeps a background behind its map (`background`), restored
+    from a snapshot too, unless the config says no; a sensor-depth session does neither."""
     frames, truth, intr = posed_rgb
 
     def prunes(system: SlamSystem) -> bool:
@@ -64,17 +65,18 @@ def test_stereo_keyframes_are_pruned_where_sensor_keyframes_are_not(posed_rgb) -
 
     stereo = SlamSystem(_config(), intr)
     assert not prunes(stereo)  # nothing known about the session's depth before its first frame
+    assert not stereo.backend.map.keeps_background
     stereo.push(frames[0])
-    assert stereo.depth_source == "mvs" and prunes(stereo)
+    assert stereo.depth_source == "mvs" and prunes(stereo) and stereo.backend.map.keeps_background
     restored = SlamSystem.restore(stereo.snapshot())
-    assert prunes(restored)
+    assert prunes(restored) and restored.backend.map.keeps_background
     sensor = SlamSystem(_config(), intr)
     sensor.push(dataclasses.replace(frames[0], depth=truth[0]))
-    assert sensor.depth_source == "sensor" and not prunes(sensor)
+    assert sensor.depth_source == "sensor" and not prunes(sensor) and not sensor.backend.map.keeps_background
     declined = SlamSystem(_config().model_copy(update={"mapping": _config().mapping.model_copy(
-        update={"prune_multiview": False})}), intr)
+        update={"prune_multiview": False, "background": False})}), intr)
     declined.push(frames[0])
-    assert declined.depth_source == "mvs" and not prunes(declined)
+    assert declined.depth_source == "mvs" and not prunes(declined) and not declined.backend.map.keeps_background
     for system in (stereo, restored, sensor, declined):
         system.close()
 

@@ -63,7 +63,6 @@ def build_gaussian_map(cfg: MappingConfig, device: str):
         voxel_cap=cfg.voxel_cap,
         final_refine_budget_s=cfg.final_refine_budget_s or None,
         hole_closing=HoleClosingSettings(margin=cfg.hole_margin) if cfg.close_holes else None,
-        background=cfg.background,
         device=device,
     ))
 

@@ -71,10 +71,13 @@ class MappingStage(QueuedStage):
 
     def use_multiview_depth(self) -> None:
         """The session's keyframe depth comes from multi-view stereo: prune new keyframes' views when
-        `prune_multiview` asks for it (see MappingConfig)."""
-        if self.cfg.prune_multiview:
-            with self.lock:
+        `prune_multiview` asks for it, and keep a background behind the map when `background` does (see
+        MappingConfig)."""
+        with self.lock:
+            if self.cfg.prune_multiview:
                 self.map.config.thresholds = fusion_thresholds(self.cfg, prune=True)
+            if self.cfg.background:
+                self.map.keep_background()
 
     def lag(self) -> tuple[int, float]:
         """(keyframes waiting to be mapped, seconds the oldest of them has waited)."""

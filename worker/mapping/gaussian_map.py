@@ -194,6 +194,17 @@ class GaussianMap:
         return self._keyframes[kf_id].pose.clone()
 
     # -- updates -----------------------------------------------------------------------------------------------
+    @property
+    def keeps_background(self) -> bool:
+        """Whether renders and refinement composite the map's background behind the surfels."""
+        return self._background is not None
+
+    def keep_background(self) -> None:
+        """Keep a background behind the map from now on (worker.mapping.background), as `MapConfig.background`
+        does from the start; keyframes already fused add nothing to it."""
+        if self._background is None:
+            self._background = DirectionalBackground()
+
     def add_keyframe(self, kf_id: int, pose_c2w: torch.Tensor, K: torch.Tensor, image: torch.Tensor,
                      surfels_cam: Surfels, depth: torch.Tensor | None = None) -> FusionStats:
         """Fuse a keyframe's camera-frame surfels into the map.
@@ -504,7 +515,7 @@ class GaussianMap:
         voxel_size = state.get("voxel_size")
         self._voxel_size = None if voxel_size is None else float(voxel_size)
         background = state.get("background")
-        if self._background is not None and background is not None:
+        if background is not None:  # the session kept one (a stereo session's map, MapConfig or keep_background)
             self._background = DirectionalBackground.from_state(background)
         self._archive_old_images()
 
