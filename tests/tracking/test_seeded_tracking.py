@@ -201,17 +201,26 @@ def _curve(steps: int = 80) -> list[np.ndarray]:
     return truth
 
 
-def _track_drifting(truth: list[np.ndarray], config: DevicePoseConfig, publish_prior=None
-                    ) -> tuple[SeededTracking, list[TrackingResult]]:
-    """The scale-drifting odometry seeded with the true poses, a keyframe every third frame."""
-    tracking = SeededTracking(_ScaleDriftingOdometry(truth), config, monocular=True, publish_prior=publish_prior)
+def _track_seeded(odometry, truth: list[np.ndarray], config: DevicePoseConfig, publish_prior=None,
+                  after_frame=None) -> tuple[SeededTracking, list[TrackingResult]]:
+    """A constructed monocular odometry seeded with the true poses, a keyframe every third frame;
+    `after_frame(n, tracking)` looks at the tracker after each frame."""
+    tracking = SeededTracking(odometry, config, monocular=True, publish_prior=publish_prior)
     results = []
     for n, pose in enumerate(truth):
         frame = Frame(n, n / 30.0, np.zeros((4, 4, 3), np.uint8), pose=pose.copy())
         results.append(tracking.track(frame, None))
         if n % 3 == 0:
             tracking.keyframe_added(frame, results[-1].pose)
+        if after_frame is not None:
+            after_frame(n, tracking)
     return tracking, results
+
+
+def _track_drifting(truth: list[np.ndarray], config: DevicePoseConfig, publish_prior=None
+                    ) -> tuple[SeededTracking, list[TrackingResult]]:
+    """The scale-drifting odometry seeded with the true poses, a keyframe every third frame."""
+    return _track_seeded(_ScaleDriftingOdometry(truth), truth, config, publish_prior)
 
 
 @pytest.mark.parametrize("scale_keyframes", [8, 0])
@@ -408,16 +417,15 @@ def test_a_new_map_after_a_loss_takes_the_device_scale_again(drift_correction: s
     window is measured again."""
     truth = _curve(80)
     odometry = _RestartingOdometry(truth)
-    tracking = SeededTracking(odometry, DevicePoseConfig(drift_correction=drift_correction), monocular=True,
-                              publish_prior=lambda prior: None)
-    results = []
-    for n, pose in enumerate(truth):
-        frame = Frame(n, n / 30.0, np.zeros((4, 4, 3), np.uint8), pose=pose.copy())
-        results.append(tracking.track(frame, None))
-        if n % 3 == 0:
-            tracking.keyframe_added(frame, results[-1].pose)
+    window_at_new_map = []
+
+    def look(n: int, tracking: SeededTracking) -> None:
         if n == odometry.MAP_AT:
-            assert not tracking.scale_settled and tracking.scale_marks == []
+            window_at_new_map.append((tracking.scale_settled, len(tracking.scale_marks)))
+
+    _, results = _track_seeded(odometry, truth, DevicePoseConfig(drift_correction=drift_correction),
+                               lambda prior: None, look)
+    assert window_at_new_map == [(False, 0)]
     assert not [e for r in results for e in r.events if e["type"] == "device_pose_jump"]
     steps = np.linalg.norm(np.diff(np.stack([r.pose[:3, 3] for r in results]), axis=0), axis=1)
     true_steps = np.linalg.norm(np.diff(np.stack([p[:3, 3] for p in truth]), axis=0), axis=1)
