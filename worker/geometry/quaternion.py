@@ -27,22 +27,25 @@ def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
     Uses the largest of the four candidate denominators for every matrix, so it is stable near 180 degrees.
     """
     m = R.reshape(-1, 3, 3)
-    m00, m11, m22 = m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]
+    m00, m01, m02 = m[:, 0, 0], m[:, 0, 1], m[:, 0, 2]
+    m10, m11, m12 = m[:, 1, 0], m[:, 1, 1], m[:, 1, 2]
+    m20, m21, m22 = m[:, 2, 0], m[:, 2, 1], m[:, 2, 2]
     candidates = torch.stack(
         [1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], dim=-1
     )
     best = candidates.argmax(dim=-1)
-    s = torch.sqrt(candidates.gather(1, best[:, None]).squeeze(1).clamp_min(1e-12)) * 2  # 4 * |component|
-    q = torch.empty(m.shape[0], 4, dtype=R.dtype, device=R.device)
-    b0, b1, b2, b3 = (best == i for i in range(4))
-    q[b0] = torch.stack([0.25 * s[b0], (m[b0, 2, 1] - m[b0, 1, 2]) / s[b0],
-                         (m[b0, 0, 2] - m[b0, 2, 0]) / s[b0], (m[b0, 1, 0] - m[b0, 0, 1]) / s[b0]], -1)
-    q[b1] = torch.stack([(m[b1, 2, 1] - m[b1, 1, 2]) / s[b1], 0.25 * s[b1],
-                         (m[b1, 0, 1] + m[b1, 1, 0]) / s[b1], (m[b1, 0, 2] + m[b1, 2, 0]) / s[b1]], -1)
-    q[b2] = torch.stack([(m[b2, 0, 2] - m[b2, 2, 0]) / s[b2], (m[b2, 0, 1] + m[b2, 1, 0]) / s[b2],
-                         0.25 * s[b2], (m[b2, 1, 2] + m[b2, 2, 1]) / s[b2]], -1)
-    q[b3] = torch.stack([(m[b3, 1, 0] - m[b3, 0, 1]) / s[b3], (m[b3, 0, 2] + m[b3, 2, 0]) / s[b3],
-                         (m[b3, 1, 2] + m[b3, 2, 1]) / s[b3], 0.25 * s[b3]], -1)
+    s = torch.sqrt(candidates.clamp_min(1e-12)) * 2  # 4 * |component| for each candidate denominator
+    # every candidate's quaternion (without masked indexing, which costs more than the arithmetic), then the best
+    wx, wy, wz = m21 - m12, m02 - m20, m10 - m01
+    xy, xz, yz = m01 + m10, m02 + m20, m12 + m21
+    numerators = torch.stack([
+        torch.stack([0.25 * s[:, 0] ** 2, wx, wy, wz], -1),
+        torch.stack([wx, 0.25 * s[:, 1] ** 2, xy, xz], -1),
+        torch.stack([wy, xy, 0.25 * s[:, 2] ** 2, yz], -1),
+        torch.stack([wz, xz, yz, 0.25 * s[:, 3] ** 2], -1),
+    ], 1)  # [N, candidate, wxyz], each to be divided by its s
+    pick = best[:, None, None].expand(-1, 1, 4)
+    q = numerators.gather(1, pick).squeeze(1) / s.gather(1, best[:, None])
     q = quat_normalize(q)
     q = torch.where(q[:, :1] < 0, -q, q)
     return q.reshape(R.shape[:-2] + (4,))

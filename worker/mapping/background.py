@@ -17,8 +17,11 @@ camera's position.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from worker.geometry import pixel_grid
 
@@ -102,17 +105,35 @@ class DirectionalBackground:
     def image(self, pose_c2w: torch.Tensor, K: torch.Tensor, width: int, height: int,
               device: torch.device | str = "cpu") -> torch.Tensor | None:
         """[H, W, 3] background colours a camera sees (black in directions outside the background); None while the
-        background is empty."""
+        background is empty. Looked up on a grid of pixels about half a cube cell apart (a cell spans several
+        pixels of a keyframe-sized view) and scaled up bilinearly: refinement asks for every view it renders."""
         seen = self._background_cells()
         if not bool(seen.any()):
             return None
+        K = K.to(torch.float64).cpu()
+        cell_pixels = float(K[0, 0]) * (math.pi / 2) / self.face_cells
+        step = max(1, int(cell_pixels / 2))
+        if step == 1:
+            return self._lookup(seen, pose_c2w, K, width, height).to(device)
+        coarse_width, coarse_height = -(-width // step), -(-height // step)
+        coarse_K = K.clone()
+        coarse_K[:2, :2] /= step
+        coarse_K[:2, 2] = (K[:2, 2] + 0.5) / step - 0.5  # pixel centres stay where they were
+        coarse = self._lookup(seen, pose_c2w, coarse_K, coarse_width, coarse_height)
+        fine = F.interpolate(coarse.permute(2, 0, 1).unsqueeze(0), size=(coarse_height * step, coarse_width * step),
+                             mode="bilinear", align_corners=False)[0].permute(1, 2, 0)
+        return fine[:height, :width].contiguous().to(device)
+
+    def _lookup(self, seen: torch.Tensor, pose_c2w: torch.Tensor, K: torch.Tensor, width: int, height: int
+                ) -> torch.Tensor:
+        """[H, W, 3] background colours at the pixel centres of a camera, bilinear between the four nearest cell
+        centres of the face, over the cells that belong to the background (`seen`)."""
         colour = self.colour_sum / self.weight.clamp_min(1e-6).unsqueeze(-1)
         n = self.face_cells
         face, row, col = cube_coordinates(pixel_directions(pose_c2w, K, width, height), n)
         row0, col0 = torch.floor(row), torch.floor(col)
         total = torch.zeros(height, width, 3, dtype=torch.float32)
         norm = torch.zeros(height, width, dtype=torch.float32)
-        # bilinear between the four nearest cell centres of the face, over the cells some keyframe has seen
         for dr in (0, 1):
             for dc in (0, 1):
                 weight = ((1 - (row - row0 - dr).abs()) * (1 - (col - col0 - dc).abs())).to(torch.float32)
@@ -122,7 +143,7 @@ class DirectionalBackground:
                 weight = weight * seen[cell]
                 total += weight.unsqueeze(-1) * colour[cell]
                 norm += weight
-        return (total / norm.clamp_min(1e-6).unsqueeze(-1)).to(device)
+        return total / norm.clamp_min(1e-6).unsqueeze(-1)
 
     def state_dict(self) -> dict:
         return {"face_cells": self.face_cells, "colour_sum": self.colour_sum.numpy(), "weight": self.weight.numpy(),
