@@ -9,7 +9,8 @@ FLASHMONO_MAX_FRAME_SIDE (640), FLASHMONO_MAX_FRAME_ATTEMPTS (2), FLASHMONO_MEMO
 FLASHMONO_IDLE_TIMEOUT_S (600; 0: never), FLASHMONO_TRANSIENT_TTL_S (3600), FLASHMONO_RETENTION_S (0: kept),
 FLASHMONO_BLOB_DIR (none), FLASHMONO_ARCHIVE_AFTER_S (3600), FLASHMONO_SKIP_AFTER_MS (100: a frame that waited
 longer while a newer one is waiting is skipped, newest first wins; 0: never), FLASHMONO_MAX_CONSECUTIVE_SKIPS (5),
-FLASHMONO_MAX_SKIPPED_SPAN_MS (170: no frame is skipped that arrived longer after the last tracked one),
+FLASHMONO_MAX_SKIPPED_SPAN_MS (170: after the first, no frame in a row is skipped that arrived longer after the last
+tracked one),
 FLASHMONO_TRACKING_SIDE (0: sessions that name no tracking resolution track at their working size),
 FLASHMONO_SWITCH_INTERVAL_MS (1).
 """
@@ -68,8 +69,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="frames skipped in a row at most (tracking keeps its continuity)")
     parser.add_argument("--max-skipped-span-ms", type=float,
                         default=float(env("FLASHMONO_MAX_SKIPPED_SPAN_MS", "170")),
-                        help="no frame is skipped that arrived more than this after the last tracked frame (the "
-                             "motion across a gap grows with its time: at 10 frames/s, one frame in a row)")
+                        help="after the first, no frame in a row is skipped that arrived more than this after the "
+                             "last tracked frame (the motion across a gap grows with its time: at 10 frames/s, one in "
+                             "a row)")
     parser.add_argument("--tracking-side", type=int, default=int(env("FLASHMONO_TRACKING_SIDE", "0")),
                         help="sessions that name no tracking resolution track frames at most this long a side "
                              "(0: at their working size)")

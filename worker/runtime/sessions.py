@@ -101,8 +101,9 @@ class RuntimeConfig:
     archive_after_s: float = 3600.0  # finished sessions move to the blob store this long after finishing
     # Live tracking: a frame older than this (since the gateway queued it) is skipped when a newer one is waiting,
     # newest first wins (0: never skip); at most `max_consecutive_skips` in a row, so tracking keeps its continuity,
-    # and none that arrived more than `max_skipped_span_ms` after the last tracked frame: the motion across a gap
-    # grows with its time, not its frames (30 frames/s: five in a row; a 10 frames/s drive: one, 1.7 m, not 5 m).
+    # and after the first none that arrived more than `max_skipped_span_ms` after the last tracked frame: the motion
+    # across a gap grows with its time, not its frames (30 frames/s: five in a row; a 10 frames/s drive or a 5
+    # frames/s browser: one, so a worker behind the camera still sheds half its frames).
     skip_after_ms: float = 100.0
     max_consecutive_skips: int = 5
     max_skipped_span_ms: float = 170.0
@@ -351,9 +352,9 @@ class SessionRunner(threading.Thread):
     # --- live tracking ------------------------------------------------------------------------------------------
     def _should_skip(self, entry_id: bytes, fields: dict[bytes, bytes], newest_frame: bytes | None) -> bool:
         """Newest first wins: a frame that waited longer than `skip_after_ms` while a newer frame is waiting is
-        skipped (never the session's first frame, a frame already counted, more than a few in a row or over more
-        than `max_skipped_span_ms` since the last tracked frame, or while the engine needs every frame: judging
-        device poses over the first frames, worker.tracking.pose_choice)."""
+        skipped (never the session's first frame, a frame already counted, more than a few in a row, a second one
+        in a row that arrived more than `max_skipped_span_ms` after the last tracked frame, or while the engine
+        needs every frame: judging device poses over the first frames, worker.tracking.pose_choice)."""
         if fields.get(b"kind", b"frame") != b"frame":
             return False
         limit = self.config.skip_after_ms if self._session.get("skip_frames") == "1" else 0
@@ -363,7 +364,8 @@ class SessionRunner(threading.Thread):
         span_ms = 0.0 if self._last_tracked_arrival_ms is None else arrival_ms - self._last_tracked_arrival_ms
         if (limit <= 0 or newest_frame is None or entry_id == newest_frame or not self._done_seqs
                 or self._consecutive_skips >= self.config.max_consecutive_skips
-                or span_ms > self.config.max_skipped_span_ms or int(fields[b"seq"]) in self._done_seqs
+                or (self._consecutive_skips > 0 and span_ms > self.config.max_skipped_span_ms)
+                or int(fields[b"seq"]) in self._done_seqs
                 or time.time() * 1000.0 - arrival_ms <= limit):
             self._consecutive_skips = 0
             self._last_tracked_arrival_ms = arrival_ms
