@@ -6,7 +6,11 @@ other mapped. This reads each folder's metrics.json (`held_out`: the index and P
 captured and exposure-normalised) and prints, per run, its own figure and the mean over the frames all the runs
 held out.
 
-Usage: python -m bench held_out -- RUN_DIR RUN_DIR [...]
+A run may carry a label (`LABEL=RUN_DIR`): runs of one label are repeats of one mode (other
+`mapping.final_refine_seed`s, say), and each label then gets the mean and spread of its runs on the common frames,
+so that a difference between two modes can be read against how far one mode moves by chance.
+
+Usage: python -m bench held_out -- [LABEL=]RUN_DIR [LABEL=]RUN_DIR [...]
 """
 
 from __future__ import annotations
@@ -29,11 +33,29 @@ def common_scores(runs: dict[str, dict]) -> tuple[list[int], dict[str, dict[str,
     return common, means
 
 
+def group_summary(means: dict[str, dict[str, float]], labels: dict[str, str]) -> dict[str, dict[str, float]]:
+    """Per label: the mean, sample standard deviation (0 for one run), minimum and maximum of its runs' common-frame
+    PSNR (as captured), and how many runs; `labels`: run name -> label."""
+    out = {}
+    for label in dict.fromkeys(labels.values()):
+        values = [means[name]["psnr"] for name, of in labels.items() if of == label]
+        out[label] = {"mean": statistics.mean(values), "std": statistics.stdev(values) if len(values) > 1 else 0.0,
+                      "min": min(values), "max": max(values), "runs": len(values)}
+    return out
+
+
+def _labelled(argument: str) -> tuple[str, Path]:
+    label, sep, folder = argument.partition("=")
+    return (label, Path(folder)) if sep and label else (argument, Path(argument))
+
+
 def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench held_out", description=__doc__.splitlines()[0])
-    parser.add_argument("runs", type=Path, nargs="+", help="flashmono run output folders (metrics.json)")
+    parser.add_argument("runs", nargs="+", help="flashmono run output folders (metrics.json), each as LABEL=DIR to "
+                        "group repeats of one mode")
     args = parser.parse_args(argv)
-    metrics = {str(folder): json.loads((folder / "metrics.json").read_text()) for folder in args.runs}
+    labels = {str(folder): label for label, folder in map(_labelled, args.runs)}
+    metrics = {name: json.loads((Path(name) / "metrics.json").read_text()) for name in labels}
     missing = [name for name, m in metrics.items() if "held_out" not in m]
     if missing:
         print(f"no per-frame scores (held_out) in: {', '.join(missing)} (runs before this field was written)")
@@ -44,4 +66,8 @@ def main(argv: list[str]) -> int:
         print(f"  {name}: mode {m.get('mode')}, own {m['eval_frames']} frames {m['psnr']:.2f} / "
               f"{m['psnr_normalised']:.2f} dB; common frames {means[name]['psnr']:.2f} / "
               f"{means[name]['psnr_normalised']:.2f} dB (as captured / normalised)")
+    if len(set(labels.values())) < len(labels):
+        for label, g in group_summary(means, labels).items():
+            print(f"  {label}: {g['runs']} runs, common frames {g['mean']:.3f} +- {g['std']:.3f} dB "
+                  f"(min {g['min']:.2f}, max {g['max']:.2f})")
     return 0

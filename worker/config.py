@@ -149,6 +149,9 @@ class MappingConfig(_Section):
     final_refine_passes: int = Field(
         0, ge=0, le=1000, description="refinement at finish(): passes over every keyframe whose image is held "
         "(window + archive), one iteration per keyframe per pass, in a seeded random order")
+    final_refine_seed: int = Field(
+        0, ge=0, description="seed of the final refinement's random view order (benchmarks vary it to measure how "
+        "far a figure moves with the order alone)")
     final_refine_budget_s: float = Field(
         25.0, ge=0, description="finish(): the final refinement stops once finish() has taken this many seconds "
         "(draining the stages included) whatever its passes (0 = no bound), so finishing a session stays bounded")

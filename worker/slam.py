@@ -216,7 +216,8 @@ class SlamSystem:
             if self.config.mapping.final_refine_passes:
                 budget = self.config.mapping.final_refine_budget_s  # counted from the start of finish(): drain too
                 left = None if not budget else max(0.0, budget - (time.perf_counter() - started))
-                self.backend.refine_all(self.config.mapping.final_refine_passes, budget_s=left)
+                self.backend.refine_all(self.config.mapping.final_refine_passes, budget_s=left,
+                                        seed=self.config.mapping.final_refine_seed)
         self.close()
         if self._started is not None:
             self.counters["wall_seconds"] = self._wall_offset + time.perf_counter() - self._started

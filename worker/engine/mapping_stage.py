@@ -168,13 +168,14 @@ class MappingStage(QueuedStage):
         self.busy_seconds += time.perf_counter() - start
         return True
 
-    def refine_all(self, passes: int, budget_s: float | None = None) -> None:
+    def refine_all(self, passes: int, budget_s: float | None = None, seed: int = 0) -> None:
         """The end-of-run refinement: every surfel against every keyframe image the map still holds, `passes`
-        times over those keyframes, for at most `budget_s` seconds (None: the map's configured bound)."""
+        times over those keyframes in an order drawn with `seed`, for at most `budget_s` seconds (None: the map's
+        configured bound)."""
         with self.lock, self.timings.measure("map_final_refine"):
             self._owed.clear()  # the whole map's refinement supersedes the keyframes' own
             if budget_s is None or budget_s > 0:
-                self.map.refine_global(passes * self.map.held_images, budget_s=budget_s)
+                self.map.refine_global(passes * self.map.held_images, seed=seed, budget_s=budget_s)
 
     # -- reads ---------------------------------------------------------------------------------------------------
     def render(self, pose_c2w: np.ndarray, K: torch.Tensor, width: int, height: int,
