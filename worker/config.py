@@ -149,6 +149,9 @@ class MappingConfig(_Section):
     final_refine_passes: int = Field(
         0, ge=0, le=1000, description="refinement at finish(): passes over every keyframe whose image is held "
         "(window + archive), one iteration per keyframe per pass, in a seeded random order")
+    final_refine_lr_end: float = Field(
+        1.0, gt=0, le=1, description="the final refinement's learning rates fall geometrically to this factor of "
+        "the keyframe refinement's over its iterations (1: constant)")
     final_refine_seed: int = Field(
         0, ge=0, description="seed of the final refinement's random view order (benchmarks vary it to measure how "
         "far a figure moves with the order alone)")

@@ -62,6 +62,7 @@ def build_gaussian_map(cfg: MappingConfig, device: str):
         archived_views_per_refine=cfg.archived_views_per_refine,
         voxel_cap=cfg.voxel_cap,
         final_refine_budget_s=cfg.final_refine_budget_s or None,
+        final_refine_lr_end=cfg.final_refine_lr_end,
         hole_closing=HoleClosingSettings(margin=cfg.hole_margin) if cfg.close_holes else None,
         device=device,
     ))

@@ -67,6 +67,9 @@ class MapConfig:
     voxel_finer: float = 1.5
     # refine_global stops after this many seconds whatever its iteration count (None = no bound).
     final_refine_budget_s: float | None = 25.0
+    # refine_global's learning rates fall geometrically to this factor of the settings' over its iterations
+    # (1 = constant), so its result depends less on the views it happened to see last.
+    final_refine_lr_end: float = 1.0
     # refine_global first closes the holes of every held keyframe's widened view (close_holes); None = it does not.
     hole_closing: HoleClosingSettings | None = None
     # Renders and refinement show, behind the surfels, the colour keyframes saw in each world direction where the map
@@ -378,13 +381,15 @@ class GaussianMap:
         chunk = max(1, restart_every or 2 * len(held))
         generator = torch.Generator().manual_seed(seed)
         report = RefineReport()
-        for start in range(0, int(iterations), chunk):
+        total, lr_end = int(iterations), self.config.final_refine_lr_end
+        for start in range(0, total, chunk):
             if deadline is not None and time.perf_counter() >= deadline:
                 break
             order = [held[i] for i in torch.randperm(len(held), generator=generator).tolist()]
             trainable = torch.ones(len(self._surfels), dtype=torch.bool, device=self.device)
-            part = self._refine(trainable, order, min(chunk, int(iterations) - start), self._scene_scale(held),
-                                deadline)
+            count = min(chunk, total - start)
+            lr_factors = (lr_end ** (start / total), lr_end ** ((start + count) / total))
+            part = self._refine(trainable, order, count, self._scene_scale(held), deadline, lr_factors)
             report.losses += part.losses
             report.views += [held.index(order[i]) for i in part.views]
         return report
@@ -426,8 +431,9 @@ class GaussianMap:
         return sum(kf.held for kf in self._keyframes.values())
 
     def _refine(self, trainable: torch.Tensor, kf_ids: list[int], iterations: int, scene_scale: float,
-                deadline: float | None = None) -> RefineReport:
-        """Refine against the keyframes `kf_ids`, each seen with its exposure (with `refine.exposure`)."""
+                deadline: float | None = None, lr_factors: tuple[float, float] = (1.0, 1.0)) -> RefineReport:
+        """Refine against the keyframes `kf_ids`, each seen with its exposure (with `refine.exposure`), at the
+        learning rates scaled by `lr_factors` (worker.mapping.refine.refine_surfels)."""
         views = [self._keyframes[k].refine_view(self.config.refine.exposure) for k in kf_ids]
         if self._background is not None:
             for k, view in zip(kf_ids, views):
@@ -435,7 +441,7 @@ class GaussianMap:
                 view.background = self._background.image(kf.pose, kf.K, kf.width, kf.height, self.device)
         with torch.enable_grad():
             refined, report = refine_surfels(self._surfels, trainable, views, iterations, self.config.refine,
-                                             scene_scale, deadline)
+                                             scene_scale, deadline, lr_factors)
         keep = refined.opacities >= self.config.min_opacity
         self._surfels = refined.select(keep) if not bool(keep.all()) else refined
         return report

@@ -1,0 +1,35 @@
+"""The final refinement: its view order comes from `mapping.final_refine_seed` (one seed repeats, another differs);
+its learning rates decay to `mapping.final_refine_lr_end`."""
+
+import math
+
+import torch
+from mapping_scene import HEIGHT, WIDTH, camera_pose, intrinsics, psnr, view, voxelized_surfels
+
+from worker.config import MappingConfig
+from worker.engine.mapping_stage import MappingStage
+
+POSES = [camera_pose(0.0), camera_pose(0.12), camera_pose(0.24, 0.05), camera_pose(0.1, 0.12)]
+
+
+def _refined_render(seed: int, lr_end: float = 1.0) -> torch.Tensor:
+    config = MappingConfig(refine_keyframes=4, refine_iterations=1, voxel_cap=0, final_refine_lr_end=lr_end)
+    stage = MappingStage(config, threaded=False, max_backlog=4)
+    for kf, pose in enumerate(POSES):
+        stage.map.add_keyframe(kf, pose, intrinsics(), view(pose)["image"], voxelized_surfels(pose, kf),
+                               view(pose)["depth"])
+    stage.refine_all(passes=3, budget_s=math.inf, seed=seed)
+    return stage.map.render(POSES[1], intrinsics(), WIDTH, HEIGHT).rgb
+
+
+def test_the_seed_fixes_the_final_refinement():
+    first, again, other = _refined_render(0), _refined_render(0), _refined_render(5)
+    assert torch.equal(first, again)
+    assert not torch.allclose(first, other, atol=1e-6)
+
+
+def test_the_learning_rates_decay_to_the_configured_factor():
+    truth = view(POSES[1])["image"]
+    constant, decayed, again = _refined_render(0), _refined_render(0, lr_end=0.1), _refined_render(0, lr_end=0.1)
+    assert torch.equal(decayed, again) and not torch.allclose(decayed, constant, atol=1e-4)
+    assert psnr(decayed, truth) > 20 and psnr(constant, truth) > 20
