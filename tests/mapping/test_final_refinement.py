@@ -33,3 +33,19 @@ def test_the_learning_rates_decay_to_the_configured_factor():
     constant, decayed, again = _refined_render(0), _refined_render(0, lr_end=0.1), _refined_render(0, lr_end=0.1)
     assert torch.equal(decayed, again) and not torch.allclose(decayed, constant, atol=1e-4)
     assert psnr(decayed, truth) > 20 and psnr(constant, truth) > 20
+
+
+def test_a_time_bound_final_refinement_decays_by_time():
+    """With a deadline that will cut the refinement short, the factor follows the time spent: near the deadline it
+    reaches the end factor whatever the iterations done."""
+    import time
+
+    from worker.mapping.gaussian_map import GaussianMap, MapConfig
+
+    gmap = GaussianMap(MapConfig(final_refine_lr_end=0.01))
+    began = time.perf_counter()
+    by_iterations = gmap._final_lr_schedule(0, 100, began, None)
+    assert abs(by_iterations(50) - 0.1) < 1e-9 and by_iterations(0) == 1.0
+    by_time = gmap._final_lr_schedule(0, 100, began - 9.99, began + 0.01)  # 99.9 % of the time spent
+    assert by_time(0) < 0.0105
+    assert GaussianMap(MapConfig())._final_lr_schedule(0, 100, began, None) is None

@@ -95,18 +95,18 @@ def test_surfels_no_view_can_draw_stay_untouched_and_ssim_resolution_is_a_settin
                        settings=RefineSettings(ssim_downsample=0))
 
 
-def test_learning_rate_factors_scale_the_steps():
+def test_a_learning_rate_schedule_scales_the_steps():
     """A decay to a tiny factor moves the map less than constant rates, and more than tiny rates throughout; a
     non-positive factor is refused."""
     _, noisy = perturbed_map(torch.Generator().manual_seed(2))
     views = make_views([camera_pose(), camera_pose(0.1, 0.0, 0.05)])
     everything = torch.ones(len(noisy), dtype=torch.bool)
 
-    def moved(factors: tuple[float, float]) -> float:
-        refined, _ = refine_surfels(noisy, everything, views, iterations=8, lr_factors=factors)
+    def moved(schedule) -> float:
+        refined, _ = refine_surfels(noisy, everything, views, iterations=8, lr_schedule=schedule)
         return float((refined.colors - noisy.colors).abs().mean())
 
-    constant, decayed, tiny = moved((1.0, 1.0)), moved((1.0, 1e-4)), moved((1e-4, 1e-4))
+    constant, decayed, tiny = moved(None), moved(lambda it: 1e-4 ** (it / 8)), moved(lambda it: 1e-4)
     assert tiny < 0.01 * constant and tiny < decayed < constant, (tiny, decayed, constant)
     with pytest.raises(ValueError, match="positive"):
-        refine_surfels(noisy, everything, views, iterations=2, lr_factors=(1.0, 0.0))
+        refine_surfels(noisy, everything, views, iterations=2, lr_schedule=lambda it: 0.0)

@@ -18,6 +18,7 @@ from __future__ import annotations
 import bisect
 import math
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 
 import cv2
@@ -381,18 +382,35 @@ class GaussianMap:
         chunk = max(1, restart_every or 2 * len(held))
         generator = torch.Generator().manual_seed(seed)
         report = RefineReport()
-        total, lr_end = int(iterations), self.config.final_refine_lr_end
+        total, began = int(iterations), time.perf_counter()
         for start in range(0, total, chunk):
             if deadline is not None and time.perf_counter() >= deadline:
                 break
             order = [held[i] for i in torch.randperm(len(held), generator=generator).tolist()]
             trainable = torch.ones(len(self._surfels), dtype=torch.bool, device=self.device)
-            count = min(chunk, total - start)
-            lr_factors = (lr_end ** (start / total), lr_end ** ((start + count) / total))
-            part = self._refine(trainable, order, count, self._scene_scale(held), deadline, lr_factors)
+            schedule = self._final_lr_schedule(start, total, began, deadline)
+            part = self._refine(trainable, order, min(chunk, total - start), self._scene_scale(held), deadline,
+                                schedule)
             report.losses += part.losses
             report.views += [held.index(order[i]) for i in part.views]
         return report
+
+    def _final_lr_schedule(self, start: int, total: int, began: float, deadline: float | None
+                           ) -> Callable[[int], float] | None:
+        """The final refinement's learning-rate factor at step `it` of the chunk that begins at iteration `start` of
+        `total`: `final_refine_lr_end` to the power of the share of the refinement done, by iterations or, when
+        a `deadline` (perf_counter) will cut it short, by time, whichever is further."""
+        lr_end = self.config.final_refine_lr_end
+        if lr_end == 1.0:
+            return None
+
+        def factor(it: int) -> float:
+            done = (start + it) / total
+            if deadline is not None and deadline > began:
+                done = max(done, (time.perf_counter() - began) / (deadline - began))
+            return lr_end ** min(1.0, done)
+
+        return factor
 
     def close_holes(self, settings: HoleClosingSettings | None = None, deadline: float | None = None) -> int:
         """Close the holes of every held keyframe's view, widened past its border (worker.mapping.hole_closing),
@@ -431,9 +449,9 @@ class GaussianMap:
         return sum(kf.held for kf in self._keyframes.values())
 
     def _refine(self, trainable: torch.Tensor, kf_ids: list[int], iterations: int, scene_scale: float,
-                deadline: float | None = None, lr_factors: tuple[float, float] = (1.0, 1.0)) -> RefineReport:
+                deadline: float | None = None, lr_schedule: Callable[[int], float] | None = None) -> RefineReport:
         """Refine against the keyframes `kf_ids`, each seen with its exposure (with `refine.exposure`), at the
-        learning rates scaled by `lr_factors` (worker.mapping.refine.refine_surfels)."""
+        learning rates scaled by `lr_schedule` (worker.mapping.refine.refine_surfels)."""
         views = [self._keyframes[k].refine_view(self.config.refine.exposure) for k in kf_ids]
         if self._background is not None:
             for k, view in zip(kf_ids, views):
@@ -441,7 +459,7 @@ class GaussianMap:
                 view.background = self._background.image(kf.pose, kf.K, kf.width, kf.height, self.device)
         with torch.enable_grad():
             refined, report = refine_surfels(self._surfels, trainable, views, iterations, self.config.refine,
-                                             scene_scale, deadline, lr_factors)
+                                             scene_scale, deadline, lr_schedule)
         keep = refined.opacities >= self.config.min_opacity
         self._surfels = refined.select(keep) if not bool(keep.all()) else refined
         return report

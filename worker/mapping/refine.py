@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import torch
@@ -104,12 +105,12 @@ def refine_surfels(
     settings: RefineSettings | None = None,
     scene_scale: float = 1.0,
     deadline: float | None = None,
-    lr_factors: tuple[float, float] = (1.0, 1.0),
+    lr_schedule: Callable[[int], float] | None = None,
 ) -> tuple[Surfels, RefineReport]:
     """Optimise the surfels selected by `trainable` ([N] bool) against `views` (newest last) for `iterations` steps,
-    fewer when `time.perf_counter()` passes `deadline` (checked before each step). The learning rates are the
-    settings' times a factor going geometrically from `lr_factors[0]` at the first step to `lr_factors[1]` after
-    the last (a decay, for a pass whose end should not depend on the last views it saw).
+    fewer when `time.perf_counter()` passes `deadline` (checked before each step). With `lr_schedule`, step `it`
+    runs at the settings' learning rates times `lr_schedule(it)` (a decay, for a pass whose result should not
+    depend on the last views it saw).
 
     Returns the updated map (same order and size as `surfels`) and a report of the losses.
     """
@@ -142,7 +143,7 @@ def refine_surfels(
     order = list(range(len(views) - 1, -1, -1))  # newest first
     with _serial_torch_parallel_kernels():
         _optimise(params, fixed, views, depth_scales, order, optimizer, iterations, settings, report, deadline,
-                  lr_factors)
+                  lr_schedule)
 
     out = surfels.detach().clone()
     refined = params.surfels().detach()
@@ -170,17 +171,16 @@ def _median_depth(depth: torch.Tensor | None) -> torch.Tensor | None:
 def _optimise(params: _RawParams, fixed: Surfels, views: list[RefineView], depth_scales: list, order: list[int],
               optimizer: torch.optim.Optimizer, iterations: int, settings: RefineSettings,
               report: RefineReport, deadline: float | None = None,
-              lr_factors: tuple[float, float] = (1.0, 1.0)) -> None:
+              lr_schedule: Callable[[int], float] | None = None) -> None:
     """The Adam iterations (each renders one view of the window, round robin over `order`), until `deadline`."""
     base_lrs = [group["lr"] for group in optimizer.param_groups]
-    first, last = lr_factors
-    if first <= 0 or last <= 0:
-        raise ValueError(f"learning-rate factors must be positive, got {lr_factors}")
     for it in range(iterations):
         if deadline is not None and time.perf_counter() >= deadline:
             break
-        if (first, last) != (1.0, 1.0):
-            factor = first * (last / first) ** (it / iterations)
+        if lr_schedule is not None:
+            factor = float(lr_schedule(it))
+            if not factor > 0:
+                raise ValueError(f"a learning-rate factor must be positive, got {factor} at step {it}")
             for group, base in zip(optimizer.param_groups, base_lrs):
                 group["lr"] = base * factor
         index = order[it % len(order)]
