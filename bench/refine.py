@@ -4,13 +4,17 @@ Keyframes come from tests/data/icl_mini (ground-truth poses and depth; surfels f
 then adaptive voxelization), so the map is realistic in size and overlap. Reports per keyframe: surfels before and
 after voxelization, add_keyframe (prune + fuse) time, refine(20) time over the last K keyframes, and the newest
 keyframe's PSNR before and after refinement. Usage: python -m bench refine (defaults) or
-python -m bench.refine [--keyframes 6] [--stride 4] [--iterations 20] [--window 5]
+python -m bench.refine [--keyframes 6] [--stride 4] [--iterations 20] [--window 5] [--final 0]
+
+With `--final N`, the end-of-run pass (`GaussianMap.refine_global`, N iterations, no time bound, the engine's
+learning-rate decay to 0.3) follows, and its time and the keyframes' mean PSNR before and after are reported.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import statistics
 import time
@@ -56,6 +60,7 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--window", type=int, default=5)
     parser.add_argument("--threads", type=int, default=min(2, os.cpu_count() or 1))
     parser.add_argument("--device", default="cpu", help="cpu, or cuda (rasterizer: gsplat when it imports)")
+    parser.add_argument("--final", type=int, default=0, help="iterations of the end-of-run pass (0: none)")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
 
@@ -69,7 +74,8 @@ def main(argv: list[str]) -> int:
     else:
         backend = "compiled cpu" if raster_cpu.available() else "pure-torch reference"
     frames = _load_keyframes(args.keyframes, args.stride)
-    gmap = GaussianMap(MapConfig(window=args.window, iterations=args.iterations, device=args.device))
+    gmap = GaussianMap(MapConfig(window=args.window, iterations=args.iterations, device=args.device,
+                                 final_refine_budget_s=math.inf, final_refine_lr_end=0.3))
     sync = torch.cuda.synchronize if args.device == "cuda" else (lambda: None)
     rows = []
     for f in frames:
@@ -110,7 +116,37 @@ def main(argv: list[str]) -> int:
           f"{1000 * statistics.median(r['refine_cpu_s'] for r in steady) / args.iterations:.0f} ms CPU), "
           f"voxelization keeps {statistics.mean(r['voxelized'] / r['pixels'] for r in rows):.1%} of pixels, "
           f"mean PSNR gain {statistics.mean(r['psnr_after'] - r['psnr_before'] for r in rows):+.2f} dB")
+    if args.final > 0:
+        _final_pass(gmap, frames, args.final, args.device, sync)
     return 0
+
+
+def _final_pass(gmap, frames: list[dict], iterations: int, device: str, sync) -> None:
+    """Time `refine_global(iterations)` and print the keyframes' mean PSNR before and after it."""
+    from worker.mapping import rasterize
+    from worker.mapping.gaussian_map import rigid_viewmat
+    from worker.mapping.losses import psnr
+
+    def mean_psnr() -> float:
+        scores = []
+        with torch.no_grad():
+            for f in frames:
+                viewmat, _ = rigid_viewmat(f["pose"])
+                image = f["image"].to(device)
+                H, W = image.shape[:2]
+                scores.append(psnr(rasterize(gmap.surfels, viewmat.to(device).float(), f["K"].to(device), W, H).rgb,
+                                   image))
+        return statistics.mean(scores)
+
+    before = mean_psnr()
+    sync()
+    t0 = time.perf_counter()
+    gmap.refine_global(iterations)
+    sync()
+    elapsed = time.perf_counter() - t0
+    print(f"final refinement: {iterations} iterations over {len(frames)} keyframes in {elapsed:.2f} s "
+          f"({1000 * elapsed / iterations:.0f} ms/iteration); keyframes' mean PSNR {before:.2f} -> "
+          f"{mean_psnr():.2f} dB", flush=True)
 
 
 if __name__ == "__main__":
