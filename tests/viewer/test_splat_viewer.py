@@ -220,6 +220,8 @@ def test_the_page_follows_a_streaming_session_live(chromium, stack):
     history = result["history"]
     assert len(history) >= 2, history  # the map came again as the session went on, not once at the end
     assert history[0]["splats"] < history[-1]["splats"] == len(final), history
+    # none asked for while the session finished: such a request waits out the final refinement
+    assert not any("|finishing|" in h["key"] for h in history), history
     assert result["live_poses"] >= 1 and result["drawn"] == len(frames)
     assert result["tracking"] == "tracking: finished" and "finished" in result["events"]
 

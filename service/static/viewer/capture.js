@@ -211,6 +211,9 @@ async function startSplats(id) {
       const session = await api.session(id);
       const key = `${session.revision}|${session.keyframes}|${session.status}`;
       if (session.keyframes < 1 || key === capture.mapKey) return;
+      // a map asked for while the session finishes waits out its final refinement (a timeout on a busy server):
+      // the next map worth showing is the finished one
+      if (session.status === "finishing") return;
       capture.mapKey = key;
       const k = session.estimated_intrinsics || session.intrinsics;
       if (k) capture.splats.setIntrinsics(k);

@@ -270,7 +270,11 @@ function updateSplats(session) {
   }
   const key = `${session.revision}|${session.keyframes}|${session.status}|${state.mapFormat}`;
   const due = performance.now() - state.mapFetchedAt >= MAP_REFRESH_MIN_MS;
-  if (session.keyframes > 0 && key !== state.mapKey && due && !state.mapLoading) loadSplatMap(session.id, key);
+  // not while the session finishes: such a request waits out the final refinement, and the finished map follows
+  const finishing = session.status === "finishing";
+  if (session.keyframes > 0 && key !== state.mapKey && due && !state.mapLoading && !finishing) {
+    loadSplatMap(session.id, key);
+  }
 }
 
 async function loadSplatMap(id, key) {
