@@ -301,7 +301,12 @@ async def stream_case(stack, frames, intrinsics, messages: list[bytes], args) ->
         if args.kill_at is not None:
             killer = asyncio.create_task(_kill_when_running(run, int(args.kill_at * len(messages)), stack, http, sid,
                                                             kill))
+        probe: dict[str, Any] = {}
+        finishing = (asyncio.create_task(_map_while_finishing(run, http, sid, probe)) if args.map_while_finishing
+                     else None)
         await run.run(args.timeout_s)
+        if finishing is not None:
+            await asyncio.wait_for(finishing, timeout=120)
         sampler.stop()
         await sampling
         if killer is not None:
@@ -319,8 +324,28 @@ async def stream_case(stack, frames, intrinsics, messages: list[bytes], args) ->
                                                        args.psnr_every, se3_part)
     summary = summarize(run, sampler.rows, record, poses, frames, args, kill)
     summary.update({"keyframes": len(keyframe_seqs), "psnr": psnr_value, "psnr_frames": psnr_frames,
-                    "session": sid})
+                    "session": sid, "map_while_finishing": probe or None})
     return {"summary": summary, "run": run, "samples": sampler.rows}
+
+
+async def _map_while_finishing(run: LiveRun, http, sid: str, out: dict) -> None:
+    """Once the session reports `finishing`, ask for its map as the web viewer would (spz): how long the answer
+    took, its status and size, and whether the session was still finishing when it came."""
+    while run.finish_sent is None and run.failure is None:
+        await asyncio.sleep(0.05)
+    while run.failure is None and run.finished is None:
+        if (await http.get(f"/v1/sessions/{sid}")).json().get("status") == "finishing":
+            break
+        await asyncio.sleep(0.1)
+    else:
+        out["note"] = "the session finished before a request could be sent"
+        return
+    began = time.monotonic()
+    reply = await http.get(f"/v1/sessions/{sid}/map", params={"format": "spz"})
+    out.update({"after_finish_sent_s": round(began - run.finish_sent, 2),
+                "latency_s": round(time.monotonic() - began, 3), "http_status": reply.status_code,
+                "bytes": len(reply.content),
+                "session_status_after": (await http.get(f"/v1/sessions/{sid}")).json().get("status")})
 
 
 async def _kill_when_running(run: LiveRun, sent: int, stack, http, sid: str, out: dict, min_poses: int = 5) -> None:
@@ -581,6 +606,8 @@ def main(argv: list[str]) -> int:
                         help="SIGKILL the owning worker when this fraction of the frames is sent")
     parser.add_argument("--psnr-every", type=int, default=5, help="render every N-th non-keyframe (0: no PSNR)")
     parser.add_argument("--no-offline", action="store_true", help="skip the offline run of the same frames")
+    parser.add_argument("--map-while-finishing", action="store_true",
+                        help="request the map (spz) once the session is finishing, and report how long it took")
     parser.add_argument("--worker-nice", type=int, default=10, help="as `flashmono serve` (default 10)")
     parser.add_argument("--workers", type=int, default=1, help="worker processes (a second one can take over at once)")
     parser.add_argument("--timeout-s", type=float, default=1800.0)

@@ -1,6 +1,7 @@
 """The final refinement: its view order comes from `mapping.final_refine_seed` (one seed repeats, another differs);
 its learning rates decay to `mapping.final_refine_lr_end`."""
 
+import contextlib
 import math
 
 import torch
@@ -49,3 +50,47 @@ def test_a_time_bound_final_refinement_decays_by_time():
     by_time = gmap._final_lr_schedule(0, 100, began - 9.99, began + 0.01)  # 99.9 % of the time spent
     assert by_time(0) < 0.0105
     assert GaussianMap(MapConfig())._final_lr_schedule(0, 100, began, None) is None
+
+
+def test_renders_and_exports_get_the_map_between_two_steps_of_the_final_refinement():
+    """A client asking for the map while a session finishes: the final refinement (here bounded by 60 s only) lets
+    a render and a PLY export in between two of its steps, instead of after its end. They see the map as the last
+    finished chunk of the refinement left it, whole (as many surfels as the map has)."""
+    import threading
+
+    class Stop(Exception):
+        pass
+
+    config = MappingConfig(refine_keyframes=4, refine_iterations=1, voxel_cap=0)
+    stage = MappingStage(config, threaded=False, max_backlog=4)
+    for kf, pose in enumerate(POSES):
+        stage.map.add_keyframe(kf, pose, intrinsics(), view(pose)["image"], voxelized_surfels(pose, kf),
+                               view(pose)["depth"])
+    steps, stop = [], threading.Event()
+    let_readers_in = stage._let_readers_in
+
+    def step_done() -> None:
+        steps.append(1)
+        if stop.is_set():
+            raise Stop  # ends the refinement here, once the test has its answers
+        let_readers_in()
+
+    def refine() -> None:
+        with contextlib.suppress(Stop):
+            stage.refine_all(passes=2000, budget_s=60.0)
+
+    stage._let_readers_in = step_done
+    refinement = threading.Thread(target=refine)
+    refinement.start()
+    try:
+        while not steps:  # the refinement holds the lock and runs its steps
+            refinement.join(0.01)
+        out = stage.render(POSES[1], intrinsics(), WIDTH, HEIGHT)
+        ply = stage.to_ply_bytes()
+        assert refinement.is_alive()  # answered while the refinement still runs
+        assert out.rgb.shape == (HEIGHT, WIDTH, 3) and bool(torch.isfinite(out.rgb).all())
+        assert f"element vertex {stage.num_gaussians()}".encode() in ply
+    finally:
+        stop.set()
+        refinement.join(60)
+    assert not refinement.is_alive()

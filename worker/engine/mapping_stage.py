@@ -9,14 +9,18 @@ shed and how far it lags (keyframes, seconds) is in `stats()`. The refinement it
 empty (`MappingConfig.idle_refine`), the stage refines the oldest keyframe it owes, with its window of that time, so
 the live map catches up when the camera slows down or comes back to mapped places. All map access goes through one
 lock, so renders and exports from other threads see the map between two refinement steps, never in the middle of one.
+The final refinement (`refine_all`, up to its budget of tens of seconds) lets waiting renders and exports take the
+lock between two of its steps: a client asking for the map while a session finishes waits one step, not the whole
+refinement.
 """
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
@@ -36,6 +40,9 @@ from worker.mapping.exposure import apply_exposure
 from worker.mapping.voxelize import voxelize
 
 SHED_KINDS = ("reduced", "merge_only", "dropped")
+# How long the final refinement waits, between two steps, for readers to take the lock before it goes on (only a
+# caller that already held the lock around it could keep them out that long).
+READERS_WAIT_S = 1.0
 
 
 class MappingStage(QueuedStage):
@@ -49,6 +56,8 @@ class MappingStage(QueuedStage):
         self.device = device
         self.map = build_gaussian_map(cfg, device)
         self.lock = threading.RLock()
+        self._readers_waiting = 0  # threads waiting for the lock to read the map
+        self._readers_lock = threading.Lock()
         self.keyframes_mapped = 0
         self.busy_seconds = 0.0
         self.shed = dict.fromkeys(SHED_KINDS, 0)
@@ -175,14 +184,39 @@ class MappingStage(QueuedStage):
         with self.lock, self.timings.measure("map_final_refine"):
             self._owed.clear()  # the whole map's refinement supersedes the keyframes' own
             if budget_s is None or budget_s > 0:
-                self.map.refine_global(passes * self.map.held_images, seed=seed, budget_s=budget_s)
+                self.map.refine_global(passes * self.map.held_images, seed=seed, budget_s=budget_s,
+                                       after_step=self._let_readers_in)
+
+    @contextlib.contextmanager
+    def _reading(self) -> Iterator[None]:
+        """The map's lock for a read, counted as waiting until it is taken (`_let_readers_in`)."""
+        with self._readers_lock:
+            self._readers_waiting += 1
+        try:
+            self.lock.acquire()
+        finally:
+            with self._readers_lock:
+                self._readers_waiting -= 1
+        try:
+            yield
+        finally:
+            self.lock.release()
+
+    def _let_readers_in(self) -> None:
+        """Between two steps of the final refinement (whose thread holds the lock once): the renders and exports
+        waiting for the map take the lock in turn, then the refinement goes on."""
+        deadline = time.monotonic() + READERS_WAIT_S
+        while self._readers_waiting and time.monotonic() < deadline:
+            self.lock.release()
+            time.sleep(0.001)  # the waiting reader wakes up and takes the lock; acquire() then waits for its end
+            self.lock.acquire()
 
     # -- reads ---------------------------------------------------------------------------------------------------
     def render(self, pose_c2w: np.ndarray, K: torch.Tensor, width: int, height: int,
                as_captured_at: int | None = None) -> Any:
         """The map seen from `pose_c2w`: exposure-normalised colours, or with `as_captured_at` (a frame index) the
         colours under the exposure the camera had at that frame (`GaussianMap.exposure_at`)."""
-        with self.lock, torch.no_grad():
+        with self._reading(), torch.no_grad():
             out = self.map.render(torch.as_tensor(pose_c2w), K, width, height)
             if as_captured_at is None:
                 return out
@@ -190,11 +224,11 @@ class MappingStage(QueuedStage):
             return out._replace(rgb=apply_exposure(out.rgb, exposure).clamp(0, 1))
 
     def num_gaussians(self) -> int:
-        with self.lock:
+        with self._reading():
             return int(self.map.num_gaussians)
 
     def to_ply_bytes(self) -> bytes:
-        with self.lock:
+        with self._reading():
             return self.map.to_ply_bytes()
 
     def state_dict(self) -> dict:

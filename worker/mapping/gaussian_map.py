@@ -358,7 +358,7 @@ class GaussianMap:
         return [pool[i] for i in torch.randperm(len(pool), generator=generator)[:count].sort().values.tolist()]
 
     def refine_global(self, iterations: int, seed: int = 0, restart_every: int | None = None,
-                      budget_s: float | None = None) -> RefineReport:
+                      budget_s: float | None = None, after_step: Callable[[], None] | None = None) -> RefineReport:
         """Refine every surfel against every keyframe whose image is still held (the window and the archive):
         the end-of-run pass that reconciles views the window has left.
 
@@ -371,7 +371,8 @@ class GaussianMap:
         `iterations` asks: a long session's end costs the same as a short one's. Keyframe exposures (with
         `refine.exposure`) are re-estimated first, oldest first (`estimate_exposure`: keyframes merged without
         refinement kept the fit made when they arrived), and applied as they are; then, with `config.hole_closing`,
-        the holes of the keyframes' widened views are closed (`close_holes`) for the refinement to train."""
+        the holes of the keyframes' widened views are closed (`close_holes`) for the refinement to train.
+        `after_step` is called after each refinement step (`refine_surfels`)."""
         held = [kf_id for kf_id in self.keyframe_ids if self._keyframes[kf_id].held]
         if not held or len(self._surfels) == 0 or iterations <= 0:
             return RefineReport()
@@ -392,7 +393,7 @@ class GaussianMap:
             trainable = torch.ones(len(self._surfels), dtype=torch.bool, device=self.device)
             schedule = self._final_lr_schedule(start, total, began, deadline)
             part = self._refine(trainable, order, min(chunk, total - start), self._scene_scale(held), deadline,
-                                schedule)
+                                schedule, after_step)
             report.losses += part.losses
             report.views += [held.index(order[i]) for i in part.views]
         return report
@@ -451,7 +452,8 @@ class GaussianMap:
         return sum(kf.held for kf in self._keyframes.values())
 
     def _refine(self, trainable: torch.Tensor, kf_ids: list[int], iterations: int, scene_scale: float,
-                deadline: float | None = None, lr_schedule: Callable[[int], float] | None = None) -> RefineReport:
+                deadline: float | None = None, lr_schedule: Callable[[int], float] | None = None,
+                after_step: Callable[[], None] | None = None) -> RefineReport:
         """Refine against the keyframes `kf_ids`, each seen with its exposure (with `refine.exposure`), at the
         learning rates scaled by `lr_schedule` (worker.mapping.refine.refine_surfels)."""
         views = [self._keyframes[k].refine_view(self.config.refine.exposure) for k in kf_ids]
@@ -461,7 +463,7 @@ class GaussianMap:
                 view.background = self._background.image(kf.pose, kf.K, kf.width, kf.height, self.device)
         with torch.enable_grad():
             refined, report = refine_surfels(self._surfels, trainable, views, iterations, self.config.refine,
-                                             scene_scale, deadline, lr_schedule)
+                                             scene_scale, deadline, lr_schedule, after_step)
         keep = refined.opacities >= self.config.min_opacity
         self._surfels = refined.select(keep) if not bool(keep.all()) else refined
         return report

@@ -106,11 +106,13 @@ def refine_surfels(
     scene_scale: float = 1.0,
     deadline: float | None = None,
     lr_schedule: Callable[[int], float] | None = None,
+    after_step: Callable[[], None] | None = None,
 ) -> tuple[Surfels, RefineReport]:
     """Optimise the surfels selected by `trainable` ([N] bool) against `views` (newest last) for `iterations` steps,
     fewer when `time.perf_counter()` passes `deadline` (checked before each step). With `lr_schedule`, step `it`
     runs at the settings' learning rates times `lr_schedule(it)` (a decay, for a pass whose result should not
-    depend on the last views it saw).
+    depend on the last views it saw). `after_step` is called after each step (the mapping stage lets readers of
+    the map in there: `surfels` itself is not changed until the end).
 
     Returns the updated map (same order and size as `surfels`) and a report of the losses.
     """
@@ -143,7 +145,7 @@ def refine_surfels(
     order = list(range(len(views) - 1, -1, -1))  # newest first
     with _serial_torch_parallel_kernels():
         _optimise(params, fixed, views, depth_scales, order, optimizer, iterations, settings, report, deadline,
-                  lr_schedule)
+                  lr_schedule, after_step)
 
     out = surfels.detach().clone()
     refined = params.surfels().detach()
@@ -171,7 +173,8 @@ def _median_depth(depth: torch.Tensor | None) -> torch.Tensor | None:
 def _optimise(params: _RawParams, fixed: Surfels, views: list[RefineView], depth_scales: list, order: list[int],
               optimizer: torch.optim.Optimizer, iterations: int, settings: RefineSettings,
               report: RefineReport, deadline: float | None = None,
-              lr_schedule: Callable[[int], float] | None = None) -> None:
+              lr_schedule: Callable[[int], float] | None = None,
+              after_step: Callable[[], None] | None = None) -> None:
     """The Adam iterations (each renders one view of the window, round robin over `order`), until `deadline`."""
     base_lrs = [group["lr"] for group in optimizer.param_groups]
     for it in range(iterations):
@@ -203,6 +206,8 @@ def _optimise(params: _RawParams, fixed: Surfels, views: list[RefineView], depth
             params.colors.clamp_(0.0, 1.0)
         report.losses.append(float(loss.detach()))
         report.views.append(index)
+        if after_step is not None:
+            after_step()
 
 
 @contextlib.contextmanager

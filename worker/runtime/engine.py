@@ -60,13 +60,19 @@ def create_engine(kind: str, preset: str | None, intrinsics: Intrinsics | None,
                                                   "depth_to_color": depth_camera["depth_to_color"]}
         return SlamSystem(SlamConfig.preset(preset or "default", **overrides), intrinsics=intrinsics)
     if kind == "passthrough":
-        return PassthroughEngine(intrinsics=intrinsics, delay_s=_passthrough_delay_s())
+        return PassthroughEngine(intrinsics=intrinsics, delay_s=_passthrough_delay_s(),
+                                 finish_delay_s=_passthrough_finish_delay_s())
     raise ValueError(f"unknown engine kind {kind!r}; expected one of {ENGINE_KINDS}")
 
 
 def _passthrough_delay_s() -> float:
     """FLASHMONO_PASSTHROUGH_DELAY_MS: simulated compute per frame (tests that need a worker busy mid-stream)."""
     return float(os.environ.get("FLASHMONO_PASSTHROUGH_DELAY_MS", "0")) / 1000.0
+
+
+def _passthrough_finish_delay_s() -> float:
+    """FLASHMONO_PASSTHROUGH_FINISH_MS: simulated final refinement (tests of requests while a session finishes)."""
+    return float(os.environ.get("FLASHMONO_PASSTHROUGH_FINISH_MS", "0")) / 1000.0
 
 
 def restore_engine(kind: str, blob: bytes, chunks: Mapping[int | str, bytes] | None = None) -> SessionEngine:
@@ -77,7 +83,7 @@ def restore_engine(kind: str, blob: bytes, chunks: Mapping[int | str, bytes] | N
         return SlamSystem.restore(blob, chunks)
     if kind == "passthrough":
         engine = PassthroughEngine.restore(blob, chunks)
-        engine.delay_s = _passthrough_delay_s()
+        engine.delay_s, engine.finish_delay_s = _passthrough_delay_s(), _passthrough_finish_delay_s()
         return engine
     raise ValueError(f"unknown engine kind {kind!r}; expected one of {ENGINE_KINDS}")
 
@@ -124,8 +130,10 @@ class PassthroughEngine:
     KEYFRAME_EVERY = 4
     CHUNK_POSES = 8  # small, so that the runtime's tests cross chunk boundaries
 
-    def __init__(self, intrinsics: Intrinsics | None = None, delay_s: float = 0.0) -> None:
+    def __init__(self, intrinsics: Intrinsics | None = None, delay_s: float = 0.0, finish_delay_s: float = 0.0
+                 ) -> None:
         self.intrinsics = intrinsics
+        self.finish_delay_s = finish_delay_s
         self.delay_s = delay_s
         self.revision = 0
         self._poses: list[tuple[int, float, np.ndarray, bool]] = []
@@ -148,6 +156,8 @@ class PassthroughEngine:
                            submap_id=len(self._poses) // 8, revision=self.revision)
 
     def finish(self) -> None:
+        if self.finish_delay_s:
+            time.sleep(self.finish_delay_s)
         self.finished = True
 
     def estimated_intrinsics(self) -> Intrinsics | None:

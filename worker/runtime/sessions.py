@@ -25,6 +25,7 @@ from worker.geometry import Intrinsics
 from worker.runtime import keys
 from worker.runtime.engine import SessionEngine, close_engine, create_engine, engine_intrinsics, restore_engine
 from worker.runtime.failpoints import failpoint
+from worker.runtime.finish_requests import RequestsWhileFinishing
 from worker.runtime.frames import DEFAULT_MAX_SIDE, FrameError, decode_frame
 from worker.runtime.leases import Leases
 from worker.runtime.outage import REDIS_DOWN
@@ -331,7 +332,7 @@ class SessionRunner(threading.Thread):
             frames = sum(len(e) for s, e in reply if s.decode() == keys.inbox(self.session_id))
             if frames:
                 self.stats.add("read", time.perf_counter() - t0, frames)
-            for stream, entries in reply:
+            for stream, entries in self._requests_first_before_a_finish(reply):
                 is_inbox = stream.decode() == keys.inbox(self.session_id)
                 newest_frame = _newest_frame_id(entries) if is_inbox else None
                 for entry_id, fields in entries:
@@ -350,6 +351,15 @@ class SessionRunner(threading.Thread):
         self._drain_requests()
 
     # --- live tracking ------------------------------------------------------------------------------------------
+    def _requests_first_before_a_finish(self, reply: list) -> list:
+        """The streams of one read in the order to handle them: the inbox first (frames before renders), except
+        when it ends the session: requests read with the finish are answered before it, not after the final
+        refinement."""
+        inbox = keys.inbox(self.session_id)
+        finishing = any(fields.get(b"kind") == b"finish" for stream, entries in reply if stream.decode() == inbox
+                        for _, fields in entries)
+        return sorted(reply, key=lambda item: item[0].decode() == inbox) if finishing else list(reply)
+
     def _should_skip(self, entry_id: bytes, fields: dict[bytes, bytes], newest_frame: bytes | None) -> bool:
         """Newest first wins: a frame that waited longer than `skip_after_ms` while a newer frame is waiting is
         skipped (never the session's first frame, a frame already counted, more than a few in a row, a second one
@@ -613,7 +623,8 @@ class SessionRunner(threading.Thread):
         self.stats.add("snapshot", time.perf_counter() - t0)
 
     def _finish(self, entry_id: bytes) -> None:
-        with FinishProgress(self.client, self.session_id, outbox_maxlen=self.config.outbox_maxlen):
+        with (FinishProgress(self.client, self.session_id, outbox_maxlen=self.config.outbox_maxlen),
+              RequestsWhileFinishing(self.client, self.session_id, self.worker_id, self._handle_request)):
             self.engine.finish()
         if not self.leases.renew(self.session_id):
             self._lease_lost.set()
