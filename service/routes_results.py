@@ -84,7 +84,8 @@ async def render_view(
 ) -> Response:
     """Render the session's map from any camera. Defaults: the session's intrinsics (scaled to width x height).
     Colour shows the surfels over the map's background (what keyframes saw in each direction where the map has no
-    surface, such as the sky); depth is the surfels' own (0 where there are none)."""
+    surface, such as the sky); depth is the surfels' own (0 where there are none). While the session is
+    `finishing`, the map as refined so far (as /map)."""
     request.app.state.auth.require(principal, "read", "stream")
     record = await session_for(reg, principal, session_id, write=False)
     params = render_params(record, pose, width, height, fx, fy, cx, cy, kind,
@@ -132,7 +133,9 @@ async def export_map_as(
     principal: Principal = Depends(caller),
     reg: Registry = Depends(registry),
 ) -> Response:
-    """The session's surfel map in the format a web viewer reads (PLY, SPZ or .splat)."""
+    """The session's surfel map in the format a web viewer reads (PLY, SPZ or .splat). While the session is
+    `finishing`, the map as refined so far, answered at once (the final refinement lets the request in between two
+    of its steps); fetch it again once the session is `finished` for the final one."""
     request.app.state.auth.require(principal, "read", "stream")
     record = await session_for(reg, principal, session_id, write=False)
     response = await _ask_worker(request, reg, session_id, record, "export_ply",
