@@ -350,7 +350,6 @@ class SessionRunner(threading.Thread):
             self._publish_live_stats()
         self._drain_requests()
 
-    # --- live tracking ------------------------------------------------------------------------------------------
     def _requests_first_before_a_finish(self, reply: list) -> list:
         """The streams of one read in the order to handle them: the inbox first (frames before renders), except
         when it ends the session: requests read with the finish are answered before it, not after the final
@@ -360,6 +359,7 @@ class SessionRunner(threading.Thread):
                         for _, fields in entries)
         return sorted(reply, key=lambda item: item[0].decode() == inbox) if finishing else list(reply)
 
+    # --- live tracking ------------------------------------------------------------------------------------------
     def _should_skip(self, entry_id: bytes, fields: dict[bytes, bytes], newest_frame: bytes | None) -> bool:
         """Newest first wins: a frame that waited longer than `skip_after_ms` while a newer frame is waiting is
         skipped (never the session's first frame, a frame already counted, more than a few in a row, a second one
