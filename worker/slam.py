@@ -216,12 +216,28 @@ class SlamSystem:
             if self.config.mapping.final_refine_passes:
                 budget = self.config.mapping.final_refine_budget_s  # counted from the start of finish(): drain too
                 left = None if not budget else max(0.0, budget - (time.perf_counter() - started))
-                self.backend.refine_all(self.config.mapping.final_refine_passes, budget_s=left,
-                                        seed=self.config.mapping.final_refine_seed)
+                moved = self.backend.refine_all(self.config.mapping.final_refine_passes, budget_s=left,
+                                                seed=self.config.mapping.final_refine_seed,
+                                                train_poses=self._refines_keyframe_poses())
+                if moved:
+                    self.finish_events.append(self._follow_refined_keyframes(moved))
         self.close()
         if self._started is not None:
             self.counters["wall_seconds"] = self._wall_offset + time.perf_counter() - self._started
         self._finished = True
+
+    def _refines_keyframe_poses(self) -> bool:
+        """Whether the final refinement refines the keyframes' cameras: asked for, and the poses are not the
+        device's own to keep (pose_mode fixed)."""
+        return self.config.mapping.final_refine_poses and self.pose_source_choice()["pose_source"] != "fixed"
+
+    def _follow_refined_keyframes(self, motions: dict[int, np.ndarray]) -> dict[str, Any]:
+        """Move the trajectory's keyframes by the final refinement's world-frame motions (frames follow their
+        keyframes; keyframes the map did not hold follow the newest refined one before them). Returns the event."""
+        poses = self.tracking_stage.trajectory.keyframe_poses
+        revision, changed = self.tracking_stage.apply_correction(
+            {k: motion @ poses[k] for k, motion in motions.items() if k in poses})
+        return {"type": "poses_refined", "keyframes": len(changed), "revision": revision}
 
     def close(self) -> None:
         """Stop the stages' threads without further work (idempotent)."""

@@ -145,6 +145,13 @@ def rigid_viewmat(pose_c2w: torch.Tensor) -> tuple[torch.Tensor, float]:
     return sim3_inverse(make_sim3(R, t)), float(s)
 
 
+def corrected_pose(pose_c2w: torch.Tensor, correction: torch.Tensor) -> torch.Tensor:
+    """The camera-to-world Sim(3) whose rigid viewmat is `correction` @ the viewmat of `pose_c2w` (its scale kept)."""
+    s, R, t = sim3_decompose(pose_c2w.to(torch.float64))
+    rigid = make_sim3(R, t) @ torch.linalg.inv(correction.to(torch.float64))
+    return make_sim3(rigid[:3, :3], rigid[:3, 3], s)
+
+
 def _as_K(K) -> torch.Tensor:
     """3x3 float32 intrinsics from a tensor, an array or an `Intrinsics`."""
     if hasattr(K, "matrix"):
@@ -358,7 +365,8 @@ class GaussianMap:
         return [pool[i] for i in torch.randperm(len(pool), generator=generator)[:count].sort().values.tolist()]
 
     def refine_global(self, iterations: int, seed: int = 0, restart_every: int | None = None,
-                      budget_s: float | None = None, after_step: Callable[[], None] | None = None) -> RefineReport:
+                      budget_s: float | None = None, after_step: Callable[[], None] | None = None,
+                      train_poses: bool = False) -> RefineReport:
         """Refine every surfel against every keyframe whose image is still held (the window and the archive):
         the end-of-run pass that reconciles views the window has left.
 
@@ -372,7 +380,9 @@ class GaussianMap:
         `refine.exposure`) are re-estimated first, oldest first (`estimate_exposure`: keyframes merged without
         refinement kept the fit made when they arrived), and applied as they are; then, with `config.hole_closing`,
         the holes of the keyframes' widened views are closed (`close_holes`) for the refinement to train.
-        `after_step` is called after each refinement step (`refine_surfels`)."""
+        `after_step` is called after each refinement step (`refine_surfels`). With `train_poses`, the
+        keyframes' cameras are refined too and their poses replaced at the end of each chunk (the surfels stay
+        where the refinement put them)."""
         held = [kf_id for kf_id in self.keyframe_ids if self._keyframes[kf_id].held]
         if not held or len(self._surfels) == 0 or iterations <= 0:
             return RefineReport()
@@ -393,7 +403,7 @@ class GaussianMap:
             trainable = torch.ones(len(self._surfels), dtype=torch.bool, device=self.device)
             schedule = self._final_lr_schedule(start, total, began, deadline)
             part = self._refine(trainable, order, min(chunk, total - start), self._scene_scale(held), deadline,
-                                schedule, after_step)
+                                schedule, after_step, train_poses)
             report.losses += part.losses
             report.views += [held.index(order[i]) for i in part.views]
         return report
@@ -453,9 +463,10 @@ class GaussianMap:
 
     def _refine(self, trainable: torch.Tensor, kf_ids: list[int], iterations: int, scene_scale: float,
                 deadline: float | None = None, lr_schedule: Callable[[int], float] | None = None,
-                after_step: Callable[[], None] | None = None) -> RefineReport:
+                after_step: Callable[[], None] | None = None, train_poses: bool = False) -> RefineReport:
         """Refine against the keyframes `kf_ids`, each seen with its exposure (with `refine.exposure`), at the
-        learning rates scaled by `lr_schedule` (worker.mapping.refine.refine_surfels)."""
+        learning rates scaled by `lr_schedule` (worker.mapping.refine.refine_surfels); with `train_poses`, their
+        cameras too, whose corrected poses replace theirs."""
         views = [self._keyframes[k].refine_view(self.config.refine.exposure) for k in kf_ids]
         if self._background is not None:
             for k, view in zip(kf_ids, views):
@@ -463,7 +474,9 @@ class GaussianMap:
                 view.background = self._background.image(kf.pose, kf.K, kf.width, kf.height, self.device)
         with torch.enable_grad():
             refined, report = refine_surfels(self._surfels, trainable, views, iterations, self.config.refine,
-                                             scene_scale, deadline, lr_schedule, after_step)
+                                             scene_scale, deadline, lr_schedule, after_step, train_poses)
+        for k, correction in zip(kf_ids, report.view_corrections):
+            self._keyframes[k].pose = corrected_pose(self._keyframes[k].pose, correction)
         keep = refined.opacities >= self.config.min_opacity
         self._surfels = refined.select(keep) if not bool(keep.all()) else refined
         return report

@@ -32,6 +32,7 @@ from .exposure import apply_exposure
 from .losses import depth_l1, photometric_loss
 from .rasterize import rasterize, visible_mask
 from .surfels import Surfels
+from .view_poses import ViewPoseCorrections
 
 _OPACITY_EPS = 1e-4
 
@@ -53,6 +54,8 @@ class RefineSettings:
     exposure_min_alpha: float = 0.95  # estimates: pixels the render covers at least this much take part
     exposure_threshold: float = 0.03  # estimates: log-gain changes within this are shrunk away (shrink_exposure)
     exposure_shared: bool = True  # estimates: one gain for the three channels (fit_exposure's `shared`)
+    lr_pose_translation: float = 2e-4  # with train_poses: a view's camera shift per step, times the scene scale
+    lr_pose_rotation: float = 2e-4  # ... and its turn per step, radians
 
 
 @dataclass
@@ -79,6 +82,8 @@ class RefineReport:
 
     losses: list[float] = field(default_factory=list)
     views: list[int] = field(default_factory=list)
+    # with train_poses: each view's camera-frame correction (float64 4x4; corrected viewmat = correction @ viewmat)
+    view_corrections: list[torch.Tensor] = field(default_factory=list)
 
 
 class _RawParams(torch.nn.Module):
@@ -107,12 +112,14 @@ def refine_surfels(
     deadline: float | None = None,
     lr_schedule: Callable[[int], float] | None = None,
     after_step: Callable[[], None] | None = None,
+    train_poses: bool = False,
 ) -> tuple[Surfels, RefineReport]:
     """Optimise the surfels selected by `trainable` ([N] bool) against `views` (newest last) for `iterations` steps,
     fewer when `time.perf_counter()` passes `deadline` (checked before each step). With `lr_schedule`, step `it`
     runs at the settings' learning rates times `lr_schedule(it)` (a decay, for a pass whose result should not
     depend on the last views it saw). `after_step` is called after each step (the mapping stage lets readers of
-    the map in there: `surfels` itself is not changed until the end).
+    the map in there: `surfels` itself is not changed until the end). With `train_poses`, each view's camera is
+    refined with the surfels (worker.mapping.view_poses); the report holds the corrections.
 
     Returns the updated map (same order and size as `surfels`) and a report of the losses.
     """
@@ -131,21 +138,26 @@ def refine_surfels(
         return surfels, report
     params = _RawParams(surfels.select(optimised))
     fixed = surfels.select(~trainable & in_view).detach()
-    optimizer = torch.optim.Adam(
-        [
-            {"params": [params.means], "lr": settings.lr_means * scene_scale},
-            {"params": [params.log_scales], "lr": settings.lr_log_scales},
-            {"params": [params.opacity_logits], "lr": settings.lr_opacity_logits},
-            {"params": [params.quats], "lr": settings.lr_quats},
-            {"params": [params.colors], "lr": settings.lr_colors},
-        ],
-        eps=1e-15,
-    )
+    groups = [
+        {"params": [params.means], "lr": settings.lr_means * scene_scale},
+        {"params": [params.log_scales], "lr": settings.lr_log_scales},
+        {"params": [params.opacity_logits], "lr": settings.lr_opacity_logits},
+        {"params": [params.quats], "lr": settings.lr_quats},
+        {"params": [params.colors], "lr": settings.lr_colors},
+    ]
+    cameras = None
+    if train_poses:
+        cameras = ViewPoseCorrections(len(views), views[0].viewmat.dtype, views[0].viewmat.device)
+        groups += [{"params": list(cameras.translations), "lr": settings.lr_pose_translation * scene_scale},
+                   {"params": list(cameras.rotations), "lr": settings.lr_pose_rotation}]
+    optimizer = torch.optim.Adam(groups, eps=1e-15)
     depth_scales = [_median_depth(v.depth) for v in views]
     order = list(range(len(views) - 1, -1, -1))  # newest first
     with _serial_torch_parallel_kernels():
         _optimise(params, fixed, views, depth_scales, order, optimizer, iterations, settings, report, deadline,
-                  lr_schedule, after_step)
+                  lr_schedule, after_step, cameras)
+    if cameras is not None:
+        report.view_corrections = cameras.corrections()
 
     out = surfels.detach().clone()
     refined = params.surfels().detach()
@@ -174,8 +186,10 @@ def _optimise(params: _RawParams, fixed: Surfels, views: list[RefineView], depth
               optimizer: torch.optim.Optimizer, iterations: int, settings: RefineSettings,
               report: RefineReport, deadline: float | None = None,
               lr_schedule: Callable[[int], float] | None = None,
-              after_step: Callable[[], None] | None = None) -> None:
-    """The Adam iterations (each renders one view of the window, round robin over `order`), until `deadline`."""
+              after_step: Callable[[], None] | None = None,
+              cameras: ViewPoseCorrections | None = None) -> None:
+    """The Adam iterations (each renders one view of the window, round robin over `order`), until `deadline`;
+    with `cameras`, each view is rendered from its corrected camera."""
     base_lrs = [group["lr"] for group in optimizer.param_groups]
     for it in range(iterations):
         if deadline is not None and time.perf_counter() >= deadline:
@@ -190,7 +204,8 @@ def _optimise(params: _RawParams, fixed: Surfels, views: list[RefineView], depth
         view = views[index]
         H, W = view.image.shape[:2]
         current = Surfels.concat([params.surfels(), fixed]) if len(fixed) else params.surfels()
-        render = rasterize(current, view.viewmat, view.K, W, H)
+        viewmat = view.viewmat if cameras is None else cameras.viewmat(index, view.viewmat)
+        render = rasterize(current, viewmat, view.K, W, H)
         rgb = composite(render.rgb, render.alpha, view.background)
         if settings.exposure and view.exposure is not None:
             rgb = apply_exposure(rgb, view.exposure)
