@@ -466,15 +466,18 @@ class GaussianMap:
                 after_step: Callable[[], None] | None = None, train_poses: bool = False) -> RefineReport:
         """Refine against the keyframes `kf_ids`, each seen with its exposure (with `refine.exposure`), at the
         learning rates scaled by `lr_schedule` (worker.mapping.refine.refine_surfels); with `train_poses`, their
-        cameras too, whose corrected poses replace theirs."""
+        cameras too (all but the oldest held keyframe's, which holds the map's frame), whose corrected poses
+        replace theirs."""
         views = [self._keyframes[k].refine_view(self.config.refine.exposure) for k in kf_ids]
+        anchor = min(k for k in self.keyframe_ids if self._keyframes[k].held)
+        cameras = [k != anchor for k in kf_ids] if train_poses else None
         if self._background is not None:
             for k, view in zip(kf_ids, views):
                 kf = self._keyframes[k]
                 view.background = self._background.image(kf.pose, kf.K, kf.width, kf.height, self.device)
         with torch.enable_grad():
             refined, report = refine_surfels(self._surfels, trainable, views, iterations, self.config.refine,
-                                             scene_scale, deadline, lr_schedule, after_step, train_poses)
+                                             scene_scale, deadline, lr_schedule, after_step, cameras)
         for k, correction in zip(kf_ids, report.view_corrections):
             self._keyframes[k].pose = corrected_pose(self._keyframes[k].pose, correction)
         keep = refined.opacities >= self.config.min_opacity

@@ -112,14 +112,15 @@ def refine_surfels(
     deadline: float | None = None,
     lr_schedule: Callable[[int], float] | None = None,
     after_step: Callable[[], None] | None = None,
-    train_poses: bool = False,
+    trainable_cameras: list[bool] | None = None,
 ) -> tuple[Surfels, RefineReport]:
     """Optimise the surfels selected by `trainable` ([N] bool) against `views` (newest last) for `iterations` steps,
     fewer when `time.perf_counter()` passes `deadline` (checked before each step). With `lr_schedule`, step `it`
     runs at the settings' learning rates times `lr_schedule(it)` (a decay, for a pass whose result should not
     depend on the last views it saw). `after_step` is called after each step (the mapping stage lets readers of
-    the map in there: `surfels` itself is not changed until the end). With `train_poses`, each view's camera is
-    refined with the surfels (worker.mapping.view_poses); the report holds the corrections.
+    the map in there: `surfels` itself is not changed until the end). With `trainable_cameras` (a flag per view), the
+    flagged views' cameras are refined with the surfels (worker.mapping.view_poses) and the report holds every
+    view's correction; at least one camera should stay fixed, or the map and all cameras drift together (gauge).
 
     Returns the updated map (same order and size as `surfels`) and a report of the losses.
     """
@@ -146,10 +147,17 @@ def refine_surfels(
         {"params": [params.colors], "lr": settings.lr_colors},
     ]
     cameras = None
-    if train_poses:
+    if trainable_cameras is not None:
+        if len(trainable_cameras) != len(views):
+            raise ValueError("trainable_cameras needs one flag per view")
         cameras = ViewPoseCorrections(len(views), views[0].viewmat.dtype, views[0].viewmat.device)
-        groups += [{"params": list(cameras.translations), "lr": settings.lr_pose_translation * scene_scale},
-                   {"params": list(cameras.rotations), "lr": settings.lr_pose_rotation}]
+        moving = [i for i, flag in enumerate(trainable_cameras) if flag]
+        for i, flag in enumerate(trainable_cameras):
+            cameras.translations[i].requires_grad_(flag)
+            cameras.rotations[i].requires_grad_(flag)
+        groups += [{"params": [cameras.translations[i] for i in moving],
+                    "lr": settings.lr_pose_translation * scene_scale},
+                   {"params": [cameras.rotations[i] for i in moving], "lr": settings.lr_pose_rotation}]
     optimizer = torch.optim.Adam(groups, eps=1e-15)
     depth_scales = [_median_depth(v.depth) for v in views]
     order = list(range(len(views) - 1, -1, -1))  # newest first
