@@ -168,8 +168,10 @@ class TrackingEvent:
     "maps_merged" (RGB-only: a map restarted after a loss was joined to the older one, scale included; the restarted
     map's poses moved, see `data["revision"]`) or "drift_corrected" (posed RGB, seeded: the pose graph was solved
     with the device's poses, moving past keyframes and the map toward them, see `data["revision"]`) or
-    "rotation_only" (RGB-only: a turn too fast for new points; poses follow the tracks' rotation, the position held
-    or measured, `quality` at most 0.5)."""
+    "poses_refined" (at the end of a session: the final refinement moved the keyframes' cameras where the map's
+    renders fit their photos, every frame following its keyframe, see `data["revision"]`) or "rotation_only"
+    (RGB-only: a turn too fast for new points; poses follow the tracks' rotation, the position held or measured,
+    `quality` at most 0.5)."""
 
     kind: str
     seq: int
@@ -190,7 +192,7 @@ class InputEvent:
 
 
 TRACKING_EVENT_TYPES = ("tracking_lost", "relocalized", "initialized", "initializing", "new_map", "maps_merged",
-                        "drift_corrected", "rotation_only")
+                        "drift_corrected", "poses_refined", "rotation_only")
 INPUT_EVENT_TYPES = ("pose_source_chosen", "device_pose_jump", "odometry_slip", "depth_misregistered")
 StreamEvent = PoseEvent | LoopClosedEvent | TrackingEvent | InputEvent
 

@@ -215,6 +215,15 @@ WEBSOCKET_DOC = {
                                "correcting the odometry's drift (its scale above all) between loop closures; past "
                                "keyframes and their part of the map moved: GET the trajectory for revision "
                                "`revision`"},
+            "poses_refined": {"type": "object", "properties": {
+                "type": {"const": "poses_refined"}, "seq": {"type": "integer"}, "revision": {"type": "integer"},
+                "keyframes": {"type": "integer", "description": "how many keyframes' cameras moved"}},
+                "additionalProperties": True,
+                "description": "sent once while a session finishes, before `finished`, when "
+                               "`mapping.final_refine_poses` is on: the final refinement moved the keyframes' cameras "
+                               "where the map's renders fit their photos (photometric bundle adjustment; never with "
+                               "pose_mode fixed), every frame following its keyframe: GET the trajectory for "
+                               "revision `revision`"},
             "device_pose_jump": {"type": "object", "properties": {
                 "type": {"const": "device_pose_jump"}, "seq": {"type": "integer"},
                 "translation": {"type": "number", "description": "how far the device's motion into this frame is "
@@ -283,9 +292,9 @@ WEBSOCKET_DOC = {
     },
     "/v1/sessions/{session_id}/events": {
         "description": "A read-only feed for viewers that do not send the frames (the web viewer): the messages the "
-                       "session's stream gets (pose, loop_closed, maps_merged, drift_corrected, tracking_lost, "
-                       "relocalized, initializing, initialized, new_map, rotation_only, device_pose_jump, "
-                       "odometry_slip, pose_source_chosen, "
+                       "session's stream gets (pose, loop_closed, maps_merged, drift_corrected, poses_refined, "
+                       "tracking_lost, relocalized, initializing, initialized, new_map, rotation_only, "
+                       "device_pose_jump, odometry_slip, pose_source_chosen, "
                        "depth_misregistered, "
                        "error, finishing, finished) "
                        "from the "

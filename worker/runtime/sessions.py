@@ -44,7 +44,7 @@ TRACKING_EVENTS = ("tracking_lost", "relocalized", "initialized", "initializing"
 # that disagree with the images, are also kept in the session record's `warnings`.
 INPUT_EVENTS = ("device_pose_jump", "odometry_slip", "depth_misregistered", "pose_source_chosen")
 # published with the revision they made; the tracking state stays as it is
-MAP_EVENTS = ("maps_merged", "drift_corrected")
+MAP_EVENTS = ("maps_merged", "drift_corrected", "poses_refined")
 # Events sent as their own messages: one that carries a revision (a pose source's verdict replaying the judged
 # frames, a new map's re-estimated frames) tells the clients about it; no loop closure is announced for it.
 PUBLISHED_EVENTS = TRACKING_EVENTS + INPUT_EVENTS + MAP_EVENTS
@@ -631,15 +631,19 @@ class SessionRunner(threading.Thread):
             raise LeaseLost
         failpoint("finish:engine")
         revision = int(getattr(self.engine, "revision", self._revision))
-        late_loops = list(getattr(self.engine, "finish_events", []))  # closed while finishing: told like the others
-        if late_loops:
-            self._publish_revision(revision, late_loops)
+        last_seq = max(self._done_seqs) if self._done_seqs else -1
+        # loops closed while finishing, the final refinement's camera corrections: told like the others
+        finish_events = list(getattr(self.engine, "finish_events", []))
+        if finish_events:
+            self._publish_revision(revision, finish_events)
+            for event in finish_events:
+                if event.get("type") in MAP_EVENTS:
+                    self._publish_tracking_event(last_seq, event)
         else:
             self._revision = revision
             self._store_trajectory()
         self._publish_live_stats(force=True)  # drained: the lag reads 0 from now on
         failpoint("finish:trajectory")
-        last_seq = max(self._done_seqs) if self._done_seqs else -1
         self._write_snapshot(last_seq, entry_id, wait=True)
         failpoint("finish:snapshot")
         self._mark_finished(entry_id)
