@@ -219,6 +219,7 @@ def run_demo(server: str, api_key: str | None, source: str, mode: str, args: arg
         "session_id": session.id, "source": source, "mode": mode, "preset": args.preset,
         "frames": len(frames), "poses": len(trajectory.poses), "keyframes": len(keyframe_seqs),
         "loop_closures": len(summary.loop_closures), "backpressure_retries": summary.backpressure_retries,
+        "poses_refined": sum(e.kind == "poses_refined" for e in summary.tracking_events),
         "frame_errors": len(summary.errors), "end_to_end_fps": len(frames) / elapsed, "map_bytes": len(map_bytes),
     })
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")

@@ -32,6 +32,8 @@ def test_demo_runs_the_whole_system_and_writes_its_outputs(tmp_path: Path) -> No
     assert metrics["frames"] == frames and metrics["poses"] == frames
     assert metrics["frame_errors"] == 0
     assert metrics["loop_closures"] >= 1, "the demo sequence revisits the room; no loop was closed"
+    # the final refinement moved the keyframes' cameras, and the stream said so before `finished`
+    assert metrics["poses_refined"] == 1
     assert math.isfinite(metrics["ate_rmse_m"]) and 0 <= metrics["ate_rmse_m"] < 0.5
     assert math.isfinite(metrics["psnr_db"]) and metrics["psnr_db"] > 10
     assert re.search(r"ATE RMSE\s+\d+\.\d+ cm", result.stdout)
@@ -54,6 +56,7 @@ def test_demo_runs_the_whole_system_and_writes_its_outputs(tmp_path: Path) -> No
     # The same frames without device poses (RGB-D odometry), reported beside the posed run.
     rgbd = json.loads((out / "rgbd" / "metrics.json").read_text())
     assert rgbd["mode"] == "rgbd" and rgbd["poses"] == frames and rgbd["frame_errors"] == 0
+    assert rgbd["poses_refined"] == 1
     assert rgbd["session_id"] != metrics["session_id"]
     assert 0 <= rgbd["ate_rmse_m"] < 0.05, "RGB-D odometry on real frames should be centimetre-accurate"
     assert rgbd["psnr_db"] > 20
