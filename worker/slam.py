@@ -232,11 +232,14 @@ class SlamSystem:
         return self.config.mapping.final_refine_poses and self.pose_source_choice()["pose_source"] != "fixed"
 
     def _follow_refined_keyframes(self, motions: dict[int, np.ndarray]) -> dict[str, Any]:
-        """Move the trajectory's keyframes by the final refinement's world-frame motions (frames follow their
-        keyframes; keyframes the map did not hold follow the newest refined one before them). Returns the event."""
-        poses = self.tracking_stage.trajectory.keyframe_poses
-        revision, changed = self.tracking_stage.apply_correction(
-            {k: motion @ poses[k] for k, motion in motions.items() if k in poses})
+        """Move the trajectory's keyframes by the final refinement's world-frame motions (keyframes the map did not
+        hold follow the newest refined one before them) and each frame with the keyframes before and after it.
+        Returns the event."""
+        trajectory = self.tracking_stage.trajectory
+        old = {k: pose.copy() for k, pose in trajectory.keyframe_poses.items()}
+        _, changed = self.tracking_stage.apply_correction(
+            {k: motion @ old[k] for k, motion in motions.items() if k in old})
+        revision = trajectory.spread_keyframe_moves(old)
         return {"type": "poses_refined", "keyframes": len(changed), "revision": revision}
 
     def close(self) -> None:

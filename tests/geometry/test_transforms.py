@@ -129,3 +129,18 @@ def test_se3_part_removes_the_scale_and_keeps_the_translation() -> None:
     t = torch.tensor([1.0, 2.0, -3.0], dtype=torch.float64)
     rigid = se3_part(make_sim3(R, t, 2.5).numpy())
     np.testing.assert_allclose(rigid, make_sim3(R, t).numpy(), atol=1e-12)
+
+
+def test_sim3_blend_goes_from_one_similarity_to_the_other():
+    from worker.geometry import sim3_blend
+
+    A = make_sim3(so3_exp(torch.tensor([0.1, 0.2, -0.3], dtype=torch.float64)),
+                  torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64), 2.0)
+    turn = so3_exp(torch.tensor([0.0, 0.0, 0.4], dtype=torch.float64))
+    B = make_sim3(sim3_decompose(A)[1] @ turn, torch.tensor([3.0, 2.0, 1.0], dtype=torch.float64), 8.0)
+    assert torch.allclose(sim3_blend(A, B, 0.0), A, atol=1e-12) and torch.allclose(sim3_blend(A, B, 1.0), B, atol=1e-12)
+    s, R, t = sim3_decompose(sim3_blend(A, B, 0.5))
+    assert torch.allclose(s, torch.tensor(4.0, dtype=torch.float64))  # geometric in the scale
+    assert torch.allclose(t, torch.tensor([2.0, 2.0, 2.0], dtype=torch.float64))
+    half_turn = sim3_decompose(A)[1].T @ R
+    assert torch.allclose(so3_log(half_turn), torch.tensor([0.0, 0.0, 0.2], dtype=torch.float64), atol=1e-9)

@@ -1,5 +1,5 @@
 """`mapping.final_refine_poses`: the final refinement refines the keyframes' cameras with the map, the trajectory
-follows (a `poses_refined` revision), and sessions whose device poses are fixed keep them untouched."""
+follows (a `poses_refined` revision, each frame with the keyframes around it), and sessions whose device poses are fixed keep them untouched."""
 
 from __future__ import annotations
 
@@ -45,9 +45,11 @@ def test_the_keyframes_cameras_are_refined_and_every_frame_follows(frames) -> No
     assert shifts[0] == 0.0  # the oldest keyframe holds the map's frame (and frames 1, 2 follow it)
     assert all(np.isfinite(pose).all() for pose in after.values())
     assert 0.0 < max(shifts.values()) < 0.02, shifts  # small: a refinement, not a new trajectory
-    # a frame keeps its tracked pose relative to its keyframe
-    kf_before, kf_after = before[3], after[3]
-    np.testing.assert_allclose(np.linalg.inv(kf_after) @ after[4], np.linalg.inv(kf_before) @ before[4], atol=1e-9)
+    # frame 4, a third of the way from keyframe 3 to keyframe 6, moves with both: about 2/3 of 3's shift and 1/3 of
+    # 6's (exactly so for the translations of moves without a turn; these turn by hundredths of a degree)
+    move = {i: after[i][:3, 3] - before[i][:3, 3] for i in (3, 4, 6)}
+    expected = (2 * move[3] + move[6]) / 3
+    assert np.linalg.norm(move[4] - expected) < 0.2 * max(np.linalg.norm(move[3]), np.linalg.norm(move[6]))
 
 
 def test_fixed_device_poses_are_never_refined(frames) -> None:

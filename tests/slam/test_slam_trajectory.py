@@ -79,3 +79,31 @@ def test_frames_a_new_map_posed_later_move_with_its_first_keyframe() -> None:
     assert np.allclose(poses[1], pose(0.0)) and np.allclose(poses[0], pose(0.0))  # the old map's stay
     records = {r.index: r for r in traj.frames}
     assert records[2].keyframe == 4 and records[2].submap_id == 1 and records[1].submap_id == 0
+
+
+def test_frames_between_two_moved_keyframes_move_with_both() -> None:
+    """spread_keyframe_moves: a frame 1/4 of the way from keyframe 0 to keyframe 4 takes 3/4 of keyframe 0's move
+    and 1/4 of keyframe 4's; frames after the last keyframe, or between keyframes that moved alike, stay rigid; the
+    sealed chunks that changed get a new version."""
+    traj = Trajectory(chunk_frames=2)
+    for index in range(7):
+        if index in (0, 4):
+            traj.add_keyframe(index, pose(0.1 * index), reference=None if index == 0 else 0)
+        traj.add_frame(index, 0.1 * index, 0 if index < 4 else 4, pose(0.1 * index, 0.01 * index), index in (0, 4),
+                       0)
+    old = {k: p.copy() for k, p in traj.keyframe_poses.items()}
+    before = {i: p for i, _, p in traj.listing("all")}
+    shift = pose(0.0, 0.0)
+    shift[:3, 3] = [0.0, 0.04, 0.0]  # keyframe 4 moves 4 cm up; keyframe 0 stays
+    traj.update_keyframes({4: shift @ old[4]})
+    revision = traj.spread_keyframe_moves(old)
+    after = {i: p for i, _, p in traj.listing("all")}
+    assert revision == traj.revision == 2
+    for index in (1, 2, 3):
+        np.testing.assert_allclose(after[index][:3, 3] - before[index][:3, 3], [0.0, 0.01 * index, 0.0], atol=1e-12)
+        np.testing.assert_allclose(after[index][:3, :3], before[index][:3, :3], atol=1e-12)
+    for index in (5, 6):  # after the last keyframe: rigidly with it
+        np.testing.assert_allclose(after[index], shift @ before[index], atol=1e-12)
+    assert traj.chunk_revisions == {0: 1, 1: 1}  # frames 1 and 2, 3 sit in sealed chunks 0 and 1
+    assert traj.spread_keyframe_moves(traj.keyframe_poses) == 3  # nothing moved: nothing changes
+    assert {i: p for i, _, p in traj.listing("all")}.keys() == after.keys()

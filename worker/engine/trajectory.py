@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from worker.engine.snapshot_chunks import ChunkWrite, chunk_versions
-from worker.geometry import sim3_inverse
+from worker.geometry import sim3_blend, sim3_inverse
 from worker.serialization import pack, unpack
 
 CHUNK_FRAMES = 256  # frame records per sealed chunk
@@ -106,7 +106,6 @@ class Trajectory:
         """Replace the tracked poses of past non-keyframes (a pose source re-estimated them, e.g. the frames
         before a monocular initialisation); with `keyframe`, the frames are tied to that keyframe (and its
         `submap_id`) instead of the one they followed. Returns the new revision."""
-        sealed = len(self.frames) // self.chunk_frames
         touched = set()
         for position, record in enumerate(self.frames):
             if record.index in poses and not record.is_keyframe:
@@ -115,9 +114,38 @@ class Trajectory:
                     record.submap_id = record.submap_id if submap_id is None else int(submap_id)
                 record.relative = _inv(self.tracked_keyframe_poses[record.keyframe]) @ np.asarray(
                     poses[record.index], np.float64)
-                touched.add(position // self.chunk_frames)
-        for chunk in touched:
-            if chunk < sealed:  # sealed chunks are rewritten at their new version; the tail is in the state anyway
+                touched.add(position)
+        return self._revised(touched)
+
+    def spread_keyframe_moves(self, old_keyframe_poses: Mapping[int, np.ndarray]) -> int:
+        """After keyframes moved from `old_keyframe_poses` to their current poses, each frame between its keyframe
+        and the next one moves with both, by how near it is to each (frame indices; the rotation along the geodesic),
+        instead of rigidly with the one before it: the move of a keyframe that was refined alone (not as part of a
+        rigid correction) says little about frames next to the keyframe after it. Returns the new revision."""
+        order = sorted(self.keyframe_poses)
+        next_keyframe = dict(zip(order, order[1:]))
+        moves = {k: self.keyframe_poses[k] @ _inv(old) for k, old in old_keyframe_poses.items()
+                 if k in self.keyframe_poses}
+        touched = set()
+        for position, record in enumerate(self.frames):
+            a, b = record.keyframe, next_keyframe.get(record.keyframe)
+            if record.is_keyframe or b is None or a not in moves or b not in moves or not a < record.index < b:
+                continue
+            if np.allclose(moves[a], moves[b], rtol=0.0, atol=1e-12):
+                continue
+            old_pose = old_keyframe_poses[a] @ record.relative
+            with_a, with_b = moves[a] @ old_pose, moves[b] @ old_pose
+            placed = sim3_blend(torch.from_numpy(with_a), torch.from_numpy(with_b), (record.index - a) / (b - a))
+            record.relative = _inv(self.keyframe_poses[a]) @ placed.numpy()
+            touched.add(position)
+        return self._revised(touched)
+
+    def _revised(self, positions: set[int]) -> int:
+        """A new revision after the records at `positions` changed: their sealed chunks are rewritten at a new
+        version (the tail is in the state anyway)."""
+        sealed = len(self.frames) // self.chunk_frames
+        for chunk in {position // self.chunk_frames for position in positions}:
+            if chunk < sealed:
                 self.chunk_revisions[chunk] = self.chunk_revisions.get(chunk, 0) + 1
         self.revision += 1
         return self.revision

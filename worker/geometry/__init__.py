@@ -16,6 +16,7 @@ from .transforms import (
     se3_exp,
     se3_part,
     sim3_apply,
+    sim3_blend,
     sim3_compose,
     sim3_decompose,
     sim3_from_quat,
@@ -29,6 +30,6 @@ from .transforms import (
 __all__ = [
     "Intrinsics", "make_sim3", "pixel_grid", "project_points", "quat_align_sign", "quat_conjugate",
     "quat_multiply", "quat_normalize", "quat_to_rotmat", "relative_transform", "rotmat_to_quat", "se3_exp", "se3_part",
-    "sim3_apply", "sim3_compose", "sim3_decompose", "sim3_from_quat", "sim3_inverse", "sim3_scale",
+    "sim3_apply", "sim3_blend", "sim3_compose", "sim3_decompose", "sim3_from_quat", "sim3_inverse", "sim3_scale",
     "sim3_to_quat", "so3_exp", "so3_log", "umeyama", "umeyama_sim3", "unproject_depth",
 ]

@@ -69,6 +69,16 @@ def sim3_apply(T: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     return points @ T[..., :3, :3].transpose(-1, -2) + T[..., None, :3, 3]
 
 
+def sim3_blend(A: torch.Tensor, B: torch.Tensor, alpha: float) -> torch.Tensor:
+    """The similarity `alpha` of the way from A to B: rotation along the geodesic, translation and log-scale linear
+    (alpha 0 gives A, 1 gives B)."""
+    s_a, R_a, t_a = sim3_decompose(A)
+    s_b, R_b, t_b = sim3_decompose(B)
+    R = R_a @ so3_exp(alpha * so3_log(R_a.transpose(-1, -2) @ R_b))
+    s = s_a * (s_b / s_a) ** alpha
+    return make_sim3(R, t_a + alpha * (t_b - t_a), s)
+
+
 def relative_transform(T_a: torch.Tensor, T_b: torch.Tensor) -> torch.Tensor:
     """T_a^-1 * T_b: the pose of b expressed in the frame of a."""
     return sim3_inverse(T_a) @ T_b
