@@ -1,5 +1,6 @@
 """`mapping.final_refine_poses`: the final refinement refines the keyframes' cameras with the map, the trajectory
-follows (a `poses_refined` revision, each frame with the keyframes around it), and sessions whose device poses are fixed keep them untouched."""
+follows (a `poses_refined` revision, each frame with the keyframes around it), and sessions whose device poses are
+fixed keep them untouched."""
 
 from __future__ import annotations
 
