@@ -469,8 +469,10 @@ class GaussianMap:
         cameras too (all but the oldest held keyframe's, which holds the map's frame), whose corrected poses
         replace theirs."""
         views = [self._keyframes[k].refine_view(self.config.refine.exposure) for k in kf_ids]
-        anchor = min(k for k in self.keyframe_ids if self._keyframes[k].held)
-        cameras = [k != anchor for k in kf_ids] if train_poses else None
+        cameras = None
+        if train_poses:
+            anchor = min(k for k in self.keyframe_ids if self._keyframes[k].held)
+            cameras = [k != anchor for k in kf_ids]
         if self._background is not None:
             for k, view in zip(kf_ids, views):
                 kf = self._keyframes[k]

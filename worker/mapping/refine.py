@@ -54,7 +54,7 @@ class RefineSettings:
     exposure_min_alpha: float = 0.95  # estimates: pixels the render covers at least this much take part
     exposure_threshold: float = 0.03  # estimates: log-gain changes within this are shrunk away (shrink_exposure)
     exposure_shared: bool = True  # estimates: one gain for the three channels (fit_exposure's `shared`)
-    lr_pose_translation: float = 2e-4  # with train_poses: a view's camera shift per step, times the scene scale
+    lr_pose_translation: float = 2e-4  # trainable cameras: a view's camera shift per step, times the scene scale
     lr_pose_rotation: float = 2e-4  # ... and its turn per step, radians
 
 
@@ -82,7 +82,7 @@ class RefineReport:
 
     losses: list[float] = field(default_factory=list)
     views: list[int] = field(default_factory=list)
-    # with train_poses: each view's camera-frame correction (float64 4x4; corrected viewmat = correction @ viewmat)
+    # with trainable_cameras: every view's camera-frame correction (float64 4x4; viewmat -> correction @ viewmat)
     view_corrections: list[torch.Tensor] = field(default_factory=list)
 
 
