@@ -126,13 +126,16 @@ class Trajectory:
         next_keyframe = dict(zip(order, order[1:]))
         moves = {k: self.keyframe_poses[k] @ _inv(old) for k, old in old_keyframe_poses.items()
                  if k in self.keyframe_poses}
+        # keyframes whose move differs from the next keyframe's: only their frames change (checked once each, not
+        # once a frame: a long session's finish walks every frame record)
+        spread = {a for a, b in next_keyframe.items()
+                  if a in moves and b in moves and not np.allclose(moves[a], moves[b], rtol=0.0, atol=1e-12)}
         touched = set()
         for position, record in enumerate(self.frames):
-            a, b = record.keyframe, next_keyframe.get(record.keyframe)
-            if record.is_keyframe or b is None or a not in moves or b not in moves or not a < record.index < b:
+            a = record.keyframe
+            if record.is_keyframe or a not in spread or not a < record.index < next_keyframe[a]:
                 continue
-            if np.allclose(moves[a], moves[b], rtol=0.0, atol=1e-12):
-                continue
+            b = next_keyframe[a]
             old_pose = old_keyframe_poses[a] @ record.relative
             with_a, with_b = moves[a] @ old_pose, moves[b] @ old_pose
             placed = sim3_blend(torch.from_numpy(with_a), torch.from_numpy(with_b), (record.index - a) / (b - a))
