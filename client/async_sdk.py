@@ -479,10 +479,10 @@ class AsyncFlashMonoClient:
     async def create_session(self, *, intrinsics: Any = None, preset: str | None = None, name: str | None = None,
                              device_id: str | None = None, metadata: dict[str, Any] | None = None,
                              pose_mode: str | None = None, skip_frames: bool | None = None,
-                             tracking_side: int | None = None) -> Session:
+                             tracking_side: int | None = None, frame_rate: float | None = None) -> Session:
         """A new session (see FlashMonoClient.create_session)."""
         return await self._call(rest.create_session(intrinsics, preset, name, device_id, metadata, pose_mode,
-                                                    skip_frames, tracking_side))
+                                                    skip_frames, tracking_side, frame_rate))
 
     async def presets(self) -> dict[str, Any]:
         """GET /v1/presets: {presets: [{name, purpose, input}], input_modes}."""

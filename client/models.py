@@ -57,6 +57,8 @@ class Session:
     mapping_lag_keyframes: int | None = None  # keyframes tracked but not yet mapped
     mapping_lag_s: float | None = None  # how long the oldest of them has waited
     tracking_side: int | None = None  # the tracking resolution's long side (None: the worker's default)
+    frame_rate: float | None = None  # the camera's frame rate, as the client gave it
+    settings: dict[str, Any] | None = None  # {preset, decided: auto|named, tracking_side, overrides, reasons}
 
     @classmethod
     def from_json(cls, data: dict[str, Any]) -> Session:
@@ -88,6 +90,8 @@ class Session:
             mapping_lag_keyframes=data.get("mapping_lag_keyframes"),
             mapping_lag_s=data.get("mapping_lag_s"),
             tracking_side=data.get("tracking_side"),
+            frame_rate=data.get("frame_rate"),
+            settings=data.get("settings"),
         )
 
 

@@ -79,10 +79,10 @@ def intrinsics_payload(intrinsics: Any) -> dict[str, float] | None:
 def create_session(intrinsics: Any = None, preset: str | None = None, name: str | None = None,
                    device_id: str | None = None, metadata: dict[str, Any] | None = None,
                    pose_mode: str | None = None, skip_frames: bool | None = None,
-                   tracking_side: int | None = None) -> Call:
+                   tracking_side: int | None = None, frame_rate: float | None = None) -> Call:
     body = _drop_none({"intrinsics": intrinsics_payload(intrinsics), "preset": preset, "name": name,
                        "device_id": device_id, "metadata": metadata, "pose_mode": pose_mode,
-                       "skip_frames": skip_frames, "tracking_side": tracking_side})
+                       "skip_frames": skip_frames, "tracking_side": tracking_side, "frame_rate": frame_rate})
     return Call("POST", f"{API_PREFIX}/sessions", lambda r: Session.from_json(r.json()), json=body)
 
 

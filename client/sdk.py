@@ -99,16 +99,18 @@ class FlashMonoClient:
     def create_session(self, *, intrinsics: Any = None, preset: str | None = None, name: str | None = None,
                        device_id: str | None = None, metadata: dict[str, Any] | None = None,
                        pose_mode: str | None = None, skip_frames: bool | None = None,
-                       tracking_side: int | None = None) -> Session:
+                       tracking_side: int | None = None, frame_rate: float | None = None) -> Session:
         """A new session; intrinsics as {fx, fy, cx, cy, width, height}, an Intrinsics or [fx, fy, cx, cy].
         pose_mode: "seeded" tracks from the images starting from the device poses frames carry, with them as priors
         (the default with depth), "prior" uses them as the odometry refined by loop closures (the default without
         depth), "fixed" keeps them exactly as sent, "ignore" tracks without them. skip_frames: True for a live camera:
         the tracker skips frames that fell behind a newer one, with a `skipped` message; False (the server's default)
-        tracks every frame however late. tracking_side: track frames at most this long a side (e.g. 320 for a
-        640x480 camera at 30 frames/s; None: the server's default)."""
+        tracks every frame however late. tracking_side: track frames at most this long a side (None: as the
+        server's settings choose). preset: None lets the worker choose from the input and its machine (`auto`;
+        the session's `settings` says what it chose and why). A mobile app streaming its camera live sets
+        skip_frames=True and frame_rate (e.g. 30), and nothing else."""
         return self._call(rest.create_session(intrinsics, preset, name, device_id, metadata, pose_mode,
-                                              skip_frames, tracking_side))
+                                              skip_frames, tracking_side, frame_rate))
 
     def presets(self) -> dict[str, Any]:
         """GET /v1/presets: {presets: [{name, purpose, input}], input_modes}."""

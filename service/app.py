@@ -35,11 +35,22 @@ VIEWER_DIR = Path(__file__).parent / "static" / "viewer"
 API_VERSION = "0.1.0"
 
 
+API_DESCRIPTION = (
+    "Real-time monocular 2D Gaussian-splatting SLAM as a service. Authenticate with `X-API-Key: <key>` or "
+    "`Authorization: Bearer <key>` (WebSocket also `?api_key=`).\n\n"
+    "**A mobile app streaming its camera live** creates its session with `{\"skip_frames\": true, "
+    "\"frame_rate\": 30, \"intrinsics\": {...}}` (the intrinsics where the platform gives them: ARKit and ARCore "
+    "do) and nothing else: no preset, no tuning fields. Its frames carry `depth` where the phone has a depth "
+    "sensor and `pose` where it runs ARKit/ARCore; the worker chooses the settings at the first frame from what "
+    "arrives and from its machine, and the session's `settings` says what it chose and why. Recorded data (every "
+    "frame must get a pose, however late) leaves `skip_frames` false.")
+
+
 def _validate_preset(name: str) -> None:
     """Raise ValueError unless `name` is a preset of the engine (worker.config is light: no torch)."""
     from worker.config import PRESETS
 
-    if name not in PRESETS:
+    if name != "auto" and name not in PRESETS:
         raise ValueError(f"choose one of {sorted(PRESETS)}")
 
 
@@ -71,8 +82,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             await close_async(client)
 
     app = FastAPI(title="Flash-Mono", version=API_VERSION, lifespan=lifespan,
-                  description="Real-time monocular 2D Gaussian-splatting SLAM as a service. Authenticate with "
-                              "`X-API-Key: <key>` or `Authorization: Bearer <key>` (WebSocket also `?api_key=`).")
+                  description=API_DESCRIPTION)
     app.state.settings = settings
     app.state.auth = Authenticator(settings)
     app.state.metrics = GatewayMetrics()

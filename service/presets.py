@@ -1,16 +1,22 @@
 """What each engine preset is for and which input suits it, for clients: GET /v1/presets and the session schema.
 
-The presets themselves live in `worker.config.PRESETS`; tests keep the two lists equal.
+The presets themselves live in `worker.config.PRESETS`; tests keep the two lists equal. `auto` is no preset of its
+own: the worker chooses one from the session's input and its machine (`worker.settings_choice`).
 """
 
 from __future__ import annotations
 
 from typing import Literal
 
-PresetName = Literal["paper", "default", "fast", "rgbd", "test"]
+PresetName = Literal["auto", "paper", "default", "fast", "rgbd", "test"]
 
 # name -> (what it is for, which input it suits)
 PRESET_INFO: dict[str, tuple[str, str]] = {
+    "auto": ("the default (a session that names no preset): the worker chooses at the session's first frame from "
+             "what it receives (depth, device poses, frame size, live or recorded) and its machine: `paper` where "
+             "a CUDA GPU and trained weights exist, else `rgbd` (on a GPU, mapped there); a live stream "
+             "(`skip_frames`) with frames over 320 px is tracked at 320 px. The session's `settings` says what was "
+             "chosen and why; `auto_choices` here what this fleet's workers choose", "any input"),
     "paper": ("the paper's settings: paper-size model, 512-pixel images, on a CUDA GPU; needs weights converted "
               "from CUT3R (`flashmono convert-cut3r`)", "RGB only (monocular), any input on a GPU"),
     "default": ("the paper's mapping settings (20 refinement iterations over 5 keyframes) on whatever device is "
@@ -42,5 +48,6 @@ def preset_list() -> list[dict[str, str]]:
 def preset_field_description() -> str:
     """The `preset` field's description in the session schema: one line per preset."""
     lines = [f"- `{name}`: {purpose}. Suits: {suits}." for name, (purpose, suits) in PRESET_INFO.items()]
-    return ("Engine preset (GET /v1/presets lists them); omitted: `default`.\n"
+    return ("Engine preset (GET /v1/presets lists them); omitted: `auto`, chosen from the input and the worker's "
+            "machine.\n"
             + "\n".join(lines) + "\n" + INPUT_MODES)

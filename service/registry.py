@@ -86,7 +86,7 @@ return 1
 """
 INGEST_ACCEPTED, NO_SESSION, NOT_ACCEPTING, SEQ_NOT_INCREASING, QUEUE_FULL, SIZE_MISMATCH = 0, -1, -2, -3, -4, -5
 _INT_FIELDS = ("frames_received", "frames_processed", "frames_rejected", "frames_skipped", "keyframes", "revision")
-_FLOAT_FIELDS = ("mapping_lag_s",)
+_FLOAT_FIELDS = ("mapping_lag_s", "frame_rate")
 _OPTIONAL_INT_FIELDS = ("mapping_lag_keyframes", "tracking_side")
 
 
@@ -138,6 +138,7 @@ class Registry:
             "frames_processed": 0, "frames_rejected": 0, "frames_skipped": 0, "keyframes": 0, "revision": 0,
             "worker": "", "preset": body.get("preset") or "", "pose_mode": body.get("pose_mode") or "",
             "skip_frames": int(bool(body.get("skip_frames"))), "tracking_side": body.get("tracking_side") or "",
+            "frame_rate": body.get("frame_rate") or "",
             "intrinsics": json.dumps(body.get("intrinsics")), "depth_camera": json.dumps(body.get("depth_camera")),
             "metadata": json.dumps(body.get("metadata") or {}), "owner": owner, "last_seq": -1,
         }
@@ -327,6 +328,15 @@ class Registry:
         return [k.decode()[len(keys.WORKER_PREFIX):]
                 async for k in self.client.scan_iter(match=f"{keys.WORKER_PREFIX}*", count=500)]
 
+    async def worker_machines(self) -> list[dict[str, Any]]:
+        """The machines of the live workers that publish one (SLAM workers), each as they publish it."""
+        out = []
+        async for key in self.client.scan_iter(match=f"{keys.WORKER_MACHINE_PREFIX}*", count=500):
+            raw = await self.client.get(key)
+            if raw:
+                out.append(json.loads(raw))
+        return out
+
     async def worker_stats(self) -> dict[str, dict[str, float]]:
         out = {}
         async for key in self.client.scan_iter(match=f"{keys.WORKER_STATS_PREFIX}*", count=500):
@@ -357,7 +367,10 @@ def parse_session(record: dict[str, Any]) -> dict[str, Any]:
         "metadata": json.loads(record.get("metadata") or "{}"), "error": record.get("error") or None,
         "depth_camera": json.loads(record.get("depth_camera") or "null"),
         "warnings": json.loads(record.get("warnings") or "[]"),
+        "settings": json.loads(record.get("settings") or "null"),
     }
+    if out["preset"] in (None, "auto") and out["settings"]:
+        out["preset"] = out["settings"]["preset"]
     for name in _INT_FIELDS:
         out[name] = int(record.get(name) or 0)
     for name in _OPTIONAL_INT_FIELDS:

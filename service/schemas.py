@@ -119,6 +119,24 @@ SKIP_FRAMES_DOC = (
     "data, and clients that need every pose)")
 
 
+FRAME_RATE_DOC = (
+    "the camera's frame rate in frames/s, where the client knows it (a phone's camera: 30); the worker's choice of "
+    "settings takes it into account and the session's `settings` names it")
+
+
+class SessionSettings(BaseModel):
+    """The engine settings the session runs with: named by the client, or chosen by the worker."""
+
+    preset: str = Field(description="the preset the engine runs")
+    decided: Literal["auto", "named"] = Field(
+        description="auto: chosen by the worker at the session's first frame from its input and machine; named: the "
+        "client's preset")
+    tracking_side: int | None = Field(None, description="the long side frames are tracked at (null: as they come, "
+                                                        "or the session's own `tracking_side`)")
+    overrides: dict[str, Any] = Field(default_factory=dict, description="settings changed from the preset's")
+    reasons: list[str] = Field(default_factory=list, description="why, one line each")
+
+
 class SessionCreate(BaseModel):
     model_config = ConfigDict(extra="forbid")
     intrinsics: IntrinsicsIn | None = None
@@ -127,6 +145,7 @@ class SessionCreate(BaseModel):
     depth_camera: DepthCameraIn | None = Field(default=None, description=DEPTH_CAMERA_DOC)
     skip_frames: bool = Field(default=False, description=SKIP_FRAMES_DOC)
     tracking_side: int | None = Field(default=None, ge=64, le=4096, description=TRACKING_SIDE_DOC)
+    frame_rate: float | None = Field(default=None, gt=0, le=1000, description=FRAME_RATE_DOC)
     name: str | None = Field(default=None, max_length=200)
     device_id: str | None = Field(default=None, max_length=200)
     metadata: dict[str, Any] = Field(default_factory=dict)
@@ -156,7 +175,12 @@ class Session(BaseModel):
     keyframes: int
     revision: int = Field(description="trajectory revision; grows when a loop closure rewrites past poses")
     worker: str | None = Field(None, description="id of the worker that owns (or last owned) the session")
-    preset: str | None = None
+    preset: str | None = Field(None, description="the preset the engine runs: as named, else as the worker chose it "
+                                                "(null until the first frame)")
+    settings: SessionSettings | None = Field(
+        None, description="the settings the engine runs with and why (null until the worker has them: at the first "
+        "frame when no preset was named)")
+    frame_rate: float | None = Field(None, description=FRAME_RATE_DOC)
     pose_mode: PoseMode | None = Field(None, description="as created (null: the engine's default: seeded with depth, "
                                                          "else prior)")
     skip_frames: bool = Field(False, description=SKIP_FRAMES_DOC)
@@ -217,6 +241,19 @@ class PresetInfo(BaseModel):
     input: str = Field(description="the input it suits")
 
 
+class MachineChoices(BaseModel):
+    machine: dict[str, Any] = Field(description="a worker's machine: cpu_cores, cuda, trained_weights")
+    workers: int = Field(description="live workers on such a machine")
+    live: dict[str, SessionSettings] = Field(
+        description="per input mode (rgbd, posed-rgbd, posed-rgb, rgb): the settings `auto` chooses for a live "
+        "640x480 stream (skip_frames true)")
+    recorded: dict[str, SessionSettings] = Field(
+        description="the same for recorded 640x480 frames (skip_frames false)")
+
+
 class PresetList(BaseModel):
     presets: list[PresetInfo]
+    auto_choices: list[MachineChoices] = Field(
+        default_factory=list, description="what `auto` (no preset named) chooses on each kind of machine among the "
+        "live workers")
     input_modes: str = Field(description="how the input mode follows from the fields a frame carries")

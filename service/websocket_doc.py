@@ -280,7 +280,14 @@ WEBSOCKET_DOC = {
                 "description": "a refused or unusable frame (never silently dropped) or a session-level problem; "
                                "the stream stays open except where close_codes says otherwise"},
             "finishing": {"type": "object", "properties": {
-                "type": {"const": "finishing"}, "elapsed_s": {"type": "number", "description": "since finish began"}},
+                "type": {"const": "finishing"}, "elapsed_s": {"type": "number", "description": "since finish began"},
+                "phase": {"type": "string", "enum": ["mapping", "loop_closing", "refining", "done"],
+                          "description": "mapping: the keyframes still waiting are mapped; loop_closing: the last "
+                          "loop queries are answered; refining: the final refinement"},
+                "done": {"type": "integer", "description": "work units of the phase done (keyframes, iterations)"},
+                "total": {"type": "integer", "description": "work units of the phase in all"},
+                "eta_s": {"type": "number", "description": "seconds the phase still needs at its pace so far "
+                          "(bounded by the finish budget); absent until there is a pace"}},
                 "description": "the worker is finishing the session (after the last queued frame): sent when it "
                                "starts and every 2 s until `finished`"},
             "finished": {"type": "object", "properties": {

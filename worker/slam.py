@@ -48,6 +48,7 @@ from worker.depth.border_planes import BorderSettings
 from worker.depth.world_planes import PlaneSettings
 from worker.engine.backend import KeyframeJob, PoseUpdateJob
 from worker.engine.depth_registration import DepthRegistration
+from worker.engine.finish_status import FinishStatus
 from worker.engine.keyframe_depth import KeyframeDepth
 from worker.engine.keyframes import MotionKeyframeSelector
 from worker.engine.loop_closer import DepthKeyframePoints, LoopCloser
@@ -138,6 +139,7 @@ class SlamSystem:
         self._judged: list[Frame] = []
         # events of finish() (no frame result carries them): a decision on the device poses, loops
         self.finish_events: list[dict[str, Any]] = []
+        self.finish_status = FinishStatus()  # finish()'s phase and progress, for progress bars and messages
         self.depth_registration = DepthRegistration(self.config.input.depth_camera,
                                                     self.config.input.detect_misregistration_frames)
 
@@ -203,11 +205,15 @@ class SlamSystem:
         if self._judged:  # the stream ended while the device poses were judged: decide on what was measured
             decision = self.pose_source.conclude(self._judged[-1].index)
             self.finish_events += self._replay_judged(decision).events
+        status = self.finish_status
         if self.backend is not None:
             self._map_last_frame()
             self._queue_depth_jobs(force=True)
             self._flush_map_jobs(force=True)
+            backlog = self.backend.pending
+            status.begin("mapping", backlog, done=lambda: backlog - self.backend.pending)
             self.backend.wait_idle()
+        status.begin("loop_closing", self.loop_stage.pending)
         self.loop_stage.wait_idle()
         self.finish_events += self._apply_corrections()  # loops the stage closed after the last frame
         if self.finish_events and self.backend is not None:
@@ -216,11 +222,14 @@ class SlamSystem:
             if self.config.mapping.final_refine_passes:
                 budget = self.config.mapping.final_refine_budget_s  # counted from the start of finish(): drain too
                 left = None if not budget else max(0.0, budget - (time.perf_counter() - started))
-                moved = self.backend.refine_all(self.config.mapping.final_refine_passes, budget_s=left,
-                                                seed=self.config.mapping.final_refine_seed,
-                                                train_poses=self._refines_keyframe_poses())
+                passes = self.config.mapping.final_refine_passes
+                status.begin("refining", passes * self.backend.map.held_images,
+                             deadline=None if left is None else time.perf_counter() + left)
+                moved = self.backend.refine_all(passes, budget_s=left, seed=self.config.mapping.final_refine_seed,
+                                                train_poses=self._refines_keyframe_poses(), on_step=status.step)
                 if moved:
                     self.finish_events.append(self._follow_refined_keyframes(moved))
+        status.begin("done", 0)
         self.close()
         if self._started is not None:
             self.counters["wall_seconds"] = self._wall_offset + time.perf_counter() - self._started

@@ -50,9 +50,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="what the 'phone' sends, one run each: mono (images), rgbd (+ depth, as LiDAR phones "
                              "that send no poses), posed (+ depth and device poses); default: posed rgbd. The "
                              "first mode's outputs go in --out, the others' in --out/<mode>/")
-    parser.add_argument("--preset", default="rgbd",
-                        help="SLAM preset (default %(default)s: posed RGB-D mapping tuned for a CPU; 'fast' is "
-                             "quicker with a coarser map)")
+    parser.add_argument("--preset", default=None,
+                        help="SLAM preset (default: none, as a new user's session: the server chooses from the input "
+                             "and its machine; 'fast' is quicker with a coarser map)")
     parser.add_argument("--max-frames", type=int, default=None, help="stream at most this many frames")
     parser.add_argument("--renders", type=int, default=6, help="how many views to render for PSNR (default 6)")
     parser.add_argument("--server", default=None, help="use this running server instead of starting one")
@@ -200,6 +200,7 @@ def run_demo(server: str, api_key: str | None, source: str, mode: str, args: arg
                     session.id, frames, wire=WireOptions(send_depth=send_depth, send_pose=send_pose),
                     on_event=lambda e: bar.update(1) if isinstance(e, PoseEvent) else None)
             elapsed = time.monotonic() - started
+            session = client.get_session(session.id)
             trajectory = client.trajectory(session.id)
             (out / "trajectory.tum").write_text(client.trajectory_tum(session.id))
             (out / "keyframes.tum").write_text(client.trajectory_tum(session.id, "keyframes"))
@@ -216,7 +217,8 @@ def run_demo(server: str, api_key: str | None, source: str, mode: str, args: arg
         print(f"error: {err}", file=sys.stderr)
         return 1, None
     metrics.update({
-        "session_id": session.id, "source": source, "mode": mode, "preset": args.preset,
+        "session_id": session.id, "source": source, "mode": mode, "preset": session.preset,
+        "settings": session.settings,
         "frames": len(frames), "poses": len(trajectory.poses), "keyframes": len(keyframe_seqs),
         "loop_closures": len(summary.loop_closures), "backpressure_retries": summary.backpressure_retries,
         "poses_refined": sum(e.kind == "poses_refined" for e in summary.tracking_events),

@@ -9,6 +9,10 @@ import sys
 
 from client.commands._options import parse_size
 
+# Seconds the end of an offline run may take by default (draining the mapping stage, then the final refinement).
+# Measured on TUM fr1/xyz RGB-D (788 frames, 2 cores): see bench/results and README.
+DEFAULT_FINISH_BUDGET_S = 60.0
+
 
 def add_run_options(parser: argparse.ArgumentParser) -> None:
     """Options shared by `run` and `eval`."""
@@ -16,8 +20,9 @@ def add_run_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--use-gt-depth", action="store_true", help="RGB-D mode: use the dataset's depth")
     parser.add_argument("--use-gt-poses", action="store_true", help="posed mode: use the dataset's poses")
     parser.add_argument("--preset", default=None,
-                        help="SlamConfig preset: paper, default, fast, rgbd, test (default: rgbd, the CPU mapping "
-                        "settings measured on ICL for every geometric input mode)")
+                        help="SlamConfig preset: paper, default, fast, rgbd, test (default: chosen from the input and "
+                        "this machine as for a session that names none, worker.settings_choice: rgbd on a CPU, "
+                        "paper with a CUDA GPU and trained weights given by FLASHMONO_CHECKPOINT)")
     parser.add_argument("--max-frames", type=int, default=None, help="stop after N frames")
     parser.add_argument("--stride", type=int, default=1, help="keep every S-th frame")
     parser.add_argument("--resize", type=parse_size, default=None, help="resize frames to WxH, e.g. 320x240")
@@ -32,10 +37,10 @@ def add_run_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scale", type=float, default=1.0, metavar="S",
                         help="multiply every pose and depth by S: the same scene in other length units (a map that "
                         "follows the scene renders the same; ATE and depth L1 come out S times larger)")
-    parser.add_argument("--finish-budget", type=float, default=0.0, metavar="SECONDS",
-                        help="bound the final refinement at the end of the run (default 0: no bound, an offline run "
-                        "completes its passes, at most passes x held keyframe images iterations; live sessions keep "
-                        "the config's mapping.final_refine_budget_s)")
+    parser.add_argument("--finish-budget", type=float, default=DEFAULT_FINISH_BUDGET_S, metavar="SECONDS",
+                        help="bound the end of the run (draining the mapping stage and the final refinement) to this "
+                        "many seconds (default %(default)g; 0: no bound, the final refinement completes its passes, at "
+                        "most passes x held keyframe images iterations); more seconds, a little more PSNR")
     parser.add_argument("--live-pacing", action="store_true",
                         help="shed mapping work as a live session does when mapping falls behind (default: an "
                         "offline run refines every keyframe, so its map does not depend on the machine's load)")
@@ -60,7 +65,11 @@ def load_config(args: argparse.Namespace):
             raise ValueError(f"cannot read config overrides {args.config}: {err}") from err
         if not isinstance(overrides, dict):
             raise ValueError("--config must hold a JSON object")
-    config = SlamConfig.preset(default_preset(args), **overrides)
+    if args.preset:
+        config = SlamConfig.preset(args.preset, **overrides)
+    else:
+        choice = _auto_settings(args)
+        config = SlamConfig.preset(choice.preset, **_merge(choice.engine_overrides(), overrides))
     if getattr(args, "deterministic", False):
         config = config.model_copy(update={"threaded": False})
     budget = getattr(args, "finish_budget", None)
@@ -73,13 +82,29 @@ def load_config(args: argparse.Namespace):
 
 
 def default_preset(args: argparse.Namespace) -> str:
-    """--preset, else `rgbd`: the CPU mapping settings measured on ICL, for depth from a sensor or from multi-view
-    stereo alike (the learned model's path has its own presets: default, paper)."""
-    return args.preset or "rgbd"
+    """--preset, else what a session that names none gets on this machine for this input (a recording: every frame
+    tracked at its size), as worker.settings_choice decides."""
+    return args.preset or _auto_settings(args).preset
+
+
+def _auto_settings(args: argparse.Namespace):
+    from worker.settings_choice import Machine, SessionInput, choose_settings
+
+    received = SessionInput(depth=bool(getattr(args, "use_gt_depth", False)),
+                            device_poses=bool(getattr(args, "use_gt_poses", False)), live=False)
+    return choose_settings(received, Machine.detect())
+
+
+def _merge(base: dict, overrides: dict) -> dict:
+    out = dict(base)
+    for key, value in overrides.items():
+        out[key] = _merge(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+    return out
 
 
 def run_one(args: argparse.Namespace, source: str, out_dir: str) -> dict:
-    """Run one sequence with a tqdm progress bar; returns its metrics."""
+    """Run one sequence with progress bars (the frames, then each phase of the finish with its estimate); returns
+    its metrics."""
     from tqdm import tqdm
 
     from worker.engine.offline import PoseDrift, run_sequence
@@ -87,6 +112,7 @@ def run_one(args: argparse.Namespace, source: str, out_dir: str) -> dict:
     config = load_config(args)
     drift = PoseDrift(*args.drift) if args.drift else None
     bar = tqdm(desc=str(source), unit="frame", disable=args.no_progress, file=sys.stderr)
+    finish = FinishBars(disable=args.no_progress)
 
     def progress(done: int, total: int | None) -> None:
         bar.total = total
@@ -96,9 +122,45 @@ def run_one(args: argparse.Namespace, source: str, out_dir: str) -> dict:
         return run_sequence(source, out_dir, config, use_gt_depth=args.use_gt_depth, use_gt_poses=args.use_gt_poses,
                             max_frames=args.max_frames, stride=args.stride, resize=args.resize, drift=drift,
                             progress=progress, unknown_intrinsics=args.unknown_intrinsics,
-                            pingpong=args.pingpong, live_pacing=args.live_pacing, scale=args.scale)
+                            pingpong=args.pingpong, live_pacing=args.live_pacing, scale=args.scale,
+                            finish_progress=finish.update)
     finally:
         bar.close()
+        finish.close()
+
+
+FINISH_LABELS = {"mapping": "mapping the last keyframes", "loop_closing": "closing the last loops",
+                 "refining": "final refinement"}
+
+
+class FinishBars:
+    """One progress bar per phase of the finish (worker.engine.finish_status), with the time left."""
+
+    def __init__(self, disable: bool = False) -> None:
+        self.disable = disable
+        self._bar = None
+        self._phase: str | None = None
+
+    def update(self, status: dict) -> None:
+        from tqdm import tqdm
+
+        phase = status.get("phase")
+        if phase != self._phase:
+            self.close()
+            self._phase = phase
+            if phase in FINISH_LABELS and status.get("total"):
+                unit = "keyframe" if phase == "mapping" else "step"
+                self._bar = tqdm(desc=FINISH_LABELS[phase], total=status["total"], unit=unit, disable=self.disable,
+                                 file=sys.stderr)
+        if self._bar is not None:
+            self._bar.update(status["done"] - self._bar.n)
+            eta = status.get("eta_s")
+            self._bar.set_postfix_str("" if eta is None else f"about {eta:.0f} s left", refresh=True)
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
 
 
 # How long the tracking thread may wait for the GIL when it comes back from a compiled kernel while the mapping or

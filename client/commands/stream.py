@@ -25,7 +25,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_server_options(parser)
     parser.add_argument("--session", help="stream into this existing session instead of creating one")
     parser.add_argument("--name", help="name of the new session")
-    parser.add_argument("--preset", help="SLAM preset of the new session (server default when omitted)")
+    parser.add_argument("--preset", help="SLAM preset of the new session (omitted: the server chooses from the input "
+                                         "and its machine, `auto`)")
     parser.add_argument("--device-id", help="device id recorded with the new session")
     parser.add_argument("--fps", type=float, help="pace frames like a live camera at this rate (default: as fast "
                                                   "as the server takes them)")
@@ -64,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
         if session_id is None:
             session = client.create_session(intrinsics=getattr(frames, "intrinsics", None), preset=args.preset,
                                             name=args.name, device_id=args.device_id,
-                                            skip_frames=_skips_frames(args))
+                                            skip_frames=_skips_frames(args), frame_rate=args.fps)
             session_id = session.id
         print(f"session {session_id}", file=sys.stderr)
         bar = tqdm(total=total, unit="frame", desc="tracked", disable=args.quiet, file=sys.stderr)

@@ -66,6 +66,10 @@ def test_capture_page_streams_the_camera_and_the_session_tracks_it(chromium, tmp
             session = client.get_session(state["sessionId"])
             trajectory = client.trajectory(state["sessionId"])
     assert session.status == "finished" and session.device_id == "browser"
+    # the page names no preset: the worker chose for a live 320x240 RGB stream on this machine, and says so
+    assert session.frame_rate == FPS and session.skip_frames
+    assert session.settings["decided"] == "auto" and session.preset == session.settings["preset"] == "rgbd"
+    assert any(reason.startswith("input: rgb;") for reason in session.settings["reasons"])
     assert session.intrinsics["fx"] == 262.5 and session.intrinsics["width"] == 320
     # every acked frame was tracked, or skipped by a tracker behind the camera (it took a newer one; each says so)
     assert session.frames_processed + session.frames_skipped == state["acked"] and session.frames_processed >= 20

@@ -179,18 +179,23 @@ class MappingStage(QueuedStage):
         return True
 
     def refine_all(self, passes: int, budget_s: float | None = None, seed: int = 0,
-                   train_poses: bool = False) -> dict[int, np.ndarray]:
+                   train_poses: bool = False, on_step: Callable[[], None] | None = None) -> dict[int, np.ndarray]:
         """The end-of-run refinement: every surfel against every keyframe image the map still holds, `passes`
         times over those keyframes in an order drawn with `seed`, for at most `budget_s` seconds (None: the map's
         configured bound). With `train_poses`, the keyframes' cameras are refined too: returns, for each keyframe
-        that moved, its world-frame motion T_new T_old^-1 (empty without)."""
+        that moved, its world-frame motion T_new T_old^-1 (empty without). `on_step` is called after each step."""
         with self.lock, self.timings.measure("map_final_refine"):
             self._owed.clear()  # the whole map's refinement supersedes the keyframes' own
             if budget_s is not None and budget_s <= 0:
                 return {}
             before = {k: self.map.keyframe_pose(k) for k in self.map.keyframe_ids}
+            def after_step() -> None:
+                self._let_readers_in()
+                if on_step is not None:
+                    on_step()
+
             self.map.refine_global(passes * self.map.held_images, seed=seed, budget_s=budget_s,
-                                   after_step=self._let_readers_in, train_poses=train_poses)
+                                   after_step=after_step, train_poses=train_poses)
             after = {k: self.map.keyframe_pose(k) for k in before}
             return {k: (pose @ sim3_inverse(before[k])).numpy() for k, pose in after.items()
                     if not torch.equal(pose, before[k])}

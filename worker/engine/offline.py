@@ -8,9 +8,11 @@ num_gaussians, ...), and returns the metrics dict.
 
 from __future__ import annotations
 
+import contextlib
 import json
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -56,6 +58,7 @@ def run_sequence(
     pingpong: int = 1,
     live_pacing: bool = False,
     scale: float = 1.0,
+    finish_progress: Callable[[dict[str, Any]], None] | None = None,
 ) -> dict[str, Any]:
     """Run one sequence end to end and evaluate it (see the module docstring).
 
@@ -64,7 +67,8 @@ def run_sequence(
     not depend on the machine's load; and visual odometry may spend seconds on LighterGlue (`learned_glue`) where
     XFeat places a lost frame nowhere. `live_pacing` keeps a live session's load shedding (fewer refinement
     iterations, then merge only, when mapping falls behind) and its tracking budget, to study what a live stream
-    gets. `scale` multiplies every pose and depth of the source (the same scene in other length units)."""
+    gets. `scale` multiplies every pose and depth of the source (the same scene in other length units).
+    `finish_progress` is called twice a second while the run finishes, with `FinishStatus.as_dict()`."""
     from worker.data import open_source
     from worker.slam import SlamSystem
 
@@ -100,7 +104,8 @@ def run_sequence(
                 progress(k + 1, total)
         tracked_s = time.perf_counter() - start
         lag_at_last_pose = system.live_stats()
-        system.finish()
+        with _reporting(system.finish_status, finish_progress):
+            system.finish()
         runtime = time.perf_counter() - start
         if not frames:
             raise ValueError(f"{source} yielded no frames")
@@ -151,6 +156,28 @@ def run_sequence(
     finally:
         system.close()
     return metrics
+
+
+@contextlib.contextmanager
+def _reporting(status, report: Callable[[dict[str, Any]], None] | None, every_s: float = 0.5) -> Iterator[None]:
+    """Call `report(status.as_dict())` every `every_s` seconds from a thread while the block runs, and once after."""
+    if report is None:
+        yield
+        return
+    stop = threading.Event()
+
+    def loop() -> None:
+        while not stop.wait(every_s):
+            report(status.as_dict())
+
+    thread = threading.Thread(target=loop, name="finish-progress", daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join()
+        report(status.as_dict())
 
 
 def complete_pacing(config: SlamConfig) -> SlamConfig:

@@ -8,6 +8,7 @@ render/export requests for finished sessions. A session's job always sits in the
 from __future__ import annotations
 
 import collections
+import json
 import logging
 import threading
 import time
@@ -25,6 +26,7 @@ from worker.runtime.outage import REDIS_DOWN, Backoff, OutageLog, wait_for_redis
 from worker.runtime.partitions import PartitionReader
 from worker.runtime.record import abandon_unstarted
 from worker.runtime.requests import handle_request
+from worker.runtime.session_settings import this_machine
 from worker.runtime.sessions import RuntimeConfig, SessionRunner, ensure_group
 from worker.runtime.snapshots import read_snapshot
 from worker.runtime.stats import StageStats
@@ -264,6 +266,9 @@ class Worker:
         pipe.set(keys.worker(self.worker_id), len(self.runners), px=self.config.lease_ttl_ms)
         pipe.hset(keys.worker_stats(self.worker_id), mapping=self.stats.as_fields())
         pipe.expire(keys.worker_stats(self.worker_id), 3600)
+        if self.config.engine_kind == "slam":
+            machine = json.dumps(this_machine(self.config.checkpoint).to_dict())
+            pipe.set(keys.worker_machine(self.worker_id), machine, px=self.config.lease_ttl_ms)
         pipe.execute()
         for session_id, runner in list(self.runners.items()):
             if not runner.is_alive():

@@ -20,6 +20,7 @@ from worker.data.frame import Frame, FrameResult
 from worker.engine.snapshot_chunks import ChunkWrite, chunk_versions
 from worker.geometry import Intrinsics
 from worker.serialization import pack, unpack
+from worker.settings_choice import Machine, SessionInput, choose_settings
 
 ENGINE_KINDS = ("slam", "passthrough")
 
@@ -45,20 +46,29 @@ class SessionEngine(Protocol):
 
 def create_engine(kind: str, preset: str | None, intrinsics: Intrinsics | None,
                   pose_mode: str | None = None, tracking_side: int | None = None,
-                  depth_camera: dict[str, Any] | None = None) -> SessionEngine:
-    """A fresh engine of `kind` for a new session; `pose_mode` (prior/fixed/ignore/seeded) and `tracking_side` (the
-    tracking resolution's long side) override the preset's; `depth_camera` (the session's: intrinsics +
-    depth_to_color) registers depth to the colour camera."""
+                  depth_camera: dict[str, Any] | None = None,
+                  overrides: dict[str, Any] | None = None) -> SessionEngine:
+    """A fresh engine of `kind` for a new session. `preset` None: the settings `choose_settings` picks for an input
+    not known yet on this machine; `overrides` (a settings choice's) are merged into the preset; `pose_mode`
+    (prior/fixed/ignore/seeded) and `tracking_side` (the tracking resolution's long side) override both;
+    `depth_camera` (the session's: intrinsics + depth_to_color) registers depth to the colour camera."""
     if kind == "slam":
         from worker.slam import SlamConfig, SlamSystem
 
-        overrides: dict[str, dict] = {"input": {"pose_mode": pose_mode}} if pose_mode else {"input": {}}
+        if preset is None:
+            choice = choose_settings(SessionInput(), Machine.detect())
+            preset, overrides = choice.preset, {**choice.engine_overrides(), **(overrides or {})}
+        merged: dict[str, Any] = {key: dict(value) if isinstance(value, dict) else value
+                                  for key, value in (overrides or {}).items()}
+        merged.setdefault("input", {})
+        if pose_mode:
+            merged["input"]["pose_mode"] = pose_mode
         if tracking_side:
-            overrides["tracking"] = {"max_side": int(tracking_side)}
+            merged.setdefault("tracking", {})["max_side"] = int(tracking_side)
         if depth_camera:
-            overrides["input"]["depth_camera"] = {**depth_camera["intrinsics"],
-                                                  "depth_to_color": depth_camera["depth_to_color"]}
-        return SlamSystem(SlamConfig.preset(preset or "default", **overrides), intrinsics=intrinsics)
+            merged["input"]["depth_camera"] = {**depth_camera["intrinsics"],
+                                               "depth_to_color": depth_camera["depth_to_color"]}
+        return SlamSystem(SlamConfig.preset(preset, **merged), intrinsics=intrinsics)
     if kind == "passthrough":
         return PassthroughEngine(intrinsics=intrinsics, delay_s=_passthrough_delay_s(),
                                  finish_delay_s=_passthrough_finish_delay_s())

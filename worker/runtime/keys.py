@@ -22,6 +22,7 @@ partitions in turn:
   fm:sessions            zset   members "<created_us>:<id>" (score 0, lexicographic order) for listing
   fm:worker:{wid}        string heartbeat of a live worker (expires)
   fm:workerstats:{wid}   hash   per-stage latency sums and counts
+  fm:workermachine:{wid} string JSON: the worker's machine (cores, CUDA, trained weights) for GET /v1/presets
   fm:reply:{request_id}  list   the reply to one request
   fm:owner:{key_id}:live zset   ids of the sessions an API key created that may still be live (per-key quota)
 (`{wid}` etc. above are placeholders, not hash tags: those keys are single-key and hash as a whole.)
@@ -39,6 +40,7 @@ SESSIONS_INDEX = "fm:sessions"
 PARTITIONS = 8
 WORKER_PREFIX = "fm:worker:"
 WORKER_STATS_PREFIX = "fm:workerstats:"
+WORKER_MACHINE_PREFIX = "fm:workermachine:"
 
 STATUSES = ("created", "streaming", "finishing", "finished", "failed", "abandoned")
 LIVE_STATUSES = ("created", "streaming", "finishing")
@@ -125,6 +127,10 @@ def worker(worker_id: str) -> str:
 
 def worker_stats(worker_id: str) -> str:
     return f"{WORKER_STATS_PREFIX}{worker_id}"
+
+
+def worker_machine(worker_id: str) -> str:
+    return f"{WORKER_MACHINE_PREFIX}{worker_id}"
 
 
 def owner_live(key_id: str) -> str:

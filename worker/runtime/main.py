@@ -11,7 +11,8 @@ FLASHMONO_BLOB_DIR (none), FLASHMONO_ARCHIVE_AFTER_S (3600), FLASHMONO_SKIP_AFTE
 longer while a newer one is waiting is skipped, newest first wins; 0: never), FLASHMONO_MAX_CONSECUTIVE_SKIPS (5),
 FLASHMONO_MAX_SKIPPED_SPAN_MS (170: after the first, no frame in a row is skipped that arrived longer after the last
 tracked one),
-FLASHMONO_TRACKING_SIDE (0: sessions that name no tracking resolution track at their working size),
+FLASHMONO_TRACKING_SIDE (0: sessions that name no tracking resolution track as their settings choose),
+FLASHMONO_CHECKPOINT (trained frontend weights; with a CUDA GPU, sessions that name no preset get the paper's settings),
 FLASHMONO_SWITCH_INTERVAL_MS (1).
 """
 
@@ -74,7 +75,10 @@ def build_parser() -> argparse.ArgumentParser:
                              "a row)")
     parser.add_argument("--tracking-side", type=int, default=int(env("FLASHMONO_TRACKING_SIDE", "0")),
                         help="sessions that name no tracking resolution track frames at most this long a side "
-                             "(0: at their working size)")
+                             "(0: as their settings choose: live streams over 320 px at 320, others as they come)")
+    parser.add_argument("--checkpoint", default=env("FLASHMONO_CHECKPOINT", ""),
+                        help="trained frontend weights (safetensors, e.g. from `flashmono convert-cut3r`); with a "
+                             "CUDA GPU, sessions that name no preset get the paper's settings")
     parser.add_argument("--switch-interval-ms", type=float,
                         default=float(env("FLASHMONO_SWITCH_INTERVAL_MS", "1")),
                         help="the interpreter's thread switch interval: how long the tracking thread may wait for the "
@@ -120,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
                            blob_dir=args.blob_dir, archive_after_s=args.archive_after_s,
                            skip_after_ms=args.skip_after_ms, max_consecutive_skips=args.max_consecutive_skips,
                            max_skipped_span_ms=args.max_skipped_span_ms,
-                           tracking_side=args.tracking_side)
+                           tracking_side=args.tracking_side, checkpoint=args.checkpoint)
     # No silent retries inside redis-py: a lost connection surfaces to the worker's loops, which wait the outage
     # out and resume each session from its snapshot (a retried XREADGROUP could lose the entries of its reply).
     # REDIS_URL may name a Redis Cluster (redis+cluster://host:port,...): see worker.runtime.connection

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import redis
 
+from worker.data.frame import Frame
 from worker.engine.snapshot_chunks import ChunkWrite
 from worker.geometry import Intrinsics
 from worker.runtime import keys
@@ -33,6 +34,7 @@ from worker.runtime.progress import FinishProgress
 from worker.runtime.quarantine import FrameAttempts
 from worker.runtime.record import SessionRecord
 from worker.runtime.requests import handle_request
+from worker.runtime.session_settings import named_preset, session_settings, this_machine
 from worker.runtime.similarity import similarity_scale
 from worker.runtime.snapshots import SnapshotWriter, read_snapshot
 from worker.runtime.stats import StageStats
@@ -92,7 +94,8 @@ class RuntimeConfig:
     block_ms: int = 500
     outbox_maxlen: int = 5000
     max_frame_side: int = DEFAULT_MAX_SIDE  # frames are worked on at most this long a side
-    tracking_side: int = 0  # sessions that name none track at most this long a side (0: at the working size)
+    tracking_side: int = 0  # sessions that name none track at most this long a side (0: the settings' choice)
+    checkpoint: str = ""  # trained frontend weights (FLASHMONO_CHECKPOINT): with a CUDA GPU, the paper's settings
     max_frame_attempts: int = 2  # workers that may die on one frame before it is quarantined
     memory_budget_mb: int = 0  # no new session while the worker's resident memory is above it (0: no limit)
     idle_timeout_s: float = 600.0  # a session without frames this long is abandoned, its slot freed (0: never)
@@ -255,6 +258,33 @@ class SessionRunner(threading.Thread):
         """The tracking resolution's long side: the session's, else the worker's default (None: as frames come)."""
         return int(self._session.get("tracking_side") or 0) or self.config.tracking_side or None
 
+    def _decides_at_first_frame(self) -> bool:
+        """Whether the engine waits for the session's first frame: its settings follow from the input (no preset
+        named, none recorded yet)."""
+        return (self.config.engine_kind == "slam" and named_preset(self._session) is None
+                and not self._session.get("settings"))
+
+    def _create_engine(self, first_frame: Frame | None) -> None:
+        """The session's engine, with the settings named, recorded or decided now from `first_frame` (None: before
+        any frame, e.g. a session finished without one); a decision is written to the record once."""
+        preset, overrides = self._session.get("preset") or None, None
+        if self.config.engine_kind == "slam":
+            choice = session_settings(self._session, first_frame, this_machine(self.config.checkpoint))
+            preset, overrides = choice.preset, choice.engine_overrides()
+            if not self._session.get("settings"):
+                text = json.dumps(choice.to_record())
+                if not self._record.update({"settings": text}):
+                    raise SessionGone
+                self._session["settings"] = text
+                log.info("session %s: settings %s (%s)", self.session_id, choice.preset, "; ".join(choice.reasons))
+        intrinsics = self._session_intrinsics()
+        self.engine = create_engine(self.config.engine_kind, preset,
+                                    Intrinsics.from_dict(intrinsics) if intrinsics else None,
+                                    pose_mode=self._session.get("pose_mode") or None,
+                                    tracking_side=self._tracking_side(),
+                                    depth_camera=json.loads(self._session.get("depth_camera") or "null"),
+                                    overrides=overrides)
+
     def _session_intrinsics(self) -> dict[str, Any] | None:
         text = self._session.get("intrinsics")
         return json.loads(text) if text and text != "null" else None
@@ -269,13 +299,8 @@ class SessionRunner(threading.Thread):
             self._last_id = snap.stream_id
             log.info("session %s restored from snapshot at seq %s", self.session_id, snap.seq)
             self._timeline.update(restored_at=time.time(), snapshot_seq=snap.seq, replayed=0)
-        else:
-            intrinsics = self._session_intrinsics()
-            self.engine = create_engine(self.config.engine_kind, self._session.get("preset") or None,
-                                        Intrinsics.from_dict(intrinsics) if intrinsics else None,
-                                        pose_mode=self._session.get("pose_mode") or None,
-                                        tracking_side=self._tracking_side(),
-                                        depth_camera=json.loads(self._session.get("depth_camera") or "null"))
+        elif not self._decides_at_first_frame():
+            self._create_engine(None)
         self._done_seqs = {int(s) for s in self.client.hkeys(keys.poses(self.session_id))}
         self._rejected = {int(s) for s in self.client.hkeys(keys.rejected(self.session_id))}
         self._done_seqs |= self._rejected
@@ -431,8 +456,10 @@ class SessionRunner(threading.Thread):
             if self._timeline is not None:
                 self._timeline["replayed"] = self._timeline.get("replayed", 0) + 1
             try:
-                self.engine.push(decode_frame(unpack(fields[b"msg"]), self._session_intrinsics(),
-                                              self.config.max_frame_side))
+                frame = decode_frame(unpack(fields[b"msg"]), self._session_intrinsics(), self.config.max_frame_side)
+                if self.engine is None:
+                    self._create_engine(frame)
+                self.engine.push(frame)
             except (FrameError, ValueError) as err:
                 log.warning("replay of seq %s failed: %s", fields[b"seq"], err)
 
@@ -451,6 +478,8 @@ class SessionRunner(threading.Thread):
         except (ValueError, KeyError, TypeError) as err:
             self._reject(entry_id, seq, "bad_frame", f"frame cannot be used: {err}")
             return
+        if self.engine is None:
+            self._create_engine(frame)
         t1, c1 = time.perf_counter(), time.thread_time()
         try:
             result = self.engine.push(frame)
@@ -623,7 +652,11 @@ class SessionRunner(threading.Thread):
         self.stats.add("snapshot", time.perf_counter() - t0)
 
     def _finish(self, entry_id: bytes) -> None:
-        with (FinishProgress(self.client, self.session_id, outbox_maxlen=self.config.outbox_maxlen),
+        if self.engine is None:  # finished before any frame
+            self._create_engine(None)
+        finish_status = getattr(self.engine, "finish_status", None)
+        with (FinishProgress(self.client, self.session_id, outbox_maxlen=self.config.outbox_maxlen,
+                             status=finish_status.as_dict if finish_status is not None else None),
               RequestsWhileFinishing(self.client, self.session_id, self.worker_id, self._handle_request)):
             self.engine.finish()
         if not self.leases.renew(self.session_id):

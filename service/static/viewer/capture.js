@@ -70,9 +70,11 @@ async function start() {
     capture.canvas.width = width;
     capture.canvas.height = height;
     const focal = Number($("focal").value);
-    // a live camera: the tracker may skip frames that fell behind a newer one (each gets a `skipped` result)
-    const body = { name: $("name").value || "phone capture", preset: $("preset").value, device_id: "browser",
-      skip_frames: true };
+    // a live camera: the tracker may skip frames that fell behind a newer one (each gets a `skipped` result);
+    // no preset unless the user picks one: the server chooses for this camera and its machine (`auto`)
+    const body = { name: $("name").value || "phone capture", device_id: "browser", skip_frames: true,
+      frame_rate: Math.max(1, Math.min(30, Number($("fps").value) || 5)) };
+    if ($("preset").value) body.preset = $("preset").value;
     if (focal > 0) body.intrinsics = { width, height, fx: focal, fy: focal, cx: width / 2, cy: height / 2 };
     const session = await api.createSession(body);
     counters.sessionId = session.id;

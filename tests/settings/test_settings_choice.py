@@ -1,0 +1,131 @@
+"""The one decision of a session's settings (worker.settings_choice): for each input mode and each kind of machine,
+and what `flashmono run` takes from it."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import pytest
+
+from client.commands.run import DEFAULT_FINISH_BUDGET_S, add_run_options, load_config
+from worker.runtime.engine import close_engine, create_engine
+from worker.runtime.session_settings import received_input, session_settings
+from worker.settings_choice import (
+    LIVE_TRACKING_SIDE,
+    SHIPPED_CHECKPOINT,
+    Machine,
+    SessionInput,
+    choices_by_input,
+    choose_settings,
+)
+
+CPU = Machine(cpu_cores=2)
+GPU_ONLY = Machine(cpu_cores=16, cuda=True)
+GPU_WEIGHTS = Machine(cpu_cores=16, cuda=True, checkpoint="/weights/cut3r_512.safetensors")
+MODES = {"rgbd": (True, False), "posed-rgbd": (True, True), "posed-rgb": (False, True), "rgb": (False, False)}
+
+
+@pytest.mark.parametrize("mode", MODES)
+@pytest.mark.parametrize("live", [True, False])
+def test_a_cpu_gets_the_cpu_mapping_settings_for_every_input(mode, live):
+    depth, poses = MODES[mode]
+    choice = choose_settings(SessionInput(depth=depth, device_poses=poses, width=320, height=240, live=live), CPU)
+    assert choice.preset == "rgbd" and choice.decided == "auto"
+    assert "device" not in choice.overrides and choice.tracking_side is None  # 320 px: tracked as it comes
+    assert any("no CUDA GPU" in reason for reason in choice.reasons)
+    assert choice.reasons[-1].startswith(f"input: {mode};")
+
+
+def test_the_paper_settings_need_a_gpu_and_trained_weights():
+    received = SessionInput(depth=False, device_poses=False, width=640, height=480)
+    assert choose_settings(received, CPU).preset == "rgbd"
+    gpu_only = choose_settings(received, GPU_ONLY)
+    assert gpu_only.preset == "rgbd" and gpu_only.overrides == {"device": "cuda"}
+    assert any("no trained weights" in reason for reason in gpu_only.reasons)
+    paper = choose_settings(received, GPU_WEIGHTS)
+    assert paper.preset == "paper"
+    assert paper.engine_overrides() == {"frontend": {"checkpoint": "/weights/cut3r_512.safetensors"}}
+    # weights without a GPU are not enough
+    assert choose_settings(received, Machine(cpu_cores=2, checkpoint="/w.safetensors")).preset == "rgbd"
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_live_rgbd_over_320_pixels_is_tracked_at_320_and_the_rest_at_full_size(mode):
+    depth, poses = MODES[mode]
+    live = choose_settings(SessionInput(depth=depth, device_poses=poses, width=640, height=480, live=True,
+                                        frame_rate=30), CPU)
+    recorded = choose_settings(SessionInput(depth=depth, device_poses=poses, width=640, height=480), CPU)
+    assert live.tracking_side == (LIVE_TRACKING_SIDE if depth else None)
+    assert recorded.tracking_side is None
+    if depth:
+        assert live.engine_overrides() == {"tracking": {"max_side": LIVE_TRACKING_SIDE}}
+        assert any("30 frames/s" in reason for reason in live.reasons)
+
+
+def test_an_unknown_input_still_gets_settings():
+    choice = choose_settings(SessionInput(), CPU)
+    assert choice.preset == "rgbd" and choice.tracking_side is None
+    assert choice.reasons[-1].startswith("input: unknown;")
+
+
+def test_choices_by_input_lists_every_mode():
+    table = choices_by_input(CPU)
+    assert set(table) == set(MODES)
+    assert table["rgbd"]["tracking_side"] == LIVE_TRACKING_SIDE and table["rgb"]["tracking_side"] is None
+
+
+def test_the_machine_counts_only_trained_weights(tmp_path: Path, monkeypatch):
+    monkeypatch.delenv("FLASHMONO_CHECKPOINT", raising=False)
+    assert not Machine.detect().trained_weights
+    assert not Machine.detect(str(SHIPPED_CHECKPOINT)).trained_weights  # the toy model is no trained weights
+    assert not Machine.detect(str(tmp_path / "missing.safetensors")).trained_weights
+    weights = tmp_path / "paper.safetensors"
+    weights.write_bytes(b"x")
+    monkeypatch.setenv("FLASHMONO_CHECKPOINT", str(weights))
+    machine = Machine.detect()
+    assert machine.trained_weights and machine.checkpoint == str(weights) and machine.cpu_cores >= 1
+    assert Machine.from_dict(machine.to_dict()).trained_weights
+
+
+def test_a_session_keeps_the_settings_recorded_for_it_and_a_named_preset_wins():
+    import json
+
+    first = {"skip_frames": "1", "frame_rate": "30"}
+    received = received_input(first, None)
+    assert received.live and received.frame_rate == 30 and received.mode == "unknown"
+    recorded = choose_settings(SessionInput(depth=True, device_poses=False, width=640, height=480, live=True), CPU)
+    # a worker that takes the session over reads the decision back, whatever its own machine
+    again = session_settings({**first, "settings": json.dumps(recorded.to_record())}, None, GPU_WEIGHTS)
+    assert again == recorded
+    named = session_settings({"preset": "fast"}, None, GPU_WEIGHTS)
+    assert named.preset == "fast" and named.decided == "named"
+    assert session_settings({"preset": "auto"}, None, CPU).decided == "auto"
+
+
+def test_the_engine_runs_the_chosen_settings():
+    choice = choose_settings(SessionInput(depth=True, device_poses=False, width=640, height=480, live=True), CPU)
+    engine = create_engine("slam", choice.preset, None, overrides=choice.engine_overrides())
+    try:
+        assert engine.config.name == "rgbd" and engine.config.tracking.max_side == LIVE_TRACKING_SIDE
+    finally:
+        close_engine(engine)
+    engine = create_engine("slam", choice.preset, None, tracking_side=480, overrides=choice.engine_overrides())
+    try:  # the session's own tracking side wins over the choice's
+        assert engine.config.tracking.max_side == 480
+    finally:
+        close_engine(engine)
+
+
+def _run_args(*argv: str) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    add_run_options(parser)
+    return parser.parse_args(["--out", "unused", *argv])
+
+
+def test_flashmono_run_takes_the_same_decision_and_bounds_its_finish():
+    config = load_config(_run_args("--use-gt-depth"))
+    assert config.name == choose_settings(SessionInput(depth=True, device_poses=False), Machine.detect()).preset
+    assert config.mapping.final_refine_budget_s == DEFAULT_FINISH_BUDGET_S > 0
+    assert load_config(_run_args("--finish-budget", "0")).mapping.final_refine_budget_s == 0
+    assert load_config(_run_args("--preset", "fast")).name == "fast"
