@@ -286,8 +286,11 @@ async def stream_case(stack, frames, intrinsics, messages: list[bytes], args) ->
 
     async with httpx.AsyncClient(base_url=stack.base_url, timeout=120) as http:
         k = intrinsics
-        body = {"name": "bench-live", "preset": args.preset, "skip_frames": not args.every_frame,
+        # as openapi.yaml tells a mobile app: intrinsics, skip_frames and frame_rate; a preset only when asked
+        body = {"name": "bench-live", "skip_frames": not args.every_frame, "frame_rate": args.fps,
                 "intrinsics": {"width": k.width, "height": k.height, "fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy}}
+        if args.preset:
+            body["preset"] = args.preset
         if args.tracking_side:
             body["tracking_side"] = args.tracking_side
         created = await http.post("/v1/sessions", json=body)
@@ -496,7 +499,17 @@ def run_offline(source: str, size, max_frames, args, out_dir: Path) -> dict[str,
     from worker.eval import read_tum
 
     start = time.perf_counter()
-    config = SlamConfig.preset(args.preset, tracking={"max_side": args.tracking_side or 0})
+    if args.preset:
+        config = SlamConfig.preset(args.preset, tracking={"max_side": args.tracking_side or 0})
+    else:  # what `flashmono run` chooses for these frames
+        from client.commands.run import load_config
+
+        config = load_config(argparse.Namespace(use_gt_depth=mode_inputs(args.mode)[0],
+                                                use_gt_poses=mode_inputs(args.mode)[1], preset=None, config=None,
+                                                finish_budget=None, deterministic=False))
+        if args.tracking_side:
+            config = config.model_copy(update={"tracking": config.tracking.model_copy(
+                update={"max_side": args.tracking_side})})
     with_depth, with_pose = mode_inputs(args.mode)
     metrics = run_sequence(source, out_dir, config, use_gt_depth=with_depth, use_gt_poses=with_pose,
                            max_frames=max_frames, resize=size, eval_every=max(1, args.psnr_every))
@@ -599,7 +612,8 @@ def main(argv: list[str]) -> int:
                         help="the session's tracking resolution (long side; 0: the frames' size)")
     parser.add_argument("--fps", type=float, default=30.0, help="the client's frame rate")
     parser.add_argument("--frames", type=int, default=None, help="at most this many frames")
-    parser.add_argument("--preset", default="rgbd")
+    parser.add_argument("--preset", default=None,
+                        help="name a preset (default: none, as openapi.yaml documents a session: the worker chooses)")
     parser.add_argument("--every-frame", action="store_true",
                         help="a session without live skipping (skip_frames false): every frame tracked however late")
     parser.add_argument("--kill-at", type=float, default=None,

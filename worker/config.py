@@ -166,6 +166,10 @@ class MappingConfig(_Section):
     final_refine_budget_s: float = Field(
         25.0, ge=0, description="finish(): the final refinement stops once finish() has taken this many seconds "
         "(draining the stages included) whatever its passes (0 = no bound), so finishing a session stays bounded")
+    final_refine_budget_counts_drain: bool = Field(
+        True, description="finish(): final_refine_budget_s counts from the start of finish(), draining the stages "
+        "included (a live session's whole finish is bounded), or, false, from the start of the final refinement "
+        "(an offline run: its drain maps keyframes it must map anyway, and the refinement keeps its budget)")
     close_holes: bool = Field(
         True, description="the final refinement first closes the holes of every held keyframe's view, widened by "
         "hole_margin past its border, from the map's own geometry (worker.mapping.hole_closing)")

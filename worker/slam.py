@@ -220,8 +220,9 @@ class SlamSystem:
             self.backend.wait_idle()
         if self.backend is not None:
             if self.config.mapping.final_refine_passes:
-                budget = self.config.mapping.final_refine_budget_s  # counted from the start of finish(): drain too
-                left = None if not budget else max(0.0, budget - (time.perf_counter() - started))
+                budget = self.config.mapping.final_refine_budget_s  # from the start of finish() (the drain too)
+                since = started if self.config.mapping.final_refine_budget_counts_drain else time.perf_counter()
+                left = None if not budget else max(0.0, budget - (time.perf_counter() - since))
                 passes = self.config.mapping.final_refine_passes
                 status.begin("refining", passes * self.backend.map.held_images,
                              deadline=None if left is None else time.perf_counter() + left)

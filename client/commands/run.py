@@ -9,8 +9,8 @@ import sys
 
 from client.commands._options import parse_size
 
-# Seconds the end of an offline run may take by default (draining the mapping stage, then the final refinement).
-# Measured on TUM fr1/xyz RGB-D (788 frames, 2 cores): see bench/results and README.
+# Seconds the final refinement of an offline run may take by default (after the mapping stage drained). Measured on
+# TUM fr1/xyz RGB-D (788 frames, 2 cores): see bench/results and README.
 DEFAULT_FINISH_BUDGET_S = 60.0
 
 
@@ -37,10 +37,12 @@ def add_run_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scale", type=float, default=1.0, metavar="S",
                         help="multiply every pose and depth by S: the same scene in other length units (a map that "
                         "follows the scene renders the same; ATE and depth L1 come out S times larger)")
-    parser.add_argument("--finish-budget", type=float, default=DEFAULT_FINISH_BUDGET_S, metavar="SECONDS",
-                        help="bound the end of the run (draining the mapping stage and the final refinement) to this "
-                        "many seconds (default %(default)g; 0: no bound, the final refinement completes its passes, at "
-                        "most passes x held keyframe images iterations); more seconds, a little more PSNR")
+    parser.add_argument("--finish-budget", type=float, default=None, metavar="SECONDS",
+                        help=f"bound the final refinement at the end of the run to this many seconds (default "
+                        f"{DEFAULT_FINISH_BUDGET_S:g}, or 0 with --deterministic: its learning rates follow the time "
+                        "left; 0: no bound, it completes its passes, at most passes x held keyframe images "
+                        "iterations); more seconds, a little more PSNR. The mapping of the keyframes still waiting "
+                        "when the last frame is tracked comes before it and is not bounded")
     parser.add_argument("--live-pacing", action="store_true",
                         help="shed mapping work as a live session does when mapping falls behind (default: an "
                         "offline run refines every keyframe, so its map does not depend on the machine's load)")
@@ -49,6 +51,8 @@ def add_run_options(parser: argparse.ArgumentParser) -> None:
                         "same map and metrics on any machine, for comparing two modes or two versions; the map "
                         "misses the refinement a threaded run does while mapping waits for keyframes (ICL posed RGB: "
                         "0.3-0.6 dB lower)")
+    parser.add_argument("--eval-frames", type=int, default=None, metavar="N",
+                        help="score the map on at most N held-out frames, evenly spread (default 200; 0: every one)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -72,13 +76,25 @@ def load_config(args: argparse.Namespace):
         config = SlamConfig.preset(choice.preset, **_merge(choice.engine_overrides(), overrides))
     if getattr(args, "deterministic", False):
         config = config.model_copy(update={"threaded": False})
-    budget = getattr(args, "finish_budget", None)
+    budget = finish_budget(args)
     if budget is not None and "final_refine_budget_s" not in overrides.get("mapping", {}):
-        if budget < 0:
-            raise ValueError("--finish-budget must be >= 0 seconds")
+        # an offline run: the budget is the final refinement's own, not shared with the drain before it
         config = config.model_copy(update={"mapping": config.mapping.model_copy(
-            update={"final_refine_budget_s": budget})})
+            update={"final_refine_budget_s": budget, "final_refine_budget_counts_drain": False})})
     return config
+
+
+def finish_budget(args: argparse.Namespace) -> float | None:
+    """--finish-budget, else the default: DEFAULT_FINISH_BUDGET_S, or none with --deterministic (a time budget makes
+    the refinement's learning rates depend on the machine's speed). None: the config's own."""
+    if not hasattr(args, "finish_budget"):
+        return None
+    budget = args.finish_budget
+    if budget is None:
+        budget = 0.0 if getattr(args, "deterministic", False) else DEFAULT_FINISH_BUDGET_S
+    if budget < 0:
+        raise ValueError("--finish-budget must be >= 0 seconds")
+    return budget
 
 
 def default_preset(args: argparse.Namespace) -> str:
@@ -123,10 +139,17 @@ def run_one(args: argparse.Namespace, source: str, out_dir: str) -> dict:
                             max_frames=args.max_frames, stride=args.stride, resize=args.resize, drift=drift,
                             progress=progress, unknown_intrinsics=args.unknown_intrinsics,
                             pingpong=args.pingpong, live_pacing=args.live_pacing, scale=args.scale,
-                            finish_progress=finish.update)
+                            finish_progress=finish.update, **_eval_frames(args))
     finally:
         bar.close()
         finish.close()
+
+
+def _eval_frames(args: argparse.Namespace) -> dict:
+    frames = getattr(args, "eval_frames", None)
+    if frames is not None and frames < 0:
+        raise ValueError("--eval-frames must be >= 0")
+    return {} if frames is None else {"max_eval_frames": frames}
 
 
 FINISH_LABELS = {"mapping": "mapping the last keyframes", "loop_closing": "closing the last loops",

@@ -67,6 +67,7 @@ def test_finish_reports_the_drain_then_the_refinement(frames):
     system.finish()
     stop.set()
     watcher.join()
+    seen.append(system.finish_status.as_dict())
     phases = [s["phase"] for s in seen if s["phase"]]
     order = [p for i, p in enumerate(phases) if i == 0 or phases[i - 1] != p]
     assert order[0] == "mapping" and order[-1] == "done" and "refining" in order
@@ -76,6 +77,35 @@ def test_finish_reports_the_drain_then_the_refinement(frames):
     assert refining[-1]["total"] == 3 * system.backend.map.held_images > 0
     assert max(s["done"] for s in refining) > 0
     assert system.finish_status.as_dict()["phase"] == "done"
+
+
+@pytest.mark.parametrize("counts_drain", [True, False])
+def test_an_offline_budget_is_the_refinement_s_own(frames, counts_drain):
+    """A live session's budget covers its whole finish (a slow drain leaves the refinement nothing); an offline
+    run's covers the refinement alone, after a drain however long."""
+    config = SlamConfig.preset("test", input={"surfel_init": "depth"}, frontend={"keyframe_every": 2},
+                               threaded=True, queue_size=64,
+                               mapping={"shed_backlog": 0, "final_refine_passes": 50, "final_refine_budget_s": 0.4,
+                                        "final_refine_budget_counts_drain": counts_drain})
+    system = SlamSystem(config)
+    with system.backend.lock:
+        for frame in frames:
+            system.push(frame)
+    held = threading.Event()
+
+    def hold_the_map() -> None:  # the drain waits 0.8 s: twice the budget
+        with system.backend.lock:
+            held.set()
+            time.sleep(0.8)
+
+    holder = threading.Thread(target=hold_the_map, daemon=True)
+    holder.start()
+    held.wait(10)
+    steps = []
+    system.finish_status.step = lambda units=1: steps.append(units)
+    system.finish()
+    holder.join()
+    assert (len(steps) > 0) is not counts_drain
 
 
 def test_an_offline_run_reports_its_finish(tmp_path):

@@ -27,6 +27,8 @@ MAX_SAVED_RENDERS = 12
 # Frames whose image and depth are held for the rendering metrics: every k-th, k chosen to hold at most this many
 # (a long session's frames would otherwise fill the memory; 211 ICL frames are all held).
 MAX_HELD_FRAMES = 400
+# Held-out frames scored at most (three renders each): a 1,000-frame run's scores cost seconds, not a minute.
+MAX_EVAL_FRAMES = 200
 # Keyframes an offline run lets the mapping stage fall behind before the next frame waits (complete pacing): poses
 # stream out at tracking's rate while mapping works through its backlog in order, every keyframe fully refined.
 OFFLINE_MAPPING_BACKLOG = 256
@@ -59,6 +61,7 @@ def run_sequence(
     live_pacing: bool = False,
     scale: float = 1.0,
     finish_progress: Callable[[dict[str, Any]], None] | None = None,
+    max_eval_frames: int = MAX_EVAL_FRAMES,
 ) -> dict[str, Any]:
     """Run one sequence end to end and evaluate it (see the module docstring).
 
@@ -68,7 +71,8 @@ def run_sequence(
     XFeat places a lost frame nowhere. `live_pacing` keeps a live session's load shedding (fewer refinement
     iterations, then merge only, when mapping falls behind) and its tracking budget, to study what a live stream
     gets. `scale` multiplies every pose and depth of the source (the same scene in other length units).
-    `finish_progress` is called twice a second while the run finishes, with `FinishStatus.as_dict()`."""
+    `finish_progress` is called twice a second while the run finishes, with `FinishStatus.as_dict()`. The rendering
+    scores use at most `max_eval_frames` held-out frames, evenly spread (0: every one)."""
     from worker.data import open_source
     from worker.slam import SlamSystem
 
@@ -148,7 +152,8 @@ def run_sequence(
         if system.backend is not None:
             (out / "map.ply").write_bytes(system.export_ply())
             metrics["num_gaussians"] = system.num_gaussians
-            metrics.update(_render_metrics(system, frames, results, all_poses, intrinsics, out, eval_every, hold_every))
+            metrics.update(_render_metrics(system, frames, results, all_poses, intrinsics, out, eval_every, hold_every,
+                                           max_eval_frames))
         else:
             metrics.update({"num_gaussians": 0, "psnr": None, "ssim": None, "lpips": None, "depth_l1": None,
                             "lpips_note": "mapping disabled"})
@@ -258,11 +263,12 @@ def renderer_as_captured(system, K: np.ndarray, width: int, height: int, frame_i
 
 
 def _render_metrics(system, frames: list[Frame], results, poses, intrinsics, out: Path, every: int,
-                    hold_every: int = 1) -> dict[str, Any]:
+                    hold_every: int = 1, max_frames: int = 0) -> dict[str, Any]:
     """PSNR/SSIM/LPIPS and depth L1 on non-keyframes rendered from their estimated poses (those held: every
     `hold_every`-th frame), under the exposure the camera had at each (interpolated between the keyframes around
     it: the photo's own exposure is never fitted); `psnr_normalised` / `ssim_normalised` score the map's
-    exposure-normalised colours (the first keyframe's exposure) against the same photos."""
+    exposure-normalised colours (the first keyframe's exposure) against the same photos. At most `max_frames` of
+    them (evenly spread; 0: all) are scored: each costs three renders."""
     import cv2
     import torch
 
@@ -277,6 +283,8 @@ def _render_metrics(system, frames: list[Frame], results, poses, intrinsics, out
     mapped = [r.index in keyframes or r.index == system.last_frame_mapped for r in results]
     chosen = [i for i in non_keyframe_indices(mapped, every) if i % hold_every == 0] or list(
         range(0, len(frames), hold_every))
+    if max_frames and len(chosen) > max_frames:
+        chosen = chosen[::-(-len(chosen) // max_frames)]
     metric_depth = system.config.input.use_depth
     K = intrinsics.matrix().numpy()
     (out / "renders").mkdir(exist_ok=True)
