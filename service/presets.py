@@ -15,7 +15,8 @@ PRESET_INFO: dict[str, tuple[str, str]] = {
     "auto": ("the default (a session that names no preset): the worker chooses at the session's first frame from "
              "what it receives (depth, device poses, frame size, live or recorded) and its machine: `paper` where "
              "a CUDA GPU and trained weights exist, else `rgbd` (on a GPU, mapped there); a live stream "
-             "(`skip_frames`) with frames over 320 px is tracked at 320 px. The session's `settings` says what was "
+             "(`skip_frames`) with frames over 320 px is tracked and mapped at 320 px on a CPU (on a GPU, RGB-D is "
+             "tracked at 320 px and mapped whole). The session's `settings` says what was "
              "chosen and why; `auto_choices` here what this fleet's workers choose", "any input"),
     "paper": ("the paper's settings: paper-size model, 512-pixel images, on a CUDA GPU; needs weights converted "
               "from CUT3R (`flashmono convert-cut3r`)", "RGB only (monocular), any input on a GPU"),

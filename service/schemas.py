@@ -133,6 +133,9 @@ class SessionSettings(BaseModel):
         "client's preset")
     tracking_side: int | None = Field(None, description="the long side frames are tracked at (null: as they come, "
                                                         "or the session's own `tracking_side`)")
+    working_side: int | None = Field(None, description="the long side frames are tracked and mapped at (a live "
+                                                       "stream mapped on a CPU: 320; null: as they come); the "
+                                                       "session's `estimated_intrinsics` are at this size")
     overrides: dict[str, Any] = Field(default_factory=dict, description="settings changed from the preset's")
     reasons: list[str] = Field(default_factory=list, description="why, one line each")
 

@@ -10,12 +10,17 @@ The rule, in order:
 2. Otherwise the CPU mapping settings (`rgbd`: surfels from the sensor's depth or from multi-view stereo on the
    tracked poses, a final refinement at finish), for every input mode: the learned model's path needs trained
    weights to be worth its cost. On a GPU without trained weights the same settings run their mapping on the GPU.
-3. A live RGB-D stream (frames skipped when tracking falls behind) from a camera whose long side is over
-   `LIVE_TRACKING_SIDE` is tracked at that side (the map keeps the full frames): dense RGB-D alignment costs grow
-   with the pixels and a phone's 30 frames/s leave 33 ms a frame. Without depth (visual odometry on features) the
-   frames are tracked at their size, as are recordings (every frame tracked). Measured live on 2 cores, ICL at
-   640x480 and 30 frames/s (bench/results): RGB-D 197 of 211 frames posed, p95 118 ms at 640 against 207, 78 ms
-   at 320 (ATE 1.24 / 1.21 cm); RGB only 211, p95 69 ms, ATE 1.11 cm at 640 against 207, 78 ms, 1.76 cm at 320.
+3. A live stream (frames skipped when tracking falls behind) from a camera whose long side is over
+   `LIVE_WORKING_SIDE`, mapped on a CPU, is worked on at that side: its frames are tracked and mapped at 320 px
+   (the map renders at any size). On 2 cores a 640x480 live map falls behind and never gets its final refinement:
+   measured through the service on ICL at 30 frames/s (bench/results/out_of_box), 640x480 frames mapped whole gave
+   19.1-26.1 dB and finishes of 27-44 s, with 2.5-3.4 GB of worker memory, where 320x240 gave 27.8-30.1 dB and
+   23.5-25.6 s. Recordings (every frame tracked) keep their size.
+4. On a GPU without trained weights (mapping keeps up there), a live RGB-D stream over `LIVE_TRACKING_SIDE` is
+   tracked at that side and mapped whole: dense RGB-D alignment runs on the CPU and its cost grows with the pixels
+   (on 2 cores, ICL 640x480 RGB-D: 197 of 211 frames posed, p95 118 ms at 640 against 207, 78 ms at 320). Without
+   depth (visual odometry on features) frames are tracked at their size (ICL RGB only at 640: ATE 1.11 cm, 1.76 at
+   320).
 
 This module is torch-free: the gateway imports it to say what its workers would choose (GET /v1/presets).
 """
@@ -30,6 +35,8 @@ from typing import Any
 AUTO = "auto"
 # Long side live frames are tracked at (pixels). Measured live on 2 cores, ICL at 30 frames/s (bench out_of_box).
 LIVE_TRACKING_SIDE = 320
+# Long side live frames are worked on (tracked and mapped) at when the map is built on a CPU.
+LIVE_WORKING_SIDE = 320
 SHIPPED_CHECKPOINT = Path(__file__).parent / "frontend" / "weights" / "tiny.safetensors"
 
 
@@ -96,6 +103,7 @@ class SettingsChoice:
     preset: str
     overrides: dict[str, Any] = field(default_factory=dict)
     tracking_side: int | None = None
+    working_side: int | None = None  # frames are tracked and mapped at this long side (None: as they come)
     reasons: list[str] = field(default_factory=list)
     decided: str = AUTO  # "auto" (this module) or "named" (the client named the preset)
 
@@ -127,9 +135,14 @@ def choose_settings(received: SessionInput, machine: Machine) -> SettingsChoice:
             choice.overrides["device"] = "cuda"
             choice.reasons.append("mapping on the GPU")
     long_side = max(received.width or 0, received.height or 0)
-    if received.live and received.depth and long_side > LIVE_TRACKING_SIDE and choice.preset != "paper":
+    rate = f" at {received.frame_rate:g} frames/s" if received.frame_rate else ""
+    if received.live and long_side > LIVE_WORKING_SIDE and not machine.cuda:
+        choice.working_side = LIVE_WORKING_SIDE
+        choice.reasons.append(f"a live stream{rate} of {received.width}x{received.height} frames mapped on a CPU: "
+                              f"tracked and mapped at {LIVE_WORKING_SIDE} px on the long side, so that mapping keeps "
+                              "up (the map renders at any size)")
+    elif received.live and received.depth and long_side > LIVE_TRACKING_SIDE and choice.preset != "paper":
         choice.tracking_side = LIVE_TRACKING_SIDE
-        rate = f" at {received.frame_rate:g} frames/s" if received.frame_rate else ""
         choice.reasons.append(f"a live RGB-D stream{rate} of {received.width}x{received.height} frames: tracked at "
                               f"{LIVE_TRACKING_SIDE} px on the long side (dense alignment), mapped at full size")
     elif long_side:

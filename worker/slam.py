@@ -747,6 +747,9 @@ class SlamSystem:
     def estimated_intrinsics(self) -> Intrinsics | None:
         """The camera at the input frames' resolution: given, else the pose source's estimate (visual odometry's
         self-calibration, RGB-D odometry's guess), else the model's (from its points)."""
+        if self.intrinsics is not None and self._frame_size is not None and (
+                self.intrinsics.width, self.intrinsics.height) != tuple(self._frame_size):
+            return self.intrinsics.scaled(*self._frame_size)  # frames worked on smaller than the camera given
         if self.intrinsics is not None or self._frame_size is None:
             return self.intrinsics
         from_source = self.tracking_stage.source_intrinsics(*self._frame_size)

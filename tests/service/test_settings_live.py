@@ -53,7 +53,9 @@ def test_a_live_rgbd_session_without_a_preset_is_decided_at_its_first_frame(engi
     settings = session["settings"]
     assert session["status"] == "finished" and session["frame_rate"] == 30
     assert settings["decided"] == "auto" and settings["preset"] == session["preset"] == "rgbd"
-    assert settings["tracking_side"] == 320  # live RGB-D over 320 px: dense alignment at 320
+    # a live stream over 320 px on a CPU: tracked and mapped at 320 px, the camera scaled with it
+    assert settings["working_side"] == 320 and settings["tracking_side"] is None
+    assert session["estimated_intrinsics"]["width"] == 320 and session["estimated_intrinsics"]["fx"] == 262.5
     assert settings["reasons"][-1].startswith("input: rgbd;")
     assert any("30 frames/s" in reason for reason in settings["reasons"])
     finishing = of_type(messages, "finishing")
@@ -63,14 +65,14 @@ def test_a_live_rgbd_session_without_a_preset_is_decided_at_its_first_frame(engi
     assert of_type(messages, "pose")[0]["seq"] == 0
 
 
-def test_rgb_frames_are_tracked_at_their_size_and_a_named_preset_is_kept(engine_stack, vga_frames):
+def test_recorded_frames_keep_their_size_and_a_named_preset_is_kept(engine_stack, vga_frames):
     with httpx.Client(base_url=engine_stack.base_url, timeout=120) as api:
-        rgb, _ = stream(engine_stack, api, {"intrinsics": VGA, "skip_frames": True}, vga_frames[:3],
-                        with_depth=False)
-        named, _ = stream(engine_stack, api, {"intrinsics": VGA, "preset": "test"}, vga_frames[:3],
-                          with_depth=True)
-    assert rgb["settings"]["decided"] == "auto" and rgb["settings"]["tracking_side"] is None
+        rgb, _ = stream(engine_stack, api, {"intrinsics": VGA}, vga_frames[:3], with_depth=False)
+        named, _ = stream(engine_stack, api, {"intrinsics": VGA, "preset": "test", "skip_frames": True},
+                          vga_frames[:3], with_depth=True)
+    assert rgb["settings"]["decided"] == "auto" and rgb["settings"]["working_side"] is None
     assert rgb["settings"]["reasons"][-1].startswith("input: rgb;")
+    assert rgb["estimated_intrinsics"]["width"] == 640
     assert named["settings"]["decided"] == "named" and named["preset"] == named["settings"]["preset"] == "test"
 
 
@@ -83,6 +85,6 @@ def test_the_presets_say_what_auto_chooses_on_the_workers_machines(engine_stack)
     assert kind["workers"] == 1 and kind["machine"]["cpu_cores"] == len(os.sched_getaffinity(0))
     assert kind["machine"]["cuda"] is False and kind["machine"]["trained_weights"] is False
     assert set(kind["live"]) == {"rgbd", "posed-rgbd", "posed-rgb", "rgb"}
-    assert kind["live"]["rgbd"]["tracking_side"] == 320 and kind["recorded"]["rgbd"]["tracking_side"] is None
+    assert kind["live"]["rgbd"]["working_side"] == 320 and kind["recorded"]["rgbd"]["working_side"] is None
     assert all(choice["preset"] == "rgbd" for choice in kind["live"].values())
     assert refused.status_code == 422

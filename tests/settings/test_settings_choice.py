@@ -13,6 +13,7 @@ from worker.runtime.engine import close_engine, create_engine
 from worker.runtime.session_settings import received_input, session_settings
 from worker.settings_choice import (
     LIVE_TRACKING_SIDE,
+    LIVE_WORKING_SIDE,
     SHIPPED_CHECKPOINT,
     Machine,
     SessionInput,
@@ -51,16 +52,26 @@ def test_the_paper_settings_need_a_gpu_and_trained_weights():
 
 
 @pytest.mark.parametrize("mode", MODES)
-def test_live_rgbd_over_320_pixels_is_tracked_at_320_and_the_rest_at_full_size(mode):
+def test_a_live_stream_over_320_pixels_is_worked_on_at_320_on_a_cpu(mode):
     depth, poses = MODES[mode]
     live = choose_settings(SessionInput(depth=depth, device_poses=poses, width=640, height=480, live=True,
                                         frame_rate=30), CPU)
     recorded = choose_settings(SessionInput(depth=depth, device_poses=poses, width=640, height=480), CPU)
+    assert live.working_side == LIVE_WORKING_SIDE and live.tracking_side is None
+    assert any("30 frames/s" in reason for reason in live.reasons)
+    assert recorded.working_side is None and recorded.tracking_side is None  # a recording keeps its size
+    small = choose_settings(SessionInput(depth=depth, device_poses=poses, width=320, height=240, live=True), CPU)
+    assert small.working_side is None
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_on_a_gpu_live_rgbd_over_320_pixels_is_tracked_at_320_and_mapped_whole(mode):
+    depth, poses = MODES[mode]
+    live = choose_settings(SessionInput(depth=depth, device_poses=poses, width=640, height=480, live=True), GPU_ONLY)
+    assert live.working_side is None
     assert live.tracking_side == (LIVE_TRACKING_SIDE if depth else None)
-    assert recorded.tracking_side is None
     if depth:
-        assert live.engine_overrides() == {"tracking": {"max_side": LIVE_TRACKING_SIDE}}
-        assert any("30 frames/s" in reason for reason in live.reasons)
+        assert live.engine_overrides() == {"device": "cuda", "tracking": {"max_side": LIVE_TRACKING_SIDE}}
 
 
 def test_an_unknown_input_still_gets_settings():
@@ -72,7 +83,9 @@ def test_an_unknown_input_still_gets_settings():
 def test_choices_by_input_lists_every_mode():
     table = choices_by_input(CPU)
     assert set(table) == set(MODES)
-    assert table["rgbd"]["tracking_side"] == LIVE_TRACKING_SIDE and table["rgb"]["tracking_side"] is None
+    assert all(choice["working_side"] == LIVE_WORKING_SIDE for choice in table.values())
+    gpu = choices_by_input(GPU_ONLY)
+    assert gpu["rgbd"]["tracking_side"] == LIVE_TRACKING_SIDE and gpu["rgb"]["tracking_side"] is None
 
 
 def test_the_machine_counts_only_trained_weights(tmp_path: Path, monkeypatch):
@@ -104,7 +117,8 @@ def test_a_session_keeps_the_settings_recorded_for_it_and_a_named_preset_wins():
 
 
 def test_the_engine_runs_the_chosen_settings():
-    choice = choose_settings(SessionInput(depth=True, device_poses=False, width=640, height=480, live=True), CPU)
+    choice = choose_settings(SessionInput(depth=True, device_poses=False, width=640, height=480, live=True), GPU_ONLY)
+    choice.overrides.pop("device")  # this machine has no GPU
     engine = create_engine("slam", choice.preset, None, overrides=choice.engine_overrides())
     try:
         assert engine.config.name == "rgbd" and engine.config.tracking.max_side == LIVE_TRACKING_SIDE

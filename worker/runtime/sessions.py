@@ -285,6 +285,21 @@ class SessionRunner(threading.Thread):
                                     depth_camera=json.loads(self._session.get("depth_camera") or "null"),
                                     overrides=overrides)
 
+    def _decode(self, message: dict[str, Any]) -> Frame:
+        """The frame at the session's working size; the session's first frame decides its settings (and the
+        engine), which may name a smaller working size: that frame is then decoded again at it."""
+        frame = decode_frame(message, self._session_intrinsics(), self._max_frame_side())
+        if self.engine is None:
+            self._create_engine(frame)
+            if max(frame.image.shape[:2]) > self._max_frame_side():
+                frame = decode_frame(message, self._session_intrinsics(), self._max_frame_side())
+        return frame
+
+    def _max_frame_side(self) -> int:
+        """The long side frames are worked on at: the worker's limit, or the settings' smaller working side."""
+        working = json.loads(self._session.get("settings") or "{}").get("working_side")
+        return min(self.config.max_frame_side, int(working)) if working else self.config.max_frame_side
+
     def _session_intrinsics(self) -> dict[str, Any] | None:
         text = self._session.get("intrinsics")
         return json.loads(text) if text and text != "null" else None
@@ -456,10 +471,7 @@ class SessionRunner(threading.Thread):
             if self._timeline is not None:
                 self._timeline["replayed"] = self._timeline.get("replayed", 0) + 1
             try:
-                frame = decode_frame(unpack(fields[b"msg"]), self._session_intrinsics(), self.config.max_frame_side)
-                if self.engine is None:
-                    self._create_engine(frame)
-                self.engine.push(frame)
+                self.engine.push(self._decode(unpack(fields[b"msg"])))
             except (FrameError, ValueError) as err:
                 log.warning("replay of seq %s failed: %s", fields[b"seq"], err)
 
@@ -470,16 +482,13 @@ class SessionRunner(threading.Thread):
             raise SessionGone
         t0, c0 = time.perf_counter(), time.thread_time()
         try:
-            message = unpack(fields[b"msg"])
-            frame = decode_frame(message, self._session_intrinsics(), self.config.max_frame_side)
+            frame = self._decode(unpack(fields[b"msg"]))
         except FrameError as err:
             self._reject(entry_id, seq, err.code, str(err))
             return
         except (ValueError, KeyError, TypeError) as err:
             self._reject(entry_id, seq, "bad_frame", f"frame cannot be used: {err}")
             return
-        if self.engine is None:
-            self._create_engine(frame)
         t1, c1 = time.perf_counter(), time.thread_time()
         try:
             result = self.engine.push(frame)
