@@ -9,7 +9,7 @@ its load; with `--offline`, the offline `flashmono run` of the same frames (its 
 written are skipped (the run resumes after an interruption); `--force` runs them again.
 
 `python -m bench out_of_box [--sequences icl tum] [--modes rgbd posed-rgbd posed-rgb rgb] [--sizes 320x240 640x480]
-[--offline] [--force] [--frames N]`
+[--offline] [--force] [--frames N]`; a case run again without `--offline` keeps the offline figures it has.
 """
 
 from __future__ import annotations
@@ -155,6 +155,9 @@ def run_case(stack: ServeProcess, source: Path, mode: str, size: str, frames_cap
         "skipped": summary["skipped"], "latency_p50_ms": summary["latency_ms"][50],
         "latency_p95_ms": summary["latency_ms"][95], "finish_s": summary["finish_s"], "ate_m": summary["ate_m"],
         "psnr_db": summary["psnr"], "rss_worker_peak_mib": summary["rss_worker_peak_mib"],
+        # one server for every case: the worker holds up to 4 finished sessions' maps for renders, so its memory
+        # at a case's start is not the bare process's
+        "rss_worker_start_mib": result["samples"][0]["worker_rss"] if result["samples"] else None,
         "acked_lost": summary["acked_lost"], "loops": summary["loops"], "settings": session.get("settings"),
         "load": [round(load_before, 2), round(os.getloadavg()[0], 2)],
     }
@@ -168,6 +171,36 @@ def offline_case(source: Path, mode: str, size: str, frames_cap: int | None) -> 
         return run_offline(str(source), (width, height), frames_cap, args, Path(out))
 
 
+def _mib(value: float | None) -> str:
+    return "-" if value is None else f"{value:.0f}"
+
+
+def table(folder: Path = OUT) -> str:
+    """The results in `folder` as a markdown table (the README's live rows)."""
+    rows = ["| sequence | input | size | posed | p50 / p95 (ms) | finish (s) | ATE live / offline (cm) | "
+            "PSNR live / offline (dB) | worker RSS peak (at start) (MiB) | settings | load |",
+            "|---|---|---|---:|---:|---:|---:|---:|---:|---|---|"]
+    for path in sorted(folder.glob("*.json")):
+        record = json.loads(path.read_text())
+        live, offline = record["live"], record.get("offline") or {}
+        settings = live.get("settings") or {}
+        side = settings.get("working_side") or settings.get("tracking_side")
+
+        def cm(value):
+            return "-" if value is None else f"{100 * value:.2f}"
+
+        def db(value):
+            return "-" if value is None else f"{value:.2f}"
+
+        rows.append(
+            f"| {record['sequence']} | {record['mode']} | {record['size']} | {live['posed_share']:.1%} | "
+            f"{live['latency_p50_ms']:.0f} / {live['latency_p95_ms']:.0f} | {live['finish_s']:.1f} | "
+            f"{cm(live['ate_m'])} / {cm(offline.get('ate_m'))} | {db(live['psnr_db'])} / {db(offline.get('psnr'))} | "
+            f"{live['rss_worker_peak_mib']:.0f} ({_mib(live.get('rss_worker_start_mib'))}) | {settings.get('preset')}"
+            f"{f' at {side} px' if side else ''} | {live['load'][0]} -> {live['load'][1]} |")
+    return "\n".join(rows)
+
+
 def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench out_of_box", description=__doc__.split("\n\n")[0])
     parser.add_argument("--sequences", nargs="+", choices=sorted(SEQUENCES), default=["icl", "tum"])
@@ -177,7 +210,11 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--offline", action="store_true", help="also the offline run of the same frames")
     parser.add_argument("--force", action="store_true", help="run cases whose results exist again")
     parser.add_argument("--out", type=Path, default=OUT)
+    parser.add_argument("--table", action="store_true", help="print the results so far as a markdown table, run none")
     args = parser.parse_args(argv)
+    if args.table:
+        print(table(args.out))
+        return 0
     args.out.mkdir(parents=True, exist_ok=True)
     cases = []
     for name in args.sequences:
@@ -202,11 +239,14 @@ def main(argv: list[str]) -> int:
                       "live": live}
             if args.offline:
                 record["offline"] = offline_case(source, mode, size, args.frames)
+            elif path.exists():  # a live case run again: the offline run of the same frames has not changed
+                record["offline"] = json.loads(path.read_text()).get("offline")
             record["wall_s"] = round(time.monotonic() - started, 1)
             path.write_text(json.dumps(record, indent=1, default=str) + "\n")
             failed += live["acked_lost"] > 0
             print(f"{name} {mode} {size}: posed {live['posed_share']:.1%}, p95 {live['latency_p95_ms']:.0f} ms, "
                   f"finish {live['finish_s']:.1f} s, ATE {100 * (live['ate_m'] or float('nan')):.2f} cm, "
                   f"PSNR {live['psnr_db'] or float('nan'):.2f} dB, settings {live['settings']['preset']} "
-                  f"(tracking side {live['settings']['tracking_side']})", flush=True)
+                  f"(working side {live['settings'].get('working_side')}, tracking side "
+                  f"{live['settings']['tracking_side']})", flush=True)
     return 1 if failed else 0

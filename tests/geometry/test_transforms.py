@@ -144,3 +144,36 @@ def test_sim3_blend_goes_from_one_similarity_to_the_other():
     assert torch.allclose(t, torch.tensor([2.0, 2.0, 2.0], dtype=torch.float64))
     half_turn = sim3_decompose(A)[1].T @ R
     assert torch.allclose(so3_log(half_turn), torch.tensor([0.0, 0.0, 0.2], dtype=torch.float64), atol=1e-9)
+
+
+def test_nearest_sim3_removes_shear_and_keeps_a_similarity():
+    from worker.geometry import nearest_sim3, sim3_inverse
+
+    rng = np.random.default_rng(0)
+    R = cv2_free_rotation(rng)
+    T = np.eye(4)
+    T[:3, :3] = 1.7 * R
+    T[:3, 3] = [0.3, -1.2, 2.0]
+    np.testing.assert_allclose(nearest_sim3(T), T, atol=1e-12)  # a similarity stays as it is
+    sheared = T.copy()
+    sheared[:3, :3] += 1e-4 * rng.standard_normal((3, 3))
+    fixed = nearest_sim3(sheared)
+    block = fixed[:3, :3] / np.cbrt(np.linalg.det(fixed[:3, :3]))
+    np.testing.assert_allclose(block.T @ block, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(fixed[:3, 3], T[:3, 3])
+    # chains of products with closed-form inverses: the shear compounds without the projection, not with it
+    drifting, kept = sheared, fixed
+    for _ in range(60):
+        drifting = drifting @ sim3_inverse(torch.from_numpy(drifting)).numpy() @ drifting
+        kept = nearest_sim3(kept @ sim3_inverse(torch.from_numpy(kept)).numpy() @ kept)
+
+    def shear(m):
+        b = m[:3, :3] / np.cbrt(abs(np.linalg.det(m[:3, :3])))
+        return np.abs(b.T @ b - np.eye(3)).max()
+    assert shear(kept) < 1e-10
+    assert not shear(drifting) <= 1e-3  # grown past 1e-3, or blown up to NaN
+
+
+def cv2_free_rotation(rng) -> np.ndarray:
+    q, _ = np.linalg.qr(rng.standard_normal((3, 3)))
+    return q if np.linalg.det(q) > 0 else -q

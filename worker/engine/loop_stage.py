@@ -25,6 +25,7 @@ from worker.engine.loop_closer import DepthKeyframePoints, LoopCloser
 from worker.engine.stage_thread import QueuedStage, StageThread
 from worker.engine.stage_times import StageTimes
 from worker.geometry import Intrinsics, se3_part
+from worker.loop.correction_check import implausible_correction
 from worker.loop.pose_graph import PosePrior, Sim3PoseGraph
 
 log = logging.getLogger(__name__)
@@ -104,6 +105,7 @@ class LoopClosingStage(QueuedStage):
         self.metric = metric  # given metric poses and depth: a loop measures no scale change
         self.timings = timings or StageTimes()
         self.loops = 0
+        self.solves_given_up = 0  # solves that failed or ended implausibly: nothing moved
         self._corrections: list[LoopCorrection] = []
         self._corrections_lock = threading.Lock()
         self._stage = StageThread("loop-closing", self._process, threaded)
@@ -159,44 +161,61 @@ class LoopClosingStage(QueuedStage):
     def _close_loop(self, query: LoopQuery) -> None:
         constraints = self.closer.process_keyframe(query.kf_id, query.image, query.intrinsics)
         kept = []
+        before = None
         for constraint in constraints:
             relative = constraint.relative
             if self.metric:
                 relative = self._align_depth(constraint.i, constraint.j, se3_part(relative), query.intrinsics)
                 if relative is None:
                     continue
+            before = before or self.pose_graph.state_dict()
             self.pose_graph.add_edge(constraint.i, constraint.j, relative, kind="loop", weight=self.cfg.loop_weight)
             kept.append(constraint)
         if not kept:
             return
         best = kept[0]
-        self.loops += 1
         event: dict[str, Any] = {"type": "loop_closed", "from_keyframe": int(best.j), "to_keyframe": int(best.i),
                                  "source": best.source, "scale": float(best.scale)}
         if len(kept) > 1:
             event["also_to_keyframes"] = [int(c.i) for c in kept[1:]]
-        self._solve(event)
+        if self._solve(event, before):
+            self.loops += 1
 
     def _correct_drift(self, key: int) -> None:
         """Solve the graph with the device priors so far and hand the moved keyframes back (`drift_corrected`)."""
         self.priors_unsolved = 0
-        self._solve({"type": "drift_corrected", "keyframe": int(key)})
+        self._solve({"type": "drift_corrected", "keyframe": int(key)}, self.pose_graph.state_dict())
 
-    def _solve(self, event: dict[str, Any]) -> None:
-        """Optimise the graph and hand the optimised keyframe poses back with `event` (and the solve's costs)."""
-        with self.timings.measure("pgo"):
-            result = self.pose_graph.optimize(max_iterations=self.cfg.pgo_iterations)
+    def _solve(self, event: dict[str, Any], before: dict[str, Any]) -> bool:
+        """Optimise the graph and hand the optimised keyframe poses back with `event` (and the solve's costs). A
+        solve that fails or ends implausibly (worker.loop.correction_check) moves nothing: the graph goes back to
+        `before` (its state before this item's edges) and the loop is given up. Returns whether it was applied."""
+        try:
+            with self.timings.measure("pgo"):
+                result = self.pose_graph.optimize(max_iterations=self.cfg.pgo_iterations)
+        except RuntimeError:
+            self.pose_graph.load_state_dict(before)
+            raise
+        old = dict(zip(np.asarray(before["keys"]).tolist(), np.asarray(before["poses"])))
+        problem = implausible_correction(old, result.poses, self.metric)
+        if problem is not None:
+            log.warning("loop-closing stage: %s: the %s is given up", problem, event["type"])
+            self.pose_graph.load_state_dict(before)
+            self.solves_given_up += 1
+            return False
         event = {**event, "pgo_error_before": result.initial_error, "pgo_error_after": result.final_error}
         with self._corrections_lock:
             self._corrections.append(LoopCorrection(dict(result.poses), event))
+        return True
 
     def _join_maps(self, join: MapJoin) -> None:
         """Add the Sim(3) edge joining two maps, solve, and hand the moved keyframes back (`maps_merged`)."""
         if join.i not in self.pose_graph.nodes or join.j not in self.pose_graph.nodes or join.i == join.j:
             return
+        before = self.pose_graph.state_dict()
         self.pose_graph.add_edge(join.i, join.j, join.relative, kind="map_join")
         self._solve({**{k: v for k, v in join.event.items() if k not in ("relative", "correction")},
-                     "type": "maps_merged", "from_keyframe": int(join.j), "to_keyframe": int(join.i)})
+                     "type": "maps_merged", "from_keyframe": int(join.j), "to_keyframe": int(join.i)}, before)
 
     def _align_depth(self, i: int, j: int, relative: np.ndarray, intrinsics: Intrinsics | None) -> np.ndarray | None:
         """A metric loop edge refined by ICP on the two keyframes' depth (half resolution), or None when the depth

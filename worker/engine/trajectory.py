@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from worker.engine.snapshot_chunks import ChunkWrite, chunk_versions
-from worker.geometry import sim3_blend, sim3_inverse
+from worker.geometry import nearest_sim3, sim3_blend, sim3_inverse
 from worker.serialization import pack, unpack
 
 CHUNK_FRAMES = 256  # frame records per sealed chunk
@@ -72,10 +72,10 @@ class Trajectory:
         """Add keyframe `kf_id` from its tracked pose; returns its world pose. With a `reference` keyframe, the
         new keyframe follows that keyframe's corrections (its tracked relative pose is kept), so a keyframe after a
         loop closure starts from the corrected trajectory, not from the drifted odometry."""
-        tracked = np.asarray(tracked_pose, np.float64).copy()
+        tracked = nearest_sim3(tracked_pose)
         pose = tracked
         if reference is not None:
-            pose = self.keyframe_poses[reference] @ _inv(self.tracked_keyframe_poses[reference]) @ tracked
+            pose = nearest_sim3(self.keyframe_poses[reference] @ _inv(self.tracked_keyframe_poses[reference]) @ tracked)
         self.tracked_keyframe_poses[int(kf_id)] = tracked
         self.keyframe_poses[int(kf_id)] = pose
         return pose
@@ -85,7 +85,7 @@ class Trajectory:
         """Record a frame from its tracked pose, tied to `keyframe`; returns its world pose now."""
         if self._last_index is not None and index <= self._last_index:
             raise ValueError(f"frame index {index} is not after the previous frame {self._last_index}")
-        rel = _inv(self.tracked_keyframe_poses[keyframe]) @ np.asarray(tracked_pose, np.float64)
+        rel = nearest_sim3(_inv(self.tracked_keyframe_poses[keyframe]) @ np.asarray(tracked_pose, np.float64))
         self.frames.append(FrameRecord(int(index), float(timestamp), int(keyframe), rel, bool(is_keyframe),
                                        int(submap_id)))
         self._last_index = int(index)
@@ -158,7 +158,7 @@ class Trajectory:
         for kf, pose in poses.items():
             if kf not in self.keyframe_poses:
                 raise ValueError(f"unknown keyframe {kf}")
-            self.keyframe_poses[int(kf)] = np.asarray(pose, np.float64).copy()
+            self.keyframe_poses[int(kf)] = nearest_sim3(pose)
         self.revision += 1
         return self.revision
 
