@@ -158,7 +158,7 @@ class Trajectory:
         for kf, pose in poses.items():
             if kf not in self.keyframe_poses:
                 raise ValueError(f"unknown keyframe {kf}")
-            self.keyframe_poses[int(kf)] = nearest_sim3(pose)
+            self.keyframe_poses[int(kf)] = np.asarray(pose, np.float64).copy()  # as the map takes them
         self.revision += 1
         return self.revision
 
