@@ -290,7 +290,7 @@ class SlamConfig(_Section):
         (e.g. `mapping={"refine_iterations": 5}`)."""
         if name not in PRESETS:
             raise ValueError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
-        data = _deep_merge(PRESETS[name], overrides)
+        data = deep_merge(PRESETS[name], overrides)
         data["name"] = overrides.get("name", name)
         return cls.model_validate(data)
 
@@ -315,13 +315,14 @@ class SlamConfig(_Section):
         return None
 
 
-def _deep_merge(base: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
+def deep_merge(base: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
+    """`base` with `overrides` merged in, section by section (nested dicts merged, other values replaced)."""
     out = {k: (dict(v) if isinstance(v, dict) else v) for k, v in base.items()}
     for key, value in overrides.items():
         if isinstance(value, BaseModel):
             value = value.model_dump()
         if isinstance(value, dict) and isinstance(out.get(key), dict):
-            out[key] = _deep_merge(out[key], value)
+            out[key] = deep_merge(out[key], value)
         else:
             out[key] = value
     return out

@@ -58,7 +58,7 @@ def add_run_options(parser: argparse.ArgumentParser) -> None:
 
 def load_config(args: argparse.Namespace):
     """The SlamConfig from --preset and --config."""
-    from worker.config import SlamConfig
+    from worker.config import SlamConfig, deep_merge
 
     overrides = {}
     if args.config:
@@ -73,7 +73,7 @@ def load_config(args: argparse.Namespace):
         config = SlamConfig.preset(args.preset, **overrides)
     else:
         choice = _auto_settings(args)
-        config = SlamConfig.preset(choice.preset, **_merge(choice.engine_overrides(), overrides))
+        config = SlamConfig.preset(choice.preset, **deep_merge(choice.engine_overrides(), overrides))
     if getattr(args, "deterministic", False):
         config = config.model_copy(update={"threaded": False})
     budget = finish_budget(args)
@@ -109,13 +109,6 @@ def _auto_settings(args: argparse.Namespace):
     received = SessionInput(depth=bool(getattr(args, "use_gt_depth", False)),
                             device_poses=bool(getattr(args, "use_gt_poses", False)), live=False)
     return choose_settings(received, Machine.detect())
-
-
-def _merge(base: dict, overrides: dict) -> dict:
-    out = dict(base)
-    for key, value in overrides.items():
-        out[key] = _merge(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
-    return out
 
 
 def run_one(args: argparse.Namespace, source: str, out_dir: str) -> dict:

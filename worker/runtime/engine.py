@@ -53,13 +53,13 @@ def create_engine(kind: str, preset: str | None, intrinsics: Intrinsics | None,
     (prior/fixed/ignore/seeded) and `tracking_side` (the tracking resolution's long side) override both;
     `depth_camera` (the session's: intrinsics + depth_to_color) registers depth to the colour camera."""
     if kind == "slam":
+        from worker.config import deep_merge
         from worker.slam import SlamConfig, SlamSystem
 
         if preset is None:
             choice = choose_settings(SessionInput(), Machine.detect())
-            preset, overrides = choice.preset, {**choice.engine_overrides(), **(overrides or {})}
-        merged: dict[str, Any] = {key: dict(value) if isinstance(value, dict) else value
-                                  for key, value in (overrides or {}).items()}
+            preset, overrides = choice.preset, deep_merge(choice.engine_overrides(), overrides or {})
+        merged: dict[str, Any] = deep_merge(overrides or {}, {})
         merged.setdefault("input", {})
         if pose_mode:
             merged["input"]["pose_mode"] = pose_mode
