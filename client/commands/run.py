@@ -9,9 +9,10 @@ import sys
 
 from client.commands._options import parse_size
 
-# Seconds the final refinement of an offline run may take by default (after the mapping stage drained). Measured on
-# TUM fr1/xyz RGB-D (788 frames, 2 cores): see bench/results and README.
-DEFAULT_FINISH_BUDGET_S = 60.0
+# Seconds the final refinement of an offline run may take by default, after the mapping stage drained (0: it
+# completes its passes). Measured on 2 cores: TUM fr1/xyz RGB-D completes them in 54 s, but ICL needs more, and a
+# 60 s bound cost ICL 1-2.4 dB (RGB-D 28.52, RGB only 28.34, posed RGB 27.08 dB), so no bound by default.
+DEFAULT_FINISH_BUDGET_S = 0.0
 
 
 def add_run_options(parser: argparse.ArgumentParser) -> None:
@@ -38,11 +39,11 @@ def add_run_options(parser: argparse.ArgumentParser) -> None:
                         help="multiply every pose and depth by S: the same scene in other length units (a map that "
                         "follows the scene renders the same; ATE and depth L1 come out S times larger)")
     parser.add_argument("--finish-budget", type=float, default=None, metavar="SECONDS",
-                        help=f"bound the final refinement at the end of the run to this many seconds (default "
-                        f"{DEFAULT_FINISH_BUDGET_S:g}, or 0 with --deterministic: its learning rates follow the time "
-                        "left; 0: no bound, it completes its passes, at most passes x held keyframe images "
-                        "iterations); more seconds, a little more PSNR. The mapping of the keyframes still waiting "
-                        "when the last frame is tracked comes before it and is not bounded")
+                        help="bound the final refinement at the end of the run to this many seconds (default 0: no "
+                        "bound, it completes its passes, at most passes x held keyframe images iterations; with a "
+                        "bound its learning rates follow the time left, so the map then depends on the machine's "
+                        "speed). The mapping of the keyframes still waiting when the last frame is tracked comes "
+                        "before it and is not bounded")
     parser.add_argument("--live-pacing", action="store_true",
                         help="shed mapping work as a live session does when mapping falls behind (default: an "
                         "offline run refines every keyframe, so its map does not depend on the machine's load)")
@@ -85,8 +86,8 @@ def load_config(args: argparse.Namespace):
 
 
 def finish_budget(args: argparse.Namespace) -> float | None:
-    """--finish-budget, else the default: DEFAULT_FINISH_BUDGET_S, or none with --deterministic (a time budget makes
-    the refinement's learning rates depend on the machine's speed). None: the config's own."""
+    """--finish-budget, else DEFAULT_FINISH_BUDGET_S (never a time bound with --deterministic: it would make the
+    refinement's learning rates depend on the machine's speed). None: the config's own."""
     if not hasattr(args, "finish_budget"):
         return None
     budget = args.finish_budget

@@ -140,8 +140,9 @@ def _run_args(*argv: str) -> argparse.Namespace:
 def test_flashmono_run_takes_the_same_decision_and_bounds_its_finish():
     config = load_config(_run_args("--use-gt-depth"))
     assert config.name == choose_settings(SessionInput(depth=True, device_poses=False), Machine.detect()).preset
-    assert config.mapping.final_refine_budget_s == DEFAULT_FINISH_BUDGET_S > 0
-    assert not config.mapping.final_refine_budget_counts_drain  # the refinement's own budget, after the drain
+    assert config.mapping.final_refine_budget_s == DEFAULT_FINISH_BUDGET_S == 0  # the passes complete
     assert load_config(_run_args("--deterministic")).mapping.final_refine_budget_s == 0  # no time-driven rates
-    assert load_config(_run_args("--finish-budget", "0")).mapping.final_refine_budget_s == 0
+    bounded = load_config(_run_args("--finish-budget", "60")).mapping
+    assert bounded.final_refine_budget_s == 60
+    assert not bounded.final_refine_budget_counts_drain  # the refinement's own budget, after the drain
     assert load_config(_run_args("--preset", "fast")).name == "fast"
