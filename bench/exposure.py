@@ -65,7 +65,7 @@ def _run(frames, truth, intrinsics, exposure: str, passes: int) -> dict:
     given = evaluate_renders(render, [frames[i] for i in chosen], poses, depth_scaling="none")
     as_captured = evaluate_renders(renderer_as_captured(system, K, intrinsics.width, intrinsics.height, chosen),
                                    [frames[i] for i in chosen], poses, depth_scaling="none")
-    gmap = system.backend.map
+    gmap = system.mapping_stage.map
     gains = {k: gmap.keyframe_exposure(k)[:3].numpy() for k in gmap.keyframe_ids}
     system.close()
     return {"original": original.psnr, "given": given.psnr, "given_as_captured": as_captured.psnr,

@@ -28,7 +28,8 @@ def _rss_mb() -> float:
 def main(argv: list[str]) -> int:
     from worker.config import SlamConfig
     from worker.data import open_source
-    from worker.engine.backend import KeyframeJob, MapBackend
+    from worker.engine.map_jobs import KeyframeJob
+    from worker.engine.mapping_stage import MappingStage
     from worker.engine.stage_times import StageTimes
     from worker.engine.surfel_init import grid_from_depth
 
@@ -47,7 +48,7 @@ def main(argv: list[str]) -> int:
     config = SlamConfig.preset("rgbd", mapping={"refine_iterations": 0} if args.no_refine else {})
     torch.set_num_threads(config.num_threads)
     timings = StageTimes()
-    backend = MapBackend(config.mapping, threaded=False, queue_size=1, timings=timings)
+    backend = MappingStage(config.mapping, threaded=False, max_backlog=1, timings=timings)
     if args.cap is not None:
         backend.map.config.voxel_cap = args.cap
     source = open_source(f"synthetic://seed={args.seed}?frames={args.frames or args.keyframes * args.every}")

@@ -127,16 +127,16 @@ def engine_keyframe_depths(images: list[np.ndarray], poses: list[np.ndarray], K:
     """(keyframe id, surfel z-depth [H, W], 0 where no surfel) of every `every`-th frame, as the engine's keyframe
     depth builds it for posed RGB (multi-view stereo, propagation, with `planes` / `borders` settings)."""
     from worker.depth import MultiViewDepthConfig
-    from worker.engine.keyframe_depth import KeyframeDepth
+    from worker.engine.depth_sources import MultiViewDepth, StereoBuilder
 
-    source = KeyframeDepth(MultiViewDepthConfig(), buffer_frames=16, frames_after=4, propagate=True, planes=planes,
-                           borders=borders)
+    builder = StereoBuilder(MultiViewDepthConfig(), propagate=True, planes=planes, borders=borders)
+    source = MultiViewDepth(None, buffer_frames=16, frames_after=4, builder=builder)
     depths = []
     for i, image in enumerate(images):
         source.add_frame(i, image)
         if i % every == 0:
-            source.add_keyframe(i, K, None)
+            source.add_keyframe_at(i, K, None)
         for job in source.ready_jobs(lambda j: poses[j], force=i == len(images) - 1):
-            _, grid, _ = job.build()
+            _, grid, _ = builder.build(job)
             depths.append((job.kf_id, np.where(grid["valid"].numpy(), grid["means"][..., 2].numpy(), 0.0)))
     return depths

@@ -12,12 +12,13 @@ import redis
 from service.redis_embedded import EmbeddedRedis
 from worker.config import SlamConfig
 from worker.data.frame import Frame
+from worker.engine.snapshot import flat_snapshot
 from worker.engine.trajectory import Trajectory
 from worker.runtime import keys
 from worker.runtime.engine import PassthroughEngine, restore_engine
 from worker.runtime.snapshots import SnapshotWriter, read_snapshot
 from worker.serialization import pack, unpack
-from worker.slam import SlamSystem, _flat_snapshot
+from worker.slam import SlamSystem
 
 CHUNK = 16
 
@@ -136,7 +137,7 @@ def _posed_system() -> SlamSystem:
 def test_slam_system_chunked_snapshot_restores_and_old_formats_still_do(monkeypatch) -> None:
     monkeypatch.setattr("worker.engine.trajectory.CHUNK_FRAMES", CHUNK)
     system = _posed_system()
-    system._traj.chunk_frames = CHUNK
+    system.tracking_stage.trajectory.chunk_frames = CHUNK
     frames = _posed_frames(3 * CHUNK + 5)
     for frame in frames:
         system.push(frame)
@@ -144,15 +145,15 @@ def test_slam_system_chunked_snapshot_restores_and_old_formats_still_do(monkeypa
     blob, write = future.result(), future.chunks
     assert sorted(write.new) == [0, 1, 2]
     restored = SlamSystem.restore(blob, write.new)
-    _assert_same(system._traj, restored._traj)
+    _assert_same(system.tracking_stage.trajectory, restored.tracking_stage.trajectory)
     with pytest.raises(ValueError, match="missing"):
         SlamSystem.restore(blob, {})
     # old formats: a self-contained format-2 snapshot (as main wrote it) and a format-1 one (one flat dict)
     full = system.snapshot()
-    _assert_same(system._traj, SlamSystem.restore(full)._traj)
-    flat = {**_flat_snapshot(unpack(full)), "format": "flashmono.slam/1"}
+    _assert_same(system.tracking_stage.trajectory, SlamSystem.restore(full).tracking_stage.trajectory)
+    flat = {**flat_snapshot(unpack(full)), "format": "flashmono.slam/1"}
     flat["trajectory"] = {k: v for k, v in flat["trajectory"].items() if k not in ("chunk_frames", "chunk_revisions")}
-    _assert_same(system._traj, SlamSystem.restore(pack(flat))._traj)
+    _assert_same(system.tracking_stage.trajectory, SlamSystem.restore(pack(flat)).tracking_stage.trajectory)
     system.close()
 
 
@@ -177,7 +178,7 @@ def test_store_writes_flat_and_reads_back_what_restore_needs(client, monkeypatch
     sid, worker = "chunkstore1", "worker-a"
     _session(client, sid, worker)
     system = _posed_system()
-    system._traj.chunk_frames = CHUNK
+    system.tracking_stage.trajectory.chunk_frames = CHUNK
     writer = SnapshotWriter(client, sid, worker)
     entries = [e for e, _ in client.xrange(keys.inbox(sid))]
     sizes: dict[int, int] = {}
@@ -196,7 +197,7 @@ def test_store_writes_flat_and_reads_back_what_restore_needs(client, monkeypatch
     # arrays the newest snapshot no longer names were removed with its write: only its own parts are left
     assert snap.arrays and client.hlen(keys.snapshot_chunks(sid)) == 16 + len(snap.arrays)
     restored = restore_engine("slam", snap.data, snap.chunks)
-    _assert_same(system._traj, restored._traj)
+    _assert_same(system.tracking_stage.trajectory, restored.tracking_stage.trajectory)
     # the new owner knows which chunks are stored: its next write adds none of them again
     writer_b = SnapshotWriter(client, sid, worker)
     writer_b.restored(snap)
@@ -249,7 +250,7 @@ def test_incremental_slam_snapshot_does_not_write_unchanged_keyframe_data_again(
     assert len(blob) + new_bytes < len(system.snapshot())  # the incremental write is smaller than a whole one
     restored = SlamSystem.restore(blob, {**write.arrays, **write.new})
     assert restored.num_gaussians == system.num_gaussians > 0
-    _assert_same(system._traj, restored._traj)
+    _assert_same(system.tracking_stage.trajectory, restored.tracking_stage.trajectory)
     with pytest.raises(ValueError, match="missing"):
         SlamSystem.restore(blob, dict(write.new))
     assert first_blob

@@ -51,10 +51,10 @@ def test_finish_reports_the_drain_then_the_refinement(frames):
                                mapping={"shed_backlog": 0, "final_refine_passes": 3, "final_refine_budget_s": 0})
     system = SlamSystem(config)
     seen: list[dict] = []
-    with system.backend.lock:  # mapping stalls: finish() starts with a backlog
+    with system.mapping_stage.lock:  # mapping stalls: finish() starts with a backlog
         for frame in frames:
             system.push(frame)
-        backlog = system.backend.pending
+        backlog = system.mapping_stage.pending
     stop = threading.Event()
 
     def watch() -> None:
@@ -74,7 +74,7 @@ def test_finish_reports_the_drain_then_the_refinement(frames):
     mapping = [s for s in seen if s["phase"] == "mapping"]
     assert backlog >= 3 and mapping[0]["total"] >= backlog - 1
     refining = [s for s in seen if s["phase"] == "refining"]
-    assert refining[-1]["total"] == 3 * system.backend.map.held_images > 0
+    assert refining[-1]["total"] == 3 * system.mapping_stage.map.held_images > 0
     assert max(s["done"] for s in refining) > 0
     assert system.finish_status.as_dict()["phase"] == "done"
 
@@ -88,13 +88,13 @@ def test_an_offline_budget_is_the_refinement_s_own(frames, counts_drain):
                                mapping={"shed_backlog": 0, "final_refine_passes": 50, "final_refine_budget_s": 0.4,
                                         "final_refine_budget_counts_drain": counts_drain})
     system = SlamSystem(config)
-    with system.backend.lock:
+    with system.mapping_stage.lock:
         for frame in frames:
             system.push(frame)
     held = threading.Event()
 
     def hold_the_map() -> None:  # the drain waits 0.8 s: twice the budget
-        with system.backend.lock:
+        with system.mapping_stage.lock:
             held.set()
             time.sleep(0.8)
 

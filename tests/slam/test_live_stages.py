@@ -44,39 +44,39 @@ def push_all_within(system: SlamSystem, frames: list[Frame], timeout_s: float = 
 
 def test_tracking_publishes_poses_while_mapping_is_stalled_and_finish_drains(frames) -> None:
     system = SlamSystem(live_config(mapping={"shed_backlog": 0}, queue_size=64))
-    with system.backend.lock:  # the mapping stage cannot map anything while this is held
+    with system.mapping_stage.lock:  # the mapping stage cannot map anything while this is held
         results = push_all_within(system, frames)
         assert len(results) == len(frames)
         assert all(np.all(np.isfinite(r.pose)) for r in results)
         keyframes = sum(r.is_keyframe for r in results)
         stats = system.live_stats()
         assert keyframes >= 4 and stats["mapping_lag_keyframes"] >= keyframes - 1
-        assert system.backend.keyframes_mapped == 0
+        assert system.mapping_stage.keyframes_mapped == 0
     system.finish()
-    assert system.backend.pending == 0 and system.loop_stage.pending == 0
+    assert system.mapping_stage.pending == 0 and system.loop_stage.pending == 0
     last_frame = system.last_frame_mapped is not None  # finish() maps the newest view too
-    assert system.backend.keyframes_mapped == keyframes + last_frame
+    assert system.mapping_stage.keyframes_mapped == keyframes + last_frame
     assert system.live_stats()["mapping_lag_keyframes"] == 0
     assert system.num_gaussians > 0
 
 
 def test_mapping_sheds_work_when_it_falls_behind_and_reports_it(frames) -> None:
     system = SlamSystem(live_config(mapping={"shed_backlog": 1, "merge_only_backlog": 2}, queue_size=3))
-    with system.backend.lock:
+    with system.mapping_stage.lock:
         results = push_all_within(system, frames)
     system.finish()
     keyframes = sum(r.is_keyframe for r in results)
     shed = system.stats()["keyframes_shed"]
     assert shed["dropped"] > 0 and shed["merge_only"] > 0  # the backlog was 6 when the stage woke up
-    assert system.backend.keyframes_mapped + shed["dropped"] == keyframes + (system.last_frame_mapped is not None)
-    assert len(system.backend.map.keyframe_ids) == system.backend.keyframes_mapped
+    assert system.mapping_stage.keyframes_mapped + shed["dropped"] == keyframes + (system.last_frame_mapped is not None)
+    assert len(system.mapping_stage.map.keyframe_ids) == system.mapping_stage.keyframes_mapped
 
 
 def test_mapping_keeps_every_refinement_when_it_keeps_up(frames) -> None:
     system = SlamSystem(live_config())
     for frame in frames:  # inline-like pace: the stage is idle before each keyframe
         system.push(frame)
-        system.backend.wait_idle()
+        system.mapping_stage.wait_idle()
     system.finish()
     assert system.stats()["keyframes_shed"] == {"reduced": 0, "merge_only": 0, "dropped": 0}
 
@@ -84,7 +84,7 @@ def test_mapping_keeps_every_refinement_when_it_keeps_up(frames) -> None:
 def test_snapshot_while_mapping_lags_restores_and_continues_exactly(frames) -> None:
     cut = 8
     system = SlamSystem(live_config(mapping={"shed_backlog": 0}, queue_size=64))
-    with system.backend.lock:
+    with system.mapping_stage.lock:
         push_all_within(system, frames[:cut])
         future = system.begin_snapshot()  # returns at once: the map part comes when mapping gets there
         assert not future.done()
@@ -94,13 +94,13 @@ def test_snapshot_while_mapping_lags_restores_and_continues_exactly(frames) -> N
     restored = SlamSystem.restore(blob)
     assert [i for i, _, _ in restored.trajectory()] == [f.index for f in frames[:cut]]
     keyframes_before_cut = len(restored.trajectory("keyframes"))
-    assert restored.backend.keyframes_mapped == keyframes_before_cut  # everything submitted before the cut
+    assert restored.mapping_stage.keyframes_mapped == keyframes_before_cut  # everything submitted before the cut
     again = [restored.push(f) for f in frames[cut:]]
     for a, b in zip(later, again):
         np.testing.assert_allclose(a.pose, b.pose, atol=1e-3)  # the snapshot keeps depth as float16
         assert a.is_keyframe == b.is_keyframe
     restored.finish()
-    assert restored.backend.keyframes_mapped == system.backend.keyframes_mapped
+    assert restored.mapping_stage.keyframes_mapped == system.mapping_stage.keyframes_mapped
 
 
 def test_keyframes_made_after_an_optimisation_follow_the_newest_corrected_one() -> None:
@@ -159,9 +159,9 @@ def _stalled_then_idle(frames: list[Frame], idle_refine: bool) -> SlamSystem:
                                   "archived_images": 64},
                          queue_size=64)
     system = SlamSystem(config)
-    with system.backend.lock:
+    with system.mapping_stage.lock:
         push_all_within(system, frames)
-    system.backend.wait_idle()
+    system.mapping_stage.wait_idle()
     deadline = time.monotonic() + 120
     while idle_refine and system.stats()["keyframes_owed"] and time.monotonic() < deadline:
         time.sleep(0.05)

@@ -10,7 +10,7 @@ import pytest
 from posed_rgb_run import run_posed_rgb
 
 from worker.data import open_source
-from worker.engine.keyframe_depth import PROPAGATED_OPACITY
+from worker.engine.depth_sources.multiview import PROPAGATED_OPACITY
 from worker.engine.surfel_init import INITIAL_OPACITY
 
 DATA = Path(__file__).parents[1] / "data" / "icl_mini"
@@ -25,10 +25,10 @@ def posed_rgb():
 def test_propagated_depth_adds_fainter_surfels_where_stereo_left_holes(posed_rgb) -> None:
     frames, intr = posed_rgb
     plain, filled = run_posed_rgb(frames, intr, "none"), run_posed_rgb(frames, intr, "propagate")
-    stats = filled.keyframe_depth.fill_stats
-    assert stats and min(stats) > 0.01 and not plain.keyframe_depth.fill_stats
+    stats = filled.mapping_stage.stereo.fill_stats
+    assert stats and min(stats) > 0.01 and not plain.mapping_stage.stereo.fill_stats
     assert filled.num_gaussians > 1.03 * plain.num_gaussians
-    opacities = filled.backend.map.surfels.opacities.numpy()
+    opacities = filled.mapping_stage.map.surfels.opacities.numpy()
     # the propagated pixels' surfels (merged 2x2 blocks among them) start below the usual opacity
     assert np.isclose(opacities, INITIAL_OPACITY * PROPAGATED_OPACITY, atol=1e-3).sum() > 100
     assert np.isclose(opacities, INITIAL_OPACITY, atol=1e-3).sum() > 0.5 * len(opacities)

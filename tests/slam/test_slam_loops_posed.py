@@ -73,6 +73,6 @@ def test_loop_closures_move_the_map_with_the_keyframes(frames) -> None:
     closed_at = [f.index for f in frames if system.push(f).events]
     system.finish()
     assert closed_at and system.stats()["runtime_breakdown"]["map_loop_correction"]["events"] == len(closed_at)
-    gmap = system.backend.map
+    gmap = system.mapping_stage.map
     for kf_id, _, pose in system.trajectory("keyframes"):  # the map's keyframes sit where the trajectory says
         np.testing.assert_allclose(gmap.keyframe_pose(kf_id).numpy(), pose, atol=1e-9)

@@ -1,5 +1,5 @@
 """Frames with poses and no depth (a phone without a depth sensor): keyframe surfels come from multi-view stereo on
-the tracked poses (worker.engine.keyframe_depth), computed in the backend once later frames give each keyframe
+the tracked poses (worker.engine.depth_sources.multiview), computed in the backend once later frames give each keyframe
 neighbours; real ICL frames (tests/data/icl_mini), metric depth against the dataset's."""
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ def test_posed_rgb_keyframes_are_mapped_from_multiview_depth(posed_rgb) -> None:
     system.finish()
     keyframes = [i for i, r in enumerate(results) if r.is_keyframe]
     final = [] if system.last_frame_mapped is None else [system.last_frame_mapped]  # finish maps the last view
-    assert len(keyframes) >= 2 and system.backend.keyframes_mapped == len(keyframes) + len(final)
+    assert len(keyframes) >= 2 and system.mapping_stage.keyframes_mapped == len(keyframes) + len(final)
     assert system.timings.counts["map_depth"] == len(keyframes) + len(final)
     assert system.num_gaussians > 2000
     k = keyframes[1]  # a keyframe with neighbours on both sides
@@ -60,23 +60,23 @@ def test_stereo_keyframes_are_pruned_where_sensor_keyframes_are_not(posed_rgb) -
     frames, truth, intr = posed_rgb
 
     def prunes(system: SlamSystem) -> bool:
-        thresholds = system.backend.map.config.thresholds
+        thresholds = system.mapping_stage.map.config.thresholds
         return math.isfinite(thresholds.rgb_error) and math.isfinite(thresholds.depth_error)
 
     stereo = SlamSystem(_config(), intr)
     assert not prunes(stereo)  # nothing known about the session's depth before its first frame
-    assert not stereo.backend.map.keeps_background
+    assert not stereo.mapping_stage.map.keeps_background
     stereo.push(frames[0])
-    assert stereo.depth_source == "mvs" and prunes(stereo) and stereo.backend.map.keeps_background
+    assert stereo.depth_source == "mvs" and prunes(stereo) and stereo.mapping_stage.map.keeps_background
     restored = SlamSystem.restore(stereo.snapshot())
-    assert prunes(restored) and restored.backend.map.keeps_background
+    assert prunes(restored) and restored.mapping_stage.map.keeps_background
     sensor = SlamSystem(_config(), intr)
     sensor.push(dataclasses.replace(frames[0], depth=truth[0]))
-    assert sensor.depth_source == "sensor" and not prunes(sensor) and not sensor.backend.map.keeps_background
+    assert sensor.depth_source == "sensor" and not prunes(sensor) and not sensor.mapping_stage.map.keeps_background
     declined = SlamSystem(_config().model_copy(update={"mapping": _config().mapping.model_copy(
         update={"prune_multiview": False, "background": False})}), intr)
     declined.push(frames[0])
-    assert declined.depth_source == "mvs" and not prunes(declined) and not declined.backend.map.keeps_background
+    assert declined.depth_source == "mvs" and not prunes(declined) and not declined.mapping_stage.map.keeps_background
     for system in (stereo, restored, sensor, declined):
         system.close()
 
@@ -86,14 +86,14 @@ def test_snapshot_keeps_keyframes_waiting_for_neighbours(posed_rgb) -> None:
     first = SlamSystem(_config(), intr)
     for f in frames[:8]:
         first.push(f)
-    waiting = len(first.keyframe_depth.pending)
+    waiting = len(first.tracking_stage.depth_source.waiting)
     assert waiting >= 1  # the last keyframe still waits for later frames
     restored = SlamSystem.restore(first.snapshot())
-    assert len(restored.keyframe_depth.pending) == waiting
+    assert len(restored.tracking_stage.depth_source.waiting) == waiting
     for f in frames[8:]:
         restored.push(f)
     restored.finish()
-    mapped = restored.backend.keyframes_mapped
+    mapped = restored.mapping_stage.keyframes_mapped
     assert mapped == len(restored.trajectory("keyframes")) + (restored.last_frame_mapped is not None)
     restored.close()
     first.close()

@@ -139,6 +139,6 @@ def test_final_refinement_over_archived_keyframes_improves_the_map(frames) -> No
 
     window_only, window_psnr = run(archived=0, passes=4)
     refined, refined_psnr = run(archived=4, passes=4)
-    assert refined.backend.map.held_images == 3 and window_only.backend.map.held_images == 1
+    assert refined.mapping_stage.map.held_images == 3 and window_only.mapping_stage.map.held_images == 1
     assert refined.timings.counts["map_final_refine"] == 1
     assert refined_psnr > window_psnr + 1.0, (window_psnr, refined_psnr)  # measured: 28.0 vs 24.8 dB

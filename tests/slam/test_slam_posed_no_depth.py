@@ -66,16 +66,17 @@ def test_poses_are_the_given_ones_and_the_model_runs_on_every_frame(frames, run)
 def test_model_surfels_are_scaled_to_the_given_poses(frames, run) -> None:
     system, _ = run
     assert system.num_gaussians > 100
-    assert set(system.backend.map.surfels.keyframe_ids.tolist()) <= {0, 3}
+    assert set(system.mapping_stage.map.surfels.keyframe_ids.tolist()) <= {0, 3}
     # Keyframe 0 waits for the first step of the path to learn the scale: with two frames, that is the final ratio.
     two = SlamSystem(system.config)
     for frame in frames[:2]:
         two.push(frame)
     two.finish()
-    ratio = two.counters["path_given"] / two.counters["path_tracked"]
+    stats = two.stats()
+    ratio = stats["path_given"] / stats["path_tracked"]
     assert np.isfinite(ratio) and ratio > 0
     w2c = sim3_inverse(torch.from_numpy(np.asarray(frames[0].pose, np.float64))).float()
-    surfels = two.backend.map.surfels
+    surfels = two.mapping_stage.map.surfels
     z_map = (surfels.means @ w2c[:3, :3].T + w2c[:3, 3])[:, 2]
     points, conf = two.tracker.keyframe_points(0)
     z_model = points[..., 2][conf >= two.config.frontend.min_confidence]

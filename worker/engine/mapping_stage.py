@@ -1,7 +1,8 @@
 """The mapping stage (paper 4.3, ORB-SLAM's LocalMapping in our terms): keyframes in, the 2DGS map out.
 
-Per keyframe, in submission order, in the stage's own thread: build the surfel grid where it is costly (multi-view
-depth) -> hand the keyframe to loop closing -> voxelize -> prune -> fuse -> refine; pose updates after loop
+Per keyframe, in submission order, in the stage's own thread: build the surfel grid of a job that has none yet
+(from the sensor's depth, or multi-view stereo's, `StereoBuilder`) -> hand a keyframe whose loop query waited for
+its depth to loop closing -> voxelize -> prune -> fuse -> refine; pose updates after loop
 closures move the map. Tracking never waits for it: `submit` never blocks, and the stage sheds work when it falls
 behind (`MappingConfig.shed_backlog`, `merge_only_backlog`, `SlamConfig.queue_size`): fewer refinement iterations,
 then merge only (finish() refines the whole map), then the oldest waiting keyframes are left out of the map. What it
@@ -27,7 +28,9 @@ import numpy as np
 import torch
 
 from worker.config import MappingConfig
-from worker.engine.backend import (
+from worker.engine.depth_sources.multiview import StereoBuilder
+from worker.engine.loop_stage import LoopQuery
+from worker.engine.map_jobs import (
     KeyframeJob,
     PoseUpdateJob,
     build_gaussian_map,
@@ -36,7 +39,8 @@ from worker.engine.backend import (
 )
 from worker.engine.stage_thread import QueuedStage, StageThread
 from worker.engine.stage_times import StageTimes
-from worker.geometry import sim3_inverse
+from worker.engine.surfel_init import grid_from_depth
+from worker.geometry import Intrinsics, sim3_inverse
 from worker.mapping.exposure import apply_exposure
 from worker.mapping.voxelize import voxelize
 
@@ -62,8 +66,9 @@ class MappingStage(QueuedStage):
         self.keyframes_mapped = 0
         self.busy_seconds = 0.0
         self.shed = dict.fromkeys(SHED_KINDS, 0)
-        # Called in the stage's thread with each keyframe job once its grid, depth and K exist (loop closing).
-        self.on_keyframe_built: Callable[[KeyframeJob], None] | None = None
+        self.stereo: StereoBuilder | None = None  # builds multi-view depth jobs (`use_multiview_depth`)
+        # Where keyframes whose loop query waited for their depth go once it is built (the loop-closing stage).
+        self.loop_closing: Callable[[LoopQuery], None] | None = None
         self._waiting: deque[tuple[int, float]] = deque()  # (kf_id, submit time) of keyframe jobs not yet done
         self._waiting_lock = threading.Lock()
         self._owed: dict[int, int] = {}  # keyframe -> refinement iterations shed, oldest first
@@ -79,10 +84,11 @@ class MappingStage(QueuedStage):
                 self._waiting.append((job.kf_id, time.monotonic()))
         self._stage.submit(job)
 
-    def use_multiview_depth(self) -> None:
-        """The session's keyframe depth comes from multi-view stereo: prune new keyframes' views when
-        `prune_multiview` asks for it, and keep a background behind the map when `background` does (see
+    def use_multiview_depth(self, stereo: StereoBuilder) -> None:
+        """The session's keyframe depth comes from multi-view stereo, built by `stereo`: prune new keyframes' views
+        when `prune_multiview` asks for it, and keep a background behind the map when `background` does (see
         MappingConfig)."""
+        self.stereo = stereo
         with self.lock:
             if self.cfg.prune_multiview:
                 self.map.config.thresholds = fusion_thresholds(self.cfg, prune=True)
@@ -128,17 +134,25 @@ class MappingStage(QueuedStage):
         if backlog > self.max_backlog:  # too far behind: this keyframe stays out of the map
             self.shed["dropped"] += 1
             return
-        if job.build is not None:  # outside the lock: renders go on meanwhile
+        if not job.built:  # outside the lock: renders go on meanwhile
             with self.timings.measure("map_depth"):
-                job.K, job.grid, job.depth = job.build()
-            job.build = None
-        if self.on_keyframe_built is not None:
-            self.on_keyframe_built(job)
+                self._build(job)
+        if job.query_loops and job.depth is not None and self.loop_closing is not None:
+            h, w = job.image.shape[:2]
+            self.loop_closing(LoopQuery(job.kf_id, job.image.permute(2, 0, 1)[None],
+                                        Intrinsics.from_matrix(job.K, w, h), job.depth, job.K))
         iterations = self._refine_iterations(backlog)
         with self.lock:
             self._map_keyframe(job, iterations)
             if self.cfg.idle_refine and iterations < self.cfg.refine_iterations:
                 self._owed[job.kf_id] = self.cfg.refine_iterations - iterations
+
+    def _build(self, job: KeyframeJob) -> None:
+        """A job's surfel grid: from its views' multi-view depth, else from its sensor depth."""
+        if job.views is not None:
+            job.K, job.grid, job.depth = self.stereo.build(job)
+        else:
+            job.grid = grid_from_depth(job.image, job.depth, job.K)
 
     def _refine_iterations(self, backlog: int) -> int:
         """This keyframe's refinement iterations after load shedding."""
@@ -247,7 +261,8 @@ class MappingStage(QueuedStage):
     def state_dict(self) -> dict:
         with self.lock:
             return {"map": self.map.state_dict(), "keyframes_mapped": self.keyframes_mapped,
-                    "shed": dict(self.shed), "owed": [[k, v] for k, v in self._owed.items()]}
+                    "shed": dict(self.shed), "owed": [[k, v] for k, v in self._owed.items()],
+                    "stereo": None if self.stereo is None else self.stereo.state_dict()}
 
     def load_state_dict(self, d: dict) -> None:
         with self.lock:
@@ -255,3 +270,5 @@ class MappingStage(QueuedStage):
             self.keyframes_mapped = int(d["keyframes_mapped"])
             self.shed.update({k: int(v) for k, v in (d.get("shed") or {}).items() if k in self.shed})
             self._owed = {int(k): int(v) for k, v in d.get("owed") or []}
+            if self.stereo is not None and d.get("stereo") is not None:
+                self.stereo.load_state_dict(d["stereo"])

@@ -149,7 +149,7 @@ def run_sequence(
         metrics["frames_registered"] = int(sum(r.tracked or r.index in registered for r in results))
         metrics.update(_trajectory_metrics(frames, all_poses, drift, [r.tracked for r in results],
                                            [r.tracked or r.index in registered for r in results]))
-        if system.backend is not None:
+        if system.mapping_stage is not None:
             (out / "map.ply").write_bytes(system.export_ply())
             metrics["num_gaussians"] = system.num_gaussians
             metrics.update(_render_metrics(system, frames, results, all_poses, intrinsics, out, eval_every, hold_every,
@@ -305,7 +305,7 @@ def _render_metrics(system, frames: list[Frame], results, poses, intrinsics, out
     depth_scaling = "none" if metric_depth else "median"
     scores = evaluate_renders(render_as_captured, eval_frames, eval_poses, depth_scaling=depth_scaling)
     normalised = evaluate_renders(render, eval_frames, eval_poses, depth_scaling=depth_scaling)
-    holes = [hole_shares(system.backend.render(pose, torch.as_tensor(K, dtype=torch.float32), intrinsics.width,
+    holes = [hole_shares(system.mapping_stage.render(pose, torch.as_tensor(K, dtype=torch.float32), intrinsics.width,
                                                intrinsics.height).alpha.cpu().numpy()) for pose in eval_poses]
     return {"psnr": scores.psnr, "ssim": scores.ssim, "lpips": scores.lpips, "lpips_note": scores.lpips_note,
             "psnr_normalised": normalised.psnr, "ssim_normalised": normalised.ssim,

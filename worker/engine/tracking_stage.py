@@ -1,49 +1,164 @@
 """The tracking stage (ORB-SLAM's Tracking in our terms): frames in, each frame's pose out at once.
 
-In the caller's thread, per frame: the session's pose source (worker.tracking: device poses, RGB-D odometry, visual
-odometry or the model) -> the keyframe decision (the source's hint, else the motion selector) -> the trajectory,
-which ties every frame to its reference keyframe. A new keyframe goes to the loop-closing stage as a pose-graph node
-with its odometry edge (`publish_keyframe`); loop corrections come back through `apply_correction`, which moves the
-keyframes (those made after the optimisation follow the newest optimised one) and bumps the revision, so the
-published poses never jump. The stage never waits for mapping or loop closing. Frames larger than `max_side` (the
-tracking resolution; 0: as they come) are tracked at that size: the pose does not depend on it, mapping keeps the
-full frame.
+In the caller's thread, per frame (`process`): the session's pose source (worker.tracking: device poses, RGB-D
+odometry, visual odometry or the model) -> its events (worker.engine.pose_events) -> the depth source sees the frame
+(worker.engine.depth_sources) -> the keyframe decision (the source's hint, else the motion selector) -> the
+trajectory, which ties every frame to its reference keyframe. A new keyframe goes to the loop-closing stage as a
+pose-graph node with its odometry edge, to the depth source, whose jobs go on to the mapping stage as they are
+ready, and, as a loop query, to loop closing (or from mapping, once it has built the keyframe's multi-view depth).
+Loop corrections come back through `apply_loop_corrections`, which moves the keyframes (those made after the
+optimisation follow the newest optimised one), the jobs not in the map yet and the map, and bumps the revision, so
+the published poses never jump. The stage never waits for mapping or loop closing. Frames larger than `max_side`
+(the tracking resolution; 0: as they come) are tracked at that size: the pose does not depend on it, mapping keeps
+the full frame.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from typing import Any
 
 import cv2
 import numpy as np
 import torch
 
-from worker.data.frame import Frame
+from worker.data.frame import Frame, FrameResult
+from worker.engine.depth_sources.base import DepthSource
 from worker.engine.keyframes import MotionKeyframeSelector
-from worker.engine.loop_stage import GraphKeyframe
+from worker.engine.loop_stage import GraphKeyframe, LoopClosingStage, LoopQuery
+from worker.engine.map_jobs import PoseUpdateJob
+from worker.engine.mapping_stage import MappingStage
+from worker.engine.pose_events import PoseEvents
+from worker.engine.session_camera import SessionCamera
 from worker.engine.stage_times import StageTimes
 from worker.engine.trajectory import Trajectory
 from worker.geometry import Intrinsics, sim3_inverse
 from worker.tracking.base import TrackingResult
 
+# The counter each kind of correction counts in.
+CORRECTION_COUNTERS = {"maps_merged": "maps_merged", "drift_corrected": "drift_corrections"}
+
 
 class TrackingStage:
     """Pose source -> keyframe decision -> trajectory (see the module docstring)."""
 
-    def __init__(self, selector: MotionKeyframeSelector, publish_keyframe: Callable[[GraphKeyframe], None],
+    def __init__(self, selector: MotionKeyframeSelector, camera: SessionCamera, counters: dict[str, float],
                  timings: StageTimes | None = None, max_side: int = 0) -> None:
         self.selector = selector
+        self.camera = camera
+        self.counters = counters
         self.max_side = max_side
-        self.publish_keyframe = publish_keyframe
         self.timings = timings or StageTimes()
-        self.pose_source = None  # chosen by the system from the first frame
-        self.timing_stage = "frontend_tracking"
         self.trajectory = Trajectory()
         self.last_keyframe: int | None = None
         self.submap_of: dict[int, int] = {}
         self._tracked_frame: Frame | None = None  # the newest frame as the pose source saw it
+        # Chosen from the session's first frame (worker.slam): the pose source, where keyframe surfels come from
+        # (None without mapping), the stages downstream and how keyframes query loops.
+        self.pose_source = None
+        self.timing_stage = "frontend_tracking"
+        self.depth_source: DepthSource | None = None
+        self.mapping: MappingStage | None = None
+        self.loop_closing: LoopClosingStage | None = None
+        self.loop_queries: str | None = None  # "sensor", "after_depth" (multi-view, from mapping), "model" or None
+        self.model_intrinsics = None  # () -> the model's camera, for its loop queries
+        self.with_depth = False
+        self.events = PoseEvents(self.trajectory, self.loop_closing_submit, counters)
+        self.last_frame: tuple[Frame, bool] | None = None  # the newest frame, when not a keyframe, and if tracked
+        self.last_frame_mapped: int | None = None  # the final frame's index when finish() mapped it too
 
+    def loop_closing_submit(self, item) -> None:
+        """Submit `item` to the loop-closing stage the session has now."""
+        self.loop_closing.submit(item)
+
+    # -- the frame path ------------------------------------------------------------------------------------------
+    def process(self, frame: Frame) -> FrameResult:
+        """One frame through the pose source, the keyframe decision, mapping and loop closure."""
+        intrinsics = self.camera.of_frame(frame)
+        events = self.apply_loop_corrections()
+        tracking, pose = self.track(frame, intrinsics)
+        events += self.events.on_tracked(tracking.events)
+        prediction = tracking.prediction
+        if self.depth_source is not None:
+            prediction = self.depth_source.observe(frame, pose, tracking, intrinsics) or prediction
+        self.counters["frames_tracked"] += int(tracking.tracked)
+        is_kf = self.is_keyframe(tracking, pose, *self._scene_view(frame, tracking))
+        if is_kf:
+            world = self.add_keyframe(frame, pose, submap_id=tracking.submap_id,
+                                      edge_kind="restart" if self.events.restart_seam else None)
+            self.events.restart_seam = False
+            self.counters["keyframes"] += 1
+            if self.depth_source is not None:  # its job waits there until the frame is done (loops move it)
+                self.depth_source.add_keyframe(frame, world, tracking, self.loop_queries == "after_depth")
+            events += self._query_loops(frame, prediction)
+        self.events.after_keyframe_decision(tracking.events, frame.index if is_kf else None, tracking.submap_id,
+                                            pose, self.last_keyframe)
+        world = self.add_frame(frame, pose, is_kf, tracking.submap_id)
+        self.last_frame = None if is_kf else (frame, tracking.tracked)
+        self.hand_to_mapping()
+        return FrameResult(frame.index, frame.timestamp, world, is_kf, tracking.submap_id, self.revision, events,
+                           tracked=tracking.tracked)
+
+    def _scene_view(self, frame: Frame, tracking: TrackingResult) -> tuple[np.ndarray | None, Intrinsics | None]:
+        """The depth the keyframe selector measures motion against, and the frame's camera: the source's depth
+        (sensor, or the points it triangulated), else the frame's sensor depth; without either (posed RGB), the
+        selector gets the depth source's typical scene depth (multi-view stereo's newest keyframe)."""
+        depth = tracking.depth if tracking.depth is not None else (frame.depth if self.with_depth else None)
+        if depth is None and self.depth_source is not None and self.depth_source.name == "mvs":
+            self.selector.set_scene_depth(self.depth_source.scene_depth())
+        camera = self.camera.of_frame(frame) or self.source_intrinsics(frame.width, frame.height)
+        return depth, camera
+
+    def _query_loops(self, frame: Frame, prediction) -> list[dict[str, Any]]:
+        """Queue loop closure for a new keyframe: against its sensor depth (ORB + PnP + ICP) or the model's hidden
+        states; with multi-view depth the mapping stage queues it once it has built the keyframe's depth. Returns
+        the events of corrections an inline stage has made already."""
+        if self.loop_queries in (None, "after_depth"):
+            return []
+        if self.loop_queries == "sensor":
+            intr = self.camera.for_frame(frame)
+            image = torch.from_numpy(frame.image).permute(2, 0, 1)[None].float() / 255.0
+            self.loop_closing.submit(LoopQuery(frame.index, image, intr, torch.from_numpy(
+                np.asarray(frame.depth, np.float32)), intr.matrix()))
+        else:
+            self.loop_closing.submit(LoopQuery(frame.index, prediction[0].tensor, self.model_intrinsics()))
+        return self.apply_loop_corrections() if not self.loop_closing.pending else []
+
+    def hand_to_mapping(self, force: bool = False) -> None:
+        """The depth source's ready jobs to the mapping stage; none while the pose source is still estimating the
+        camera (unless `force`)."""
+        if self.depth_source is None or self.mapping is None:
+            return
+        hold = bool(getattr(self.pose_source, "calibrating", False))
+        for job in self.depth_source.jobs(self.trajectory.pose_at, hold=hold, force=force):
+            self.mapping.submit(job)
+
+    def map_last_frame(self) -> None:
+        """At the end of a session the newest view enters the map too (when it is not a keyframe already and was
+        tracked): it is the view a user looks at first. Keyframe-like surfels from its depth, sensor or multi-view;
+        not a pose-graph node (nothing moves it any more)."""
+        if self.last_frame is None or self.depth_source is None:
+            return
+        frame, tracked = self.last_frame
+        self.last_frame = None
+        if tracked and self.depth_source.add_last_frame(frame, self.trajectory.pose_at(frame.index)):
+            self.last_frame_mapped = frame.index
+
+    def apply_loop_corrections(self) -> list[dict[str, Any]]:
+        """Apply the loop-closing stage's new corrections (in order): the trajectory, the jobs not in the map yet
+        and the map move to the optimised keyframe poses. Returns their events."""
+        events = []
+        for correction in self.loop_closing.take_corrections():
+            revision, changed = self.apply_correction(correction.poses)
+            if self.depth_source is not None and self.mapping is not None:
+                self.depth_source.move(changed)
+                if changed:
+                    self.mapping.submit(PoseUpdateJob(changed))
+            counter = CORRECTION_COUNTERS.get(correction.event.get("type"), "loops")
+            self.counters[counter] = self.counters.get(counter, 0) + 1
+            events.append({**correction.event, "revision": revision})
+        return events
+
+    # -- the steps -----------------------------------------------------------------------------------------------
     @property
     def revision(self) -> int:
         return self.trajectory.revision
@@ -87,7 +202,7 @@ class TrackingStage:
                              @ torch.from_numpy(np.asarray(tracked_pose, np.float64))).numpy()
             node.kind = edge_kind or ("sequential" if self.submap_of.get(previous, submap_id) == submap_id
                                       else getattr(self.pose_source, "submap_seam", "inter_submap"))
-        self.publish_keyframe(node)
+        self.loop_closing.submit(node)
         self.submap_of[kf_id] = submap_id
         self.last_keyframe = kf_id
         tracked = self._tracked_frame
@@ -120,7 +235,8 @@ class TrackingStage:
         return {"trajectory": self.trajectory.state_dict() if trajectory is None else trajectory,
                 "selector": self.selector.state_dict(),
                 "last_keyframe": self.last_keyframe, "submap_of": [[k, v] for k, v in self.submap_of.items()],
-                "pose_source": None if self.pose_source is None else self.pose_source.state_dict()}
+                "pose_source": None if self.pose_source is None else self.pose_source.state_dict(),
+                "depth_source": None if self.depth_source is None else self.depth_source.state_dict()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.trajectory.load_state_dict(state["trajectory"])
@@ -129,6 +245,8 @@ class TrackingStage:
         self.submap_of = {int(k): int(v) for k, v in state["submap_of"]}
         if state.get("pose_source") and self.pose_source is not None:
             self.pose_source.load_state_dict(state["pose_source"])
+        if state.get("depth_source") is not None and self.depth_source is not None:
+            self.depth_source.load_state_dict(state["depth_source"])
 
 
 def at_most(frame: Frame, max_side: int) -> Frame:

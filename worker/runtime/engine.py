@@ -111,7 +111,7 @@ def warm_up(kind: str) -> None:
 
     for module in ("worker.slam", "worker.tracking.rgbd_odometry", "worker.tracking.visual_odometry",
                    "worker.engine.mapping_stage", "worker.engine.loop_stage", "worker.engine.loop_closer",
-                   "worker.engine.keyframe_depth", "worker.loop.pose_graph"):
+                   "worker.engine.depth_sources.multiview", "worker.loop.pose_graph"):
         importlib.import_module(module)
     for kernels in ("worker.mapping.raster_cpu", "worker.depth.mvs_cpu", "worker.tracking.dense_native",
                     "worker.tracking.schur_native"):

@@ -1,13 +1,14 @@
 """The mapping stage's work items (keyframe jobs, pose updates) and the map it builds with the engine's settings.
 
-The stage itself (its queue, thread and load shedding) is worker.engine.mapping_stage.
+Jobs are data (arrays and numbers, no closures): a snapshot can carry the ones still waiting, and any process can
+build them. The stage itself (its queue, thread and load shedding) is worker.engine.mapping_stage.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import torch
@@ -18,18 +19,42 @@ from worker.config import MappingConfig
 @dataclass
 class KeyframeJob:
     """One keyframe for the map: pose c2w (Sim(3)), K at the grid's resolution, image float [H,W,3] in [0,1],
-    the per-pixel camera-frame surfel grid (see worker.engine.surfel_init) and the depth used to check renders, or
-    `build`, which makes both in the backend thread."""
+    the per-pixel camera-frame surfel grid (see worker.engine.surfel_init) and the depth used to check renders.
+
+    An empty `grid` is built in the mapping stage: from `views` (multi-view stereo, worker.engine.depth_sources.
+    multiview) or else from `depth` (the sensor's). `query_loops`: the built keyframe goes on to loop closing."""
 
     kf_id: int
     pose: np.ndarray
-    K: torch.Tensor | None  # None until `build` has run
+    K: torch.Tensor | None
     image: torch.Tensor
-    grid: dict[str, torch.Tensor]
+    grid: dict[str, torch.Tensor] = field(default_factory=dict)
     depth: torch.Tensor | None = None
-    # Builds (K, grid, depth) in the backend thread: costly ones (multi-view depth), or ones that need what is
-    # known only later (the camera of a session whose focal length is being estimated).
-    build: Callable[[], tuple[torch.Tensor, dict[str, torch.Tensor], torch.Tensor | None]] | None = None
+    views: Any = None  # worker.engine.depth_sources.multiview.StereoViews
+    query_loops: bool = False
+
+    @property
+    def built(self) -> bool:
+        return bool(self.grid)
+
+    def state_dict(self) -> dict[str, Any]:
+        """The job as plain data (arrays stay arrays: see worker.serialization)."""
+        return {"kf_id": self.kf_id, "pose": self.pose, "K": self.K, "image": self.image, "grid": self.grid,
+                "depth": self.depth, "views": None if self.views is None else self.views.state_dict(),
+                "query_loops": self.query_loops}
+
+    @classmethod
+    def from_state(cls, state: dict[str, Any]) -> KeyframeJob:
+        from worker.engine.depth_sources.multiview import StereoViews
+
+        def tensor(value: Any) -> torch.Tensor | None:
+            return None if value is None else torch.from_numpy(np.array(value))
+
+        return cls(int(state["kf_id"]), np.asarray(state["pose"], np.float64), tensor(state["K"]),
+                   tensor(state["image"]), {k: tensor(v) for k, v in (state.get("grid") or {}).items()},
+                   tensor(state.get("depth")),
+                   None if state.get("views") is None else StereoViews.from_state(state["views"]),
+                   bool(state.get("query_loops", False)))
 
 
 @dataclass

@@ -1,0 +1,68 @@
+"""The end of a session: every stage drained, the last loops applied, the final refinement, in phases a user sees.
+
+Phases (worker.engine.finish_status): `mapping` (the newest view joins the map; the depth source's last jobs and the
+backlog are mapped), `loop_closing` (every loop query answered; the corrections applied to the trajectory and the
+map), `refining` (the final refinement of the whole map, within `final_refine_budget_s`; with
+`final_refine_poses` the keyframes' cameras too, which the trajectory then follows), `done`.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from worker.slam import SlamSystem
+
+
+def finish_session(system: SlamSystem) -> None:
+    """Drain `system`'s stages and run its final refinement; its finish events go to `system.finish_events`."""
+    started = time.perf_counter()
+    stage, mapping, status = system.tracking_stage, system.mapping_stage, system.finish_status
+    system.finish_events += system.judged_start.conclude()  # the stream ended while the device poses were judged
+    if mapping is not None:
+        stage.map_last_frame()
+        stage.hand_to_mapping(force=True)
+        backlog = mapping.pending
+        status.begin("mapping", backlog, done=lambda: backlog - mapping.pending)
+        mapping.wait_idle()
+    status.begin("loop_closing", system.loop_stage.pending)
+    system.loop_stage.wait_idle()
+    system.finish_events += stage.apply_loop_corrections()  # loops the stage closed after the last frame
+    if mapping is None:
+        status.begin("done", 0)
+        return
+    if system.finish_events:
+        mapping.wait_idle()
+    cfg = system.config.mapping
+    if cfg.final_refine_passes:
+        budget = cfg.final_refine_budget_s  # from the start of finish() (the drain too) where the config says so
+        since = started if cfg.final_refine_budget_counts_drain else time.perf_counter()
+        left = None if not budget else max(0.0, budget - (time.perf_counter() - since))
+        status.begin("refining", cfg.final_refine_passes * mapping.map.held_images,
+                     deadline=None if left is None else time.perf_counter() + left)
+        moved = mapping.refine_all(cfg.final_refine_passes, budget_s=left, seed=cfg.final_refine_seed,
+                                   train_poses=_refines_keyframe_poses(system), on_step=status.step)
+        if moved:
+            system.finish_events.append(_follow_refined_keyframes(system, moved))
+    status.begin("done", 0)
+
+
+def _refines_keyframe_poses(system: SlamSystem) -> bool:
+    """Whether the final refinement refines the keyframes' cameras: asked for, and the poses are not the device's
+    own to keep (pose_mode fixed)."""
+    return system.config.mapping.final_refine_poses and system.pose_source_choice()["pose_source"] != "fixed"
+
+
+def _follow_refined_keyframes(system: SlamSystem, motions: dict[int, np.ndarray]) -> dict[str, Any]:
+    """Move the trajectory's keyframes by the final refinement's world-frame motions (keyframes the map did not
+    hold follow the newest refined one before them) and each frame with the keyframes before and after it.
+    Returns the event."""
+    stage = system.tracking_stage
+    trajectory = stage.trajectory
+    old = {k: pose.copy() for k, pose in trajectory.keyframe_poses.items()}
+    _, changed = stage.apply_correction({k: motion @ old[k] for k, motion in motions.items() if k in old})
+    revision = trajectory.spread_keyframe_moves(old)
+    return {"type": "poses_refined", "keyframes": len(changed), "revision": revision}

@@ -1,0 +1,43 @@
+"""The pose source of a session, built from its name (see worker.tracking.sources.choose_tracking)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from worker.config import SlamConfig
+from worker.tracking.sources import DevicePoses, ModelTracking
+
+
+def build_pose_source(tracking: str, config: SlamConfig, with_depth: bool, submit_prior: Callable[[Any], None],
+                      model: ModelTracking | None = None):
+    """The pose source `tracking` ("device", "model", "rgbd_odometry" or "visual_odometry") with the session's
+    settings. Device poses follow `input.pose_mode`: "seeded" (and "auto" with depth) tracks from the device's
+    motion and sends the device poses as keyframe priors through `submit_prior`; "auto" without depth judges them
+    over the first frames (worker.tracking.pose_choice); else they are the poses. `model`: the learned model as a
+    pose source, for "model"."""
+    pose_mode = config.input.pose_mode
+    if tracking == "device" and (pose_mode == "seeded" or (pose_mode == "auto" and with_depth)):
+        from worker.tracking.seeded import seeded_tracking
+
+        return seeded_tracking(config, with_depth, submit_prior)
+    if tracking == "device" and pose_mode == "auto":
+        from worker.tracking.pose_choice import ChosenDevicePoses
+        from worker.tracking.seeded import seeded_tracking
+
+        return ChosenDevicePoses(lambda: seeded_tracking(config, False, submit_prior), config.input.pose_choice)
+    if tracking == "device":
+        return DevicePoses()
+    if tracking == "model":
+        if model is None:
+            raise ValueError("tracking 'model' needs the learned model")
+        return model
+    if tracking == "rgbd_odometry":
+        from worker.tracking.rgbd_odometry import RgbdOdometry
+
+        return RgbdOdometry(config.tracking.rgbd)
+    if tracking == "visual_odometry":
+        from worker.tracking.visual_odometry import VisualOdometry
+
+        return VisualOdometry(config.tracking.visual)
+    raise ValueError(f"unknown pose source {tracking!r}")
