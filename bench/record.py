@@ -71,7 +71,7 @@ def loadavg() -> float:
 def case_slug(case: dict[str, Any]) -> str:
     """A file name for a case: its values in CASE_ORDER, then any others, joined by `_`."""
     keys = [k for k in CASE_ORDER if k in case] + sorted(k for k in case if k not in CASE_ORDER)
-    return re.sub(r"[^A-Za-z0-9.+-]+", "-", "_".join(str(case[k]) for k in keys)).strip("-")
+    return re.sub(r"[^A-Za-z0-9._+-]+", "-", "_".join(str(case[k]) for k in keys)).strip("-")
 
 
 def make_record(benchmark: str, case: dict[str, Any], values: dict[str, Any], *, load: list[float],
