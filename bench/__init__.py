@@ -1,1 +1,2 @@
-"""Benchmarks: each module `bench/<area>.py` has `main(argv) -> int`; figures go to bench/RESULTS.md."""
+"""Benchmarks: each module `bench/<area>.py` has `main(argv) -> int`; records go to bench/results/ (bench/record.py),
+bench/RESULTS.md is generated from them (`python -m bench scoreboard`)."""

@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.record import JOURNAL_INBOX
 from client.async_sdk import AsyncFlashMonoClient
 from client.models import PoseEvent
 from client.streaming import WireOptions
@@ -34,7 +35,7 @@ from service.launcher import LocalStack, start_gateway_process
 from service.redis_embedded import EmbeddedRedis
 from worker.data.frame import Frame
 
-RESULTS = Path(__file__).resolve().parent / "RESULTS.md"
+RESULTS = JOURNAL_INBOX  # bench/RESULTS.md is generated (python -m bench scoreboard): narrative goes to the journal
 WORKER_ENV = {"FLASHMONO_ENGINE": "passthrough", "FLASHMONO_PASSTHROUGH_DELAY_MS": "10",
               "FLASHMONO_LEASE_TTL_MS": "5000", "FLASHMONO_SNAPSHOT_EVERY": "4", "FLASHMONO_LOG_LEVEL": "WARNING"}
 

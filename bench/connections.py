@@ -25,10 +25,11 @@ import numpy as np
 import redis
 import websockets
 
+from bench.record import JOURNAL_INBOX
 from service.launcher import LocalStack
 
 ROOT = Path(__file__).resolve().parent.parent
-RESULTS = ROOT / "bench" / "RESULTS.md"
+RESULTS = JOURNAL_INBOX  # bench/RESULTS.md is generated (python -m bench scoreboard): narrative goes to the journal
 POOL = 32
 
 

@@ -38,9 +38,11 @@ from typing import Any
 
 import numpy as np
 
+from bench.record import JOURNAL_INBOX, Recorder
+
 ROOT = Path(__file__).resolve().parent.parent
 MINI = ROOT / "tests" / "data" / "icl_mini"
-RESULTS = ROOT / "bench" / "RESULTS.md"
+RESULTS = JOURNAL_INBOX  # bench/RESULTS.md is generated (python -m bench scoreboard): narrative goes to the journal
 SAMPLE_S = 0.5  # session record and RSS sampling period
 IMMEDIATE = ("ack", "error")  # the answers each binary frame gets at once, in order
 
@@ -599,6 +601,39 @@ HEADER = ("| case | frames | acked | with pose | skipped | re-sent | latency p50
           "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|")
 
 
+def live_values(summary: dict[str, Any]) -> dict[str, Any]:
+    """The scoreboard's figures of a live run (bench.out_of_box writes the same keys)."""
+    return {"posed_share": summary["with_pose"] / max(1, summary["frames"]), "frames": summary["frames"],
+            "latency_p50_ms": summary["latency_ms"][50], "latency_p95_ms": summary["latency_ms"][95],
+            "finish_s": summary["finish_s"], "ate_m": summary["ate_m"], "psnr_db": summary["psnr"],
+            "rss_worker_peak_mib": summary["rss_worker_peak_mib"], "acked_lost": summary["acked_lost"]}
+
+
+def offline_values(offline: dict[str, Any]) -> dict[str, Any]:
+    """The scoreboard's figures of the offline run of the same frames."""
+    return {"ate_m": offline.get("ate_m"), "psnr_db": offline.get("psnr"), "fps": offline.get("fps"),
+            "wall_s": offline.get("wall_s")}
+
+
+def live_case(args: argparse.Namespace) -> dict[str, Any]:
+    """The case a run measures; options off their defaults name a variant (its own row, not the default's)."""
+    variant = [f"{args.fps:g} fps" if args.fps != 30.0 else "", f"{args.frames} frames" if args.frames else "",
+               f"preset {args.preset}" if args.preset else "", "every frame" if args.every_frame else "",
+               f"tracked at {args.tracking_side} px" if args.tracking_side else "",
+               f"worker killed at {args.kill_at:.0%}" if args.kill_at is not None else ""]
+    case = {"sequence": Path(args.source).name, "mode": args.mode, "size": args.size}
+    if any(variant):
+        case["variant"] = ", ".join(v for v in variant if v)
+    return case
+
+
+def write_records(recorder: Recorder, case: dict[str, Any], summary: dict[str, Any],
+                  offline: dict[str, Any] | None) -> None:
+    recorder.write({"area": "live", **case}, live_values(summary))
+    if offline is not None:
+        recorder.write({"area": "offline", **case}, offline_values(offline))
+
+
 def main(argv: list[str]) -> int:
     from service.launcher import LocalStack
 
@@ -628,7 +663,8 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--plot", default=None, help="PNG path (default: none)")
     parser.add_argument("--json", default=None, help="write the summary (and per-frame times) here")
     parser.add_argument("--label", default=None)
-    parser.add_argument("--write-results", action="store_true", help="append the row to bench/RESULTS.md")
+    parser.add_argument("--write-results", action="store_true",
+                        help="write the result records (bench/results/live/); the row goes to the journal's inbox")
     args = parser.parse_args(argv)
     size = tuple(int(v) for v in args.size.split("x"))
     with_depth, with_pose = mode_inputs(args.mode)
@@ -637,6 +673,7 @@ def main(argv: list[str]) -> int:
     label = args.label or (f"{Path(args.source).name} {args.mode} {args.size} @ {args.fps:g} fps"
                            + (f", tracked at {args.tracking_side} px" if args.tracking_side else "")
                            + (f", worker killed at {args.kill_at:.0%}" if args.kill_at is not None else ""))
+    recorder = Recorder("live", argv)
     load_before = os.getloadavg()
     print(f"{label}: {len(frames)} frames, {sum(map(len, messages)) / len(messages) / 1024:.1f} KiB a message, "
           f"load {load_before[0]:.2f}", flush=True)
@@ -667,5 +704,6 @@ def main(argv: list[str]) -> int:
                                                "samples": result["samples"]}, default=str))
     if args.write_results:
         RESULTS.write_text(RESULTS.read_text().rstrip("\n") + "\n" + row(label, summary, offline, load) + "\n")
+        write_records(recorder, live_case(args), summary, offline)
     ok = summary["acked_lost"] == 0 and summary["failure"] is None and summary["duplicate_poses"] == 0
     return 0 if ok else 1

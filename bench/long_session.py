@@ -46,10 +46,12 @@ from typing import Any
 
 import numpy as np
 
+from bench.record import JOURNAL_INBOX
+
 ROOT = Path(__file__).resolve().parent.parent
 SHARED_ICL = Path("/work/shared/data/icl_livingroom1_micro")
 MINI = ROOT / "tests" / "data" / "icl_mini"
-RESULTS = ROOT / "bench" / "RESULTS.md"
+RESULTS = JOURNAL_INBOX  # bench/RESULTS.md is generated (python -m bench scoreboard): narrative goes to the journal
 MAP_SAMPLE_EVERY = 25  # frames between map-size samples (the count takes the backend's lock)
 FIELDS = ("frame", "push_ms", "tracking_ms", "loop_detection_ms", "loop_detections", "is_keyframe", "keyframes",
           "surfels", "rss_mib", "wall_s")

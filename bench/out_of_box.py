@@ -18,7 +18,6 @@ import argparse
 import asyncio
 import json
 import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -27,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from bench.live import MODES, encode, load_frames, mode_inputs, run_offline, stream_case
+from bench.record import commit, loadavg, machine
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "bench" / "results" / "out_of_box"
@@ -116,19 +116,6 @@ def _cmdline(pid: int) -> bytes:
         return Path(f"/proc/{pid}/cmdline").read_bytes()
     except OSError:
         return b""
-
-
-def machine() -> dict[str, Any]:
-    return {"cpu": platform.processor() or platform.machine(), "cores": len(os.sched_getaffinity(0)),
-            "python": platform.python_version()}
-
-
-def commit() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
-                              check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
 
 
 def case_args(mode: str, size: str, frames: int | None) -> argparse.Namespace:
@@ -231,12 +218,13 @@ def main(argv: list[str]) -> int:
     with ServeProcess() as stack:
         for name, source, mode, size in todo:
             path = args.out / f"{name}_{mode}_{size}.json"
-            started = time.monotonic()
+            started, load_start = time.monotonic(), loadavg()
             live = run_case(stack, source, mode, size, args.frames)
+            # bench.scoreboard reads this file as two records (areas `live` and `offline`; its `expand`)
             record = {"benchmark": "out_of_box", "sequence": name, "source": source.name, "mode": mode,
                       "size": size, "fps": FPS, "commit": commit(), "machine": machine(),
                       "command": "python -m bench out_of_box " + " ".join(argv), "date": time.strftime("%F %T"),
-                      "live": live}
+                      "load": [load_start, loadavg()], "live": live}
             if args.offline:
                 record["offline"] = offline_case(source, mode, size, args.frames)
             elif path.exists():  # a live case run again: the offline run of the same frames has not changed

@@ -14,7 +14,7 @@ back, and its own ATE, since the full system's trajectory hides a frame that sto
                                    [--max-frames N] [--stride S] [--out DIR] [--no-vo]
 
 Modes the data cannot support (depth or poses missing) are skipped. Sources measured so far and their licences:
-bench/RESULTS.md, section "Real sequences".
+bench/journal/24-real-sequences-issues-20-and-21-python-m-bench-real-sequence.md.
 """
 
 from __future__ import annotations
@@ -32,6 +32,8 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
+
+from bench.record import Recorder
 
 MODES = {"rgb": (False, False), "rgbd": (True, False), "posed_rgbd": (True, True), "posed_rgb": (False, True),
          "posed_rgbd_fixed": (True, True)}
@@ -228,7 +230,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--stride", type=int, default=1)
     parser.add_argument("--out", type=Path, default=None, help="keep each run's outputs here (default: a temp dir)")
     parser.add_argument("--no-vo", action="store_true", help="skip the visual odometry alone on the RGB row")
+    parser.add_argument("--record", action="store_true", help="write each mode's result record (bench/results/)")
     args = parser.parse_args(argv)
+    recorder = Recorder("real_sequences", argv)
     modes = args.modes.split(",")
     unknown = [m for m in modes if m not in MODES]
     if unknown:
@@ -242,7 +246,13 @@ def main(argv: list[str] | None = None) -> int:
     with contextlib.ExitStack() as stack:
         out_root = args.out or Path(stack.enter_context(tempfile.TemporaryDirectory()))
         for source in args.source:
-            measure(source, modes, args.width, args.max_frames, args.stride, out_root, not args.no_vo)
+            rows = measure(source, modes, args.width, args.max_frames, args.stride, out_root, not args.no_vo)
+            for row in rows if args.record else []:
+                if "error" not in row:
+                    recorder.write({"area": "real", "sequence": source.name, "mode": row["mode"].replace("_", "-"),
+                                    "size": f"{args.width} wide"},
+                                   {"ate_m": row.get("ate_rmse"), "psnr_db": row.get("psnr"),
+                                    "depth_l1_m": row.get("depth_l1"), "fps": row.get("fps")})
     print(f"load after: {os.getloadavg()}")
     return 0
 

@@ -24,12 +24,13 @@ import numpy as np
 import redis
 import websockets
 
+from bench.record import JOURNAL_INBOX, Recorder
 from service.launcher import LocalStack
 from worker.runtime import keys
 
 ROOT = Path(__file__).resolve().parent.parent
 FRAME = ROOT / "tests" / "data" / "icl_mini" / "rgb" / "00000.jpg"
-RESULTS = ROOT / "bench" / "RESULTS.md"
+RESULTS = JOURNAL_INBOX  # bench/RESULTS.md is generated (python -m bench scoreboard): narrative goes to the journal
 
 
 async def stream_session(ws_url: str, frames: int, fps: float | None, jpeg: bytes, latencies: list[float],
@@ -138,7 +139,7 @@ def format_table(rows: list[dict]) -> str:
 
 
 def write_results(table: str, notes: str) -> None:
-    """Replace (or append) the "## Service" section of bench/RESULTS.md, leaving the others untouched."""
+    """Replace (or append) the "## Service" section of the journal's inbox, leaving the others untouched."""
     text = RESULTS.read_text()
     section = f"## Service\n\n{notes}\n\n{table}\n"
     start = text.find("\n## Service\n")
@@ -148,6 +149,16 @@ def write_results(table: str, notes: str) -> None:
         end = text.find("\n## ", start + 1)
         text = text[:start + 1] + section + (text[end:] if end >= 0 else "")
     RESULTS.write_text(text)
+
+
+RECORDED = ("ingest_fps", "ack_p50_ms", "ack_p99_ms", "dispatch_mean_ms", "dispatch_p99_ms", "frames_acked")
+
+
+def service_case(row: dict, workers: int) -> dict:
+    """A row's case: sessions and their frame rate ("max": unthrottled), on N passthrough workers."""
+    rate = "unthrottled" if row["fps_per_session"] == "max" else f"{row['fps_per_session']:g} FPS"
+    return {"area": "service", "sequence": f"{workers} passthrough worker{'s' * (workers > 1)}",
+            "mode": f"{row['sessions']} sessions, {rate}"}
 
 
 def main(argv: list[str]) -> int:
@@ -165,6 +176,7 @@ def main(argv: list[str]) -> int:
     env = {"FLASHMONO_ENGINE": "passthrough", "FLASHMONO_LOG_LEVEL": "WARNING", "FLASHMONO_MAX_SESSIONS": "64",
            "FLASHMONO_SNAPSHOT_EVERY": "5"}
     gateway_env = {"FLASHMONO_MAX_QUEUE": "1000", "FLASHMONO_API_KEYS": ""}
+    recorder = Recorder("service", argv)
     rows = []
     with LocalStack(workers=args.workers, worker_env=env, gateway_env=gateway_env,
                     worker_nice=args.worker_nice) as stack:
@@ -188,4 +200,6 @@ def main(argv: list[str]) -> int:
                  f"atomic result store + XACK) in wall time; dispatch CPU = the same stages in the thread's own "
                  f"CPU time (without waits for a core or the GIL); waiting for Redis reads is not included.")
         write_results(table, notes)
+        for row in rows:
+            recorder.write(service_case(row, args.workers), {k: row[k] for k in RECORDED})
     return 0

@@ -3,7 +3,7 @@ from a chosen start frame: at each of its keyframes, its units per unit of the r
 keyframe over the reference's) beside the scene's own scale in its units (the median height below the camera of the
 map points it sees well below the horizon: the road, for a car). Where the first changes and the second holds, the
 odometry kept its scale and the reference's speed differs from what the images show (KITTI 00's first frames:
-bench/RESULTS.md, fifteenth session); where both change together, the odometry's scale drifted.
+bench/journal/52-*.md, fifteenth session); where both change together, the odometry's scale drifted.
 
 Usage: python -m bench vo_scale --source DIR [--size 620x188] [--start 0] [--frames 60] [--json F]
 """
