@@ -24,8 +24,8 @@ import numpy as np
 import redis
 import websockets
 
+from protocol import keys
 from service.launcher import LocalStack
-from worker.runtime import keys
 
 ROOT = Path(__file__).resolve().parent.parent
 FRAME = ROOT / "tests" / "data" / "icl_mini" / "rgb" / "00000.jpg"

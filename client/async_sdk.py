@@ -364,7 +364,7 @@ class AsyncFrameStream:
         try:
             message = json.loads(raw)
         except ValueError:
-            from worker.serialization import unpack
+            from protocol.codec import unpack
 
             message = unpack(raw) if isinstance(raw, bytes) else {}
         if not isinstance(message, dict):

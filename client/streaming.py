@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 import cv2
 import numpy as np
 
-from worker.serialization import pack
+from protocol.codec import pack
 
 if TYPE_CHECKING:  # worker.data.frame pulls in torch; REST-only users of the SDK should not pay for it
     from worker.data.frame import Frame

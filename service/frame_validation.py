@@ -9,9 +9,9 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from service.image_header import PNG_SIGNATURE, image_size
+from protocol.codec import unpack
+from protocol.image_header import PNG_SIGNATURE, image_size
 from service.pose_check import pose_problem
-from worker.serialization import unpack
 
 MAX_IMAGE_SIDE = 8192
 

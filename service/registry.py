@@ -1,6 +1,6 @@
 """The gateway's view of Redis: the session registry, frame ingest, results, and requests to workers.
 
-The key layout is `worker.runtime.keys` (shared with the workers). All calls are async (redis.asyncio).
+The key layout is `protocol.keys` (shared with the workers). All calls are async (redis.asyncio).
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import msgpack
 import redis.asyncio as aioredis
 from redis.exceptions import NoScriptError
 
-from worker.runtime import keys
+from protocol import keys
 from worker.runtime.archive import BlobStore
 from worker.runtime.connection import is_cluster
 from worker.runtime.failpoints import failpoint

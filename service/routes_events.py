@@ -13,12 +13,12 @@ import json
 
 from fastapi import APIRouter, HTTPException, WebSocket, WebSocketDisconnect
 
+from protocol import keys
 from service.auth import request_key
 from service.deps import session_for
 from service.hardening import origin_allowed
 from service.outbox_hub import SESSION_DELETED, OutboxHub
 from service.registry import Registry
-from worker.runtime import keys
 from worker.runtime.outage import REDIS_DOWN
 
 router = APIRouter()

@@ -9,12 +9,12 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 from fastapi.responses import PlainTextResponse
 
+from protocol import keys
 from service.auth import Principal, caller
 from service.deps import registry, session_for
 from service.pose_check import pose_problem
 from service.registry import ArchiveUnavailable, Registry, RequestTimeout, parse_session
 from service.schemas import ErrorBody, Trajectory
-from worker.runtime import keys
 
 router = APIRouter(prefix="/v1/sessions/{session_id}", tags=["results"],
                    responses={401: {"model": ErrorBody}, 403: {"model": ErrorBody}, 404: {"model": ErrorBody}})

@@ -13,7 +13,7 @@ from datetime import UTC, datetime
 
 import redis
 
-from worker.runtime import keys
+from protocol import keys
 
 _UPDATE = """
 if redis.call('EXISTS', KEYS[1]) == 0 then return 0 end

@@ -20,10 +20,11 @@ from typing import Any
 import numpy as np
 import redis
 
+from protocol import keys
+from protocol.codec import pack, unpack
 from worker.data.frame import Frame
 from worker.engine.snapshot_chunks import ChunkWrite
 from worker.geometry import Intrinsics
-from worker.runtime import keys
 from worker.runtime.engine import SessionEngine, close_engine, create_engine, engine_intrinsics, restore_engine
 from worker.runtime.failpoints import failpoint
 from worker.runtime.finish_requests import RequestsWhileFinishing
@@ -38,7 +39,6 @@ from worker.runtime.session_settings import named_preset, session_settings, this
 from worker.runtime.similarity import similarity_scale
 from worker.runtime.snapshots import SnapshotWriter, read_snapshot
 from worker.runtime.stats import StageStats
-from worker.serialization import pack, unpack
 
 # Pose-source events forwarded to the clients as their own messages.
 TRACKING_EVENTS = ("tracking_lost", "relocalized", "initialized", "initializing", "new_map", "rotation_only")
