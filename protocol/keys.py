@@ -34,6 +34,7 @@ The layout before hash tags (`fm:session:<id>`, `fm:s:<id>:in`, `fm:lease:<id>`,
 from __future__ import annotations
 
 import zlib
+from typing import Literal, get_args
 
 GROUP = "workers"
 SESSIONS_INDEX = "fm:sessions"
@@ -41,8 +42,11 @@ PARTITIONS = 8
 WORKER_PREFIX = "fm:worker:"
 WORKER_STATS_PREFIX = "fm:workerstats:"
 WORKER_MACHINE_PREFIX = "fm:workermachine:"
+# the stages whose latency sums and counts a worker keeps in its fm:workerstats hash ("<stage>_sum", "<stage>_n")
+WORKER_STAGES = ("read", "decode", "engine", "store", "dispatch", "dispatch_cpu", "snapshot", "render")
 
-STATUSES = ("created", "streaming", "finishing", "finished", "failed", "abandoned")
+SessionStatus = Literal["created", "streaming", "finishing", "finished", "failed", "abandoned"]
+STATUSES: tuple[str, ...] = get_args(SessionStatus)
 LIVE_STATUSES = ("created", "streaming", "finishing")
 
 

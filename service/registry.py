@@ -19,11 +19,11 @@ import redis.asyncio as aioredis
 from redis.exceptions import NoScriptError
 
 from protocol import keys
+from protocol.poses import similarity_scale
 from worker.runtime.archive import BlobStore
 from worker.runtime.connection import is_cluster
 from worker.runtime.failpoints import failpoint
 from worker.runtime.outage import closed_transport
-from worker.runtime.similarity import similarity_scale
 
 # Atomically: check the session accepts frames, seq increases, the queue has room; enqueue; count.
 # Returns {code, value, resend_from}: 0 accepted (value = queue depth), -1 no session, -2 not accepting (status),

@@ -22,6 +22,7 @@ import redis
 
 from protocol import keys
 from protocol.codec import pack, unpack
+from protocol.poses import similarity_scale
 from worker.data.frame import Frame
 from worker.engine.snapshot_chunks import ChunkWrite
 from worker.geometry import Intrinsics
@@ -36,7 +37,6 @@ from worker.runtime.quarantine import FrameAttempts
 from worker.runtime.record import SessionRecord
 from worker.runtime.requests import handle_request
 from worker.runtime.session_settings import named_preset, session_settings, this_machine
-from worker.runtime.similarity import similarity_scale
 from worker.runtime.snapshots import SnapshotWriter, read_snapshot
 from worker.runtime.stats import StageStats
 
