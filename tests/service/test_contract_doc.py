@@ -27,8 +27,8 @@ FRAMES = icl_frames(2)
 
 
 def test_every_error_code_the_code_sends_is_documented():
-    patterns = (r'code="([a-z_]+)"', r'error\(\s*"([a-z_]+)"', r'FrameRejected\(\s*"([a-z_]+)"', r'FrameError\(\s*"([a-z_]+)"',
-                r'_reject\([^)]*?"([a-z_]+)"', r'"code": "([a-z_]+)"')
+    patterns = (r'code="([a-z_]+)"', r'error\(\s*"([a-z_]+)"', r'FrameRejected\(\s*"([a-z_]+)"',
+                r'FrameError\(\s*"([a-z_]+)"', r'_reject\([^)]*?"([a-z_]+)"', r'"code": "([a-z_]+)"')
     sent = {code for path in SOURCES for pattern in patterns for code in re.findall(pattern, path.read_text())}
     sent -= {"error"}  # the generic fallback of _AUTH_CODES
     assert sent and sent <= set(FRAME_ERROR_CODES), sorted(sent - set(FRAME_ERROR_CODES))
