@@ -143,7 +143,7 @@ async def takeovers(stack: LocalStack, kills: int, fps: float, settle_s: float =
     import redis as redis_client
 
     from bench.live import _process_of, takeover_phases
-    from worker.runtime import keys
+    from protocol import keys
 
     r = redis_client.Redis.from_url(stack.redis_url)
     rows = []

@@ -31,10 +31,10 @@ import redis
 import websockets
 
 from bench.record import JOURNAL_INBOX
+from protocol import keys
 from service.launcher import LocalStack
 from service.redis_cluster_embedded import EmbeddedRedisCluster
 from service.redis_embedded import EmbeddedRedis
-from worker.runtime import keys
 
 ROOT = Path(__file__).resolve().parent.parent
 DATA = ROOT / "tests" / "data" / "icl_mini"

@@ -385,7 +385,7 @@ def takeover_phases(redis_url: str, sid: str, killed_at: float) -> dict[str, Any
     restore, the replay of the frames after the snapshot, and the first pose stored."""
     import redis
 
-    from worker.runtime import keys
+    from protocol import keys
 
     client = redis.Redis.from_url(redis_url)
     try:

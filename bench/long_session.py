@@ -242,7 +242,7 @@ def measure_snapshot(system, stored: dict[str, Any], frames: int) -> dict[str, A
     """One incremental snapshot as the worker writes it (`stored`: the trajectory chunks and arrays written
     before, updated here), beside the self-contained size (what every write carried before), the sizes of the
     parts kept outside (per stage: their arrays), and the time to restore from it."""
-    from worker.serialization import unpack
+    from protocol.codec import unpack
     from worker.slam import SlamSystem
 
     chunks: dict[int, tuple[int, bytes]] = stored.setdefault("chunks", {})

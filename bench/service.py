@@ -25,8 +25,8 @@ import redis
 import websockets
 
 from bench.record import JOURNAL_INBOX, Recorder
+from protocol import keys
 from service.launcher import LocalStack
-from worker.runtime import keys
 
 ROOT = Path(__file__).resolve().parent.parent
 FRAME = ROOT / "tests" / "data" / "icl_mini" / "rgb" / "00000.jpg"

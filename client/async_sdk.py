@@ -19,7 +19,7 @@ import json
 import time
 from collections import deque
 from collections.abc import AsyncIterator, Awaitable, Callable
-from typing import TYPE_CHECKING, Any
+from typing import Any
 from urllib.parse import quote
 
 import httpx
@@ -34,6 +34,7 @@ from client.errors import (
     error_for_status,
     stream_error_from_frame,
 )
+from client.frames import FrameLike
 from client.models import (
     INPUT_EVENT_TYPES,
     TRACKING_EVENT_TYPES,
@@ -50,9 +51,6 @@ from client.models import (
 )
 from client.resume import ResumePoint, fetch_resume_point, reconcile
 from client.streaming import FlowControl, WireOptions, encode_frame_message, open_frames
-
-if TYPE_CHECKING:
-    from worker.data.frame import Frame
 
 EventCallback = Callable[[StreamEvent], Any]
 # Error codes with which the gateway refuses a whole stream, and the HTTP status they stand for.
@@ -123,7 +121,7 @@ class AsyncFrameStream:
         self.summary = StreamSummary(session_id=session_id)
         self._ws: Any = None
         self._reader: asyncio.Task | None = None
-        self._outbox: deque[tuple[int | None, Frame]] = deque()  # (seq to re-send under, or None; frame)
+        self._outbox: deque[tuple[int | None, FrameLike]] = deque()  # (seq to re-send under, or None; frame)
         self._next_seq = 0
         self._changed = asyncio.Event()
         self._finished = asyncio.Event()
@@ -197,7 +195,7 @@ class AsyncFrameStream:
         self.summary.elapsed_s = time.monotonic() - self._started if self._started else 0.0
 
     # ---------------------------------------------------------------------------------------------- sending
-    async def send(self, frame: Frame) -> None:
+    async def send(self, frame: FrameLike) -> None:
         """Queue `frame` and send everything the flow control allows; returns once `frame` is on the wire."""
         if self._ws is None:
             raise StreamError("the stream is not connected", code="not_connected")
@@ -250,7 +248,7 @@ class AsyncFrameStream:
                 raise StreamError(f"no answer from the server for {self.idle_timeout_s:.0f} s "
                                   f"({self.flow.unsettled} frames unsettled)", code="timeout") from err
 
-    async def _send_now(self, seq: int | None, frame: Frame) -> None:
+    async def _send_now(self, seq: int | None, frame: FrameLike) -> None:
         """Send `frame` under `seq` (a re-send keeps its seq: the server asks for it by number) or the next one."""
         first_send = seq is None
         if seq is None:
@@ -364,7 +362,7 @@ class AsyncFrameStream:
         try:
             message = json.loads(raw)
         except ValueError:
-            from worker.serialization import unpack
+            from protocol.codec import unpack
 
             message = unpack(raw) if isinstance(raw, bytes) else {}
         if not isinstance(message, dict):

@@ -1,8 +1,9 @@
 """Client-side streaming: where frames come from, how they go on the wire, and how fast to send them.
 
-- `open_frames(source)` gives an iterator of `Frame`s from a video file, an image folder, a dataset
-  (anything `worker.data.open_source` reads, including ``synthetic://...``), a webcam (``webcam:0`` or an int) or
-  an iterable of `Frame`s.
+- `open_frames(source)` gives an iterator of frames from a video file, an image folder, a dataset
+  (anything `worker.data.open_source` reads, including ``synthetic://...``: these need the engine's readers, and
+  torch), a webcam (``webcam:0`` or an int, a torch-free `StreamFrame` each) or an iterable of frames (any
+  `FrameLike`: `StreamFrame`, `worker.data.frame.Frame`).
 - `encode_frame_message(frame, seq)` is the binary msgpack message a phone sends: JPEG image, optional
   intrinsics, 16-bit PNG depth in millimetres and device pose.
 - `FlowControl` keeps the client polite: a window of un-acknowledged frames, a bound on frames the server has
@@ -15,15 +16,13 @@ from __future__ import annotations
 import time
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import cv2
 import numpy as np
 
-from worker.serialization import pack
-
-if TYPE_CHECKING:  # worker.data.frame pulls in torch; REST-only users of the SDK should not pay for it
-    from worker.data.frame import Frame
+from client.frames import FrameLike, StreamFrame, is_frame
+from protocol.codec import pack
 
 WEBCAM_PREFIX = "webcam:"
 MAX_DEPTH_MM = 65535
@@ -41,9 +40,7 @@ class WebcamSource:
         self.resize = resize
         self.name = f"webcam{index}"
 
-    def __iter__(self) -> Iterator[Frame]:
-        from worker.data.frame import Frame
-
+    def __iter__(self) -> Iterator[StreamFrame]:
         capture = cv2.VideoCapture(self.index)
         if not capture.isOpened():
             capture.release()
@@ -58,7 +55,7 @@ class WebcamSource:
                 if self.resize is not None:
                     bgr = cv2.resize(bgr, self.resize, interpolation=cv2.INTER_AREA)
                 rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-                yield Frame(index=count, timestamp=time.monotonic() - start, image=rgb)
+                yield StreamFrame(index=count, timestamp=time.monotonic() - start, image=rgb)
                 count += 1
         finally:
             capture.release()
@@ -76,7 +73,7 @@ def _webcam_index(source: Any) -> int | None:
 
 
 def open_frames(source: Any, *, stride: int = 1, max_frames: int | None = None,
-                resize: tuple[int, int] | None = None, **options: Any) -> Iterable[Frame]:
+                resize: tuple[int, int] | None = None, **options: Any) -> Iterable[FrameLike]:
     """Frames from `source`: a path/URI for `worker.data.open_source`, a webcam, or an iterable of Frames.
 
     `stride`, `max_frames` and `resize` (width, height) apply to every kind of source; other options go to
@@ -100,17 +97,15 @@ def open_frames(source: Any, *, stride: int = 1, max_frames: int | None = None,
     raise ValueError(f"cannot stream from {source!r}: give a path, a 'webcam:N' string or an iterable of Frames")
 
 
-def _limit(frames: Iterable[Frame], stride: int, max_frames: int | None) -> Iterator[Frame]:
-    from worker.data.frame import Frame
-
+def _limit(frames: Iterable[FrameLike], stride: int, max_frames: int | None) -> Iterator[FrameLike]:
     sent = 0
     for i, frame in enumerate(frames):
         if i % stride:
             continue
         if max_frames is not None and sent >= max_frames:
             return
-        if not isinstance(frame, Frame):
-            raise ValueError(f"expected worker.data.frame.Frame items, got {type(frame).__name__}")
+        if not is_frame(frame):
+            raise ValueError(f"expected frames (StreamFrame, worker.data.frame.Frame), got {type(frame).__name__}")
         yield frame
         sent += 1
 
@@ -148,7 +143,7 @@ class WireOptions:
     send_pose: bool = False
 
 
-def encode_frame_message(frame: Frame, seq: int, options: WireOptions = WireOptions()) -> bytes:
+def encode_frame_message(frame: FrameLike, seq: int, options: WireOptions = WireOptions()) -> bytes:
     """The binary msgpack message {type: "frame", seq, timestamp, image, intrinsics?, depth?, pose?}."""
     message: dict[str, Any] = {"type": "frame", "seq": int(seq), "timestamp": float(frame.timestamp),
                                "image": encode_jpeg(frame.image, options.jpeg_quality)}

@@ -12,6 +12,7 @@ from fastapi.staticfiles import StaticFiles
 from redis.asyncio.retry import Retry
 from redis.backoff import NoBackoff
 
+from protocol.presets import check_preset
 from service import (
     hardening,
     routes_events,
@@ -46,14 +47,6 @@ API_DESCRIPTION = (
     "frame must get a pose, however late) leaves `skip_frames` false.")
 
 
-def _validate_preset(name: str) -> None:
-    """Raise ValueError unless `name` is a preset of the engine (worker.config is light: no torch)."""
-    from worker.config import PRESETS
-
-    if name != "auto" and name not in PRESETS:
-        raise ValueError(f"choose one of {sorted(PRESETS)}")
-
-
 def create_app(settings: Settings | None = None) -> FastAPI:
     """The gateway app; connects to Redis at start-up."""
     settings = settings or Settings.from_env()
@@ -86,7 +79,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.auth = Authenticator(settings)
     app.state.metrics = GatewayMetrics()
-    app.state.validate_preset = _validate_preset
+    app.state.validate_preset = check_preset
     hardening.install(app, settings.max_body_bytes)
     for module in (routes_sessions, routes_presets, routes_results, routes_stream, routes_events, routes_health):
         app.include_router(module.router)

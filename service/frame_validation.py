@@ -9,11 +9,10 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from service.image_header import PNG_SIGNATURE, image_size
+from protocol.codec import unpack
+from protocol.image_header import PNG_SIGNATURE, image_size
+from protocol.limits import MAX_IMAGE_SIDE, MAX_SEQ
 from service.pose_check import pose_problem
-from worker.serialization import unpack
-
-MAX_IMAGE_SIDE = 8192
 
 
 class FrameRejected(ValueError):
@@ -43,7 +42,7 @@ def check_frame_message(data: bytes, max_bytes: int, session_intrinsics: dict[st
     if not isinstance(message, dict) or message.get("type") != "frame":
         raise FrameRejected("bad_message", 'binary messages must be msgpack maps with type "frame"')
     seq = message.get("seq")
-    if not isinstance(seq, int) or isinstance(seq, bool) or seq < 0 or seq >= 2**53:
+    if not isinstance(seq, int) or isinstance(seq, bool) or seq < 0 or seq >= MAX_SEQ:
         raise FrameRejected("bad_message", "seq must be a non-negative integer")
     timestamp = message.get("timestamp")
     if not isinstance(timestamp, (int, float)) or isinstance(timestamp, bool) or not math.isfinite(timestamp):

@@ -12,6 +12,7 @@ import time
 
 import httpx
 
+from protocol.limits import MAX_FRAME_BYTES, websocket_max_size
 from service.redis_embedded import EmbeddedRedis
 
 
@@ -43,9 +44,9 @@ def start_gateway_process(redis_url: str, host: str, port: int, env: dict[str, s
                           stdout=None) -> subprocess.Popen:
     """uvicorn serving `service.app:app` on host:port."""
     process_env = {**os.environ, **(env or {}), "REDIS_URL": redis_url}
-    max_frame = int(process_env.get("FLASHMONO_MAX_FRAME_BYTES", 8 * 1024 * 1024))
+    max_frame = int(process_env.get("FLASHMONO_MAX_FRAME_BYTES", MAX_FRAME_BYTES))
     args = [sys.executable, "-m", "uvicorn", "service.app:app", "--host", host, "--port", str(port),
-            "--log-level", "warning", "--no-access-log", "--ws-max-size", str(max_frame * 2 + 1024)]
+            "--log-level", "warning", "--no-access-log", "--ws-max-size", str(websocket_max_size(max_frame))]
     return subprocess.Popen(args, env=process_env, stdout=stdout, stderr=subprocess.STDOUT if stdout else None)
 
 

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import redis.asyncio as aioredis
 from redis.crc import key_slot
 
-from worker.runtime import keys
+from protocol import keys
 from worker.runtime.connection import is_cluster
 from worker.runtime.outage import REDIS_DOWN, Backoff, OutageLog
 

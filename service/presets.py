@@ -1,15 +1,15 @@
 """What each engine preset is for and which input suits it, for clients: GET /v1/presets and the session schema.
 
-The presets themselves live in `worker.config.PRESETS`; tests keep the two lists equal. `auto` is no preset of its
+The names are `protocol.presets.PresetName`; the presets themselves live in `worker.config.PRESETS` (tests keep
+the lists equal). `auto` is no preset of its
 own: the worker chooses one from the session's input and its machine (`worker.settings_choice`).
 """
 
 from __future__ import annotations
 
-from typing import Literal
+from protocol.presets import PRESET_NAMES, PresetName
 
-PresetName = Literal["auto", "paper", "default", "fast", "rgbd", "test"]
-
+__all__ = ["INPUT_MODES", "PRESET_INFO", "PresetName", "preset_field_description", "preset_list"]
 # name -> (what it is for, which input it suits)
 PRESET_INFO: dict[str, tuple[str, str]] = {
     "auto": ("the default (a session that names no preset): the worker chooses at the session's first frame from "
@@ -39,6 +39,9 @@ INPUT_MODES = (
     "intrinsics are given, surfels come from multi-view stereo). Tracking losses and recoveries arrive as "
     "`tracking_lost` / `relocalized` messages. Later frames must carry the same fields and have the same size."
 )
+
+
+assert tuple(PRESET_INFO) == PRESET_NAMES, "every preset name needs its description"
 
 
 def preset_list() -> list[dict[str, str]]:

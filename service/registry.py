@@ -1,6 +1,6 @@
 """The gateway's view of Redis: the session registry, frame ingest, results, and requests to workers.
 
-The key layout is `worker.runtime.keys` (shared with the workers). All calls are async (redis.asyncio).
+The key layout is `protocol.keys` (shared with the workers). All calls are async (redis.asyncio).
 """
 
 from __future__ import annotations
@@ -18,12 +18,12 @@ import msgpack
 import redis.asyncio as aioredis
 from redis.exceptions import NoScriptError
 
-from worker.runtime import keys
+from protocol import keys
+from protocol.poses import similarity_scale
 from worker.runtime.archive import BlobStore
 from worker.runtime.connection import is_cluster
 from worker.runtime.failpoints import failpoint
 from worker.runtime.outage import closed_transport
-from worker.runtime.similarity import similarity_scale
 
 # Atomically: check the session accepts frames, seq increases, the queue has room; enqueue; count.
 # Returns {code, value, resend_from}: 0 accepted (value = queue depth), -1 no session, -2 not accepting (status),

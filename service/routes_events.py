@@ -13,12 +13,13 @@ import json
 
 from fastapi import APIRouter, HTTPException, WebSocket, WebSocketDisconnect
 
+from protocol import keys
+from protocol.messages import ErrorMessage
 from service.auth import request_key
 from service.deps import session_for
 from service.hardening import origin_allowed
 from service.outbox_hub import SESSION_DELETED, OutboxHub
 from service.registry import Registry
-from worker.runtime import keys
 from worker.runtime.outage import REDIS_DOWN
 
 router = APIRouter()
@@ -62,8 +63,7 @@ async def session_events(websocket: WebSocket, session_id: str) -> None:
                 return
             text = next_text.result()
             if text is SESSION_DELETED:
-                await websocket.send_text(json.dumps({"type": "error", "code": "not_found",
-                                                      "message": "the session was deleted"}))
+                await websocket.send_text(ErrorMessage(code="not_found", message="the session was deleted").to_json())
                 await websocket.close(4404)
                 return
             await websocket.send_text(text)
@@ -89,5 +89,5 @@ async def _until_closed(websocket: WebSocket) -> None:
 
 async def _refuse(websocket: WebSocket, code: str, message: str, close_code: int) -> None:
     await websocket.accept()
-    await websocket.send_text(json.dumps({"type": "error", "code": code, "message": message}))
+    await websocket.send_text(ErrorMessage(code=code, message=message).to_json())
     await websocket.close(close_code)

@@ -5,9 +5,9 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends, Request, Response
 from fastapi.responses import JSONResponse
 
+from protocol import keys
 from service.auth import Principal, caller
 from service.schemas import Health, Readiness
-from worker.runtime import keys
 
 router = APIRouter(tags=["health"])
 

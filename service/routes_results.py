@@ -6,15 +6,18 @@ import asyncio
 import time
 from typing import Annotated, Literal
 
+import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 from fastapi.responses import PlainTextResponse
 
+from protocol import keys
+from protocol.limits import MAX_RENDER_SIDE, MIN_RENDER_SIDE
+from protocol.poses import split_similarity
 from service.auth import Principal, caller
 from service.deps import registry, session_for
 from service.pose_check import pose_problem
 from service.registry import ArchiveUnavailable, Registry, RequestTimeout, parse_session
 from service.schemas import ErrorBody, Trajectory
-from worker.runtime import keys
 
 router = APIRouter(prefix="/v1/sessions/{session_id}", tags=["results"],
                    responses={401: {"model": ErrorBody}, 403: {"model": ErrorBody}, 404: {"model": ErrorBody}})
@@ -38,7 +41,7 @@ async def get_trajectory(
     except ArchiveUnavailable as err:
         raise HTTPException(503, str(err)) from err
     if format == "tum":
-        # off the event loop: the conversion (and torch's first import) would stall every stream of this gateway
+        # off the event loop: converting a long trajectory would stall every stream of this gateway
         return PlainTextResponse(await asyncio.to_thread(tum_text, poses), media_type="text/plain")
     return {"session_id": session_id, "revision": int(record.get("revision") or 0), "which": which, "poses": poses,
             "intrinsics": parse_session(record)["estimated_intrinsics"]}
@@ -48,12 +51,7 @@ def tum_text(poses: list[dict]) -> str:
     """TUM lines "timestamp tx ty tz qx qy qz qw" (the rotation of a Sim(3) pose without its scale)."""
     lines = ["# timestamp tx ty tz qx qy qz qw (camera-to-world)"]
     if poses:
-        import torch  # lazily: only TUM output needs worker.geometry (torch) in the gateway
-
-        from worker.geometry import sim3_to_quat
-
-        mats = torch.tensor([p["pose"] for p in poses], dtype=torch.float64).reshape(-1, 4, 4)
-        _, quats, trans = sim3_to_quat(mats)
+        _, quats, trans = split_similarity(np.asarray([p["pose"] for p in poses], dtype=np.float64))
         for p, q, t in zip(poses, quats.tolist(), trans.tolist()):
             w, x, y, z = q
             lines.append(f"{p['timestamp']:.6f} {t[0]:.8f} {t[1]:.8f} {t[2]:.8f} {x:.8f} {y:.8f} {z:.8f} {w:.8f}")
@@ -68,8 +66,8 @@ async def render_view(
     session_id: str,
     request: Request,
     pose: Annotated[str, Query(description="camera-to-world 4x4 as 16 comma-separated floats, row-major")],
-    width: Annotated[int | None, Query(ge=8, le=4096)] = None,
-    height: Annotated[int | None, Query(ge=8, le=4096)] = None,
+    width: Annotated[int | None, Query(ge=MIN_RENDER_SIDE, le=MAX_RENDER_SIDE)] = None,
+    height: Annotated[int | None, Query(ge=MIN_RENDER_SIDE, le=MAX_RENDER_SIDE)] = None,
     fx: Annotated[float | None, Query(gt=0)] = None,
     fy: Annotated[float | None, Query(gt=0)] = None,
     cx: Annotated[float | None, Query()] = None,

@@ -13,6 +13,7 @@ import time
 
 from fastapi import APIRouter, HTTPException, WebSocket, WebSocketDisconnect
 
+from protocol.messages import AckMessage, ErrorCode, ErrorMessage, PongMessage
 from service.auth import request_key
 from service.deps import session_for
 from service.frame_validation import FrameRejected, check_frame_message
@@ -79,7 +80,7 @@ async def stream_frames(websocket: WebSocket, session_id: str) -> None:
 async def _refuse(websocket: WebSocket, code: str, message: str, close_code: int) -> None:
     """Turn a stream away: accept, one error message saying why, then `close_code`."""
     await websocket.accept()
-    await websocket.send_text(json.dumps({"type": "error", "code": code, "message": message}))
+    await websocket.send_text(ErrorMessage(code=code, message=message).to_json())
     await websocket.close(code=close_code, reason=message.encode()[:120].decode(errors="ignore"))
 
 
@@ -112,11 +113,8 @@ class _Stream:
         async with self._send_lock:
             await self.ws.send_text(text)
 
-    async def error(self, code: str, message: str, seq: int | None = None, **extra) -> None:
-        body = {"type": "error", "code": code, "message": message, **extra}
-        if seq is not None:
-            body["seq"] = seq
-        await self.send(json.dumps(body))
+    async def error(self, code: ErrorCode, message: str, seq: int | None = None, **extra: int) -> None:
+        await self.send(ErrorMessage(code=code, message=message, seq=seq, **extra).to_json())
 
     async def run(self) -> None:
         self.metrics.streams_open.inc()
@@ -176,7 +174,7 @@ class _Stream:
             await self.error("not_found", "the session was deleted", frame.seq)
             await self._close(4404)
         else:
-            await self.send(json.dumps({"type": "ack", "seq": frame.seq, "queue_depth": result.value}))
+            await self.send(AckMessage(seq=frame.seq, queue_depth=result.value).to_json())
             self.metrics.frames_ingested.inc()
             self.metrics.queue_depth.observe(result.value)
             self.metrics.ack_latency.observe(time.perf_counter() - t0)
@@ -231,7 +229,7 @@ class _Stream:
             await self.error("bad_message", "frames must be binary WebSocket messages holding a msgpack map "
                              "(image as raw bytes), not text JSON; frame not queued", _int_or_none(message.get("seq")))
         elif kind == "ping":
-            await self.send(json.dumps({"type": "pong"}))
+            await self.send(PongMessage().to_json())
         elif kind == "finish":
             try:
                 outcome = await self.reg.request_finish(self.session_id)

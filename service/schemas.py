@@ -7,9 +7,11 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from service.presets import PresetName, preset_field_description
+from protocol.keys import SessionStatus
+from protocol.limits import MAX_IMAGE_SIDE
+from protocol.presets import PresetName
+from service.presets import preset_field_description
 
-SessionStatus = Literal["created", "streaming", "finishing", "finished", "failed", "abandoned"]
 PoseMode = Literal["prior", "fixed", "ignore", "seeded"]
 POSE_MODE_DOC = ("what the engine does with the device poses frames carry (default: `seeded` when the frames carry "
                  "depth, else `prior` where the first frames show that the poses agree with the images and `seeded` "
@@ -32,8 +34,8 @@ class IntrinsicsIn(BaseModel):
     fy: float = Field(gt=0)
     cx: float
     cy: float
-    width: int = Field(gt=0, le=8192)
-    height: int = Field(gt=0, le=8192)
+    width: int = Field(gt=0, le=MAX_IMAGE_SIDE)
+    height: int = Field(gt=0, le=MAX_IMAGE_SIDE)
 
     @model_validator(mode="after")
     def _principal_point_inside(self) -> IntrinsicsIn:

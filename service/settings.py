@@ -7,6 +7,8 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from protocol.limits import DEFAULT_MAX_QUEUE, MAX_FRAME_BYTES, MAX_RENDER_PIXELS
+
 SCOPES = ("stream", "read", "admin")
 
 
@@ -27,10 +29,10 @@ class Settings:
 
     redis_url: str = "redis://127.0.0.1:6379/0"
     api_keys: dict[str, frozenset[str]] = field(default_factory=dict)
-    max_queue: int = 64
-    max_frame_bytes: int = 8 * 1024 * 1024
+    max_queue: int = DEFAULT_MAX_QUEUE
+    max_frame_bytes: int = MAX_FRAME_BYTES
     request_timeout_s: float = 60.0
-    max_render_pixels: int = 4096 * 4096
+    max_render_pixels: int = MAX_RENDER_PIXELS
     max_body_bytes: int = 1024 * 1024
     allowed_origins: frozenset[str] = frozenset()
     max_streams: int = 2000

@@ -32,7 +32,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-AUTO = "auto"
+from protocol.presets import AUTO
+
 # Long side live frames are tracked at (pixels). Measured live on 2 cores, ICL at 30 frames/s (bench out_of_box).
 LIVE_TRACKING_SIDE = 320
 # Long side live frames are worked on (tracked and mapped) at when the map is built on a CPU.

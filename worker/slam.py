@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from protocol.limits import MAX_RENDER_SIDE
 from worker.config import SlamConfig
 from worker.data.frame import Frame, FrameResult
 from worker.engine import snapshot
@@ -42,8 +43,6 @@ from worker.engine.stage_times import StageTimes
 from worker.engine.tracking_stage import TrackingStage
 from worker.geometry import Intrinsics
 from worker.tracking.sources import choose_tracking
-
-MAX_RENDER_SIDE = 8192  # a render's width and height at most
 
 
 class SlamSystem:

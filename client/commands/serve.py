@@ -47,6 +47,7 @@ def run(args: argparse.Namespace) -> int:
 
     import uvicorn
 
+    from protocol.limits import MAX_FRAME_BYTES, websocket_max_size
     from service.launcher import start_worker_process
     from service.redis_embedded import EmbeddedRedis
     from service.shutdown import exit_on_sigterm
@@ -78,9 +79,9 @@ def run(args: argparse.Namespace) -> int:
     supervisor = WorkerSupervisor(lambda: start_worker_process(redis_url, worker_env, nice=args.worker_nice),
                                   args.workers).start()
     try:
-        max_frame = int(os.environ.get("FLASHMONO_MAX_FRAME_BYTES", 8 * 1024 * 1024))
+        max_frame = int(os.environ.get("FLASHMONO_MAX_FRAME_BYTES", MAX_FRAME_BYTES))
         uvicorn.run("service.app:app", host=args.host, port=args.port, log_level=args.log_level,
-                    ws_max_size=max_frame * 2 + 1024)
+                    ws_max_size=websocket_max_size(max_frame))
     finally:
         supervisor.stop()
         if embedded is not None:

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from client.streaming import WireOptions, encode_depth_png, encode_frame_message, open_frames
+from protocol.codec import unpack
 from worker.data.frame import Frame
 from worker.geometry import Intrinsics
-from worker.serialization import unpack
 
 
 def _frame(index: int = 0, with_extras: bool = True) -> Frame:

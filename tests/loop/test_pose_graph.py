@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from protocol.codec import pack, unpack
 from worker.geometry import make_sim3, relative_transform, so3_exp
 from worker.geometry.gtsam_bridge import sim3_from_gtsam, sim3_to_gtsam
 from worker.loop.pose_graph import (
@@ -15,7 +16,6 @@ from worker.loop.pose_graph import (
     sim3_batch_to_gtsam,
 )
 from worker.loop.synthetic import ate_rmse, make_loop_problem
-from worker.serialization import pack, unpack
 
 N = 300
 

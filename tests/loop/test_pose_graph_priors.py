@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from protocol.codec import pack, unpack
 from worker.loop.pose_graph import EdgeSigmas, Sim3PoseGraph
-from worker.serialization import pack, unpack
 
 N = 12
 

@@ -8,10 +8,10 @@ import math
 import torch
 from mapping_scene import HEIGHT, WIDTH, camera_pose, intrinsics, psnr, view, voxelized_surfels
 
+from protocol.codec import pack, unpack
 from worker.geometry import make_sim3, so3_exp
 from worker.mapping.background import DirectionalBackground, pixel_directions
 from worker.mapping.gaussian_map import GaussianMap, MapConfig
-from worker.serialization import pack, unpack
 
 
 def sky(directions: torch.Tensor) -> torch.Tensor:

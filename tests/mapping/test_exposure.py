@@ -3,10 +3,10 @@
 import torch
 from mapping_scene import HEIGHT, WIDTH, camera_pose, intrinsics, psnr, texture, view, voxelized_surfels
 
+from protocol.codec import pack, unpack
 from worker.mapping.exposure import apply_exposure, fit_exposure, identity_exposure, remove_exposure, shrink_exposure
 from worker.mapping.gaussian_map import GaussianMap, MapConfig
 from worker.mapping.refine import RefineSettings
-from worker.serialization import pack, unpack
 
 GAIN, BIAS = torch.tensor([1.25, 1.15, 1.3]), torch.tensor([0.01, -0.01, 0.0])  # the fit estimates gains only
 BRIGHT = torch.cat([GAIN, BIAS])

@@ -2,10 +2,10 @@ import pytest
 import torch
 from mapping_scene import HEIGHT, WIDTH, camera_pose, intrinsics, psnr, view, voxelized_surfels
 
+from protocol.codec import pack, unpack
 from worker.geometry import make_sim3, so3_exp
 from worker.mapping.gaussian_map import GaussianMap, MapConfig
 from worker.mapping.ply import surfels_from_ply_bytes
-from worker.serialization import pack, unpack
 
 
 def add(gmap: GaussianMap, kf_id: int, pose, with_depth: bool = True):

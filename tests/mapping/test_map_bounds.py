@@ -6,10 +6,10 @@ import time
 import torch
 from mapping_scene import HEIGHT, WIDTH, camera_pose, intrinsics, view, voxelized_surfels
 
+from protocol.codec import pack, unpack
 from worker.mapping.fusion import FusionThresholds
 from worker.mapping.gaussian_map import GaussianMap, MapConfig
 from worker.mapping.voxel_grid import capped_mask, voxel_keys
-from worker.serialization import pack, unpack
 
 
 def capped_mask_oracle(present, offered, candidates, cap, finer):

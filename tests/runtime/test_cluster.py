@@ -20,10 +20,10 @@ from redis.crc import key_slot
 from runtime_helpers import WORKER_ENV, receive_until, synthetic_frame, wait_for
 from websockets.sync.client import connect
 
+from protocol import keys
 from service.launcher import LocalStack
 from service.redis_cluster_embedded import SLOTS, EmbeddedRedisCluster
 from service.redis_embedded import EmbeddedRedis
-from worker.runtime import keys
 from worker.runtime.connection import cluster_seeds, is_cluster_url
 
 REPLICATED = {"FLASHMONO_REDIS_WAIT_REPLICAS": "1", "FLASHMONO_REDIS_WAIT_MS": "200"}

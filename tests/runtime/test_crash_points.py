@@ -10,8 +10,8 @@ import redis
 from runtime_helpers import WORKER_ENV, receive_until, synthetic_frame, wait_for
 from websockets.sync.client import connect
 
+from protocol import keys
 from service.launcher import LocalStack, start_gateway_process
-from worker.runtime import keys
 from worker.runtime.failpoints import CRASH_EXIT_CODE
 
 FINISH_STEPS = ("finish:engine", "finish:trajectory", "finish:snapshot", "finish:marked")

@@ -13,9 +13,9 @@ import redis
 from runtime_helpers import WORKER_ENV, receive_until, synthetic_frame, wait_for
 from websockets.sync.client import connect
 
+from protocol import keys
 from service.launcher import LocalStack
 from service.redis_embedded import EmbeddedRedis
-from worker.runtime import keys
 from worker.runtime.leases import Leases, lease_holder
 
 

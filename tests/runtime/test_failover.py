@@ -13,8 +13,8 @@ import redis
 from runtime_helpers import WORKER_ENV, receive_until, synthetic_frame, wait_for
 from websockets.sync.client import connect
 
+from protocol import keys
 from service.launcher import LocalStack
-from worker.runtime import keys
 
 FRAMES = 40
 MAX_QUEUE = 40

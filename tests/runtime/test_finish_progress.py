@@ -10,8 +10,8 @@ import redis
 from redis.backoff import NoBackoff
 from redis.retry import Retry
 
+from protocol import keys
 from service.redis_embedded import EmbeddedRedis
-from worker.runtime import keys
 from worker.runtime.progress import FinishProgress
 
 

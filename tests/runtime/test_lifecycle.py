@@ -12,8 +12,8 @@ import redis
 from runtime_helpers import WORKER_ENV, receive_until, synthetic_frame, wait_for
 from websockets.sync.client import connect
 
+from protocol import keys
 from service.launcher import LocalStack
-from worker.runtime import keys
 
 KEYS = "key-a=stream,read;key-b=stream,read;key-c=stream,read"
 GRACE_S = 6.0

@@ -19,8 +19,8 @@ import redis
 from runtime_helpers import WORKER_ENV, receive_until, synthetic_frame, wait_for
 from websockets.sync.client import connect
 
+from protocol import keys
 from service.launcher import LocalStack
-from worker.runtime import keys
 from worker.runtime.frames import decode_frame, working_size
 from worker.runtime.memory import over_budget, resident_mb
 

@@ -9,15 +9,15 @@ import numpy as np
 import pytest
 import redis
 
+from protocol import keys
+from protocol.codec import pack, unpack
 from service.redis_embedded import EmbeddedRedis
 from worker.config import SlamConfig
 from worker.data.frame import Frame
 from worker.engine.snapshot import flat_snapshot
 from worker.engine.trajectory import Trajectory
-from worker.runtime import keys
 from worker.runtime.engine import PassthroughEngine, restore_engine
 from worker.runtime.snapshots import SnapshotWriter, read_snapshot
-from worker.serialization import pack, unpack
 from worker.slam import SlamSystem
 
 CHUNK = 16
@@ -174,7 +174,7 @@ def test_store_writes_flat_and_reads_back_what_restore_needs(client, monkeypatch
     """SlamSystem snapshots through SnapshotWriter into Redis: the write size stays flat from N to 4N frames, and
     read_snapshot + restore gives the full trajectory, also to a new owner that continues and writes again. Arrays
     from 64 bytes are kept outside (the default keeps only large ones out), so that path runs here too."""
-    monkeypatch.setattr("worker.serialization.EXTERNAL_MIN_BYTES", 64)
+    monkeypatch.setattr("protocol.codec.EXTERNAL_MIN_BYTES", 64)
     sid, worker = "chunkstore1", "worker-a"
     _session(client, sid, worker)
     system = _posed_system()
@@ -233,7 +233,7 @@ def test_incremental_slam_snapshot_does_not_write_unchanged_keyframe_data_again(
     depth, images) by digest and carries only what changed; restore from the stored parts works."""
     from worker.data import open_source
 
-    monkeypatch.setattr("worker.serialization.EXTERNAL_MIN_BYTES", 4096)
+    monkeypatch.setattr("protocol.codec.EXTERNAL_MIN_BYTES", 4096)
     frames = list(open_source(data_dir / "icl_mini", max_frames=8, resize=(96, 72), use_gt_depth=True))
     system = SlamSystem(SlamConfig.preset("test", mapping={"refine_iterations": 1}), intrinsics=frames[0].intrinsics)
     for frame in frames[:4]:

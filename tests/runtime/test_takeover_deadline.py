@@ -8,8 +8,8 @@ import time
 import pytest
 import redis
 
+from protocol import keys
 from service.redis_embedded import EmbeddedRedis
-from worker.runtime import keys
 from worker.runtime.consumer import Worker
 from worker.runtime.sessions import RuntimeConfig
 

@@ -16,7 +16,8 @@ from service_helpers import frame_message, icl_frames, receive_until
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
-from service.websocket_doc import CLOSE_CODES, FRAME_ERROR_CODES
+from protocol.messages import CLOSE_CODES
+from protocol.messages import ERROR_CODES as FRAME_ERROR_CODES
 from worker.geometry import rotmat_to_quat
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -26,8 +27,8 @@ FRAMES = icl_frames(2)
 
 
 def test_every_error_code_the_code_sends_is_documented():
-    patterns = (r'error\(\s*"([a-z_]+)"', r'FrameRejected\(\s*"([a-z_]+)"', r'FrameError\(\s*"([a-z_]+)"',
-                r'_reject\([^)]*?"([a-z_]+)"', r'"code": "([a-z_]+)"')
+    patterns = (r'code="([a-z_]+)"', r'error\(\s*"([a-z_]+)"', r'FrameRejected\(\s*"([a-z_]+)"',
+                r'FrameError\(\s*"([a-z_]+)"', r'_reject\([^)]*?"([a-z_]+)"', r'"code": "([a-z_]+)"')
     sent = {code for path in SOURCES for pattern in patterns for code in re.findall(pattern, path.read_text())}
     sent -= {"error"}  # the generic fallback of _AUTH_CODES
     assert sent and sent <= set(FRAME_ERROR_CODES), sorted(sent - set(FRAME_ERROR_CODES))

@@ -12,7 +12,8 @@ from service_helpers import frame_message, icl_frames, receive_until
 from websockets.sync.client import connect
 
 from client.streaming import open_frames
-from service.presets import PRESET_INFO, PresetName
+from protocol.presets import ENGINE_PRESETS, PresetName
+from service.presets import PRESET_INFO
 from worker.config import PRESETS
 from worker.runtime.engine import close_engine, create_engine, engine_intrinsics
 
@@ -23,6 +24,7 @@ FRAME_K = {"fx": 250.0, "fy": 251.0, "cx": 160.5, "cy": 119.5}
 def test_the_documented_presets_are_the_engine_s():
     # `auto` is the worker's choice among the engine's presets, not one of its own
     assert set(PRESET_INFO) == set(PresetName.__args__) == set(PRESETS) | {"auto"}
+    assert set(ENGINE_PRESETS) == set(PRESETS)
 
 
 def test_presets_are_listed_for_any_valid_key(api, stack):

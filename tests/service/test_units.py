@@ -9,8 +9,8 @@ import msgpack
 import numpy as np
 import pytest
 
+from protocol.image_header import image_size
 from service.frame_validation import FrameRejected, check_frame_message
-from service.image_header import image_size
 from service.routes_results import tum_text
 from service.settings import Settings, load_api_keys_file, parse_api_keys
 

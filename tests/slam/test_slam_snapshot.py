@@ -66,7 +66,7 @@ def test_restored_run_continues_identically(data_dir: Path, tmp_path: Path) -> N
 
 
 def test_restore_rejects_foreign_bytes() -> None:
-    from worker.serialization import pack
+    from protocol.codec import pack
 
     with pytest.raises(ValueError, match="not a Flash-Mono SLAM snapshot"):
         SlamSystem.restore(pack({"format": "something-else"}))

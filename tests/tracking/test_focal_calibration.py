@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from protocol.codec import pack, unpack
 from worker.config import SlamConfig
 from worker.data import open_source
 from worker.eval import absolute_trajectory_error
-from worker.serialization import pack, unpack
 from worker.slam import SlamSystem
 from worker.tracking.focal_calibration import estimate_focal
 from worker.tracking.rgbd_config import RgbdOdometryConfig

@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from protocol.codec import pack, unpack
 from worker.data import open_source
 from worker.data.frame import Frame
 from worker.eval import absolute_trajectory_error
-from worker.serialization import pack, unpack
 from worker.tracking.dense_alignment import align, build_pyramid
 from worker.tracking.rgbd_odometry import RgbdOdometry, grey_of
 

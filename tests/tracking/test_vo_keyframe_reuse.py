@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from protocol.codec import pack, unpack
 from worker.data import open_source
 from worker.data.sources.pingpong import sweep_order
 from worker.eval import absolute_trajectory_error
-from worker.serialization import pack, unpack
 from worker.tracking.visual_odometry import VisualOdometry
 from worker.tracking.vo_config import VisualOdometryConfig
 

@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from protocol.codec import pack, unpack
 from worker.data import open_source
 from worker.data.frame import Frame
-from worker.serialization import pack, unpack
 from worker.tracking.map_join import moved_pose
 from worker.tracking.visual_odometry import VisualOdometry
 from worker.tracking.vo_config import VisualOdometryConfig

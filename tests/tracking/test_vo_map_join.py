@@ -8,11 +8,11 @@ import cv2
 import numpy as np
 import pytest
 
+from protocol.codec import pack, unpack
 from worker.config import SlamConfig
 from worker.data import open_source
 from worker.data.frame import Frame
 from worker.geometry import Intrinsics
-from worker.serialization import pack, unpack
 from worker.slam import SlamSystem
 from worker.tracking.features import Features
 from worker.tracking.map_join import link_maps, moved_points, moved_pose, similarity, similarity_inverse

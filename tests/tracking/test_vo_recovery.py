@@ -9,11 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from protocol.codec import pack, unpack
 from worker.config import SlamConfig
 from worker.data import open_source
 from worker.data.frame import Frame
 from worker.eval import absolute_trajectory_error
-from worker.serialization import pack, unpack
 from worker.slam import SlamSystem
 from worker.tracking.base import TrackingResult
 from worker.tracking.visual_odometry import VisualOdometry

@@ -38,7 +38,7 @@ class KeyframeJob:
         return bool(self.grid)
 
     def state_dict(self) -> dict[str, Any]:
-        """The job as plain data (arrays stay arrays: see worker.serialization)."""
+        """The job as plain data (arrays stay arrays: see protocol.codec)."""
         return {"kf_id": self.kf_id, "pose": self.pose, "K": self.K, "image": self.image, "grid": self.grid,
                 "depth": self.depth, "views": None if self.views is None else self.views.state_dict(),
                 "query_loops": self.query_loops}

@@ -16,12 +16,12 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
+from protocol.codec import pack, unpack
 from worker.engine.depth_sources import ModelSurfels, MultiViewDepth
 from worker.engine.loop_stage import LoopQuery
 from worker.engine.snapshot_future import SnapshotFuture
 from worker.engine.trajectory import Trajectory
 from worker.geometry import Intrinsics
-from worker.serialization import pack, unpack
 
 if TYPE_CHECKING:
     from worker.slam import SlamSystem

@@ -1,6 +1,6 @@
 """The contract between an incremental snapshot and its store. What only grows with a session (the trajectory's
 frame records) is sealed into fixed-size chunks, each written once beside the snapshot; large arrays (keyframe
-images and depth, the map's tensors) are kept outside the snapshot by content digest (worker.serialization's
+images and depth, the map's tensors) are kept outside the snapshot by content digest (protocol.codec's
 `external`), so those that did not change since the last snapshot (every keyframe's own data) are not written
 again. A snapshot write then carries the small state, the newest chunk and the changed arrays, however long the
 session. Torch-free: the runtime's store reads manifests too.

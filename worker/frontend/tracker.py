@@ -29,9 +29,9 @@ from typing import Protocol
 import numpy as np
 import torch
 
+from protocol.codec import pack, unpack
 from worker.geometry import Intrinsics, relative_transform, so3_log, umeyama
 from worker.loop.pose_graph import PoseGraphEdge
-from worker.serialization import pack, unpack
 
 from .types import HiddenState, StepOutput
 

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from worker.serialization import pack, unpack
+from protocol.codec import pack, unpack
 
 
 @dataclass

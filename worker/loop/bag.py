@@ -7,8 +7,8 @@ from dataclasses import dataclass
 
 import torch
 
+from protocol.codec import pack, unpack
 from worker.frontend.types import HiddenState
-from worker.serialization import pack, unpack
 
 
 @dataclass

@@ -514,7 +514,7 @@ class GaussianMap:
 
     # -- snapshot ----------------------------------------------------------------------------------------------
     def state_dict(self) -> dict:
-        """Plain dict of numpy arrays / numbers (msgpack-able with worker.serialization.pack)."""
+        """Plain dict of numpy arrays / numbers (msgpack-able with protocol.codec.pack)."""
         keyframes = []
         for kf_id, kf in self._keyframes.items():
             keyframes.append({

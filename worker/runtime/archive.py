@@ -17,8 +17,8 @@ from pathlib import Path
 
 import redis
 
-from worker.runtime import keys
-from worker.serialization import pack, unpack
+from protocol import keys
+from protocol.codec import pack, unpack
 
 log = logging.getLogger(__name__)
 

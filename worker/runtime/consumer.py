@@ -17,7 +17,7 @@ from datetime import datetime
 
 import redis
 
-from worker.runtime import keys
+from protocol import keys
 from worker.runtime.archive import BlobStore, archive_finished
 from worker.runtime.engine import SessionEngine, close_engine, restore_engine, warm_up
 from worker.runtime.leases import Leases, lease_holder

@@ -16,10 +16,10 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from protocol.codec import pack, unpack
 from worker.data.frame import Frame, FrameResult
 from worker.engine.snapshot_chunks import ChunkWrite, chunk_versions
 from worker.geometry import Intrinsics
-from worker.serialization import pack, unpack
 from worker.settings_choice import Machine, SessionInput, choose_settings
 
 ENGINE_KINDS = ("slam", "passthrough")

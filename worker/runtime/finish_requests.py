@@ -12,7 +12,7 @@ from collections.abc import Callable
 
 import redis
 
-from worker.runtime import keys
+from protocol import keys
 
 log = logging.getLogger(__name__)
 

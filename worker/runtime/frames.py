@@ -12,7 +12,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from service.image_header import image_size
+from protocol.image_header import image_size
 from worker.data.frame import Frame
 from worker.geometry import Intrinsics
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import redis
 
-from worker.runtime import keys
+from protocol import keys
 
 _RENEW = """
 if redis.call('GET', KEYS[1]) == ARGV[1] then

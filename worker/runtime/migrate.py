@@ -1,5 +1,5 @@
 """One-shot move of a single Redis instance's data from the key layout before hash tags to today's
-(`worker.runtime.keys`): `python -m worker.runtime.migrate --redis-url redis://host:6379/0`.
+(`protocol.keys`): `python -m worker.runtime.migrate --redis-url redis://host:6379/0`.
 
 Run it once with the gateways and workers stopped (`flashmono serve` runs it itself on its embedded Redis at
 start). Every key of each session is renamed to its hash-tagged name (RENAME keeps the value, its TTL and a
@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import redis
 
-from worker.runtime import keys
+from protocol import keys
 
 # Sessions in these states need a worker (a job); abandoned ones get a job again when their stream is re-opened.
 _NEED_JOB = keys.LIVE_STATUSES

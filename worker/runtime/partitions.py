@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import redis
 
-from worker.runtime import keys
+from protocol import keys
 from worker.runtime.connection import is_cluster
 
 

@@ -15,7 +15,7 @@ from typing import Any
 
 import redis
 
-from worker.runtime import keys
+from protocol import keys
 
 log = logging.getLogger(__name__)
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import redis
 
-from worker.runtime import keys
+from protocol import keys
 
 _BEGIN = """
 if redis.call('EXISTS', KEYS[2]) == 0 then return 0 end

@@ -7,13 +7,13 @@ the record exists in the same Lua call, and reports False when it does not (the 
 
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping
 from datetime import UTC, datetime
 
 import redis
 
-from worker.runtime import keys
+from protocol import keys
+from protocol.messages import ErrorMessage
 
 _UPDATE = """
 if redis.call('EXISTS', KEYS[1]) == 0 then return 0 end
@@ -99,9 +99,9 @@ class SessionRecord:
 
 def abandon_unstarted(client: redis.Redis, session_id: str, idle_s: float, outbox_maxlen: int) -> bool:
     """Abandon a session that got no frame within `idle_s` of its creation (no worker ever ran it)."""
-    message = json.dumps({"type": "error", "code": "abandoned",
-                          "message": f"no frame within {idle_s:g} s of its creation: the session was abandoned; "
-                                     "open a stream within the grace period to resume it"}).encode()
+    message = ErrorMessage(code="abandoned",
+                           message=f"no frame within {idle_s:g} s of its creation: the session was abandoned; "
+                                   "open a stream within the grace period to resume it").to_json().encode()
     stamp = datetime.now(UTC)
     return SessionRecord(client, session_id).abandon(message, outbox_maxlen, stamp.timestamp(),
                                                      stamp.isoformat(timespec="milliseconds"))

@@ -10,9 +10,9 @@ import cv2
 import numpy as np
 import redis
 
-from worker.runtime import keys
+from protocol import keys
+from protocol.codec import pack
 from worker.runtime.engine import SessionEngine
-from worker.serialization import pack
 
 log = logging.getLogger(__name__)
 REPLY_TTL_S = 60

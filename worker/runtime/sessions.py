@@ -20,10 +20,13 @@ from typing import Any
 import numpy as np
 import redis
 
+from protocol import keys
+from protocol.codec import pack, unpack
+from protocol.messages import ErrorCode, ErrorMessage, FinishedMessage, PoseMessage, SkippedMessage
+from protocol.poses import similarity_scale
 from worker.data.frame import Frame
 from worker.engine.snapshot_chunks import ChunkWrite
 from worker.geometry import Intrinsics
-from worker.runtime import keys
 from worker.runtime.engine import SessionEngine, close_engine, create_engine, engine_intrinsics, restore_engine
 from worker.runtime.failpoints import failpoint
 from worker.runtime.finish_requests import RequestsWhileFinishing
@@ -35,10 +38,8 @@ from worker.runtime.quarantine import FrameAttempts
 from worker.runtime.record import SessionRecord
 from worker.runtime.requests import handle_request
 from worker.runtime.session_settings import named_preset, session_settings, this_machine
-from worker.runtime.similarity import similarity_scale
 from worker.runtime.snapshots import SnapshotWriter, read_snapshot
 from worker.runtime.stats import StageStats
-from worker.serialization import pack, unpack
 
 # Pose-source events forwarded to the clients as their own messages.
 TRACKING_EVENTS = ("tracking_lost", "relocalized", "initialized", "initializing", "new_map", "rotation_only")
@@ -150,10 +151,9 @@ def _newest_frame_id(entries: list[tuple[bytes, dict[bytes, bytes]]]) -> bytes |
 
 
 def pose_message(seq: int, timestamp: float, pose: np.ndarray, is_keyframe: bool, revision: int) -> bytes:
-    return json.dumps({"type": "pose", "seq": seq, "timestamp": timestamp,
-                       "pose": np.asarray(pose, dtype=np.float64).reshape(-1).tolist(),
-                       "scale": similarity_scale(pose), "is_keyframe": bool(is_keyframe),
-                       "revision": int(revision)}).encode()
+    return PoseMessage(seq=seq, timestamp=timestamp, pose=np.asarray(pose, dtype=np.float64).reshape(-1).tolist(),
+                       scale=similarity_scale(pose), is_keyframe=bool(is_keyframe),
+                       revision=int(revision)).to_json().encode()
 
 
 class SessionRunner(threading.Thread):
@@ -425,7 +425,7 @@ class SessionRunner(threading.Thread):
 
     def _skip(self, entry_id: bytes, seq: int) -> None:
         """Answer a skipped frame with a `skipped` message (its seq is done: no pose will come for it)."""
-        out = json.dumps({"type": "skipped", "seq": seq, "reason": "overload"}).encode()
+        out = SkippedMessage(seq=seq, reason="overload").to_json().encode()
         status = self._store_rejection(
             keys=[keys.session(self.session_id), keys.rejected(self.session_id), keys.outbox(self.session_id),
                   keys.inbox(self.session_id), keys.lease(self.session_id)],
@@ -573,17 +573,17 @@ class SessionRunner(threading.Thread):
         A stream opened within the gateway's grace period resumes it (from this snapshot) on any worker."""
         if self._done_seqs and self._cursor != stream_id_tuple(self._last_id):
             self._write_snapshot(max(self._done_seqs), f"{self._cursor[0]}-{self._cursor[1]}".encode(), wait=True)
-        message = json.dumps({"type": "error", "code": "abandoned",
-                              "message": f"no frame for {idle_s:g} s: the session was abandoned; open a stream "
-                                         "again within the grace period to resume it"}).encode()
+        message = ErrorMessage(code="abandoned",
+                               message=f"no frame for {idle_s:g} s: the session was abandoned; open a stream "
+                                       "again within the grace period to resume it").to_json().encode()
         if not self._record.abandon(message, self.config.outbox_maxlen, time.time(), now_iso()):
             return False
         log.info("session %s abandoned after %g s without frames", self.session_id, idle_s)
         self.terminal = True
         return True
 
-    def _reject(self, entry_id: bytes, seq: int, code: str, message: str) -> None:
-        out = json.dumps({"type": "error", "code": code, "message": message, "seq": seq}).encode()
+    def _reject(self, entry_id: bytes, seq: int, code: ErrorCode, message: str) -> None:
+        out = ErrorMessage(code=code, message=message, seq=seq).to_json().encode()
         status = self._store_rejection(
             keys=[keys.session(self.session_id), keys.rejected(self.session_id), keys.outbox(self.session_id),
                   keys.inbox(self.session_id), keys.lease(self.session_id)],
@@ -693,7 +693,7 @@ class SessionRunner(threading.Thread):
     def _mark_finished(self, entry_id: bytes) -> None:
         """The last step of finishing, after the final snapshot: status, the `finished` message, the ack."""
         frames = int(self.client.hget(keys.session(self.session_id), "frames_processed") or 0)
-        message = json.dumps({"type": "finished", "frames": frames}).encode()
+        message = FinishedMessage(frames=frames).to_json().encode()
         if not self._record.close({"status": "finished", "updated_at": now_iso()}, message,
                                   self.config.outbox_maxlen, entry_id, self.config.transient_ttl_s,
                                   self.config.retention_s):
@@ -716,7 +716,7 @@ class SessionRunner(threading.Thread):
     def _fail(self, err: Exception) -> None:
         self.terminal = True
         try:
-            message = json.dumps({"type": "error", "code": "engine_failed", "message": f"session failed: {err}"})
+            message = ErrorMessage(code="engine_failed", message=f"session failed: {err}").to_json()
             self._record.close({"status": "failed", "error": str(err)[:500], "updated_at": now_iso()},
                                message.encode(), self.config.outbox_maxlen, None, self.config.transient_ttl_s,
                                self.config.retention_s)

@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 import redis
 
+from protocol import keys
 from worker.engine.snapshot_chunks import ChunkWrite, chunk_versions
-from worker.runtime import keys
 
 # KEYS: snapshot, inbox, lease, session record, parts; ARGV: worker, data, seq, stream id, engine, created_at,
 # manifest ('' for a self-contained snapshot), n (count of field/bytes arguments), the fields and bytes to write,

@@ -7,7 +7,9 @@ from collections import deque
 
 import numpy as np
 
-STAGES = ("read", "decode", "engine", "store", "dispatch", "dispatch_cpu", "snapshot", "render")
+from protocol.keys import WORKER_STAGES
+
+STAGES = WORKER_STAGES
 
 
 class StageStats:

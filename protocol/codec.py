@@ -1,4 +1,5 @@
-"""msgpack with numpy arrays and torch tensors as raw bytes + dtype + shape. Never pickle.
+"""The msgpack codec of every message and stored record: numpy arrays (and torch tensors, recognised without
+importing torch) as raw bytes + dtype + shape. Never pickle.
 
 `pack(obj)` accepts dicts, lists, tuples (packed as lists), str, bytes, numbers, None, numpy arrays and torch
 tensors (packed as numpy arrays; bfloat16 is not supported). `unpack(data)` returns numpy arrays for arrays.
