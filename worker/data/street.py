@@ -1,6 +1,6 @@
 """A procedural street for driving-like motion: a long canyon of facades seen from a car moving forward.
 
-The room renderer of worker.data.synthetic draws it: the "room" is a street 14-20 m wide and 400 m long whose walls
+worker.data.synthetic_scene's renderer draws it: the "room" is a street 14-20 m wide and 400 m long whose walls
 are the facades, its floor the road and its ceiling a high sky plane; along the kerbs stand parked cars (boxes),
 poles and bins (cylinders), and facade details (thin boxes). The camera drives along the street at car height,
 1-1.5 m per frame (36-54 km/h at 10 frames/s), drifting slowly across the lane and yawing a few degrees: forward
@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from worker.data.synthetic import Material, SceneLayout, SyntheticScene, _random_material, look_at_c2w
+from worker.data.synthetic_scene import Material, SceneLayout, SyntheticScene, _random_material, look_at_c2w
 
 STREET_LENGTH = 400.0
 SKY_HEIGHT = 30.0

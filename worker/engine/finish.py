@@ -9,15 +9,15 @@ map), `refining` (the final refinement of the whole map, within `final_refine_bu
 from __future__ import annotations
 
 import time
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from worker.slam import SlamSystem
+from worker.engine.session_parts import SessionParts
+from worker.engine.session_stats import pose_source_choice
 
 
-def finish_session(system: SlamSystem) -> None:
+def finish_session(system: SessionParts) -> None:
     """Drain `system`'s stages and run its final refinement; its finish events go to `system.finish_events`."""
     started = time.perf_counter()
     stage, mapping, status = system.tracking_stage, system.mapping_stage, system.finish_status
@@ -50,13 +50,13 @@ def finish_session(system: SlamSystem) -> None:
     status.begin("done", 0)
 
 
-def _refines_keyframe_poses(system: SlamSystem) -> bool:
+def _refines_keyframe_poses(system: SessionParts) -> bool:
     """Whether the final refinement refines the keyframes' cameras: asked for, and the poses are not the device's
     own to keep (pose_mode fixed)."""
-    return system.config.mapping.final_refine_poses and system.pose_source_choice()["pose_source"] != "fixed"
+    return system.config.mapping.final_refine_poses and pose_source_choice(system)["pose_source"] != "fixed"
 
 
-def _follow_refined_keyframes(system: SlamSystem, motions: dict[int, np.ndarray]) -> dict[str, Any]:
+def _follow_refined_keyframes(system: SessionParts, motions: dict[int, np.ndarray]) -> dict[str, Any]:
     """Move the trajectory's keyframes by the final refinement's world-frame motions (keyframes the map did not
     hold follow the newest refined one before them) and each frame with the keyframes before and after it.
     Returns the event."""

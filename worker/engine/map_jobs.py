@@ -17,6 +17,34 @@ from worker.config import MappingConfig
 
 
 @dataclass
+class StereoViews:
+    """What a keyframe's multi-view depth is estimated from, as plain data: the keyframe's image (uint8 [H,W,3]),
+    K, camera pose (SE(3) c2w) and world scale (Sim(3) poses: depth is divided by it), the kept frames' images and
+    poses, and the depth hint of the pose source (sweep range, typical depth), when it gave one."""
+
+    image: np.ndarray
+    K: np.ndarray
+    pose: np.ndarray
+    scale: float
+    images: list[np.ndarray]
+    poses: list[np.ndarray]
+    depth_range: tuple[float, float] | None
+    scene_depth: float | None
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"image": self.image, "K": self.K, "pose": self.pose, "scale": self.scale, "images": self.images,
+                "poses": self.poses, "depth_range": self.depth_range, "scene_depth": self.scene_depth}
+
+    @classmethod
+    def from_state(cls, state: dict[str, Any]) -> StereoViews:
+        return cls(np.asarray(state["image"], np.uint8), np.asarray(state["K"], np.float64),
+                   np.asarray(state["pose"], np.float64), float(state["scale"]),
+                   [np.asarray(i, np.uint8) for i in state["images"]],
+                   [np.asarray(q, np.float64) for q in state["poses"]],
+                   None if state["depth_range"] is None else tuple(state["depth_range"]), state["scene_depth"])
+
+
+@dataclass
 class KeyframeJob:
     """One keyframe for the map: pose c2w (Sim(3)), K at the grid's resolution, image float [H,W,3] in [0,1],
     the per-pixel camera-frame surfel grid (see worker.engine.surfel_init) and the depth used to check renders.
@@ -30,7 +58,7 @@ class KeyframeJob:
     image: torch.Tensor
     grid: dict[str, torch.Tensor] = field(default_factory=dict)
     depth: torch.Tensor | None = None
-    views: Any = None  # worker.engine.depth_sources.multiview.StereoViews
+    views: StereoViews | None = None
     query_loops: bool = False
 
     @property
@@ -45,8 +73,6 @@ class KeyframeJob:
 
     @classmethod
     def from_state(cls, state: dict[str, Any]) -> KeyframeJob:
-        from worker.engine.depth_sources.multiview import StereoViews
-
         def tensor(value: Any) -> torch.Tensor | None:
             return None if value is None else torch.from_numpy(np.array(value))
 

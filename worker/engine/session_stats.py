@@ -2,18 +2,16 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from worker.engine.depth_sources import ModelSurfels
-
-if TYPE_CHECKING:
-    from worker.slam import SlamSystem
+from worker.engine.session_parts import SessionParts
 
 LIVE_MAPPING_KEYS = ("mapping_lag_keyframes", "mapping_lag_s", "keyframes_shed", "keyframes_owed",
                      "keyframes_caught_up")
 
 
-def session_stats(system: SlamSystem) -> dict[str, Any]:
+def session_stats(system: SessionParts) -> dict[str, Any]:
     """Counters, rates, the stages' backlogs and the runtime breakdown."""
     frames, wall = system.counters["frames"], system.counters["wall_seconds"]
     mapping = system.mapping_stage
@@ -28,7 +26,7 @@ def session_stats(system: SlamSystem) -> dict[str, Any]:
             "runtime_breakdown": system.timings.breakdown(int(frames))}
 
 
-def live_stats(system: SlamSystem) -> dict[str, Any]:
+def live_stats(system: SessionParts) -> dict[str, Any]:
     """What a live client watches, cheap to read while frames stream: how far mapping lags (keyframes waiting,
     seconds the oldest has waited), what it shed, what it still owes and caught up since (refinement made up while
     idle), and the loop-closing stage's backlog."""
@@ -37,7 +35,7 @@ def live_stats(system: SlamSystem) -> dict[str, Any]:
     return {**{key: mapping[key] for key in LIVE_MAPPING_KEYS}, "loop_pending": system.loop_stage.pending}
 
 
-def pose_source_choice(system: SlamSystem) -> dict[str, Any]:
+def pose_source_choice(system: SessionParts) -> dict[str, Any]:
     """How the session uses the frames' device poses: `pose_source` (prior, fixed or seeded; None when it does not
     use them) and, for `pose_mode` auto without depth, whether it was judged yet and the agreement figures it was
     chosen by (`worker.tracking.pose_choice`)."""

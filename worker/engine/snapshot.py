@@ -11,7 +11,7 @@ restore too.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import torch
@@ -19,18 +19,16 @@ import torch
 from protocol.codec import pack, unpack
 from worker.engine.depth_sources import ModelSurfels, MultiViewDepth
 from worker.engine.loop_stage import LoopQuery
+from worker.engine.session_parts import SessionParts
 from worker.engine.snapshot_future import SnapshotFuture
 from worker.engine.trajectory import Trajectory
 from worker.geometry import Intrinsics
-
-if TYPE_CHECKING:
-    from worker.slam import SlamSystem
 
 SNAPSHOT_FORMAT = "flashmono.slam/2"
 SNAPSHOT_FORMATS = ("flashmono.slam/1", SNAPSHOT_FORMAT)
 
 
-def begin_snapshot(system: SlamSystem, stored_chunks: Mapping[int, int] | None = None) -> SnapshotFuture:
+def begin_snapshot(system: SessionParts, stored_chunks: Mapping[int, int] | None = None) -> SnapshotFuture:
     """A snapshot of `system` as of now, without waiting (see SlamSystem.begin_snapshot)."""
     traj = system.tracking_stage.trajectory
     trajectory, chunks = (None, None) if stored_chunks is None else traj.chunked_state(stored_chunks)
@@ -47,7 +45,7 @@ def begin_snapshot(system: SlamSystem, stored_chunks: Mapping[int, int] | None =
     return future
 
 
-def tracking_state(system: SlamSystem, trajectory: dict[str, Any] | None = None) -> dict[str, Any]:
+def tracking_state(system: SessionParts, trajectory: dict[str, Any] | None = None) -> dict[str, Any]:
     """The tracking thread's part (`trajectory`: the trajectory's chunked state)."""
     learned = system.learned
     return {
@@ -68,8 +66,8 @@ def tracking_state(system: SlamSystem, trajectory: dict[str, Any] | None = None)
     }
 
 
-def restore(cls: type[SlamSystem], data: bytes, chunks: Mapping[int | str, bytes] | None = None) -> SlamSystem:
-    """A system continuing from snapshot bytes (see SlamSystem.restore)."""
+def restore(cls: type, data: bytes, chunks: Mapping[int | str, bytes] | None = None) -> Any:
+    """A system of class `cls` (worker.slam.SlamSystem) continuing from snapshot bytes (see its `restore`)."""
     from worker.config import SlamConfig
     from worker.engine.assembly import TRACKING_OF_MODE
     from worker.loop.bag import HiddenStateBag
@@ -107,7 +105,7 @@ def restore(cls: type[SlamSystem], data: bytes, chunks: Mapping[int | str, bytes
     return system
 
 
-def _load_earlier_versions(system: SlamSystem, state: dict[str, Any]) -> None:
+def _load_earlier_versions(system: SessionParts, state: dict[str, Any]) -> None:
     """What snapshots of earlier versions kept elsewhere: the multi-view frame ring and its waiting keyframes
     (`keyframe_depth`), keyframes whose loop query waited for their depth (`loop_after_depth`; format 1's
     `loops_waiting`, with the depth when it was built: their queries go to the stage now), the model's path."""

@@ -17,6 +17,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from .images import as_image_batch
+
 BACKBONE_FILE = "alexnet-owt-7be5be79.pth"
 HEADS_FILE = "lpips_alex_v0.1.pth"
 _CHANNELS = (64, 192, 384, 256, 256)
@@ -107,8 +109,6 @@ class Lpips:
         """The LPIPS distance, or None when the weights are not available."""
         if not self.available:
             return None
-        from .metrics import as_image_batch
-
         pred, gt = as_image_batch(prediction).float(), as_image_batch(target).float()
         if pred.shape != gt.shape:
             raise ValueError(f"images differ in shape: {tuple(pred.shape)} vs {tuple(gt.shape)}")

@@ -10,7 +10,6 @@ from dataclasses import fields
 
 import torch
 
-from .model import FeedForwardModel
 from .types import HiddenState, StepOutput
 
 
@@ -21,7 +20,7 @@ class AcceleratedStepper:
     or for other image sizes or batches, calls fall back to `model.step`.
     """
 
-    def __init__(self, model: FeedForwardModel, height: int, width: int, precision: str = "bf16",
+    def __init__(self, model: torch.nn.Module, height: int, width: int, precision: str = "bf16",
                  warmup_steps: int = 3) -> None:
         self.model = model.set_precision(precision)
         self.height, self.width = height, width
@@ -79,6 +78,6 @@ class AcceleratedStepper:
     __call__ = step
 
 
-def compile_step(model: FeedForwardModel, height: int, width: int, precision: str = "bf16") -> AcceleratedStepper:
+def compile_step(model: torch.nn.Module, height: int, width: int, precision: str = "bf16") -> AcceleratedStepper:
     """An AcceleratedStepper for `model` (CUDA graphs on GPU; plain `step` elsewhere)."""
     return AcceleratedStepper(model, height, width, precision)

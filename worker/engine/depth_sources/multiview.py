@@ -33,7 +33,7 @@ from worker.depth.hole_fill import HoleFillSettings, fill_depth
 from worker.depth.neighbours import looked_at_depth
 from worker.depth.world_planes import PlaneMemory, PlaneSettings, fill_from_planes, image_regions
 from worker.engine.depth_sources.base import DepthSource
-from worker.engine.map_jobs import KeyframeJob
+from worker.engine.map_jobs import KeyframeJob, StereoViews
 from worker.engine.session_camera import SessionCamera
 from worker.engine.surfel_init import grid_from_depth
 from worker.geometry import Intrinsics, se3_part
@@ -71,34 +71,6 @@ def depth_hint(depth: np.ndarray | None, margin: float = 2.0) -> DepthHint:
         return None, None
     near, median, far = np.percentile(values, [2, 50, 98])
     return (float(near) / margin, margin * float(far)), float(median)
-
-
-@dataclass
-class StereoViews:
-    """What a keyframe's multi-view depth is estimated from, as plain data: the keyframe's image (uint8 [H,W,3]),
-    K, camera pose (SE(3) c2w) and world scale (Sim(3) poses: depth is divided by it), the kept frames' images and
-    poses, and the depth hint of the pose source (sweep range, typical depth), when it gave one."""
-
-    image: np.ndarray
-    K: np.ndarray
-    pose: np.ndarray
-    scale: float
-    images: list[np.ndarray]
-    poses: list[np.ndarray]
-    depth_range: tuple[float, float] | None
-    scene_depth: float | None
-
-    def state_dict(self) -> dict[str, Any]:
-        return {"image": self.image, "K": self.K, "pose": self.pose, "scale": self.scale, "images": self.images,
-                "poses": self.poses, "depth_range": self.depth_range, "scene_depth": self.scene_depth}
-
-    @classmethod
-    def from_state(cls, state: dict[str, Any]) -> StereoViews:
-        return cls(np.asarray(state["image"], np.uint8), np.asarray(state["K"], np.float64),
-                   np.asarray(state["pose"], np.float64), float(state["scale"]),
-                   [np.asarray(i, np.uint8) for i in state["images"]],
-                   [np.asarray(q, np.float64) for q in state["poses"]],
-                   None if state["depth_range"] is None else tuple(state["depth_range"]), state["scene_depth"])
 
 
 class MultiViewDepth(DepthSource):

@@ -1,0 +1,57 @@
+"""What the engine's session-level modules (finish, stats, snapshots) read of a session: its parts, as a protocol,
+so that they need not import the system that assembles them (worker.slam)."""
+
+from __future__ import annotations
+
+from typing import Any, Protocol
+
+from worker.config import SlamConfig
+from worker.engine.finish_status import FinishStatus
+from worker.engine.judged_start import JudgedStart
+from worker.engine.learned_model import LearnedModel
+from worker.engine.loop_closer import LoopCloser
+from worker.engine.loop_stage import LoopClosingStage
+from worker.engine.mapping_stage import MappingStage
+from worker.engine.session_camera import SessionCamera
+from worker.engine.stage_times import StageTimes
+from worker.engine.tracking_stage import TrackingStage
+from worker.geometry import Intrinsics
+
+
+class SessionParts(Protocol):
+    """A session's stages, choices and counters (worker.slam.SlamSystem is one)."""
+
+    config: SlamConfig
+    intrinsics: Intrinsics | None
+    camera: SessionCamera
+    tracking_stage: TrackingStage
+    mapping_stage: MappingStage | None
+    judged_start: JudgedStart
+    timings: StageTimes
+    counters: dict[str, float]
+    tracking: str | None
+    mode: str | None
+    model_id: str | None
+    learned: LearnedModel | None
+    loop_closer: LoopCloser | None
+    with_depth: bool
+    wall_offset: float
+    finish_events: list[dict[str, Any]]
+    finish_status: FinishStatus
+
+    @property
+    def loop_stage(self) -> LoopClosingStage: ...
+
+    @property
+    def pose_source(self) -> Any: ...
+
+    @property
+    def revision(self) -> int: ...
+
+    @property
+    def num_gaussians(self) -> int: ...
+
+    @property
+    def model_intrinsics(self) -> Intrinsics | None: ...
+
+    def setup(self, tracking: str, with_depth: bool) -> None: ...
