@@ -58,15 +58,10 @@ class SlamSystem:
         self.counters: dict[str, float] = {"frames": 0, "frames_tracked": 0, "frames_registered_later": 0,
                                            "keyframes": 0, "loops": 0, "frontend_seconds": 0.0,
                                            "wall_seconds": 0.0}
-        fc = self.config.frontend
-        selector = MotionKeyframeSelector(fc.keyframe_every, fc.keyframe_translation, fc.keyframe_rotation_deg,
-                                          fc.keyframe_blur_ratio, fc.keyframe_blur_delay,
-                                          depth_ratio=fc.keyframe_parallax, min_overlap=fc.keyframe_min_overlap,
-                                          approach=fc.keyframe_approach)
-        self.tracking_stage = TrackingStage(selector, None, self.counters, self.timings,
-                                            max_side=self.config.tracking.max_side)
-        self.camera = SessionCamera(intrinsics, self.tracking_stage.source_intrinsics)
-        self.tracking_stage.camera = self.camera
+        self.camera = SessionCamera(intrinsics, lambda width, height: self.tracking_stage.source_intrinsics(
+            width, height))
+        self.tracking_stage = TrackingStage(MotionKeyframeSelector.from_config(self.config.frontend), self.camera,
+                                            self.counters, self.timings, max_side=self.config.tracking.max_side)
         self.tracking_stage.loop_closing = idle_loop_stage(self.config, self.timings)
         self.mapping_stage = (MappingStage(self.config.mapping, self.config.threaded, self.config.queue_size,
                                            self.config.device, self.timings) if self.config.mapping.enabled else None)
@@ -242,12 +237,9 @@ class SlamSystem:
         return self.begin_snapshot().result()
 
     def begin_snapshot(self, stored_chunks: Mapping[int, int] | None = None) -> SnapshotFuture:
-        """A snapshot of the session as of now, without waiting: the tracking state is packed at once, the map and
-        the loop-closing state by their stages once they have done what was submitted before; `result()` gives the
-        bytes that `restore` takes. With `stored_chunks` (chunk -> version already stored) the snapshot is
-        incremental: the trajectory's sealed frame records and every large array (keyframe images, depth, the
-        map's tensors) stay out of the bytes, and `future.chunks` (a ChunkWrite) holds the chunks not stored yet
-        and the arrays by digest, for `restore(data, chunks)`."""
+        """A snapshot of the session as of now, without waiting (worker.engine.snapshot); `result()` gives the bytes
+        that `restore` takes. With `stored_chunks` (chunk -> version already stored) it is incremental: sealed
+        trajectory chunks and large arrays stay out of the bytes, in `future.chunks` (a ChunkWrite)."""
         return snapshot.begin_snapshot(self, stored_chunks)
 
     @classmethod

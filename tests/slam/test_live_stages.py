@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from protocol.codec import unpack
 from worker.config import SlamConfig
 from worker.data import Frame, open_source
 from worker.engine.tracking_stage import follow_corrections
@@ -86,7 +87,7 @@ def test_snapshot_while_mapping_lags_restores_and_continues_exactly(frames) -> N
     system = SlamSystem(live_config(mapping={"shed_backlog": 0}, queue_size=64))
     with system.mapping_stage.lock:
         push_all_within(system, frames[:cut])
-        future = system.begin_snapshot()  # returns at once: the map part comes when mapping gets there
+        future = system.begin_snapshot()  # returns at once: the map part comes when the map lock is free
         assert not future.done()
         later = push_all_within(system, frames[cut:])  # tracking goes on meanwhile
     blob = future.result(timeout=120)
@@ -94,6 +95,7 @@ def test_snapshot_while_mapping_lags_restores_and_continues_exactly(frames) -> N
     restored = SlamSystem.restore(blob)
     assert [i for i, _, _ in restored.trajectory()] == [f.index for f in frames[:cut]]
     keyframes_before_cut = len(restored.trajectory("keyframes"))
+    restored.mapping_stage.wait_idle()  # the jobs the snapshot held as queued are mapped again
     assert restored.mapping_stage.keyframes_mapped == keyframes_before_cut  # everything submitted before the cut
     again = [restored.push(f) for f in frames[cut:]]
     for a, b in zip(later, again):
@@ -101,6 +103,25 @@ def test_snapshot_while_mapping_lags_restores_and_continues_exactly(frames) -> N
         assert a.is_keyframe == b.is_keyframe
     restored.finish()
     assert restored.mapping_stage.keyframes_mapped == system.mapping_stage.keyframes_mapped
+
+
+def test_a_snapshot_does_not_wait_for_the_mapping_backlog(frames) -> None:
+    # Slow keyframes (many refinement iterations) and a backlog: the map part is taken between two keyframes, the
+    # keyframes still queued go into the snapshot as data and the restored system maps them.
+    system = SlamSystem(live_config(mapping={"shed_backlog": 0, "refine_iterations": 400}, queue_size=64))
+    with system.mapping_stage.lock:
+        push_all_within(system, frames[:12])
+        future = system.begin_snapshot()
+    blob = future.result(timeout=120)
+    backlog = system.mapping_stage.pending
+    queued = unpack(unpack(blob)["map"])["queued"]
+    assert len(queued) >= 2 and backlog >= 1, (len(queued), backlog)
+    system.close()
+    restored = SlamSystem.restore(blob)
+    restored.mapping_stage.wait_idle()
+    keyframes = len(restored.trajectory("keyframes"))
+    assert restored.mapping_stage.keyframes_mapped == keyframes == len(restored.mapping_stage.map.keyframe_ids)
+    restored.close()
 
 
 def test_keyframes_made_after_an_optimisation_follow_the_newest_corrected_one() -> None:

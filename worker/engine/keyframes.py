@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from worker.config import FrontendConfig
 from worker.data.sharpness import sharpness
 from worker.geometry import Intrinsics, relative_transform, sim3_decompose, so3_log
 from worker.geometry.scene_units import median_depth
@@ -68,6 +69,13 @@ class MotionKeyframeSelector:
         self.delayed = 0  # frames the due keyframe has waited for a sharper one
         self.recent_sharpness: deque[float] = deque(maxlen=SHARPNESS_HISTORY)
         self._sharpness: float | None = None  # the current frame's, from `observe`
+
+    @classmethod
+    def from_config(cls, fc: FrontendConfig) -> MotionKeyframeSelector:
+        """The selector with the session's frontend settings."""
+        return cls(fc.keyframe_every, fc.keyframe_translation, fc.keyframe_rotation_deg, fc.keyframe_blur_ratio,
+                   fc.keyframe_blur_delay, depth_ratio=fc.keyframe_parallax, min_overlap=fc.keyframe_min_overlap,
+                   approach=fc.keyframe_approach)
 
     def observe(self, image: np.ndarray) -> None:
         """Score the current frame's sharpness (before `is_keyframe` for that frame); without it, blur is not
