@@ -1,6 +1,6 @@
 """Device poses as measurements (issue 21) on ICL: the same frames with the poses ignored, used as they are
 (`pose_mode` prior) or seeding the session's own odometry (`seeded`), with the true poses and with realistic device
-poses (the true poses with injected odometry drift and a relocalisation jump, worker.engine.drift). ATE is against
+poses (the true poses with injected odometry drift and a relocalisation jump, worker.pipeline.drift). ATE is against
 the true poses (Sim(3)-aligned); PSNR over the non-keyframes after the final refinement (`flashmono run` settings,
 preset rgbd, but the final refinement unbounded in time so that PSNR does not depend on the machine's load).
 
@@ -34,8 +34,8 @@ MODES = {  # name: (depth, poses given, pose_mode, device poses drifted)
 
 def main(argv: list[str]) -> int:
     from worker.config import SlamConfig
-    from worker.engine.drift import PoseDrift
-    from worker.engine.offline import run_sequence
+    from worker.pipeline.drift import PoseDrift
+    from worker.pipeline.offline import run_sequence
 
     parser = argparse.ArgumentParser(prog="python -m bench device_poses")
     parser.add_argument("--modes", default=",".join(MODES))

@@ -40,9 +40,9 @@ def exposure_at(t: int, amplitude: float, period: float) -> tuple[np.ndarray, np
 def _run(frames, truth, intrinsics, exposure: str, passes: int) -> dict:
     """Map the frames with exposure estimation `exposure` (off, shared, per_channel) and score the held-out frames."""
     from worker.config import SlamConfig
-    from worker.engine.offline import renderer_as_captured
     from worker.eval import evaluate_renders, non_keyframe_indices
     from worker.geometry import se3_part
+    from worker.pipeline.offline import renderer_as_captured
     from worker.slam import SlamSystem
 
     mapping = {"exposure": exposure != "off", "final_refine_passes": passes, "final_refine_budget_s": 0}

@@ -69,8 +69,8 @@ def _long_session(sizes: list[int], queries: int, shortlist: int | None) -> None
     played forward and back), then `queries` more keyframes go through LoopCloser.process_keyframe."""
     from worker.config import LoopConfig
     from worker.data import open_source
-    from worker.engine.loop_closer import DepthKeyframePoints, LoopCloser
-    from worker.engine.stage_times import StageTimes
+    from worker.pipeline.loop_closer import DepthKeyframePoints, LoopCloser
+    from worker.pipeline.stage_times import StageTimes
 
     class CpuStageTimes(StageTimes):
         """Process CPU time per stage: the machine is shared, and wall time measures the other users too."""

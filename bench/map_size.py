@@ -28,10 +28,10 @@ def _rss_mb() -> float:
 def main(argv: list[str]) -> int:
     from worker.config import SlamConfig
     from worker.data import open_source
-    from worker.engine.map_jobs import KeyframeJob
-    from worker.engine.mapping_stage import MappingStage
-    from worker.engine.stage_times import StageTimes
-    from worker.engine.surfel_init import grid_from_depth
+    from worker.pipeline.map_jobs import KeyframeJob
+    from worker.pipeline.mapping_stage import MappingStage
+    from worker.pipeline.stage_times import StageTimes
+    from worker.pipeline.surfel_init import grid_from_depth
 
     parser = argparse.ArgumentParser(prog="python -m bench map_size")
     parser.add_argument("--keyframes", type=int, default=300)

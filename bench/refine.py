@@ -64,10 +64,10 @@ def main(argv: list[str]) -> int:
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
 
-    from worker.engine.surfel_init import grid_from_depth
     from worker.mapping import GaussianMap, MapConfig, raster_cpu, raster_gsplat, rasterize, voxelize
     from worker.mapping.gaussian_map import rigid_viewmat
     from worker.mapping.losses import psnr
+    from worker.pipeline.surfel_init import grid_from_depth
 
     if args.device == "cuda":
         backend = "gsplat (CUDA)" if raster_gsplat.available() else "pure-torch reference (CUDA)"

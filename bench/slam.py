@@ -1,6 +1,6 @@
 """End-to-end SLAM runs on ICL (the full 211-frame set when present, else tests/data/icl_mini) for each mode:
 posed RGB-D (ground-truth depth and poses, preset `rgbd`), posed RGB-D with injected odometry drift + loop closure
-(worker.engine.drift: per-frame rotation/translation bias and noise, compounded), monocular with the default
+(worker.pipeline.drift: per-frame rotation/translation bias and noise, compounded), monocular with the default
 model (`mono`), RGB-D without poses (`rgbd_odometry`), images only by visual odometry (`visual_odometry`) and
 images with poses but no depth (`posed_rgb`). Prints ATE, PSNR/SSIM, depth L1, Gaussians and end-to-end FPS
 (paper appendix E: frames / total runtime).
@@ -32,8 +32,8 @@ def _source(stride_full: int) -> tuple[Path, int]:
 
 def main(argv: list[str]) -> int:
     from worker.config import SlamConfig
-    from worker.engine.offline import PoseDrift, run_sequence
-    from worker.engine.stage_times import breakdown_table
+    from worker.pipeline.offline import PoseDrift, run_sequence
+    from worker.pipeline.stage_times import breakdown_table
 
     parser = argparse.ArgumentParser(prog="python -m bench slam")
     parser.add_argument("--frames", type=int, default=None)

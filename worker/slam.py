@@ -1,18 +1,18 @@
 """The SLAM system: one object per session, frame in -> pose out, with a 2DGS map behind it.
 
 Three stages, each with its own module and input queue (the Tracking / LocalMapping / LoopClosing split of
-ORB-SLAM3): the tracking stage (worker.engine.tracking_stage, in the caller's thread) tracks each frame, publishes
-its pose at once and hands keyframes on; the mapping stage (worker.engine.mapping_stage, its own thread) maps
-keyframes, shedding work when it falls behind; the loop-closing stage (worker.engine.loop_stage, its own thread)
+ORB-SLAM3): the tracking stage (worker.pipeline.tracking_stage, in the caller's thread) tracks each frame, publishes
+its pose at once and hands keyframes on; the mapping stage (worker.pipeline.mapping_stage, its own thread) maps
+keyframes, shedding work when it falls behind; the loop-closing stage (worker.pipeline.loop_stage, its own thread)
 keeps the pose graph, detects and verifies loops and hands optimised keyframe poses back, which tracking applies as
 a new trajectory revision. Tracking never waits for either. `SlamConfig.threaded=False` runs every stage inline in
 the caller: deterministic.
 
-The session's first frame decides its parts (worker.engine.assembly): the pose source (worker.tracking, chosen by
+The session's first frame decides its parts (worker.pipeline.assembly): the pose source (worker.tracking, chosen by
 `choose_tracking`: the device's poses, RGB-D odometry, visual odometry or the learned model) and where keyframe
-surfels come from (worker.engine.depth_sources: the sensor's depth, multi-view stereo, the model). This module only
+surfels come from (worker.pipeline.depth_sources: the sensor's depth, multi-view stereo, the model). This module only
 assembles them and serves the session's API: push, finish, trajectory, renders, exports, stats and snapshots
-(worker.engine.snapshot).
+(worker.pipeline.snapshot).
 """
 
 from __future__ import annotations
@@ -27,21 +27,21 @@ import torch
 from protocol.limits import MAX_RENDER_SIDE
 from worker.config import SlamConfig
 from worker.data.frame import Frame, FrameResult
-from worker.engine import snapshot
-from worker.engine.assembly import Assembly, assemble, idle_loop_stage
-from worker.engine.depth_registration import DepthRegistration
-from worker.engine.finish import finish_session
-from worker.engine.finish_status import FinishStatus
-from worker.engine.judged_start import JudgedStart
-from worker.engine.keyframes import MotionKeyframeSelector
-from worker.engine.learned_model import custom_model
-from worker.engine.mapping_stage import MappingStage
-from worker.engine.session_camera import SessionCamera
-from worker.engine.session_stats import live_stats, pose_source_choice, session_stats
-from worker.engine.snapshot_future import SnapshotFuture
-from worker.engine.stage_times import StageTimes
-from worker.engine.tracking_stage import TrackingStage
 from worker.geometry import Intrinsics
+from worker.pipeline import snapshot
+from worker.pipeline.assembly import Assembly, assemble, idle_loop_stage
+from worker.pipeline.depth_registration import DepthRegistration
+from worker.pipeline.finish import finish_session
+from worker.pipeline.finish_status import FinishStatus
+from worker.pipeline.judged_start import JudgedStart
+from worker.pipeline.keyframes import MotionKeyframeSelector
+from worker.pipeline.learned_model import custom_model
+from worker.pipeline.mapping_stage import MappingStage
+from worker.pipeline.session_camera import SessionCamera
+from worker.pipeline.session_stats import live_stats, pose_source_choice, session_stats
+from worker.pipeline.snapshot_future import SnapshotFuture
+from worker.pipeline.stage_times import StageTimes
+from worker.pipeline.tracking_stage import TrackingStage
 from worker.tracking.sources import choose_tracking
 
 
@@ -66,7 +66,7 @@ class SlamSystem:
         self.mapping_stage = (MappingStage(self.config.mapping, self.config.threaded, self.config.queue_size,
                                            self.config.device, self.timings) if self.config.mapping.enabled else None)
         self.judged_start = JudgedStart(self.tracking_stage)
-        # Decided by the first frame (worker.engine.assembly): None before it
+        # Decided by the first frame (worker.pipeline.assembly): None before it
         self.parts: Assembly | None = None
         self.tracking = self.mode = self.depth_source = self.model_id = None
         self.learned = self.model = self.loop_closer = self.depth_points = None
@@ -92,7 +92,7 @@ class SlamSystem:
 
     @property
     def loop_stage(self):
-        """The loop-closing stage (worker.engine.loop_stage)."""
+        """The loop-closing stage (worker.pipeline.loop_stage)."""
         return self.tracking_stage.loop_closing
 
     @property
@@ -171,7 +171,7 @@ class SlamSystem:
 
     def finish(self) -> None:
         """Drain the stages (every keyframe mapped, every loop query answered, the corrections applied), run the
-        final refinement, stop the stages' threads (worker.engine.finish)."""
+        final refinement, stop the stages' threads (worker.pipeline.finish)."""
         if self.finished:
             return
         finish_session(self)
@@ -220,7 +220,7 @@ class SlamSystem:
         return self.mapping_stage.to_ply_bytes()
 
     def stats(self) -> dict[str, Any]:
-        """Counters for status pages and metrics (worker.engine.session_stats)."""
+        """Counters for status pages and metrics (worker.pipeline.session_stats)."""
         return session_stats(self)
 
     def live_stats(self) -> dict[str, Any]:
@@ -237,7 +237,7 @@ class SlamSystem:
         return self.begin_snapshot().result()
 
     def begin_snapshot(self, stored_chunks: Mapping[int, int] | None = None) -> SnapshotFuture:
-        """A snapshot of the session as of now, without waiting (worker.engine.snapshot); `result()` gives the bytes
+        """A snapshot of the session as of now, without waiting (worker.pipeline.snapshot); `result()` gives the bytes
         that `restore` takes. With `stored_chunks` (chunk -> version already stored) it is incremental: sealed
         trajectory chunks and large arrays stay out of the bytes, in `future.chunks` (a ChunkWrite)."""
         return snapshot.begin_snapshot(self, stored_chunks)

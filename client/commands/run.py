@@ -1,5 +1,5 @@
 """`flashmono run SOURCE --out DIR`: run the SLAM engine offline on a sequence and write trajectories, the map,
-renders and metrics.json (see worker.engine.offline)."""
+renders and metrics.json (see worker.pipeline.offline)."""
 
 from __future__ import annotations
 
@@ -117,7 +117,7 @@ def run_one(args: argparse.Namespace, source: str, out_dir: str) -> dict:
     its metrics."""
     from tqdm import tqdm
 
-    from worker.engine.offline import PoseDrift, run_sequence
+    from worker.pipeline.offline import PoseDrift, run_sequence
 
     config = load_config(args)
     drift = PoseDrift(*args.drift) if args.drift else None
@@ -151,7 +151,7 @@ FINISH_LABELS = {"mapping": "mapping the last keyframes", "loop_closing": "closi
 
 
 class FinishBars:
-    """One progress bar per phase of the finish (worker.engine.finish_status), with the time left."""
+    """One progress bar per phase of the finish (worker.pipeline.finish_status), with the time left."""
 
     def __init__(self, disable: bool = False) -> None:
         self.disable = disable

@@ -127,7 +127,7 @@ def engine_keyframe_depths(images: list[np.ndarray], poses: list[np.ndarray], K:
     """(keyframe id, surfel z-depth [H, W], 0 where no surfel) of every `every`-th frame, as the engine's keyframe
     depth builds it for posed RGB (multi-view stereo, propagation, with `planes` / `borders` settings)."""
     from worker.depth import MultiViewDepthConfig
-    from worker.engine.depth_sources import MultiViewDepth, StereoBuilder
+    from worker.pipeline.depth_sources import MultiViewDepth, StereoBuilder
 
     builder = StereoBuilder(MultiViewDepthConfig(), propagate=True, planes=planes, borders=borders)
     source = MultiViewDepth(None, buffer_frames=16, frames_after=4, builder=builder)

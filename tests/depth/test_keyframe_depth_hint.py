@@ -9,7 +9,7 @@ import numpy as np
 from scenes import Scene, pinhole, translation
 
 from worker.depth import MultiViewDepthConfig
-from worker.engine.depth_sources import MultiViewDepth, StereoBuilder
+from worker.pipeline.depth_sources import MultiViewDepth, StereoBuilder
 
 W, H = 160, 120
 K = pinhole(W, H)

@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 from test_pose_graph_map_join import NEW_SCALE, RESTART, _scaled, _stage, _tracked, _truth
 
-from worker.engine.loop_stage import MapJoin
 from worker.loop.correction_check import implausible_correction
 from worker.loop.pose_graph import PoseGraphResult
+from worker.pipeline.loop_stage import MapJoin
 
 
 def _sim3(scale: float, t: float = 0.0) -> np.ndarray:

@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from protocol.codec import pack, unpack
-from worker.engine.loop_closer import DepthKeyframePoints
 from worker.geometry import unproject_depth
+from worker.pipeline.loop_closer import DepthKeyframePoints
 
 
 def test_points_come_back_exactly_from_a_snapshot_and_follow_a_new_camera(icl_frames):

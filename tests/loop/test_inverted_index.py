@@ -7,11 +7,11 @@ import pytest
 
 from protocol.codec import pack, unpack
 from worker.config import LoopConfig
-from worker.engine.loop_closer import DepthKeyframePoints, LoopCloser
 from worker.loop.descriptors import OrbDescriptor, default_vocabulary
 from worker.loop.detector import LoopDetector
 from worker.loop.inverted_index import InvertedIndex
 from worker.loop.vocabulary import SparseBag, Vocabulary
+from worker.pipeline.loop_closer import DepthKeyframePoints, LoopCloser
 
 
 @pytest.fixture(scope="module")

@@ -9,9 +9,9 @@ import numpy as np
 import torch
 
 from worker.config import LoopConfig
-from worker.engine.loop_stage import GraphKeyframe, LoopClosingStage
 from worker.geometry import sim3_decompose
 from worker.loop.pose_graph import EdgeSigmas, PosePrior, Sim3PoseGraph
+from worker.pipeline.loop_stage import GraphKeyframe, LoopClosingStage
 from worker.tracking.seeded import DRIFT_PRIOR_LOG_SCALE_SIGMA
 
 KEYFRAMES = 24

@@ -7,8 +7,8 @@ import cv2
 import numpy as np
 
 from worker.config import LoopConfig
-from worker.engine.loop_stage import GraphKeyframe, LoopClosingStage, MapJoin
 from worker.loop.pose_graph import Sim3PoseGraph
+from worker.pipeline.loop_stage import GraphKeyframe, LoopClosingStage, MapJoin
 
 RESTART = 10  # keyframes 0-9: the old map; 10-19: the restarted one
 NEW_SCALE = 0.5  # the restarted map's units: half the old map's

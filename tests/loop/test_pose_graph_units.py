@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from worker.config import LoopConfig
-from worker.engine.loop_stage import GraphKeyframe, LoopClosingStage
 from worker.loop.pose_graph import Sim3PoseGraph
 from worker.loop.synthetic import make_loop_problem
+from worker.pipeline.loop_stage import GraphKeyframe, LoopClosingStage
 
 
 def scaled(pose: np.ndarray, scale: float) -> np.ndarray:

@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 import torch
 
-from worker.engine.loop_closer import DepthKeyframePoints
 from worker.geometry import relative_transform, sim3_decompose, so3_log
 from worker.loop.oracle import load_rgbd_folder
 from worker.loop.pnp import PnPRelocalizer
 from worker.loop.xfeat_matcher import XFeatKeyframeMatcher
+from worker.pipeline.loop_closer import DepthKeyframePoints
 
 
 @pytest.fixture(scope="module")

@@ -164,8 +164,8 @@ def test_the_exposure_of_a_frame_between_keyframes_is_interpolated_and_renders_a
     theirs (log gains linear in the frame index), the ends keep their nearest keyframe's; a render "as captured" at
     a held-out frame under auto-exposure matches its photo where the normalised render does not."""
     from worker.config import MappingConfig as EngineMappingConfig
-    from worker.engine.mapping_stage import MappingStage
     from worker.mapping.exposure import interpolate_exposure
+    from worker.pipeline.mapping_stage import MappingStage
 
     gains = [1.0, 0.75, 0.75, 0.6, 0.6]  # the camera darkens
     stage = MappingStage(EngineMappingConfig(refine_keyframes=3, refine_iterations=15, voxel_cap=0), threaded=False,

@@ -8,7 +8,7 @@ import torch
 from mapping_scene import HEIGHT, WIDTH, camera_pose, intrinsics, psnr, view, voxelized_surfels
 
 from worker.config import MappingConfig
-from worker.engine.mapping_stage import MappingStage
+from worker.pipeline.mapping_stage import MappingStage
 
 POSES = [camera_pose(0.0), camera_pose(0.12), camera_pose(0.24, 0.05), camera_pose(0.1, 0.12)]
 

@@ -8,11 +8,11 @@ import torch
 from mapping_scene import HEIGHT, WIDTH, camera_pose, intrinsics, view, voxelized_surfels
 
 from worker.config import MappingConfig
-from worker.engine.mapping_stage import MappingStage
 from worker.geometry import make_sim3, so3_exp
 from worker.mapping.gaussian_map import corrected_pose, rigid_viewmat
 from worker.mapping.refine import RefineView, refine_surfels
 from worker.mapping.view_poses import ViewPoseCorrections
+from worker.pipeline.mapping_stage import MappingStage
 
 TRUE_POSES = [camera_pose(0.0), camera_pose(0.12), camera_pose(0.24, 0.05), camera_pose(0.1, 0.12)]
 

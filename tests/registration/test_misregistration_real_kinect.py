@@ -13,7 +13,7 @@ import pytest
 from worker.config import SlamConfig
 from worker.data import open_source
 from worker.data.registration import MisregistrationDetector
-from worker.engine.depth_registration import DepthRegistration
+from worker.pipeline.depth_registration import DepthRegistration
 
 DATA = Path(__file__).parents[1] / "data" / "tum_fr1_rpy_mini"
 

@@ -14,8 +14,8 @@ from protocol.codec import pack, unpack
 from service.redis_embedded import EmbeddedRedis
 from worker.config import SlamConfig
 from worker.data.frame import Frame
-from worker.engine.snapshot import flat_snapshot
-from worker.engine.trajectory import Trajectory
+from worker.pipeline.snapshot import flat_snapshot
+from worker.pipeline.trajectory import Trajectory
 from worker.runtime.engine import PassthroughEngine, restore_engine
 from worker.runtime.snapshots import SnapshotWriter, read_snapshot
 from worker.slam import SlamSystem
@@ -135,7 +135,7 @@ def _posed_system() -> SlamSystem:
 
 
 def test_slam_system_chunked_snapshot_restores_and_old_formats_still_do(monkeypatch) -> None:
-    monkeypatch.setattr("worker.engine.trajectory.CHUNK_FRAMES", CHUNK)
+    monkeypatch.setattr("worker.pipeline.trajectory.CHUNK_FRAMES", CHUNK)
     system = _posed_system()
     system.tracking_stage.trajectory.chunk_frames = CHUNK
     frames = _posed_frames(3 * CHUNK + 5)

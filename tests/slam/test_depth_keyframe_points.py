@@ -4,8 +4,8 @@ unprojected on demand, re-projected when the camera is re-estimated, and kept ac
 import torch
 
 from protocol.codec import pack, unpack
-from worker.engine.loop_closer import DepthKeyframePoints
 from worker.geometry import unproject_depth
+from worker.pipeline.loop_closer import DepthKeyframePoints
 
 
 def test_points_come_from_the_depth_and_follow_a_new_camera():

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from worker.engine.drift import PoseDrift
 from worker.geometry import make_sim3, relative_transform, so3_exp, so3_log
+from worker.pipeline.drift import PoseDrift
 
 
 def straight_path(n: int = 40) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""finish() tells where it is (worker.engine.finish_status): the mapping backlog draining, the final refinement's
+"""finish() tells where it is (worker.pipeline.finish_status): the mapping backlog draining, the final refinement's
 steps, an estimate of the time left; `flashmono run` shows it, the worker sends it in `finishing` messages."""
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ import pytest
 
 from worker.config import SlamConfig
 from worker.data import Frame, open_source
-from worker.engine.finish_status import FinishStatus
-from worker.engine.offline import run_sequence
+from worker.pipeline.finish_status import FinishStatus
+from worker.pipeline.offline import run_sequence
 from worker.slam import SlamSystem
 
 DATA = Path(__file__).parents[1] / "data" / "icl_mini"

@@ -1,4 +1,4 @@
-"""Keyframe selection skips a blurred frame when a sharper one follows (worker.engine.keyframes)."""
+"""Keyframe selection skips a blurred frame when a sharper one follows (worker.pipeline.keyframes)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import pytest
 
 from worker.config import SlamConfig
 from worker.data.synthetic import make_sequence
-from worker.engine.keyframes import MotionKeyframeSelector, sharpness
+from worker.pipeline.keyframes import MotionKeyframeSelector, sharpness
 from worker.slam import SlamSystem
 
 BLURRED = 8  # the frame where the selector's every-4 rule asks for a keyframe

@@ -12,8 +12,8 @@ import pytest
 
 from worker.config import SlamConfig
 from worker.data import Frame, open_source
-from worker.engine.keyframes import KeyframeView, MotionKeyframeSelector
 from worker.geometry import Intrinsics
+from worker.pipeline.keyframes import KeyframeView, MotionKeyframeSelector
 from worker.slam import SlamSystem
 
 CAMERA = Intrinsics(160.0, 160.0, 80.0, 60.0, 160, 120)

@@ -13,7 +13,7 @@ import pytest
 from protocol.codec import unpack
 from worker.config import SlamConfig
 from worker.data import Frame, open_source
-from worker.engine.tracking_stage import follow_corrections
+from worker.pipeline.tracking_stage import follow_corrections
 from worker.slam import SlamSystem
 
 SIZE = (80, 60)

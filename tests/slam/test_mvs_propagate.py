@@ -10,8 +10,8 @@ import pytest
 from posed_rgb_run import run_posed_rgb
 
 from worker.data import open_source
-from worker.engine.depth_sources.multiview import PROPAGATED_OPACITY
-from worker.engine.surfel_init import INITIAL_OPACITY
+from worker.pipeline.depth_sources.multiview import PROPAGATED_OPACITY
+from worker.pipeline.surfel_init import INITIAL_OPACITY
 
 DATA = Path(__file__).parents[1] / "data" / "icl_mini"
 

@@ -8,8 +8,8 @@ import numpy as np
 import torch
 
 from worker.data import open_source
-from worker.engine.rgbd_align import refine_relative_pose
 from worker.geometry import make_sim3, relative_transform, so3_exp, unproject_depth
+from worker.pipeline.rgbd_align import refine_relative_pose
 
 ICL = Path(__file__).parents[1] / "data" / "icl_mini"
 

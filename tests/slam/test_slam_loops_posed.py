@@ -11,9 +11,9 @@ import torch
 
 from worker.config import SlamConfig
 from worker.data import open_source
-from worker.engine.drift import PoseDrift
 from worker.eval import absolute_trajectory_error
 from worker.geometry import sim3_decompose
+from worker.pipeline.drift import PoseDrift
 from worker.slam import SlamSystem
 
 ICL = Path(__file__).parents[1] / "data" / "icl_mini"

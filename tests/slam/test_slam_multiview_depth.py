@@ -1,6 +1,6 @@
 """Frames with poses and no depth (a phone without a depth sensor): keyframe surfels come from multi-view stereo on
-the tracked poses (worker.engine.depth_sources.multiview), computed in the backend once later frames give each keyframe
-neighbours; real ICL frames (tests/data/icl_mini), metric depth against the dataset's."""
+the tracked poses (worker.pipeline.depth_sources.multiview), computed in the mapping stage once later frames give each
+keyframe neighbours; real ICL frames (tests/data/icl_mini), metric depth against the dataset's."""
 
 from __future__ import annotations
 

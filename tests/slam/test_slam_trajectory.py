@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from worker.engine.keyframes import MotionKeyframeSelector
-from worker.engine.trajectory import Trajectory
 from worker.geometry import make_sim3, so3_exp
+from worker.pipeline.keyframes import MotionKeyframeSelector
+from worker.pipeline.trajectory import Trajectory
 
 
 def pose(x: float, yaw: float = 0.0, s: float = 1.0) -> np.ndarray:

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from worker.engine.surfel_init import confidence_mask, grid_from_prediction
 from worker.geometry import pixel_grid, unproject_depth
+from worker.pipeline.surfel_init import confidence_mask, grid_from_prediction
 
 H, W = 12, 16
 K = torch.tensor([[20.0, 0.0, 8.0], [0.0, 20.0, 6.0], [0.0, 0.0, 1.0]])

@@ -12,8 +12,8 @@ import pytest
 from protocol.codec import pack, unpack
 from worker.data import open_source
 from worker.data.sources.pingpong import sweep_order
-from worker.engine.keyframes import MotionKeyframeSelector
 from worker.eval import absolute_trajectory_error
+from worker.pipeline.keyframes import MotionKeyframeSelector
 from worker.tracking.rgbd_config import RgbdOdometryConfig
 from worker.tracking.rgbd_odometry import RgbdOdometry
 

@@ -12,8 +12,8 @@ import pytest
 from worker.config import SlamConfig
 from worker.data import open_source
 from worker.data.frame import Frame
-from worker.engine.drift import PoseDrift
 from worker.eval import absolute_trajectory_error
+from worker.pipeline.drift import PoseDrift
 from worker.slam import SlamSystem
 from worker.tracking.base import TrackingResult
 from worker.tracking.seeded import DRIFT_PRIOR_LOG_SCALE_SIGMA, SeededTracking

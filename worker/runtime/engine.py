@@ -18,8 +18,8 @@ import numpy as np
 
 from protocol.codec import pack, unpack
 from worker.data.frame import Frame, FrameResult
-from worker.engine.snapshot_chunks import ChunkWrite, chunk_versions
 from worker.geometry import Intrinsics
+from worker.pipeline.snapshot_chunks import ChunkWrite, chunk_versions
 from worker.settings_choice import Machine, SessionInput, choose_settings
 
 ENGINE_KINDS = ("slam", "passthrough")
@@ -110,8 +110,8 @@ def warm_up(kind: str) -> None:
     import torch
 
     for module in ("worker.slam", "worker.tracking.rgbd_odometry", "worker.tracking.visual_odometry",
-                   "worker.engine.mapping_stage", "worker.engine.loop_stage", "worker.engine.loop_closer",
-                   "worker.engine.depth_sources.multiview", "worker.loop.pose_graph"):
+                   "worker.pipeline.mapping_stage", "worker.pipeline.loop_stage", "worker.pipeline.loop_closer",
+                   "worker.pipeline.depth_sources.multiview", "worker.loop.pose_graph"):
         importlib.import_module(module)
     for kernels in ("worker.mapping.raster_cpu", "worker.depth.mvs_cpu", "worker.tracking.dense_native",
                     "worker.tracking.schur_native"):

@@ -1,7 +1,7 @@
 """Progress while a session finishes: the engine's final refinement can take a minute, so the runner posts
 {"type": "finishing", "elapsed_s", "phase", "done", "total", "eta_s"} to the session's outbox when `finish` starts
 and every `every_s` seconds until it ends (the phase and its progress where the engine reports them:
-`worker.engine.finish_status`). Clients see the server is working (and their idle timeouts restart) and how long
+`worker.pipeline.finish_status`). Clients see the server is working (and their idle timeouts restart) and how long
 it will take, instead of a silent stream."""
 
 from __future__ import annotations

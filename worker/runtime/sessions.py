@@ -25,8 +25,8 @@ from protocol.codec import pack, unpack
 from protocol.messages import ErrorCode, ErrorMessage, FinishedMessage, PoseMessage, SkippedMessage
 from protocol.poses import similarity_scale
 from worker.data.frame import Frame
-from worker.engine.snapshot_chunks import ChunkWrite
 from worker.geometry import Intrinsics
+from worker.pipeline.snapshot_chunks import ChunkWrite
 from worker.runtime.engine import SessionEngine, close_engine, create_engine, engine_intrinsics, restore_engine
 from worker.runtime.failpoints import failpoint
 from worker.runtime.finish_requests import RequestsWhileFinishing

@@ -1,7 +1,7 @@
 """A session's engine snapshot in Redis: the bytes in `keys.snapshot` and, for an incremental snapshot, the
 manifest of what it keeps outside (field `chunks`, JSON: trajectory chunks, array digests) with those parts in
 `keys.snapshot_chunks` (field `<n>`: trajectory chunk n, each written once or again at a new version; field
-`a:<digest>`: an array, written once; see worker.engine.snapshot_chunks). A snapshot, the parts it adds and the
+`a:<digest>`: an array, written once; see worker.pipeline.snapshot_chunks). A snapshot, the parts it adds and the
 removal of the arrays it no longer names happen in one Lua call fenced on the lease, so the parts in Redis always
 match the newest snapshot; a self-contained snapshot (finish, abandon) drops them all.
 """
@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import redis
 
 from protocol import keys
-from worker.engine.snapshot_chunks import ChunkWrite, chunk_versions
+from worker.pipeline.snapshot_chunks import ChunkWrite, chunk_versions
 
 # KEYS: snapshot, inbox, lease, session record, parts; ARGV: worker, data, seq, stream id, engine, created_at,
 # manifest ('' for a self-contained snapshot), n (count of field/bytes arguments), the fields and bytes to write,

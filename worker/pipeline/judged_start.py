@@ -13,8 +13,8 @@ from typing import Any
 import numpy as np
 
 from worker.data.frame import Frame, FrameResult
-from worker.engine.tracking_stage import TrackingStage
 from worker.geometry import Intrinsics
+from worker.pipeline.tracking_stage import TrackingStage
 
 
 class JudgedStart:

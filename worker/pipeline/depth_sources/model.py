@@ -15,11 +15,11 @@ import torch
 
 from worker.config import FrontendConfig
 from worker.data.frame import Frame
-from worker.engine.depth_sources.base import DepthSource
-from worker.engine.map_jobs import KeyframeJob
-from worker.engine.stage_times import StageTimes
-from worker.engine.surfel_init import grid_from_prediction
 from worker.geometry import Intrinsics
+from worker.pipeline.depth_sources.base import DepthSource
+from worker.pipeline.map_jobs import KeyframeJob
+from worker.pipeline.stage_times import StageTimes
+from worker.pipeline.surfel_init import grid_from_prediction
 from worker.tracking.base import TrackingResult
 from worker.tracking.sources import ModelTracking
 

@@ -20,8 +20,8 @@ import numpy as np
 
 from worker.config import SlamConfig
 from worker.data.frame import Frame
-from worker.engine.drift import PoseDrift
 from worker.geometry import se3_part
+from worker.pipeline.drift import PoseDrift
 
 MAX_SAVED_RENDERS = 12
 # Frames whose image and depth are held for the rendering metrics: every k-th, k chosen to hold at most this many

@@ -5,15 +5,15 @@
 - "model" (`ModelSurfels`): the learned model's prediction (with the frames' depth for the means when they carry
   it and `input.surfel_init` is "model", or when the poses are the model's own).
 
-Each owns the keyframe jobs it made until the mapping stage takes them; jobs are data (worker.engine.map_jobs).
+Each owns the keyframe jobs it made until the mapping stage takes them; jobs are data (worker.pipeline.map_jobs).
 """
 
 from __future__ import annotations
 
-from worker.engine.depth_sources.base import DepthSource
-from worker.engine.depth_sources.model import ModelSurfels
-from worker.engine.depth_sources.multiview import MultiViewDepth, StereoBuilder
-from worker.engine.depth_sources.sensor import SensorDepth
+from worker.pipeline.depth_sources.base import DepthSource
+from worker.pipeline.depth_sources.model import ModelSurfels
+from worker.pipeline.depth_sources.multiview import MultiViewDepth, StereoBuilder
+from worker.pipeline.depth_sources.sensor import SensorDepth
 
 __all__ = ["DepthSource", "ModelSurfels", "MultiViewDepth", "SensorDepth", "StereoBuilder", "choose_depth_source"]
 

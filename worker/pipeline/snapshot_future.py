@@ -21,7 +21,7 @@ class SnapshotFuture:
         self._assemble = assemble
         self._done = threading.Event()
         self._lock = threading.Lock()
-        self.chunks: Any = None  # what a chunked snapshot keeps outside its bytes (worker.engine.trajectory.ChunkWrite)
+        self.chunks: Any = None  # what a chunked snapshot keeps outside its bytes (a ChunkWrite)
         if not self._missing:
             self._done.set()
 

@@ -16,7 +16,6 @@ import numpy as np
 import torch
 
 from worker.config import LoopConfig
-from worker.engine.stage_times import StageTimes
 from worker.geometry import Intrinsics, unproject_depth
 from worker.loop.descriptors import EncoderGeMDescriptor, OrbDescriptor, OrbFeatures
 from worker.loop.detector import LoopDetector
@@ -24,6 +23,7 @@ from worker.loop.pnp import PnPRelocalizer
 from worker.loop.relocalize import LoopConstraint
 from worker.loop.vocabulary import SparseBag
 from worker.loop.xfeat_matcher import XFeatKeyframeMatcher
+from worker.pipeline.stage_times import StageTimes
 
 
 class DepthKeyframePoints:

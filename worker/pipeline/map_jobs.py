@@ -1,7 +1,7 @@
 """The mapping stage's work items (keyframe jobs, pose updates) and the map it builds with the engine's settings.
 
 Jobs are data (arrays and numbers, no closures): a snapshot can carry the ones still waiting, and any process can
-build them. The stage itself (its queue, thread and load shedding) is worker.engine.mapping_stage.
+build them. The stage itself (its queue, thread and load shedding) is worker.pipeline.mapping_stage.
 """
 
 from __future__ import annotations
@@ -47,9 +47,9 @@ class StereoViews:
 @dataclass
 class KeyframeJob:
     """One keyframe for the map: pose c2w (Sim(3)), K at the grid's resolution, image float [H,W,3] in [0,1],
-    the per-pixel camera-frame surfel grid (see worker.engine.surfel_init) and the depth used to check renders.
+    the per-pixel camera-frame surfel grid (see worker.pipeline.surfel_init) and the depth used to check renders.
 
-    An empty `grid` is built in the mapping stage: from `views` (multi-view stereo, worker.engine.depth_sources.
+    An empty `grid` is built in the mapping stage: from `views` (multi-view stereo, worker.pipeline.depth_sources.
     multiview) or else from `depth` (the sensor's). `query_loops`: the built keyframe goes on to loop closing."""
 
     kf_id: int

@@ -21,12 +21,12 @@ import numpy as np
 import torch
 
 from worker.config import LoopConfig
-from worker.engine.loop_closer import DepthKeyframePoints, LoopCloser
-from worker.engine.stage_thread import QueuedStage, StageThread
-from worker.engine.stage_times import StageTimes
 from worker.geometry import Intrinsics, se3_part
 from worker.loop.correction_check import implausible_correction
 from worker.loop.pose_graph import PosePrior, Sim3PoseGraph
+from worker.pipeline.loop_closer import DepthKeyframePoints, LoopCloser
+from worker.pipeline.stage_thread import QueuedStage, StageThread
+from worker.pipeline.stage_times import StageTimes
 
 log = logging.getLogger(__name__)
 
@@ -222,7 +222,7 @@ class LoopClosingStage(QueuedStage):
         maps do not fit together (too few close points or a large residual)."""
         if not self.cfg.depth_alignment or intrinsics is None:
             return relative
-        from worker.engine.rgbd_align import refine_relative_pose
+        from worker.pipeline.rgbd_align import refine_relative_pose
 
         points_i, _ = self.depth_points.keyframe_points(i)
         points_j, _ = self.depth_points.keyframe_points(j)

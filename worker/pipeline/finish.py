@@ -1,6 +1,6 @@
 """The end of a session: every stage drained, the last loops applied, the final refinement, in phases a user sees.
 
-Phases (worker.engine.finish_status): `mapping` (the newest view joins the map; the depth source's last jobs and the
+Phases (worker.pipeline.finish_status): `mapping` (the newest view joins the map; the depth source's last jobs and the
 backlog are mapped), `loop_closing` (every loop query answered; the corrections applied to the trajectory and the
 map), `refining` (the final refinement of the whole map, within `final_refine_budget_s`; with
 `final_refine_poses` the keyframes' cameras too, which the trajectory then follows), `done`.
@@ -13,8 +13,8 @@ from typing import Any
 
 import numpy as np
 
-from worker.engine.session_parts import SessionParts
-from worker.engine.session_stats import pose_source_choice
+from worker.pipeline.session_parts import SessionParts
+from worker.pipeline.session_stats import pose_source_choice
 
 
 def finish_session(system: SessionParts) -> None:

@@ -8,13 +8,13 @@ from typing import Any
 import numpy as np
 
 from worker.data.frame import Frame
-from worker.engine.map_jobs import KeyframeJob
 from worker.geometry import Intrinsics
+from worker.pipeline.map_jobs import KeyframeJob
 from worker.tracking.base import TrackingResult
 
 
 class DepthSource:
-    """Where a session's keyframe surfels come from (see worker.engine.depth_sources). It sees every frame
+    """Where a session's keyframe surfels come from (see worker.pipeline.depth_sources). It sees every frame
     (`observe`) and every keyframe (`add_keyframe`), owns the jobs it made until mapping takes them (`jobs`), and
     moves them with loop corrections (`move`). Jobs are data: `state_dict` carries the waiting ones."""
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from worker.engine.depth_sources import ModelSurfels
-from worker.engine.session_parts import SessionParts
+from worker.pipeline.depth_sources import ModelSurfels
+from worker.pipeline.session_parts import SessionParts
 
 LIVE_MAPPING_KEYS = ("mapping_lag_keyframes", "mapping_lag_s", "keyframes_shed", "keyframes_owed",
                      "keyframes_caught_up")

@@ -1,7 +1,7 @@
 """A session's parts, assembled at its first frame once what the frames carry is known.
 
 From the pose source's name and whether the frames carry depth: where keyframe surfels come from (a depth source,
-worker.engine.depth_sources), the learned model where anything needs it, the pose source (worker.tracking.factory),
+worker.pipeline.depth_sources), the learned model where anything needs it, the pose source (worker.tracking.factory),
 the loop closer and the keyframe points it verifies with, and a loop-closing stage with a pose graph whose scale is
 fixed when poses and depth are metric. The parts are wired to each other here and nowhere else.
 """
@@ -15,7 +15,8 @@ from typing import Any
 from worker.config import SlamConfig
 from worker.depth.border_planes import BorderSettings
 from worker.depth.world_planes import PlaneSettings
-from worker.engine.depth_sources import (
+from worker.loop.pose_graph import DEFAULT_SIGMAS, EdgeSigmas, Sim3PoseGraph
+from worker.pipeline.depth_sources import (
     DepthSource,
     ModelSurfels,
     MultiViewDepth,
@@ -23,13 +24,12 @@ from worker.engine.depth_sources import (
     StereoBuilder,
     choose_depth_source,
 )
-from worker.engine.learned_model import LearnedModel, load_model
-from worker.engine.loop_closer import DepthKeyframePoints, LoopCloser
-from worker.engine.loop_stage import LoopClosingStage
-from worker.engine.mapping_stage import MappingStage
-from worker.engine.stage_times import StageTimes
-from worker.engine.tracking_stage import TrackingStage
-from worker.loop.pose_graph import DEFAULT_SIGMAS, EdgeSigmas, Sim3PoseGraph
+from worker.pipeline.learned_model import LearnedModel, load_model
+from worker.pipeline.loop_closer import DepthKeyframePoints, LoopCloser
+from worker.pipeline.loop_stage import LoopClosingStage
+from worker.pipeline.mapping_stage import MappingStage
+from worker.pipeline.stage_times import StageTimes
+from worker.pipeline.tracking_stage import TrackingStage
 from worker.tracking.factory import build_pose_source
 
 log = logging.getLogger(__name__)
@@ -100,7 +100,7 @@ def assemble(config: SlamConfig, tracking: str, with_depth: bool, stage: Trackin
 
 def _multiview(config: SlamConfig, stage: TrackingStage, mapping: MappingStage, model: Any) -> MultiViewDepth:
     """Multi-view stereo: the frame ring in tracking, the builder in mapping."""
-    from worker.engine.model_depth import ModelDepth
+    from worker.pipeline.model_depth import ModelDepth
 
     cfg = config.input
     fill = ModelDepth(model, config.frontend.long_side).depth if cfg.mvs_fill == "model" else None

@@ -6,16 +6,16 @@ from __future__ import annotations
 from typing import Any, Protocol
 
 from worker.config import SlamConfig
-from worker.engine.finish_status import FinishStatus
-from worker.engine.judged_start import JudgedStart
-from worker.engine.learned_model import LearnedModel
-from worker.engine.loop_closer import LoopCloser
-from worker.engine.loop_stage import LoopClosingStage
-from worker.engine.mapping_stage import MappingStage
-from worker.engine.session_camera import SessionCamera
-from worker.engine.stage_times import StageTimes
-from worker.engine.tracking_stage import TrackingStage
 from worker.geometry import Intrinsics
+from worker.pipeline.finish_status import FinishStatus
+from worker.pipeline.judged_start import JudgedStart
+from worker.pipeline.learned_model import LearnedModel
+from worker.pipeline.loop_closer import LoopCloser
+from worker.pipeline.loop_stage import LoopClosingStage
+from worker.pipeline.mapping_stage import MappingStage
+from worker.pipeline.session_camera import SessionCamera
+from worker.pipeline.stage_times import StageTimes
+from worker.pipeline.tracking_stage import TrackingStage
 
 
 class SessionParts(Protocol):

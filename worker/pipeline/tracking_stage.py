@@ -1,8 +1,8 @@
 """The tracking stage (ORB-SLAM's Tracking in our terms): frames in, each frame's pose out at once.
 
 In the caller's thread, per frame (`process`): the session's pose source (worker.tracking: device poses, RGB-D
-odometry, visual odometry or the model) -> its events (worker.engine.pose_events) -> the depth source sees the frame
-(worker.engine.depth_sources) -> the keyframe decision (the source's hint, else the motion selector) -> the
+odometry, visual odometry or the model) -> its events (worker.pipeline.pose_events) -> the depth source sees the frame
+(worker.pipeline.depth_sources) -> the keyframe decision (the source's hint, else the motion selector) -> the
 trajectory, which ties every frame to its reference keyframe. A new keyframe goes to the loop-closing stage as a
 pose-graph node with its odometry edge, to the depth source, whose jobs go on to the mapping stage as they are
 ready, and, as a loop query, to loop closing (or from mapping, once it has built the keyframe's multi-view depth).
@@ -22,16 +22,16 @@ import numpy as np
 import torch
 
 from worker.data.frame import Frame, FrameResult
-from worker.engine.depth_sources.base import DepthSource
-from worker.engine.keyframes import MotionKeyframeSelector
-from worker.engine.loop_stage import GraphKeyframe, LoopClosingStage, LoopQuery
-from worker.engine.map_jobs import PoseUpdateJob
-from worker.engine.mapping_stage import MappingStage
-from worker.engine.pose_events import PoseEvents
-from worker.engine.session_camera import SessionCamera
-from worker.engine.stage_times import StageTimes
-from worker.engine.trajectory import Trajectory
 from worker.geometry import Intrinsics, sim3_inverse
+from worker.pipeline.depth_sources.base import DepthSource
+from worker.pipeline.keyframes import MotionKeyframeSelector
+from worker.pipeline.loop_stage import GraphKeyframe, LoopClosingStage, LoopQuery
+from worker.pipeline.map_jobs import PoseUpdateJob
+from worker.pipeline.mapping_stage import MappingStage
+from worker.pipeline.pose_events import PoseEvents
+from worker.pipeline.session_camera import SessionCamera
+from worker.pipeline.stage_times import StageTimes
+from worker.pipeline.trajectory import Trajectory
 from worker.tracking.base import TrackingResult
 
 # The counter each kind of correction counts in.

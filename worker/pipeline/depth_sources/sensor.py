@@ -8,9 +8,9 @@ import numpy as np
 import torch
 
 from worker.data.frame import Frame
-from worker.engine.depth_sources.base import DepthSource
-from worker.engine.map_jobs import KeyframeJob
-from worker.engine.session_camera import SessionCamera
+from worker.pipeline.depth_sources.base import DepthSource
+from worker.pipeline.map_jobs import KeyframeJob
+from worker.pipeline.session_camera import SessionCamera
 from worker.tracking.base import TrackingResult
 
 log = logging.getLogger(__name__)

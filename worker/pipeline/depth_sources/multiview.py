@@ -32,11 +32,11 @@ from worker.depth.border_planes import BorderSettings, fill_from_borders
 from worker.depth.hole_fill import HoleFillSettings, fill_depth
 from worker.depth.neighbours import looked_at_depth
 from worker.depth.world_planes import PlaneMemory, PlaneSettings, fill_from_planes, image_regions
-from worker.engine.depth_sources.base import DepthSource
-from worker.engine.map_jobs import KeyframeJob, StereoViews
-from worker.engine.session_camera import SessionCamera
-from worker.engine.surfel_init import grid_from_depth
 from worker.geometry import Intrinsics, se3_part
+from worker.pipeline.depth_sources.base import DepthSource
+from worker.pipeline.map_jobs import KeyframeJob, StereoViews
+from worker.pipeline.session_camera import SessionCamera
+from worker.pipeline.surfel_init import grid_from_depth
 from worker.tracking.base import TrackingResult
 
 log = logging.getLogger(__name__)

@@ -18,12 +18,12 @@ import numpy as np
 import torch
 
 from protocol.codec import pack, unpack
-from worker.engine.depth_sources import ModelSurfels, MultiViewDepth
-from worker.engine.loop_stage import LoopQuery
-from worker.engine.session_parts import SessionParts
-from worker.engine.snapshot_future import SnapshotFuture
-from worker.engine.trajectory import Trajectory
 from worker.geometry import Intrinsics
+from worker.pipeline.depth_sources import ModelSurfels, MultiViewDepth
+from worker.pipeline.loop_stage import LoopQuery
+from worker.pipeline.session_parts import SessionParts
+from worker.pipeline.snapshot_future import SnapshotFuture
+from worker.pipeline.trajectory import Trajectory
 
 SNAPSHOT_FORMAT = "flashmono.slam/2"
 SNAPSHOT_FORMATS = ("flashmono.slam/1", SNAPSHOT_FORMAT)
@@ -70,8 +70,8 @@ def tracking_state(system: SessionParts, trajectory: dict[str, Any] | None = Non
 def restore(cls: type, data: bytes, chunks: Mapping[int | str, bytes] | None = None) -> Any:
     """A system of class `cls` (worker.slam.SlamSystem) continuing from snapshot bytes (see its `restore`)."""
     from worker.config import SlamConfig
-    from worker.engine.assembly import TRACKING_OF_MODE
     from worker.loop.bag import HiddenStateBag
+    from worker.pipeline.assembly import TRACKING_OF_MODE
 
     chunks = chunks or {}
     state = flat_snapshot(unpack(data), {k: v for k, v in chunks.items() if isinstance(k, str)})

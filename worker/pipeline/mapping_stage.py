@@ -29,21 +29,21 @@ import torch
 
 from protocol.codec import pack
 from worker.config import MappingConfig
-from worker.engine.depth_sources.multiview import StereoBuilder
-from worker.engine.loop_stage import LoopQuery
-from worker.engine.map_jobs import (
+from worker.geometry import Intrinsics, sim3_inverse
+from worker.mapping.exposure import apply_exposure
+from worker.mapping.voxelize import voxelize
+from worker.pipeline.depth_sources.multiview import StereoBuilder
+from worker.pipeline.loop_stage import LoopQuery
+from worker.pipeline.map_jobs import (
     KeyframeJob,
     PoseUpdateJob,
     build_gaussian_map,
     fusion_thresholds,
     unmerged_surfels,
 )
-from worker.engine.stage_thread import QueuedStage, StageThread
-from worker.engine.stage_times import StageTimes
-from worker.engine.surfel_init import grid_from_depth
-from worker.geometry import Intrinsics, sim3_inverse
-from worker.mapping.exposure import apply_exposure
-from worker.mapping.voxelize import voxelize
+from worker.pipeline.stage_thread import QueuedStage, StageThread
+from worker.pipeline.stage_times import StageTimes
+from worker.pipeline.surfel_init import grid_from_depth
 
 SHED_KINDS = ("reduced", "merge_only", "dropped")
 # How long the final refinement waits, between two steps, for readers to take the lock before it goes on (only a

@@ -10,8 +10,8 @@ from dataclasses import dataclass
 
 import torch
 
-from worker.engine.surfel_init import depth_normals
 from worker.geometry import make_sim3, so3_exp
+from worker.pipeline.surfel_init import depth_normals
 
 
 @dataclass

@@ -22,8 +22,8 @@ import numpy as np
 import torch
 
 from protocol.codec import pack, unpack
-from worker.engine.snapshot_chunks import ChunkWrite, chunk_versions
 from worker.geometry import nearest_sim3, sim3_blend, sim3_inverse
+from worker.pipeline.snapshot_chunks import ChunkWrite, chunk_versions
 
 CHUNK_FRAMES = 256  # frame records per sealed chunk
 FRAME_COLUMNS = ("index", "timestamp", "keyframe", "relative", "is_keyframe", "submap_id")

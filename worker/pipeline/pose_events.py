@@ -16,9 +16,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from worker.engine.loop_stage import CameraUpdate, MapJoin
-from worker.engine.trajectory import Trajectory
 from worker.geometry import Intrinsics, sim3_inverse
+from worker.pipeline.loop_stage import CameraUpdate, MapJoin
+from worker.pipeline.trajectory import Trajectory
 
 
 class PoseEvents:
