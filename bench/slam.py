@@ -56,8 +56,8 @@ def main(argv: list[str]) -> int:
         # the same with the map built alongside (loop corrections move its surfels): end-to-end FPS of the mode
         "driftmap": dict(config=SlamConfig.preset(args.preset or "rgbd", loop=LOOPS, input={"pose_mode": "prior"}),
                          use_gt_depth=True, use_gt_poses=True, drift=PoseDrift(**DRIFT, seed=args.drift_seed)),
-        "mono": dict(config=SlamConfig.preset(args.preset or "fast", frontend={"checkpoint": args.checkpoint,
-                                                                              "tracking": "model"}),
+        "mono": dict(config=SlamConfig.preset(args.preset or "fast", frontend={"checkpoint": args.checkpoint},
+                                              tracking={"source": "model"}),
                      use_gt_depth=False, use_gt_poses=False),
         # depth without poses: RGB-D odometry + loop closure, mapped like the posed mode
         "rgbd_odometry": dict(config=SlamConfig.preset(args.preset or "rgbd"), use_gt_depth=True,

@@ -1,7 +1,7 @@
 """SlamConfig: every knob of the SLAM engine, typed and validated, with the paper's defaults and named presets.
 
-Sections follow the system's parts: `frontend` (pose source, model, image size, submaps, keyframes), `tracking`
-(the geometric pose sources), `depth` (multi-view depth for frames without depth), `loop` (detection,
+Sections follow the system's parts: `frontend` (model, image size, submaps, keyframes), `tracking`
+(the pose source and the geometric ones), `depth` (multi-view depth for frames without depth), `loop` (detection,
 relocalization, pose graph), `mapping` (voxelization, fusion, refinement) and `input` (how given depth and poses
 are used). `SlamConfig.preset(name)` gives "paper" (the paper's settings), "default" (paper settings with the
 default model), "fast" (CPU-friendly), "rgbd" (RGB-D input on a CPU) and "test" (tiny and quick, for unit tests).
@@ -13,7 +13,7 @@ import logging
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from worker.data.registration_config import DepthCameraConfig
 from worker.depth.config import MultiViewDepthConfig
@@ -31,12 +31,7 @@ class _Section(BaseModel):
 
 
 class FrontendConfig(_Section):
-    """The pose source, the feed-forward model and submap tracking (paper 4.1, ablation 5.5)."""
-
-    tracking: Literal["auto", "device", "rgbd_odometry", "visual_odometry", "model"] = Field(
-        "auto", description="pose source: auto = the frames' poses when they carry them, else RGB-D odometry with "
-        "depth, else visual odometry (the learned model instead of the odometries when a model other than the "
-        "shipped synthetic one is configured)")
+    """The feed-forward model and submap tracking (paper 4.1, ablation 5.5)."""
 
     model: str = Field("tiny", description="model config name for worker.frontend.build_model")
     checkpoint: str | None = Field(None, description="safetensors checkpoint; None = the shipped default if present")
@@ -257,8 +252,12 @@ class InputConfig(_Section):
 
 
 class TrackingConfig(_Section):
-    """Settings of the geometric pose sources."""
+    """The pose source and the settings of the geometric ones."""
 
+    source: Literal["auto", "device", "rgbd_odometry", "visual_odometry", "model"] = Field(
+        "auto", description="pose source: auto = the frames' poses when they carry them, else RGB-D odometry with "
+        "depth, else visual odometry (the learned model instead of the odometries when a model other than the "
+        "shipped synthetic one is configured)")
     rgbd: RgbdOdometryConfig = Field(default_factory=RgbdOdometryConfig)
     visual: VisualOdometryConfig = Field(default_factory=VisualOdometryConfig)
     max_side: int = Field(
@@ -283,6 +282,17 @@ class SlamConfig(_Section):
         "dropped from the map, oldest first (tracking never waits for mapping)")
     device: str = Field("cpu", pattern=r"^(cpu|cuda(:\d+)?)$")
     num_threads: int = Field(2, ge=1, le=256, description="torch intra-op threads")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _pose_source_moved(cls, data: Any) -> Any:
+        """`frontend.tracking` (configs and snapshots of earlier versions) is `tracking.source` now."""
+        if isinstance(data, dict) and isinstance(data.get("frontend"), dict) and "tracking" in data["frontend"]:
+            frontend = dict(data["frontend"])
+            tracking = dict(data.get("tracking") or {})
+            tracking.setdefault("source", frontend.pop("tracking"))
+            data = {**data, "frontend": frontend, "tracking": tracking}
+        return data
 
     @classmethod
     def preset(cls, name: str, **overrides: Any) -> SlamConfig:

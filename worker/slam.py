@@ -161,7 +161,7 @@ class SlamSystem:
             posed = frame.pose is not None and self.config.input.pose_mode != "ignore"
             with_depth = frame.depth is not None and self.config.input.use_depth
             self.camera.frame_size = size
-            self.setup(choose_tracking(self.config.frontend.tracking, frame, posed, with_depth,
+            self.setup(choose_tracking(self.config.tracking.source, frame, posed, with_depth,
                                        custom_model(self.config)), with_depth)
         elif size != self.camera.frame_size:
             raise ValueError(f"frame {frame.index} is {size[0]}x{size[1]}, the session's frames are "

@@ -130,7 +130,7 @@ def _posed_system() -> SlamSystem:
     from worker.geometry import Intrinsics
 
     config = SlamConfig.preset("test", mapping={"enabled": False}, loop={"enabled": False},
-                               frontend={"tracking": "device", "keyframe_every": 10**6})
+                               tracking={"source": "device"}, frontend={"keyframe_every": 10**6})
     return SlamSystem(config, intrinsics=Intrinsics(30.0, 30.0, 16.0, 12.0, 32, 24))
 
 

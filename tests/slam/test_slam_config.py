@@ -59,3 +59,15 @@ def test_paper_preset_keeps_the_paper_mapping_and_rgbd_preset_is_its_own() -> No
     assert not rgbd.mapping.prune and rgbd.mapping.tau_accum == 0.95 and rgbd.input.surfel_init == "depth"
     assert paper.mapping.final_refine_passes == 0 and paper.mapping.archived_images == 0  # the paper has none
     assert rgbd.mapping.final_refine_passes > 0 and rgbd.mapping.archived_images > 0
+
+
+def test_the_pose_source_of_earlier_configs_moves_to_tracking_source() -> None:
+    # configs and snapshots of earlier versions named it `frontend.tracking`
+    old = SlamConfig.preset("rgbd").model_dump(mode="json")
+    old["frontend"]["tracking"] = "visual_odometry"
+    del old["tracking"]["source"]
+    config = SlamConfig.from_dict(old)
+    assert config.tracking.source == "visual_odometry" and "tracking" not in config.frontend.model_dump()
+    assert SlamConfig.preset("rgbd", frontend={"tracking": "device"}).tracking.source == "device"
+    with pytest.raises(ValueError, match="tracking"):
+        SlamConfig.preset("rgbd", tracking={"source": "teleport"})

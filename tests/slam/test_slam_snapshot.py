@@ -36,7 +36,7 @@ print(json.dumps({"poses": [p.tolist() for _, _, p in system.trajectory("all")],
 
 
 def config() -> SlamConfig:
-    return SlamConfig.preset("test", frontend={"submap_size": 3, "tracking": "model"},
+    return SlamConfig.preset("test", frontend={"submap_size": 3}, tracking={"source": "model"},
                              mapping={"refine_iterations": 1})
 
 

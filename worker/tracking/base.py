@@ -1,7 +1,7 @@
 """What every pose source returns, and the protocol it implements.
 
 A pose source turns a frame into a camera-to-world pose: the device's own poses, dense RGB-D odometry, monocular
-visual odometry or the learned submap tracker. `SlamSystem` picks one per session (`frontend.tracking`) and the rest
+visual odometry or the learned submap tracker. `SlamSystem` picks one per session (`tracking.source`) and the rest
 of the pipeline (keyframes, loop closure, pose graph, map) sees only a `TrackingResult`.
 """
 
