@@ -142,7 +142,7 @@ async def takeovers(stack: LocalStack, kills: int, fps: float, settle_s: float =
     """Kill the owner of one stream `kills` times; per kill the pose gap and the new owner's phases."""
     import redis as redis_client
 
-    from bench.live import _process_of, takeover_phases
+    from bench.takeover import process_of, takeover_phases
     from protocol import keys
 
     r = redis_client.Redis.from_url(stack.redis_url)
@@ -157,7 +157,7 @@ async def takeovers(stack: LocalStack, kills: int, fps: float, settle_s: float =
             await asyncio.to_thread(stack.wait_ready, 300, len(stack.workers))
             r.hdel(keys.session(sid), "takeover")
             owner = r.get(keys.lease(sid)).decode()  # the lease holder: the owner right now
-            victim = _process_of(owner, stack.workers)
+            victim = process_of(owner, stack.workers)
             killed, killed_wall = time.monotonic(), time.time()
             victim.send_signal(signal.SIGKILL)
             await asyncio.to_thread(victim.wait)

@@ -28,7 +28,6 @@ import asyncio
 import collections
 import json
 import os
-import signal
 import tempfile
 import textwrap
 import time
@@ -39,6 +38,7 @@ from typing import Any
 import numpy as np
 
 from bench.record import JOURNAL_INBOX, Recorder
+from bench.takeover import kill_when, takeover_phases
 
 ROOT = Path(__file__).resolve().parent.parent
 MINI = ROOT / "tests" / "data" / "icl_mini"
@@ -354,65 +354,13 @@ async def _map_while_finishing(run: LiveRun, http, sid: str, out: dict) -> None:
 
 
 async def _kill_when_running(run: LiveRun, sent: int, stack, http, sid: str, out: dict, min_poses: int = 5) -> None:
-    """Once `sent` frames are on the wire and poses are flowing (`min_poses` received), kill the owning worker."""
-    while True:
-        on_wire = sum(f.sent is not None for f in run.frames)
-        posed = sum(f.pose is not None for f in run.frames)
-        if on_wire >= sent and posed >= min_poses:
-            break
-        await asyncio.sleep(0.05)
-    out["at_frame_sent"] = on_wire
-    out["poses_before"] = posed
-    await _kill_owner(stack, http, sid, out)
+    """Once `sent` frames are on the wire and poses are flowing (`min_poses` received), kill the owning worker and
+    start a new one at once (what `flashmono serve` does)."""
 
+    def progress() -> tuple[int, int]:
+        return sum(f.sent is not None for f in run.frames), sum(f.pose is not None for f in run.frames)
 
-async def _kill_owner(stack, http, sid: str, out: dict) -> None:
-    """SIGKILL the worker owning the session and start a new one at once (what `flashmono serve` does)."""
-    owner = (await http.get(f"/v1/sessions/{sid}")).json().get("worker")
-    victim = stack.workers[0] if len(stack.workers) == 1 else _process_of(owner, stack.workers)
-    out["at"] = time.monotonic()
-    out["at_wall"] = time.time()
-    out["owner"] = owner
-    victim.send_signal(signal.SIGKILL)
-    await asyncio.to_thread(victim.wait)
-    stack.workers.remove(victim)
-    stack.add_worker()
-
-
-def takeover_phases(redis_url: str, sid: str, killed_at: float) -> dict[str, Any] | None:
-    """Where the kill gap went, from the new owner's `takeover` timeline (wall times) in the session record:
-    seconds from the kill to the job's claim (lease expiry noticed), to the runner's start (lease acquired), the
-    restore, the replay of the frames after the snapshot, and the first pose stored."""
-    import redis
-
-    from protocol import keys
-
-    client = redis.Redis.from_url(redis_url)
-    try:
-        raw = client.hget(keys.session(sid), "takeover")
-    finally:
-        client.close()
-    if raw is None:
-        return None
-    t = json.loads(raw)
-    marks = [("claimed", t.get("claimed_at")), ("started", t.get("started_at")), ("restored", t.get("restored_at")),
-             ("replayed", t.get("replay_done_at")), ("first_pose", t.get("first_pose_at"))]
-    phases: dict[str, Any] = {"worker": t.get("worker"), "snapshot_seq": t.get("snapshot_seq"),
-                              "frames_replayed": t.get("replayed"), "first_pose_seq": t.get("first_pose_seq")}
-    previous = killed_at
-    for name, at in marks:
-        phases[f"{name}_after_kill_s"] = None if at is None else round(at - killed_at, 3)
-        phases[f"{name}_phase_s"] = None if at is None else round(at - previous, 3)
-        previous = previous if at is None else at
-    return phases
-
-
-def _process_of(worker_id: str | None, processes: list) -> Any:
-    """The worker process whose id (`host-pid-random` by default) names its pid; the first one when none matches."""
-    for process in processes:
-        if worker_id and f"-{process.pid}-" in worker_id:
-            return process
-    return processes[0]
+    await kill_when(progress, sent, stack, http, sid, out, min_poses=min_poses, restart=True)
 
 
 async def _live_psnr(http, sid, frames, poses, keyframe_seqs, intrinsics, every: int, se3_part) -> tuple[float, int]:
