@@ -85,3 +85,46 @@ def test_schemathesis_finds_nothing(stack, tmp_path):
         assert f"✅ {phase}" in summary, summary  # ran and passed (not skipped)
     cases = summary[summary.find("Test cases:"):].splitlines()[:2]
     print(" ".join(line.strip() for line in cases))
+
+
+def test_what_the_run_found_once_stays_fixed(stack):
+    """The findings of the first run, each asked directly: Allow of a 405, a session with no frame yet, a render pose
+    the schema accepts, a body that is not UTF-8."""
+    with httpx.Client(base_url=stack.base_url, headers={"X-API-Key": ADMIN_KEY}, timeout=30) as api:
+        assert api.request("OPTIONS", "/v1/sessions").headers["allow"] == "GET, POST"
+        sid = api.post("/v1/sessions", json={}).json()["id"]
+        assert api.request("PATCH", f"/v1/sessions/{sid}").headers["allow"] == "DELETE, GET"
+        for path in ("map", "map.ply"):
+            answer = api.get(f"/v1/sessions/{sid}/{path}")
+            assert answer.status_code == 409 and "no frame" in answer.json()["detail"], answer.text
+        identity = "1,0,0,0, 0,1,0,0, 0,0,1,0, 0,0,0,1"
+        answer = api.get(f"/v1/sessions/{sid}/render", params={"pose": identity, "width": 8, "height": 8, "fx": 4,
+                                                                 "fy": 4, "cx": 4, "cy": 4})
+        assert answer.status_code == 409, answer.text
+        for pose in ("", "1,0,0", "nan," * 15 + "nan"):
+            answer = api.get(f"/v1/sessions/{sid}/render", params={"pose": pose})
+            assert answer.status_code == 400 and "16 comma-separated" in answer.json()["detail"], answer.text
+        answer = api.post("/v1/sessions", content=b'{"name": "\xff"}', headers={"content-type": "application/json"})
+        assert answer.status_code == 400
+        assert api.post("/v1/sessions", json={"skip_frames": 0}).status_code == 422
+
+
+def test_every_pose_the_schema_accepts_parses_into_16_numbers():
+    hypothesis = pytest.importorskip("hypothesis")
+    from hypothesis import strategies as st
+
+    from service.routes_results import RENDER_POSE_PATTERN, render_params
+
+    record = {"intrinsics": '{"fx": 50, "fy": 50, "cx": 16, "cy": 12, "width": 32, "height": 24}'}
+
+    @hypothesis.settings(max_examples=300, deadline=None, database=None)
+    @hypothesis.given(st.from_regex(RENDER_POSE_PATTERN))
+    def parses(pose: str) -> None:
+        try:
+            params = render_params(record, pose, None, None, None, None, None, None, "color", 1 << 20)
+        except Exception as err:  # refused for what it means (not rigid, not finite), never for its syntax
+            assert "comma-separated" not in str(getattr(err, "detail", err)), pose
+        else:
+            assert len(params["pose"]) == 16
+
+    parses()
