@@ -14,7 +14,10 @@ from pathlib import Path
 from urllib.parse import urlsplit
 
 from fastapi import FastAPI, Request
+from fastapi.exception_handlers import http_exception_handler
 from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import get_route_path
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from worker.runtime.outage import REDIS_DOWN
@@ -55,6 +58,7 @@ def install(app: FastAPI, max_body_bytes: int) -> None:
     for error in REDIS_DOWN:
         app.add_exception_handler(error, _storage_unavailable)
     app.add_exception_handler(Exception, _internal_error)
+    app.add_exception_handler(StarletteHTTPException, _http_error)
     app.add_middleware(BodyLimitMiddleware, max_body_bytes=max_body_bytes)
     app.add_middleware(SecurityHeadersMiddleware)
     redact_access_logs()
@@ -63,6 +67,38 @@ def install(app: FastAPI, max_body_bytes: int) -> None:
 async def _storage_unavailable(request: Request, exc: Exception) -> JSONResponse:
     return JSONResponse({"detail": f"the session store (Redis) is unreachable: {exc}; retry shortly"},
                         status_code=503, headers={"retry-after": "2"})
+
+
+async def _http_error(request: Request, exc: StarletteHTTPException):
+    """FastAPI's JSON error answer; a 405's `Allow` names every documented method of the path (Starlette's names
+    only those of the route that matched first: POST of /v1/sessions but not GET)."""
+    if exc.status_code == 405:
+        methods = set(documented_methods(request.app, get_route_path(request.scope)))
+        if methods:
+            routed = (exc.headers or {}).get("Allow", "")
+            methods |= {m.strip() for m in routed.split(",") if m.strip()}
+            exc = StarletteHTTPException(405, exc.detail, headers={**(exc.headers or {}),
+                                                                    "Allow": ", ".join(sorted(methods))})
+    return await http_exception_handler(request, exc)
+
+
+_HTTP_METHODS = frozenset({"get", "put", "post", "delete", "options", "head", "patch", "trace"})
+
+
+def documented_methods(app: FastAPI, path: str) -> list[str]:
+    """The methods the app's OpenAPI schema documents for `path` (templated segments match any one segment)."""
+    table = getattr(app.state, "documented_methods", None)
+    if table is None:
+        table = app.state.documented_methods = [
+            (template.strip("/").split("/"), sorted(m.upper() for m in operations if m in _HTTP_METHODS))
+            for template, operations in app.openapi().get("paths", {}).items()]
+    parts = path.strip("/").split("/")
+    for segments, methods in table:
+        if len(segments) == len(parts) and all(
+                seg == part or (seg.startswith("{") and seg.endswith("}") and part)
+                for seg, part in zip(segments, parts)):
+            return methods
+    return []
 
 
 async def _internal_error(request: Request, exc: Exception) -> JSONResponse:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import re
 import time
 from typing import Annotated, Literal
 
@@ -22,9 +23,26 @@ from service.schemas import ErrorBody, Trajectory
 router = APIRouter(prefix="/v1/sessions/{session_id}", tags=["results"],
                    responses={401: {"model": ErrorBody}, 403: {"model": ErrorBody}, 404: {"model": ErrorBody}})
 
+# Seconds a client waits before asking again when no worker owns a live session (a worker takes it over within a
+# lease: a few seconds)
+NO_OWNER_RETRY_AFTER_S = 2
+_WORKER_ANSWERS = {
+    409: {"model": ErrorBody, "description": "the session failed, or has no map yet (no frame streamed)"},
+    503: {"model": ErrorBody, "description": "no worker owns this live session right now (its worker went away and "
+          "another takes it over, or the fleet is full): retry after `Retry-After` seconds",
+          "headers": {"Retry-After": {"description": "seconds to wait before retrying",
+                                      "schema": {"type": "integer"}}}},
+    504: {"model": ErrorBody, "description": "the owning worker did not answer within the request timeout"},
+}
+# A number as JSON Schema (ECMA 262) and Python's `re` both read it; render_params applies the same pattern
+_NUMBER = r"[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][-+]?[0-9]+)?"
+RENDER_POSE_PATTERN = rf"^ *{_NUMBER} *(?:, *{_NUMBER} *){{15}}$"
+
 
 @router.get("/trajectory", response_model=Trajectory,
-            responses={200: {"content": {"application/json": {}, "text/plain": {"description": "TUM format"}}}})
+            responses={200: {"content": {"application/json": {}, "text/plain": {"description": "TUM format"}}},
+                       503: {"model": ErrorBody, "description": "the session was moved to the blob store and this "
+                             "gateway has none configured (FLASHMONO_BLOB_DIR)"}})
 async def get_trajectory(
     session_id: str,
     request: Request,
@@ -60,12 +78,15 @@ def tum_text(poses: list[dict]) -> str:
 
 @router.get("/render", response_class=Response,
             responses={200: {"content": {"image/png": {}}, "description": "color: RGB PNG; depth: 16-bit PNG, mm"},
-                       400: {"model": ErrorBody}, 409: {"model": ErrorBody}, 503: {"model": ErrorBody},
-                       504: {"model": ErrorBody}})
+                       400: {"model": ErrorBody, "description": "the pose is not a camera-to-world pose (not rigid, "
+                             "a reflection, ...), the size exceeds the pixel limit, or the camera is not given and "
+                             "the session has no intrinsics"}, **_WORKER_ANSWERS})
 async def render_view(
     session_id: str,
     request: Request,
-    pose: Annotated[str, Query(description="camera-to-world 4x4 as 16 comma-separated floats, row-major")],
+    pose: Annotated[str, Query(description="camera-to-world 4x4 as 16 comma-separated numbers, row-major: a rigid "
+                               "transform or a similarity [sR|t; 0 0 0 1] (a 400 otherwise)",
+                               json_schema_extra={"pattern": RENDER_POSE_PATTERN})],
     width: Annotated[int | None, Query(ge=MIN_RENDER_SIDE, le=MAX_RENDER_SIDE)] = None,
     height: Annotated[int | None, Query(ge=MIN_RENDER_SIDE, le=MAX_RENDER_SIDE)] = None,
     fx: Annotated[float | None, Query(gt=0)] = None,
@@ -95,7 +116,7 @@ async def render_view(
 
 @router.get("/map.ply", response_class=Response,
             responses={200: {"content": {"application/octet-stream": {}}, "description": "binary PLY"},
-                       409: {"model": ErrorBody}, 503: {"model": ErrorBody}, 504: {"model": ErrorBody}})
+                       **_WORKER_ANSWERS})
 async def export_map(
     session_id: str,
     request: Request,
@@ -118,7 +139,7 @@ async def export_map(
 @router.get("/map", response_class=Response,
             responses={200: {"content": {"application/octet-stream": {}},
                              "description": "the map file (X-Map-Format, X-Map-Revision headers)"},
-                       409: {"model": ErrorBody}, 503: {"model": ErrorBody}, 504: {"model": ErrorBody}})
+                       **_WORKER_ANSWERS})
 async def export_map_as(
     session_id: str,
     request: Request,
@@ -150,8 +171,11 @@ async def _ask_worker(request: Request, reg: Registry, session_id: str, record: 
     live = status in keys.LIVE_STATUSES
     if status == "failed":
         raise HTTPException(409, f"session failed: {record.get('error', '')}")
+    if status == "created":  # no worker takes a session before its first frame: there is nothing to ask it
+        raise HTTPException(409, "the session has no map yet: no frame has been streamed to it")
     if live and await reg.lease_holder(session_id) is None:
-        raise HTTPException(503, "no worker owns this session right now; retry shortly")
+        raise HTTPException(503, "no worker owns this session right now; retry shortly",
+                            headers={"Retry-After": str(NO_OWNER_RETRY_AFTER_S)})
     t0 = time.perf_counter()
     try:
         reply = await reg.request(session_id, kind, params, live=live,
@@ -167,10 +191,9 @@ async def _ask_worker(request: Request, reg: Registry, session_id: str, record: 
 def render_params(record: dict[str, str], pose: str, width: int | None, height: int | None, fx: float | None,
                   fy: float | None, cx: float | None, cy: float | None, kind: str, max_pixels: int) -> dict:
     """Validated render parameters, defaults filled from the session's intrinsics; 400 on bad input."""
-    try:
-        values = [float(v) for v in pose.split(",")]
-    except ValueError as err:
-        raise HTTPException(400, "pose must be 16 comma-separated floats") from err
+    if re.search(RENDER_POSE_PATTERN, pose) is None:  # search: JSON Schema's reading of a pattern
+        raise HTTPException(400, "pose must be 16 comma-separated numbers (camera-to-world 4x4, row-major)")
+    values = [float(v) for v in pose.split(",")]
     problem = pose_problem(values)
     if problem:
         raise HTTPException(400, f"pose must be a camera-to-world [sR|t; 0 0 0 1] matrix: {problem}")

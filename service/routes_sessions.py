@@ -17,7 +17,10 @@ router = APIRouter(prefix="/v1/sessions", tags=["sessions"],
 
 
 @router.post("", status_code=201, response_model=Session,
-             responses={422: {"description": "invalid body"},
+             responses={400: {"model": ErrorBody, "description": "the body could not be parsed (not UTF-8 text)"},
+                        413: {"model": ErrorBody, "description": "the body exceeds the gateway's size limit "
+                              "(FLASHMONO_MAX_BODY_BYTES)"},
+                        422: {"description": "invalid body: not JSON, or a field the schema or its rules refuse"},
                         429: {"model": ErrorBody, "description": "the key's quota of live sessions is used up"}})
 async def create_session(body: SessionCreate, request: Request, principal: Principal = Depends(caller),
                          reg: Registry = Depends(registry)) -> dict:

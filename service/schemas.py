@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import math
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, Strict, StrictBool, model_validator
 
 from protocol.keys import SessionStatus
 from protocol.limits import MAX_IMAGE_SIDE
@@ -26,16 +26,32 @@ POSE_MODE_DOC = ("what the engine does with the device poses frames carry (defau
 MAX_DEPTH_BASELINE_M = 1.0
 
 
+# Request bodies take the JSON types their schema names, as JSON Schema reads them: pydantic's lax mode would also
+# take "64" or true for an integer, 0 for a boolean, "1.5" for a number (schemathesis: schema-violating requests
+# accepted). A number may be an integer; an integer may be written 64.0 (JSON Schema's integer is a value).
+def _integral(value: Any) -> Any:
+    return int(value) if isinstance(value, float) and value.is_integer() else value
+
+
+def json_int(**constraints: Any) -> Any:
+    """An integer field's type; `constraints` (ge, le, ...) stand before the validator, where pydantic's schema
+    keeps them as JSON Schema keywords."""
+    return Annotated[int, Strict(), Field(**constraints), BeforeValidator(_integral)]
+
+
+JsonFloat = Annotated[float, Strict()]
+
+
 class IntrinsicsIn(BaseModel):
     """Pinhole intrinsics of the streamed images, in pixels."""
 
     model_config = ConfigDict(extra="forbid")
-    fx: float = Field(gt=0)
-    fy: float = Field(gt=0)
-    cx: float
-    cy: float
-    width: int = Field(gt=0, le=MAX_IMAGE_SIDE)
-    height: int = Field(gt=0, le=MAX_IMAGE_SIDE)
+    fx: JsonFloat = Field(gt=0)
+    fy: JsonFloat = Field(gt=0)
+    cx: JsonFloat
+    cy: JsonFloat
+    width: json_int(gt=0, le=MAX_IMAGE_SIDE)
+    height: json_int(gt=0, le=MAX_IMAGE_SIDE)
 
     @model_validator(mode="after")
     def _principal_point_inside(self) -> IntrinsicsIn:
@@ -80,10 +96,10 @@ class DepthCameraIn(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     intrinsics: IntrinsicsIn = Field(description="of the depth image (scaled to the depth PNGs' size when it differs)")
-    depth_to_color: list[list[float]] | None = Field(
+    depth_to_color: list[list[JsonFloat]] | None = Field(
         None, description="4x4 rigid transform taking depth-camera points to colour-camera points, rows, metres")
-    rotation: list[list[float]] | None = Field(None, description="3x3, rows (with `translation`)")
-    translation: list[float] | None = Field(None, description="3, metres (with `rotation`)")
+    rotation: list[list[JsonFloat]] | None = Field(None, description="3x3, rows (with `translation`)")
+    translation: list[JsonFloat] | None = Field(None, description="3, metres (with `rotation`)")
 
     @model_validator(mode="after")
     def _one_rigid_extrinsic(self) -> DepthCameraIn:
@@ -148,9 +164,9 @@ class SessionCreate(BaseModel):
     preset: PresetName | None = Field(default=None, description=preset_field_description())
     pose_mode: PoseMode | None = Field(default=None, description=POSE_MODE_DOC)
     depth_camera: DepthCameraIn | None = Field(default=None, description=DEPTH_CAMERA_DOC)
-    skip_frames: bool = Field(default=False, description=SKIP_FRAMES_DOC)
-    tracking_side: int | None = Field(default=None, ge=64, le=4096, description=TRACKING_SIDE_DOC)
-    frame_rate: float | None = Field(default=None, gt=0, le=1000, description=FRAME_RATE_DOC)
+    skip_frames: StrictBool = Field(default=False, description=SKIP_FRAMES_DOC)
+    tracking_side: json_int(ge=64, le=4096) | None = Field(default=None, description=TRACKING_SIDE_DOC)
+    frame_rate: JsonFloat | None = Field(default=None, gt=0, le=1000, description=FRAME_RATE_DOC)
     name: str | None = Field(default=None, max_length=200)
     device_id: str | None = Field(default=None, max_length=200)
     metadata: dict[str, Any] = Field(default_factory=dict)
