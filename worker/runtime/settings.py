@@ -79,11 +79,8 @@ class RuntimeConfig(BaseModel):
     outbox_maxlen: int = Field(5000, ge=1, description="messages kept in a session's outbound stream (about)")
 
 
-class WorkerSettings(RuntimeConfig, BaseSettings):
-    """Everything a worker process is configured with: the runtime's section plus the process's own options."""
-
-    model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, env_ignore_empty=True, frozen=True, extra="forbid",
-                                      validate_by_name=True, validate_by_alias=True)
+class ProcessOptions(BaseModel):
+    """The worker process's own options (not the runtime's)."""
 
     redis_url: str = Field("", validation_alias="REDIS_URL",
                            description="the Redis to serve (required; `redis+cluster://host:port,...` for a cluster)")
@@ -98,6 +95,13 @@ class WorkerSettings(RuntimeConfig, BaseSettings):
     @classmethod
     def _upper(cls, value: Any) -> Any:
         return value.upper() if isinstance(value, str) else value
+
+
+class WorkerSettings(RuntimeConfig, ProcessOptions, BaseSettings):
+    """Everything a worker process is configured with: its own options and the runtime's section."""
+
+    model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, env_ignore_empty=True, frozen=True, extra="forbid",
+                                      validate_by_name=True, validate_by_alias=True)
 
     @property
     def runtime(self) -> RuntimeConfig:
@@ -124,7 +128,7 @@ def _choices(annotation: Any) -> tuple[str, ...]:
 
 def default_text(model: type[BaseModel], name: str) -> str:
     default = model.model_fields[name].get_default(call_default_factory=True)
-    return '""' if default == "" else str(default)
+    return '""' if default == "" else "none" if default is None or default in ({}, frozenset()) else str(default)
 
 
 def option_parser(model: type[BaseModel], **kwargs: Any) -> argparse.ArgumentParser:
