@@ -12,8 +12,9 @@ import time
 
 import httpx
 
-from protocol.limits import MAX_FRAME_BYTES, websocket_max_size
+from protocol.limits import websocket_max_size
 from service.redis_embedded import EmbeddedRedis
+from service.settings import Settings
 
 
 def free_port() -> int:
@@ -44,7 +45,7 @@ def start_gateway_process(redis_url: str, host: str, port: int, env: dict[str, s
                           stdout=None) -> subprocess.Popen:
     """uvicorn serving `service.app:app` on host:port."""
     process_env = {**os.environ, **(env or {}), "REDIS_URL": redis_url}
-    max_frame = int(process_env.get("FLASHMONO_MAX_FRAME_BYTES", MAX_FRAME_BYTES))
+    max_frame = Settings.from_env(process_env).max_frame_bytes
     args = [sys.executable, "-m", "uvicorn", "service.app:app", "--host", host, "--port", str(port),
             "--log-level", "warning", "--no-access-log", "--ws-max-size", str(websocket_max_size(max_frame))]
     return subprocess.Popen(args, env=process_env, stdout=stdout, stderr=subprocess.STDOUT if stdout else None)

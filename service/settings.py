@@ -1,86 +1,123 @@
-"""Gateway configuration from the environment (read once at app creation)."""
+"""Gateway configuration from the environment (read once at app creation): one settings model."""
 
 from __future__ import annotations
 
 import json
-import os
-from dataclasses import dataclass, field
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Annotated, Any
+
+from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
+from pydantic_settings import BaseSettings, EnvSettingsSource, NoDecode, SettingsConfigDict
+from pydantic_settings.sources.utils import parse_env_vars
 
 from protocol.limits import DEFAULT_MAX_QUEUE, MAX_FRAME_BYTES, MAX_RENDER_PIXELS
 
 SCOPES = ("stream", "read", "admin")
 
 
-@dataclass(frozen=True)
-class Settings:
-    """REDIS_URL; FLASHMONO_API_KEYS ("key1=stream,read;key2=admin") or FLASHMONO_API_KEYS_FILE (JSON
-    {key: [scopes]}); FLASHMONO_MAX_QUEUE (frames queued per session, 64); FLASHMONO_MAX_FRAME_BYTES (8 MiB);
-    FLASHMONO_REQUEST_TIMEOUT_S (render/export reply timeout, 60); FLASHMONO_MAX_RENDER_PIXELS (4096*4096);
-    FLASHMONO_MAX_BODY_BYTES (HTTP request bodies, 1 MiB); FLASHMONO_ALLOWED_ORIGINS (comma-separated origins a
-    browser may open the WebSocket from besides the gateway's own, "*" for any); FLASHMONO_MAX_STREAMS (open
-    WebSockets per gateway process, 2000); FLASHMONO_REDIS_CONNECTIONS (the gateway's Redis connection pool, 64);
-    FLASHMONO_MAX_LIVE_SESSIONS (live sessions per API key, 100; 0: no limit); FLASHMONO_ABANDONED_GRACE_S (how long
-    a session abandoned for want of frames can still be resumed by opening its stream, 3600); FLASHMONO_BLOB_DIR (the
-    blob store finished sessions are archived to by the workers, read here for their trajectories);
-    FLASHMONO_REDIS_WAIT_REPLICAS (0: a frame is acked once its Redis primary has it; N: once N replicas have it
-    too, so a primary that fails over loses no acked frame) and FLASHMONO_REDIS_WAIT_MS (100: how long to wait for
-    them; a frame still unconfirmed then is acked all the same and logged)."""
+class Settings(BaseSettings):
+    """The gateway's settings: a field `max_queue` is read from FLASHMONO_MAX_QUEUE (REDIS_URL keeps its name).
 
-    redis_url: str = "redis://127.0.0.1:6379/0"
-    api_keys: dict[str, frozenset[str]] = field(default_factory=dict)
-    max_queue: int = DEFAULT_MAX_QUEUE
-    max_frame_bytes: int = MAX_FRAME_BYTES
-    request_timeout_s: float = 60.0
-    max_render_pixels: int = MAX_RENDER_PIXELS
-    max_body_bytes: int = 1024 * 1024
-    allowed_origins: frozenset[str] = frozenset()
-    max_streams: int = 2000
-    redis_connections: int = 64
-    max_live_sessions: int = 100
-    abandoned_grace_s: float = 3600.0
-    blob_dir: str = ""
-    redis_wait_replicas: int = 0
-    redis_wait_ms: int = 100
+    Each default, bound and meaning is written here once; the README's table is generated from it
+    (`python -m worker.runtime.settings`). `Settings(...)` reads the environment for what it is not given;
+    `Settings.from_env(environ)` reads only `environ` and names the variable of a bad value."""
+
+    model_config = SettingsConfigDict(env_prefix="FLASHMONO_", env_ignore_empty=True, frozen=True, extra="forbid",
+                                      validate_by_name=True, validate_by_alias=True)
+
+    redis_url: str = Field("redis://127.0.0.1:6379/0", validation_alias="REDIS_URL",
+                           description="the Redis the gateway and the workers share (`redis+cluster://host:port,...` "
+                                       "for a cluster)")
+    api_keys: Annotated[dict[str, frozenset[str]], NoDecode] = Field(
+        default_factory=dict, repr=False,
+        description='API keys and their scopes, "key1=stream,read;key2=admin" (scopes: stream, read, admin; none: '
+                    'no authentication)')
+    api_keys_file: Path | None = Field(None, description="more API keys: a JSON file {key: [scopes]}")
+    max_queue: int = Field(DEFAULT_MAX_QUEUE, ge=1, description="frames queued per session before `backpressure`")
+    max_frame_bytes: int = Field(MAX_FRAME_BYTES, ge=1024, description="bound of one binary frame message")
+    request_timeout_s: float = Field(60.0, gt=0, description="how long a render or export waits for its worker's "
+                                                              "reply")
+    max_render_pixels: int = Field(MAX_RENDER_PIXELS, ge=1, description="bound of width x height of one render")
+    max_body_bytes: int = Field(1024 * 1024, ge=1024, description="bound of one HTTP request body")
+    allowed_origins: Annotated[frozenset[str], NoDecode] = Field(
+        frozenset(), description="comma-separated origins a browser may open the WebSockets from besides the "
+                                 "gateway's own (`*`: any)")
+    max_streams: int = Field(2000, ge=1, description="open WebSockets per gateway process")
+    redis_connections: int = Field(64, ge=4, description="the gateway's Redis connection pool")
+    max_live_sessions: int = Field(100, ge=0, description="live sessions per API key (0: no limit)")
+    abandoned_grace_s: float = Field(3600.0, ge=0, description="how long a session abandoned for want of frames "
+                                                                "can still be resumed by opening its stream")
+    blob_dir: str = Field("", description="the blob store the workers archive finished sessions to, read here for "
+                                          "their trajectories (empty: none)")
+    redis_wait_replicas: int = Field(0, ge=0, description="0: a frame is acked once its Redis primary has it; N: "
+                                                           "once N replicas have it too, so a primary that fails "
+                                                           "over loses no acked frame")
+    redis_wait_ms: int = Field(100, ge=1, description="how long to wait for those replicas; a frame still "
+                                                       "unconfirmed then is acked all the same and logged")
 
     @property
     def auth_enabled(self) -> bool:
         return bool(self.api_keys)
 
+    @field_validator("api_keys", mode="before")
     @classmethod
-    def from_env(cls, environ: dict[str, str] | None = None) -> Settings:
-        env = os.environ if environ is None else environ
-        keys = parse_api_keys(env.get("FLASHMONO_API_KEYS", ""))
-        if env.get("FLASHMONO_API_KEYS_FILE"):
-            keys.update(load_api_keys_file(Path(env["FLASHMONO_API_KEYS_FILE"])))
-        settings = cls(
-            redis_url=env.get("REDIS_URL") or cls.redis_url,
-            api_keys=keys,
-            max_queue=int(env.get("FLASHMONO_MAX_QUEUE", cls.max_queue)),
-            max_frame_bytes=int(env.get("FLASHMONO_MAX_FRAME_BYTES", cls.max_frame_bytes)),
-            request_timeout_s=float(env.get("FLASHMONO_REQUEST_TIMEOUT_S", cls.request_timeout_s)),
-            max_render_pixels=int(env.get("FLASHMONO_MAX_RENDER_PIXELS", cls.max_render_pixels)),
-            max_body_bytes=int(env.get("FLASHMONO_MAX_BODY_BYTES", cls.max_body_bytes)),
-            max_streams=int(env.get("FLASHMONO_MAX_STREAMS", cls.max_streams)),
-            redis_connections=int(env.get("FLASHMONO_REDIS_CONNECTIONS", cls.redis_connections)),
-            max_live_sessions=int(env.get("FLASHMONO_MAX_LIVE_SESSIONS", cls.max_live_sessions)),
-            abandoned_grace_s=float(env.get("FLASHMONO_ABANDONED_GRACE_S", cls.abandoned_grace_s)),
-            blob_dir=env.get("FLASHMONO_BLOB_DIR", ""),
-            redis_wait_replicas=int(env.get("FLASHMONO_REDIS_WAIT_REPLICAS", cls.redis_wait_replicas)),
-            redis_wait_ms=int(env.get("FLASHMONO_REDIS_WAIT_MS", cls.redis_wait_ms)),
-            allowed_origins=frozenset(o.strip().rstrip("/") for o in env.get("FLASHMONO_ALLOWED_ORIGINS", "").split(",")
-                                      if o.strip()),
-        )
-        if settings.max_queue < 1 or settings.max_frame_bytes < 1024 or settings.max_body_bytes < 1024:
-            raise ValueError("FLASHMONO_MAX_QUEUE must be >= 1, FLASHMONO_MAX_FRAME_BYTES and FLASHMONO_MAX_BODY_BYTES "
-                             ">= 1024")
-        if settings.redis_wait_replicas < 0 or settings.redis_wait_ms < 1:
-            raise ValueError("FLASHMONO_REDIS_WAIT_REPLICAS must be >= 0 and FLASHMONO_REDIS_WAIT_MS >= 1")
-        if settings.request_timeout_s <= 0:
-            raise ValueError("FLASHMONO_REQUEST_TIMEOUT_S must be positive")
-        if settings.max_streams < 1 or settings.redis_connections < 4 or settings.max_live_sessions < 0:
-            raise ValueError("FLASHMONO_MAX_STREAMS must be >= 1 and FLASHMONO_REDIS_CONNECTIONS >= 4")
-        return settings
+    def _parse_keys(cls, value: Any) -> Any:
+        return parse_api_keys(value) if isinstance(value, str) else value
+
+    @field_validator("allowed_origins", mode="before")
+    @classmethod
+    def _parse_origins(cls, value: Any) -> Any:
+        items = value.split(",") if isinstance(value, str) else value
+        return frozenset(o.strip().rstrip("/") for o in items if o.strip())
+
+    @model_validator(mode="after")
+    def _load_keys_file(self) -> Settings:
+        if self.api_keys_file is not None:  # the file's keys join those of FLASHMONO_API_KEYS
+            try:
+                keys = load_api_keys_file(self.api_keys_file)
+            except (OSError, ValueError) as err:
+                raise ValueError(f"FLASHMONO_API_KEYS_FILE: {err}") from err
+            object.__setattr__(self, "api_keys", {**self.api_keys, **keys})
+        return self
+
+    @classmethod
+    def from_env(cls, environ: Mapping[str, str] | None = None) -> Settings:
+        """The settings from `environ` (default: the process's environment) alone; ValueError names a bad one."""
+        try:
+            if environ is None:
+                return cls()
+            return cls(_build_sources=((_Environ(cls, environ),), {}))
+        except ValidationError as err:
+            raise ValueError(explain(err, cls)) from None
+
+
+class _Environ(EnvSettingsSource):
+    """The environment source of `Settings`, over a given mapping instead of os.environ."""
+
+    def __init__(self, settings_cls: type[BaseSettings], environ: Mapping[str, str]) -> None:
+        self._environ = environ
+        super().__init__(settings_cls)
+
+    def _load_env_vars(self) -> Mapping[str, str | None]:
+        return parse_env_vars(self._environ, self.case_sensitive, self.env_ignore_empty, self.env_parse_none_str)
+
+
+def explain(err: ValidationError, model: type[BaseModel]) -> str:
+    """One line per error, naming the environment variable."""
+    names = {name: _env_name(model, name) for name in model.model_fields}
+    names.update({env: env for env in names.values()})
+    lines = []
+    for error in err.errors():
+        key = str(error["loc"][0]) if error["loc"] else ""
+        message = str(error["ctx"]["error"]) if error["type"] == "value_error" else error["msg"]
+        lines.append(f"{names.get(key, key)}: {message} (got {error.get('input')!r})" if key else message)
+    return "; ".join(lines)
+
+
+def _env_name(model: type[BaseModel], name: str) -> str:
+    alias = model.model_fields[name].validation_alias
+    return alias if isinstance(alias, str) else str(model.model_config.get("env_prefix", "")) + name.upper()
 
 
 def parse_api_keys(text: str) -> dict[str, frozenset[str]]:

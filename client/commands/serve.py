@@ -47,14 +47,20 @@ def run(args: argparse.Namespace) -> int:
 
     import uvicorn
 
-    from protocol.limits import MAX_FRAME_BYTES, websocket_max_size
+    from protocol.limits import websocket_max_size
     from service.launcher import start_worker_process
     from service.redis_embedded import EmbeddedRedis
+    from service.settings import Settings
     from service.shutdown import exit_on_sigterm
     from service.supervisor import WorkerSupervisor
 
     if args.workers < 0 or not (0 < args.port < 65536) or not 0 <= args.worker_nice <= 19:
         print("error: --workers must be >= 0, --port in 1..65535 and --worker-nice in 0..19")
+        return 2
+    try:  # the gateway's settings (FLASHMONO_*), checked before anything starts
+        max_frame = Settings.from_env().max_frame_bytes
+    except ValueError as err:
+        print(f"error: {err}")
         return 2
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     exit_on_sigterm()  # SIGTERM stops the workers and Redis and removes the temp dir, like Ctrl-C
@@ -79,7 +85,6 @@ def run(args: argparse.Namespace) -> int:
     supervisor = WorkerSupervisor(lambda: start_worker_process(redis_url, worker_env, nice=args.worker_nice),
                                   args.workers).start()
     try:
-        max_frame = int(os.environ.get("FLASHMONO_MAX_FRAME_BYTES", MAX_FRAME_BYTES))
         uvicorn.run("service.app:app", host=args.host, port=args.port, log_level=args.log_level,
                     ws_max_size=websocket_max_size(max_frame))
     finally:

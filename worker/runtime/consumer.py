@@ -64,7 +64,7 @@ class Worker:
     def run(self) -> None:
         if not wait_for_redis(self.client, self._stopping, f"worker {self.worker_id} start-up", log):
             return
-        warm_up(self.config.engine_kind)  # before taking sessions: a takeover must not wait for imports
+        warm_up(self.config.engine)  # before taking sessions: a takeover must not wait for imports
         self._ensure_groups()
         self._heartbeat_once()
         threads = [threading.Thread(target=self._heartbeat_loop, name="heartbeat", daemon=True),
@@ -73,7 +73,7 @@ class Worker:
             threads.append(threading.Thread(target=self._archive_loop, name="archive", daemon=True))
         for thread in threads:
             thread.start()
-        log.info("worker %s ready (engine %s)", self.worker_id, self.config.engine_kind)
+        log.info("worker %s ready (engine %s)", self.worker_id, self.config.engine)
         try:
             self._jobs_loop()
         finally:
@@ -266,7 +266,7 @@ class Worker:
         pipe.set(keys.worker(self.worker_id), len(self.runners), px=self.config.lease_ttl_ms)
         pipe.hset(keys.worker_stats(self.worker_id), mapping=self.stats.as_fields())
         pipe.expire(keys.worker_stats(self.worker_id), 3600)
-        if self.config.engine_kind == "slam":
+        if self.config.engine == "slam":
             machine = json.dumps(this_machine(self.config.checkpoint).to_dict())
             pipe.set(keys.worker_machine(self.worker_id), machine, px=self.config.lease_ttl_ms)
         pipe.execute()

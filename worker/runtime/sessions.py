@@ -13,7 +13,6 @@ import json
 import logging
 import threading
 import time
-from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Any
 
@@ -30,7 +29,7 @@ from worker.pipeline.snapshot_chunks import ChunkWrite
 from worker.runtime.engine import SessionEngine, close_engine, create_engine, engine_intrinsics, restore_engine
 from worker.runtime.failpoints import failpoint
 from worker.runtime.finish_requests import RequestsWhileFinishing
-from worker.runtime.frames import DEFAULT_MAX_SIDE, FrameError, decode_frame
+from worker.runtime.frames import FrameError, decode_frame
 from worker.runtime.leases import Leases
 from worker.runtime.outage import REDIS_DOWN
 from worker.runtime.progress import FinishProgress
@@ -38,6 +37,7 @@ from worker.runtime.quarantine import FrameAttempts
 from worker.runtime.record import SessionRecord
 from worker.runtime.requests import handle_request
 from worker.runtime.session_settings import named_preset, session_settings, this_machine
+from worker.runtime.settings import RuntimeConfig
 from worker.runtime.snapshots import SnapshotWriter, read_snapshot
 from worker.runtime.stats import StageStats
 
@@ -80,40 +80,6 @@ end
 redis.call('XACK', KEYS[4], 'workers', ARGV[4])
 return new
 """
-
-@dataclass
-class RuntimeConfig:
-    """How a worker runs sessions (environment names in worker/runtime/main.py)."""
-
-    engine_kind: str = "slam"
-    lease_ttl_ms: int = 2_500
-    snapshot_every_keyframes: int = 5
-    # ... or this often (seconds; 0: by keyframes only): the frames a new owner replays after a crash are those
-    # since the newest stored snapshot, so a still camera (no keyframes) must not leave it far behind either.
-    snapshot_every_s: float = 1.0
-    max_sessions: int = 16
-    block_ms: int = 500
-    outbox_maxlen: int = 5000
-    max_frame_side: int = DEFAULT_MAX_SIDE  # frames are worked on at most this long a side
-    tracking_side: int = 0  # sessions that name none track at most this long a side (0: the settings' choice)
-    checkpoint: str = ""  # trained frontend weights (FLASHMONO_CHECKPOINT): with a CUDA GPU, the paper's settings
-    max_frame_attempts: int = 2  # workers that may die on one frame before it is quarantined
-    memory_budget_mb: int = 0  # no new session while the worker's resident memory is above it (0: no limit)
-    idle_timeout_s: float = 600.0  # a session without frames this long is abandoned, its slot freed (0: never)
-    transient_ttl_s: float = 3600.0  # an ended session's frames, messages and requests expire after this
-    retention_s: float = 0.0  # an ended session's record, trajectory and map expire after this (0: kept)
-    blob_dir: str = ""  # the blob store of finished sessions ("" : none)
-    archive_after_s: float = 3600.0  # finished sessions move to the blob store this long after finishing
-    # Live tracking: a frame older than this (since the gateway queued it) is skipped when a newer one is waiting,
-    # newest first wins (0: never skip); at most `max_consecutive_skips` in a row, so tracking keeps its continuity,
-    # and after the first none that arrived more than `max_skipped_span_ms` after the last tracked frame: the motion
-    # across a gap grows with its time, not its frames (30 frames/s: five in a row; a 10 frames/s drive or a 5
-    # frames/s browser: one, so a worker behind the camera still sheds half its frames).
-    skip_after_ms: float = 100.0
-    max_consecutive_skips: int = 5
-    max_skipped_span_ms: float = 170.0
-    live_stats_every_s: float = 0.5  # how often the session record gets the engine's live figures
-
 
 class SessionGone(Exception):
     """The session was deleted while we owned it."""
@@ -261,14 +227,14 @@ class SessionRunner(threading.Thread):
     def _decides_at_first_frame(self) -> bool:
         """Whether the engine waits for the session's first frame: its settings follow from the input (no preset
         named, none recorded yet)."""
-        return (self.config.engine_kind == "slam" and named_preset(self._session) is None
+        return (self.config.engine == "slam" and named_preset(self._session) is None
                 and not self._session.get("settings"))
 
     def _create_engine(self, first_frame: Frame | None) -> None:
         """The session's engine, with the settings named, recorded or decided now from `first_frame` (None: before
         any frame, e.g. a session finished without one); a decision is written to the record once."""
         preset, overrides = self._session.get("preset") or None, None
-        if self.config.engine_kind == "slam":
+        if self.config.engine == "slam":
             choice = session_settings(self._session, first_frame, this_machine(self.config.checkpoint))
             preset, overrides = choice.preset, choice.engine_overrides()
             if not self._session.get("settings"):
@@ -278,7 +244,7 @@ class SessionRunner(threading.Thread):
                 self._session["settings"] = text
                 log.info("session %s: settings %s (%s)", self.session_id, choice.preset, "; ".join(choice.reasons))
         intrinsics = self._session_intrinsics()
-        self.engine = create_engine(self.config.engine_kind, preset,
+        self.engine = create_engine(self.config.engine, preset,
                                     Intrinsics.from_dict(intrinsics) if intrinsics else None,
                                     pose_mode=self._session.get("pose_mode") or None,
                                     tracking_side=self._tracking_side(),
@@ -536,7 +502,7 @@ class SessionRunner(threading.Thread):
         if result.is_keyframe:
             self._keyframes_since_snapshot += 1
         every_s = self.config.snapshot_every_s
-        if (self._keyframes_since_snapshot >= self.config.snapshot_every_keyframes
+        if (self._keyframes_since_snapshot >= self.config.snapshot_every
                 or (every_s > 0 and time.monotonic() - self._snapshot_begun_at >= every_s)):
             self._write_snapshot(seq, entry_id)
 
@@ -655,7 +621,7 @@ class SessionRunner(threading.Thread):
 
     def _store_snapshot_blob(self, blob: bytes, chunks: ChunkWrite | None, seq: int, entry_id: bytes) -> None:
         t0 = time.perf_counter()
-        status = self._snapshots.write(blob, chunks, seq, entry_id, self.config.engine_kind, now_iso())
+        status = self._snapshots.write(blob, chunks, seq, entry_id, self.config.engine, now_iso())
         self._check_store_status(status)
         self._last_id = entry_id
         self.stats.add("snapshot", time.perf_counter() - t0)
