@@ -7,11 +7,12 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Annotated, Any
 
-from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
+from pydantic import Field, ValidationError, field_validator, model_validator
 from pydantic_settings import BaseSettings, EnvSettingsSource, NoDecode, SettingsConfigDict
 from pydantic_settings.sources.utils import parse_env_vars
 
 from protocol.limits import DEFAULT_MAX_QUEUE, MAX_FRAME_BYTES, MAX_RENDER_PIXELS
+from protocol.settings_model import explain
 
 SCOPES = ("stream", "read", "admin")
 
@@ -101,23 +102,6 @@ class _Environ(EnvSettingsSource):
 
     def _load_env_vars(self) -> Mapping[str, str | None]:
         return parse_env_vars(self._environ, self.case_sensitive, self.env_ignore_empty, self.env_parse_none_str)
-
-
-def explain(err: ValidationError, model: type[BaseModel]) -> str:
-    """One line per error, naming the environment variable."""
-    names = {name: _env_name(model, name) for name in model.model_fields}
-    names.update({env: env for env in names.values()})
-    lines = []
-    for error in err.errors():
-        key = str(error["loc"][0]) if error["loc"] else ""
-        message = str(error["ctx"]["error"]) if error["type"] == "value_error" else error["msg"]
-        lines.append(f"{names.get(key, key)}: {message} (got {error.get('input')!r})" if key else message)
-    return "; ".join(lines)
-
-
-def _env_name(model: type[BaseModel], name: str) -> str:
-    alias = model.model_fields[name].validation_alias
-    return alias if isinstance(alias, str) else str(model.model_config.get("env_prefix", "")) + name.upper()
 
 
 def parse_api_keys(text: str) -> dict[str, frozenset[str]]:

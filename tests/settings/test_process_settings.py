@@ -11,17 +11,10 @@ from pathlib import Path
 
 import pytest
 
+from protocol.settings_model import default_text, env_name, flag, parse_settings
 from service.settings import Settings
 from worker.runtime.main import build_parser, main
-from worker.runtime.settings import (
-    RuntimeConfig,
-    WorkerSettings,
-    default_text,
-    env_name,
-    flag,
-    parse_settings,
-    readme_tables,
-)
+from worker.runtime.settings import RuntimeConfig, WorkerSettings, readme_tables
 
 ROOT = Path(__file__).resolve().parents[2]
 

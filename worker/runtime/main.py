@@ -15,7 +15,8 @@ import socket
 import sys
 import uuid
 
-from worker.runtime.settings import WorkerSettings, option_parser, parse_settings
+from protocol.settings_model import option_parser, parse_settings
+from worker.runtime.settings import WorkerSettings
 
 
 def build_parser() -> argparse.ArgumentParser:
