@@ -34,8 +34,8 @@ MODES = {  # name: (depth, poses given, pose_mode, device poses drifted)
 
 def main(argv: list[str]) -> int:
     from worker.config import SlamConfig
+    from worker.offline import run_sequence
     from worker.pipeline.drift import PoseDrift
-    from worker.pipeline.offline import run_sequence
 
     parser = argparse.ArgumentParser(prog="python -m bench device_poses")
     parser.add_argument("--modes", default=",".join(MODES))

@@ -42,7 +42,7 @@ def _run(frames, truth, intrinsics, exposure: str, passes: int) -> dict:
     from worker.config import SlamConfig
     from worker.eval import evaluate_renders, non_keyframe_indices
     from worker.geometry import se3_part
-    from worker.pipeline.offline import renderer_as_captured
+    from worker.offline import renderer_as_captured
     from worker.slam import SlamSystem
 
     mapping = {"exposure": exposure != "off", "final_refine_passes": passes, "final_refine_budget_s": 0}

@@ -8,7 +8,7 @@ re-sends after `backpressure`, message types seen (unknown ones counted, never f
 mapping lag (`mapping_lag_keyframes`, `mapping_lag_s`, `frames_skipped` of GET /v1/sessions/{id} when the engine
 reports them), the worker's and gateway's RSS over time, and at the end the ATE against the sequence's ground truth
 (SE(3)-aligned with depth or device poses, Sim(3) for RGB only) and the PSNR of rendered non-keyframes, beside the
-offline `flashmono run` engine (worker.pipeline.offline.run_sequence) on the same frames. `--kill-at F` SIGKILLs the
+offline `flashmono run` engine (worker.offline.run_sequence) on the same frames. `--kill-at F` SIGKILLs the
 owning worker once a fraction F of the frames is sent and poses are flowing (5 received), starts a new one at once
 (as `flashmono serve`'s supervisor does) and reports the gap until poses resume and whether any acked frame was
 lost or answered twice. The posed modes send the sequence's poses as a phone's AR poses would come: the session
@@ -446,7 +446,7 @@ def run_offline(source: str, size, max_frames, args, out_dir: Path) -> dict[str,
     """The same frames through the offline engine (`flashmono run`), scored like the live run."""
     from worker.config import SlamConfig
     from worker.eval import read_tum
-    from worker.pipeline.offline import run_sequence
+    from worker.offline import run_sequence
 
     start = time.perf_counter()
     if args.preset:

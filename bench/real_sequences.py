@@ -107,7 +107,7 @@ def run_mode(source: Path, mode: str, size: tuple[int, int], max_frames: int | N
              out: Path) -> dict:
     """One offline run (as `flashmono run`) of the sequence in `mode`; its metrics plus the counted events."""
     from worker.config import SlamConfig
-    from worker.pipeline.offline import run_sequence
+    from worker.offline import run_sequence
 
     depth, posed = MODES[mode]
     config = SlamConfig.preset("rgbd", mapping={"final_refine_budget_s": 0}, **MODE_CONFIG.get(mode, {}))

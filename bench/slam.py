@@ -32,7 +32,7 @@ def _source(stride_full: int) -> tuple[Path, int]:
 
 def main(argv: list[str]) -> int:
     from worker.config import SlamConfig
-    from worker.pipeline.offline import PoseDrift, run_sequence
+    from worker.offline import PoseDrift, run_sequence
     from worker.pipeline.stage_times import breakdown_table
 
     parser = argparse.ArgumentParser(prog="python -m bench slam")

@@ -234,8 +234,8 @@ def evaluate(client: Any, session_id: str, trajectory: Any, keyframe_seqs: set[i
     import cv2
     import numpy as np
 
+    from worker.data.tum_trajectory import Trajectory, format_tum
     from worker.eval.metrics import ate_rmse, psnr
-    from worker.eval.trajectory import Trajectory, format_tum
 
     by_time = {round(f.timestamp, 6): f for f in frames}
     matched = [(p, by_time.get(round(p.timestamp, 6))) for p in trajectory.poses]

@@ -1,5 +1,5 @@
 """`flashmono run SOURCE --out DIR`: run the SLAM engine offline on a sequence and write trajectories, the map,
-renders and metrics.json (see worker.pipeline.offline)."""
+renders and metrics.json (see worker.offline)."""
 
 from __future__ import annotations
 
@@ -117,7 +117,7 @@ def run_one(args: argparse.Namespace, source: str, out_dir: str) -> dict:
     its metrics."""
     from tqdm import tqdm
 
-    from worker.pipeline.offline import PoseDrift, run_sequence
+    from worker.offline import PoseDrift, run_sequence
 
     config = load_config(args)
     drift = PoseDrift(*args.drift) if args.drift else None

@@ -11,8 +11,8 @@ import pytest
 
 from worker.config import SlamConfig
 from worker.data import Frame, open_source
+from worker.offline import run_sequence
 from worker.pipeline.finish_status import FinishStatus
-from worker.pipeline.offline import run_sequence
 from worker.slam import SlamSystem
 
 DATA = Path(__file__).parents[1] / "data" / "icl_mini"

@@ -112,7 +112,7 @@ def test_a_snapshot_does_not_wait_for_the_mapping_backlog(frames) -> None:
     with system.mapping_stage.lock:
         push_all_within(system, frames[:12])
         future = system.begin_snapshot()
-    blob = future.result(timeout=120)
+    blob = future.result(timeout=600)
     backlog = system.mapping_stage.pending
     queued = unpack(unpack(blob)["map"])["queued"]
     assert len(queued) >= 2 and backlog >= 1, (len(queued), backlog)

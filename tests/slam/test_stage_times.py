@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from worker.config import SlamConfig
-from worker.pipeline.offline import PoseDrift, run_sequence
+from worker.offline import PoseDrift, run_sequence
 from worker.pipeline.stage_times import STAGES, StageTimes, breakdown_table
 
 ICL = Path(__file__).parents[1] / "data" / "icl_mini"
@@ -68,7 +68,7 @@ def test_an_offline_run_refines_every_keyframe_unless_paced_like_a_live_stream(t
 
 
 def test_complete_pacing_turns_lighterglue_on_unless_the_config_set_it():
-    from worker.pipeline.offline import complete_pacing
+    from worker.offline import complete_pacing
 
     paced = complete_pacing(SlamConfig.preset("rgbd"))
     assert paced.tracking.visual.learned_glue and paced.mapping.shed_backlog == 0 and paced.queue_size >= 256

@@ -1,6 +1,8 @@
 """The paper's metrics (ATE after Sim(3) alignment, PSNR, SSIM, LPIPS when weights exist, depth L1, FPS),
 trajectory I/O and paper-style tables."""
 
+from worker.data.tum_trajectory import Trajectory, associate, associate_trajectories, format_tum, read_tum, write_tum
+
 from .lpips import Lpips
 from .metrics import (
     AteResult,
@@ -18,7 +20,6 @@ from .metrics import (
     ssim,
 )
 from .tables import all_tables, ate_table, depth_table, load_metrics, mapping_table
-from .trajectory import Trajectory, associate, associate_trajectories, format_tum, read_tum, write_tum
 
 __all__ = [
     "AteResult", "DepthL1", "Lpips", "RenderingScores", "Trajectory", "absolute_trajectory_error",

@@ -21,10 +21,10 @@ import cv2
 import numpy as np
 import torch
 
+from worker.data.tum_trajectory import Trajectory, associate_trajectories
 from worker.geometry import umeyama
 
 from .images import as_image_batch
-from .trajectory import Trajectory, associate_trajectories
 
 ALIGNMENTS = ("sim3", "se3", "none")
 DEPTH_SCALINGS = ("median", "lstsq", "none")

@@ -158,6 +158,7 @@ class MappingStage(QueuedStage):
             self.loop_closing(LoopQuery(job.kf_id, job.image.permute(2, 0, 1)[None],
                                         Intrinsics.from_matrix(job.K, w, h), job.depth, job.K))
         iterations = self._refine_iterations(backlog)
+        self._wait_for_readers()
         with self.lock:
             self._map_keyframe(job, iterations)
             if self.cfg.idle_refine and iterations < self.cfg.refine_iterations:
@@ -253,6 +254,13 @@ class MappingStage(QueuedStage):
             yield
         finally:
             self.lock.release()
+
+    def _wait_for_readers(self) -> None:
+        """Before mapping a keyframe: renders, exports and snapshots waiting for the map go first (a lock is not
+        fair: the stage's thread could take it again before a waiting reader wakes up)."""
+        deadline = time.monotonic() + READERS_WAIT_S
+        while self._readers_waiting and time.monotonic() < deadline:
+            time.sleep(0.001)
 
     def _let_readers_in(self) -> None:
         """Between two steps of the final refinement (whose thread holds the lock once): the renders and exports

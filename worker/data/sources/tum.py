@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from worker.eval.trajectory import associate, poses_from_tum_rows
+from worker.data.tum_trajectory import associate, poses_from_tum_rows
 from worker.geometry import Intrinsics
 
 from .base import DatasetError, FrameRecord, RecordedSource, SourceOptions, load_matrix_rows, read_intrinsics_json
