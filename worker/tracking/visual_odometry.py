@@ -26,7 +26,6 @@ output similarity (the identity until a restarted map is joined to an older one)
 from __future__ import annotations
 
 from collections import deque
-from itertools import zip_longest
 from typing import Any
 
 import cv2
@@ -37,11 +36,9 @@ from worker.geometry import Intrinsics
 
 from . import schur_native
 from .base import TrackingResult
-from .bundle_adjustment import Observations, bundle_adjust, reprojection_chi2
-from .covisibility import LocalWindow, covisible_window
+from .covisibility import LocalWindow
 from .direct_rotation import DirectSettings, align_rotation
-from .features import Features, OrbExtractor
-from .learned_places import LearnedPlaces, nearest_within
+from .features import Features
 from .local_map import Keyframe, LocalMap
 from .map_join import (
     MapLink,
@@ -53,17 +50,27 @@ from .map_join import (
     similarity_inverse,
     similarity_scale,
 )
-from .optical_flow import detect_corners, predicted_pixels, refine_points, track_points
+from .optical_flow import predicted_pixels, refine_points
 from .pose_optimization import optimize_pose, pnp_pose
 from .projection import camera_matrix, invert_pose, rigid, to_camera
-from .relocalization import Place, PlaceRecognizer
-from .reobservation import nearest_keypoints, search_by_projection
+from .relocalization import Place
 from .rotation_only import angular_errors, bearings, fit_rotation, position_given_rotation
-from .track_triangulation import triangulate_tracks
 from .tracks import Tracks, lookup_sorted
 from .two_view import TwoViewAttempt, TwoViewMap, two_view_from_matches
 from .vo_config import VisualOdometryConfig
-from .vo_state import STATE_VERSION, Anchor, JoinState, VoState
+from .vo_mapping import (
+    adjust,
+    insert_keyframe,
+    median_depth,
+    move_map,
+    needs_keyframe,
+    new_keyframe,
+    sparse_depth,
+    turn_keyframe,
+)
+from .vo_places import learned_candidates, orb_features, place_of, place_rows, pose_distance, retire
+from .vo_state import STATE_VERSION, Anchor, JoinState, VoParts, VoState
+from .vo_tracks import flow, replenish
 from .xfeat import XFeatures, mutual_matches
 
 
@@ -75,13 +82,8 @@ class VisualOdometry:
 
     def __init__(self, config: VisualOdometryConfig | None = None) -> None:
         self.config = config or VisualOdometryConfig()
-        self.extractor = OrbExtractor(self.config)
-        self.recognizer = PlaceRecognizer(self.config)
-        c = self.config  # XFeat against remembered keyframes, computed only when flow and ORB failed
-        self.learned = LearnedPlaces(c.learned_keypoints, c.learned_min_similarity, c.chi2_px, c.reloc_min_inliers,
-                                     c.learned_passes_per_frame, c.learned_threads, c.learned_glue_keypoints,
-                                     c.learned_glue_min_confidence, c.learned_glue_candidates,
-                                     c.learned_glue_point_inliers)
+        self.parts = VoParts.build(self.config)
+        self.extractor, self.recognizer, self.learned = self.parts.extractor, self.parts.recognizer, self.parts.learned
         schur_native.available()  # builds (or loads) the compiled kernel now, not at the first keyframe
         self._reset()
 
@@ -206,21 +208,6 @@ class VisualOdometry:
         return s.estimated_intrinsics
 
     # ---- optical flow ----------------------------------------------------------------------------------------
-    def _flow(self, gray: np.ndarray, guess: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        s = self.state
-        c = self.config
-        return track_points(s.previous_gray, gray, s.tracks.uv, guess, window=c.flow_window,
-                            levels=c.flow_levels, max_fb_px=c.flow_fb_px)
-
-    def _replenish(self, gray: np.ndarray) -> None:
-        """New candidate tracks at corners away from the existing ones, up to `max_tracks`."""
-        s = self.state
-        c = self.config
-        corners = detect_corners(gray, s.tracks.uv, c.max_tracks - len(s.tracks),
-                                 c.corner_min_distance * max(gray.shape), c.corner_quality)
-        ids = np.arange(s.next_id, s.next_id + len(corners), dtype=np.int64)
-        s.next_id += len(corners)
-        s.tracks = s.tracks.extend(ids, corners)
 
     # ---- initialisation --------------------------------------------------------------------------------------
     def _initialise(self, index: int, gray: np.ndarray, camera: Intrinsics, uncalibrated: bool) -> TrackingResult:
@@ -231,13 +218,13 @@ class VisualOdometry:
         s = self.state
         c = self.config
         if s.pending:
-            uv, ok = self._flow(gray, None)
+            uv, ok = flow(s, self.parts, gray, None)
             s.tracks = Tracks(s.tracks.ids[ok], uv[ok], s.tracks.rows[ok])
         s.previous_gray = gray
         shared = [int(np.isin(s.tracks.ids, ids, assume_unique=True).sum()) for _, ids, _ in s.pending]
         usable = [n for n, count in enumerate(shared) if count >= c.init_min_matches]
         if not usable:  # the view has moved on: wait from this frame
-            self._replenish(gray)
+            replenish(s, self.parts, gray)
             s.pending = [(index, s.tracks.ids.copy(), s.tracks.uv.copy())]
             s.pending_orientation = {index: s.pose[:3, :3].copy()}
             return self._waiting(index, s.pose[:3, :3], "waiting_for_matches", "too few shared tracks")
@@ -257,9 +244,9 @@ class VisualOdometry:
             orientation = s.pose[:3, :3]
             if attempt.model == "homography" and attempt.rotation is not None:
                 orientation = reference_orientation @ attempt.rotation
-            self._replenish(gray)
+            replenish(s, self.parts, gray)
             s.pending = (s.pending + [(index, s.tracks.ids.copy(), s.tracks.uv.copy())]
-                            )[-c.init_max_frames:]
+                         )[-c.init_max_frames:]
             s.pending_orientation[index] = orientation.copy()
             kept = {i for i, _, _ in s.pending}
             s.pending_orientation = {i: r for i, r in s.pending_orientation.items() if i in kept}
@@ -296,11 +283,11 @@ class VisualOdometry:
         K = camera_matrix(camera)
         ref_index, ref_ids, ref_uv = s.pending[reference]
         kf_b = self._two_keyframe_map(index, gray, two, ref_index, ref_ids, ref_uv)
-        self._adjust(K, LocalWindow(np.array([1]), np.array([0])))
+        adjust(s, self.parts, K, LocalWindow(np.array([1]), np.array([0])))
         self._normalise_scale()
         world = np.eye(4)
         world[:3, :3], world[:3, 3] = reference_orientation, s.map_origin[:3, 3]
-        self._move_map(world, s.map_depth)
+        move_map(s, world, s.map_depth)
         pose = kf_b.pose
         between, previous = [], world
         for n, (i, ids, uv) in enumerate(s.pending[:-1]):
@@ -319,7 +306,7 @@ class VisualOdometry:
                  "score_ratio": round(attempt.score_ratio, 3)}
         if uncalibrated:
             event["intrinsics"] = camera.to_dict()
-        return TrackingResult(pose, tracked=True, keyframe_hint=True, depth=self._sparse_depth(kf_b, camera),
+        return TrackingResult(pose, tracked=True, keyframe_hint=True, depth=sparse_depth(s, kf_b, camera),
                               events=[event], quality=1.0)
 
     def _two_keyframe_map(self, index: int, gray: np.ndarray, two: TwoViewMap, ref_index: int, ref_ids: np.ndarray,
@@ -338,20 +325,7 @@ class VisualOdometry:
         kf_a = Keyframe(ref_index, np.eye(4), ref_features, s.tracks.rows[found].copy(),
                         s.tracks.ids[found].copy())
         m.keyframes = [kf_a]
-        return self._new_keyframe(index, two.pose_b, gray)
-
-    def _move_map(self, transform: np.ndarray, scale: float) -> None:
-        """Move the local map by the similarity x -> R (scale x) + t of `transform` (rigid 4x4): the poses stay
-        rigid, their positions scale."""
-        s = self.state
-        R, t = transform[:3, :3], transform[:3, 3]
-        m = s.map
-        m.positions = scale * m.positions @ R.T + t
-        for kf in m.keyframes:
-            pose = kf.pose.copy()
-            pose[:3, :3] = R @ kf.pose[:3, :3]
-            pose[:3, 3] = scale * R @ kf.pose[:3, 3] + t
-            kf.pose = rigid(pose)
+        return new_keyframe(s, self.parts, index, two.pose_b, gray)
 
     def _pose_between(self, ids: np.ndarray, uv: np.ndarray, fraction: float, pose_a: np.ndarray, pose_b: np.ndarray,
                       K: np.ndarray) -> np.ndarray:
@@ -404,14 +378,14 @@ class VisualOdometry:
         s.velocity, s.velocity_at = rigid(invert_pose(s.pose) @ pose), index
         s.frames_since_keyframe += 1
         quality = min(1.0, inliers / max(s.tracked_at_keyframe, 1))
-        if not self._needs_keyframe(pose, inliers):
+        if not needs_keyframe(s, self.parts, pose, inliers):
             return TrackingResult(pose, tracked=True, keyframe_hint=False, quality=quality)
-        kf = self._insert_keyframe(index, pose, gray, K)
+        kf = insert_keyframe(s, self.parts, index, pose, gray, K)
         s.velocity = rigid(s.velocity @ invert_pose(pose) @ kf.pose)
         events = self._join_maps(index, kf, K) if s.join is not None else []
         if self._covered(index, kf.pose, K, camera):
             return TrackingResult(kf.pose, tracked=True, keyframe_hint=False, quality=quality, events=events)
-        return TrackingResult(kf.pose, tracked=True, keyframe_hint=True, depth=self._sparse_depth(kf, camera),
+        return TrackingResult(kf.pose, tracked=True, keyframe_hint=True, depth=sparse_depth(s, kf, camera),
                               quality=quality, events=events)
 
     def _covered(self, index: int, pose: np.ndarray, K: np.ndarray, camera: Intrinsics) -> bool:
@@ -448,9 +422,9 @@ class VisualOdometry:
         s = self.state
         t = s.tracks
         guess = predicted_pixels(t.uv, s.map.positions[t.rows[t.mapped]], t.mapped, s.pose, predicted, K)
-        uv, ok = self._flow(gray, guess)
+        uv, ok = flow(s, self.parts, gray, guess)
         if (ok & t.mapped).sum() < 0.5 * t.mapped.sum():  # a wrong guess can mislead the flow: try none
-            uv_plain, ok_plain = self._flow(gray, None)
+            uv_plain, ok_plain = flow(s, self.parts, gray, None)
             if (ok_plain & t.mapped).sum() > (ok & t.mapped).sum():
                 uv, ok = uv_plain, ok_plain
         tracks = self._refine(Tracks(t.ids[ok], uv[ok], t.rows[ok]), gray, predicted)
@@ -472,7 +446,7 @@ class VisualOdometry:
         s = self.state
         c, t = self.config, s.tracks
         guess = predicted_pixels(t.uv, s.map.positions[t.rows[t.mapped]], t.mapped, s.pose, predicted, K)
-        uv, ok = self._flow(gray, guess)
+        uv, ok = flow(s, self.parts, gray, guess)
         if ok.sum() < c.rotation_min_tracks:
             return None
         followed = np.flatnonzero(ok)
@@ -489,7 +463,7 @@ class VisualOdometry:
         if len(mapped) >= c.rotation_position_points:
             found = position_given_rotation(orientation, s.map.positions[t.rows[mapped]], bearings(uv[mapped], K),
                                             2.0 * tolerance)
-            depth = self._median_depth(s.map.keyframes[-1]) if s.map.keyframes else s.map_depth
+            depth = median_depth(s, s.map.keyframes[-1]) if s.map.keyframes else s.map_depth
             if (found is not None and found[1].sum() >= c.rotation_position_points
                     and np.linalg.norm(found[0] - position) <= c.rotation_max_step * depth):
                 position, measured = found[0], int(found[1].sum())
@@ -506,7 +480,7 @@ class VisualOdometry:
         s.velocity, s.velocity_at = rigid(invert_pose(s.pose) @ pose), index
         s.frames_since_keyframe += 1
         s.direct_since = None  # the tracks measure the turn again: a run of aligned frames ends
-        self._turn_keyframe(index, pose, gray, K, run_began=s.rotation_since is not None)
+        turn_keyframe(s, self.parts, index, pose, gray, K, run_began=s.rotation_since is not None)
         events = []
         if s.rotation_since is None:
             s.rotation_since = index
@@ -514,21 +488,6 @@ class VisualOdometry:
                            "map_points": measured})
         return TrackingResult(pose, tracked=True, keyframe_hint=False, events=events,
                               quality=0.5 * float(agree.mean()), translation_measured=measured > 0)
-
-    def _turn_keyframe(self, index: int, pose: np.ndarray, gray: np.ndarray, K: np.ndarray, run_began: bool
-                       ) -> None:
-        """A keyframe where a turn model placed the frame: at a run's first frame, and again whenever the tracks
-        fall below `rotation_keyframe_share` of the last keyframe's (the view has turned on)."""
-        s = self.state
-        c = self.config
-        last = s.map.keyframes[-1] if s.map.keyframes else None
-        if run_began and last is not None and len(s.tracks) >= c.rotation_keyframe_share * len(last.track_ids):
-            return
-        self._new_keyframe(index, pose, gray)
-        self._triangulate(K, s.map.keyframes[-(c.window + c.fixed_keyframes + 1):])
-        self._retire(s.map.slide(c.map_keyframes if c.covisibility_ba else c.window + c.fixed_keyframes))
-        self._remap(s.map.forget_unobserved())
-        s.tracked_at_keyframe = max(int(s.tracks.mapped.sum()), 1)
 
     def _follow_direct(self, index: int, gray: np.ndarray, K: np.ndarray, predicted: np.ndarray
                        ) -> TrackingResult | str:
@@ -570,14 +529,14 @@ class VisualOdometry:
         motion[:3, :3], motion[:3, 3] = fit.rotation.T, step[:3, 3]  # the turn measured, the centre predicted
         pose = rigid(s.pose @ motion)
         guess = predicted_pixels(t.uv, s.map.positions[t.rows[t.mapped]], t.mapped, s.pose, pose, K)
-        uv, ok = self._flow(gray, guess)
+        uv, ok = flow(s, self.parts, gray, guess)
         ok[t.mapped] &= np.linalg.norm(uv[t.mapped] - guess[t.mapped], axis=1) <= c.direct_track_tolerance_px
         s.tracks = Tracks(t.ids[ok], uv[ok], t.rows[ok])
         s.previous_gray = gray
         s.velocity, s.velocity_at = rigid(invert_pose(s.pose) @ pose), index
         s.frames_since_keyframe += 1
         s.rotation_since = None
-        self._turn_keyframe(index, pose, gray, K, run_began=s.direct_since is not None)
+        turn_keyframe(s, self.parts, index, pose, gray, K, run_began=s.direct_since is not None)
         events = []
         if s.direct_since is None:
             s.direct_since = index
@@ -598,7 +557,7 @@ class VisualOdometry:
                 return float(np.median(depth[depth > 0]))
         for kf in reversed(s.map.keyframes):
             if (kf.point_ids >= 0).sum() >= self.config.min_tracked:
-                return self._median_depth(kf)
+                return median_depth(s, kf)
         return s.map_depth
 
     def _still_a_turn(self, tracks: Tracks, pose: np.ndarray, K: np.ndarray, tolerance: float) -> bool:
@@ -664,185 +623,18 @@ class VisualOdometry:
                 return None
         return pose, inlier
 
-    def _median_depth(self, kf: Keyframe) -> float:
-        s = self.state
-        rows = kf.point_ids[kf.point_ids >= 0]
-        if len(rows) == 0:
-            return 1.0
-        return float(np.median(to_camera(s.map.positions[rows], kf.pose)[:, 2]))
-
-    def _needs_keyframe(self, pose: np.ndarray, tracked: int) -> bool:
-        s = self.state
-        c = self.config
-        if s.frames_since_keyframe < c.keyframe_min_gap:
-            return False
-        last = s.map.keyframes[-1]
-        baseline = np.linalg.norm(pose[:3, 3] - last.pose[:3, 3]) / max(self._median_depth(last), 1e-6)
-        weak = tracked < c.keyframe_tracked_ratio * s.tracked_at_keyframe
-        stale = s.frames_since_keyframe >= c.keyframe_max_gap and baseline > 0.2 * c.keyframe_baseline
-        return weak or stale or baseline > c.keyframe_baseline
-
     # ---- keyframes and the map -------------------------------------------------------------------------------
-    def _new_keyframe(self, index: int, pose: np.ndarray, gray: np.ndarray) -> Keyframe:
-        """A keyframe of every track (after new corners are added), appended to the map."""
-        s = self.state
-        self._replenish(gray)
-        t = s.tracks
-        features = Features(t.uv.copy(), np.zeros((len(t), 32), np.uint8), np.zeros(len(t), np.int32))
-        kf = Keyframe(index, pose.copy(), features, t.rows.copy(), t.ids.copy(), self._orb(index, gray))
-        s.map.keyframes.append(kf)
-        kept = {k.index for k in s.map.keyframes}
-        s.keyframe_images = {i: g for i, g in s.keyframe_images.items() if i in kept}
-        s.keyframe_images[index] = gray
-        s.keyframe_gray = gray
-        s.frames_since_keyframe = 0
-        return kf
-
-    def _insert_keyframe(self, index: int, pose: np.ndarray, gray: np.ndarray, K: np.ndarray) -> Keyframe:
-        s = self.state
-        kf = self._new_keyframe(index, pose, gray)
-        c = self.config
-        self._triangulate(K, s.map.keyframes[-(c.window + c.fixed_keyframes + 1):])
-        if c.reobserve_points:
-            self._reobserve(kf, K)
-        gone = s.map.slide(c.map_keyframes if c.covisibility_ba else c.window + c.fixed_keyframes)
-        self._retire(gone)
-        self._remap(s.map.forget_unobserved())
-        count = len(s.map.keyframes)
-        if count >= 3:
-            if c.covisibility_ba:
-                window = covisible_window([k.point_ids for k in s.map.keyframes], count - 1, c.window,
-                                          c.covisible_fixed, min_fixed=c.fixed_keyframes)
-            else:
-                held = min(max(c.fixed_keyframes, count - c.window), count - 1)
-                window = LocalWindow(np.arange(held, count), np.arange(held))
-            self._adjust(K, window)
-        s.tracked_at_keyframe = int(s.tracks.mapped.sum())
-        return kf
-
-    def _triangulate(self, K: np.ndarray, keyframes: list[Keyframe]) -> None:
-        """Map points from the candidate tracks of the newest keyframe seen first by one of `keyframes` (oldest
-        first, the newest last; see `triangulate_tracks`)."""
-        s = self.state
-        m, t = s.map, s.tracks
-        candidate = t.rows < 0
-        new = triangulate_tracks(keyframes, t.ids[candidate], t.uv[candidate], K, self.config.chi2_px,
-                                 self.config.min_parallax_deg)
-        rows = m.add_points(new.points, np.zeros((len(new.points), 32), np.uint8))
-        for keyframe in m.keyframes:
-            at, found = lookup_sorted(new.ids, keyframe.track_ids)
-            keyframe.point_ids[found] = rows[at[found]]
-        at, found = lookup_sorted(new.ids, t.ids)
-        t.rows[found] = rows[at[found]]
-        if len(new.inconsistent):
-            s.tracks = t.subset(~np.isin(t.ids, new.inconsistent))
-
-    def _reobserve(self, kf: Keyframe, K: np.ndarray) -> None:
-        """Describe the points the tracks measure at the new keyframe `kf` (ORB), then match the described points
-        no track follows to its ORB features (`reobservation`): a candidate track on the keypoint takes the point,
-        and away from every track a new track starts there; `kf` observes them."""
-        s = self.state
-        c, m, t = self.config, s.map, s.tracks
-        radius = c.place_radius_px * self.extractor.level_sigmas(kf.orb.octaves)
-        mapped = np.flatnonzero(t.mapped)
-        bare = mapped[~m.descriptors[t.rows[mapped]].any(axis=1)]
-        nearest, near = nearest_keypoints(t.uv[bare].astype(np.float64), kf.orb, radius)
-        m.descriptors[t.rows[bare[near]]] = kf.orb.descriptors[nearest[near]]
-        followed = np.zeros(len(m), bool)
-        followed[t.rows[mapped]] = True
-        candidates = np.flatnonzero(~followed & m.descriptors.any(axis=1))
-        rows, keypoints = search_by_projection(m.positions, m.descriptors, candidates, kf.pose, K, s.image_size,
-                                               kf.orb, c.reobserve_radius_px, c.reobserve_max_hamming, c.match_ratio)
-        if len(rows) == 0 or len(t) == 0:
-            return
-        uv = kf.orb.keypoints[keypoints].astype(np.float32)
-        d2 = ((uv[:, None, :] - t.uv[None, :, :]) ** 2).sum(-1)
-        closest = d2.argmin(axis=1)
-        distance = np.sqrt(d2[np.arange(len(uv)), closest])
-        taken = np.flatnonzero((distance <= c.reobserve_snap_px) & (t.rows[closest] < 0))
-        take = np.zeros(len(uv), bool)
-        take[taken[np.unique(closest[taken], return_index=True)[1]]] = True  # one point per track
-        t.rows[closest[take]] = rows[take]
-        order = np.argsort(kf.track_ids)
-        at, found = lookup_sorted(kf.track_ids[order], t.ids[closest[take]])
-        kf.point_ids[order[at[found]]] = rows[take][found]
-        fresh = distance > c.corner_min_distance * max(s.image_size)
-        if fresh.any():
-            ids = np.arange(s.next_id, s.next_id + int(fresh.sum()), dtype=np.int64)
-            s.next_id += len(ids)
-            s.tracks = Tracks(np.r_[t.ids, ids], np.concatenate([t.uv, uv[fresh]]), np.r_[t.rows, rows[fresh]])
-            f = kf.features
-            kf.features = Features(np.concatenate([f.keypoints, uv[fresh]]),
-                                   np.concatenate([f.descriptors, np.zeros((len(ids), 32), np.uint8)]),
-                                   np.concatenate([f.octaves, np.zeros(len(ids), f.octaves.dtype)]))
-            kf.point_ids, kf.track_ids = np.r_[kf.point_ids, rows[fresh]], np.r_[kf.track_ids, ids]
-
-    def _remap(self, remap: np.ndarray) -> None:
-        """Follow the map's renumbering of points in the tracks (a track whose point went becomes a candidate)."""
-        s = self.state
-        s.tracks.rows = remap[s.tracks.rows]
-
-    def _adjust(self, K: np.ndarray, window: LocalWindow) -> None:
-        """Bundle adjustment of the window's free keyframes and the points they observe, its fixed keyframes held;
-        observations it finds wrong are dropped (and the tracks they came from when the newest keyframe made
-        them), and points nobody sees."""
-        s = self.state
-        m = s.map
-        slots = window.slots
-        obs = m.observations(self.extractor.level_sigmas)
-        keep = np.isin(obs.keyframe, slots)
-        obs = Observations(np.searchsorted(slots, obs.keyframe[keep]), obs.point[keep], obs.uv[keep],
-                           obs.sigma[keep])
-        if len(obs.point) == 0:
-            return
-        fixed = ~np.isin(slots, window.free)
-        poses = np.stack([m.keyframes[k].pose for k in slots])
-        poses, m.positions, _ = bundle_adjust(poses, fixed, m.positions, obs, K, self.config.ba_iterations,
-                                              self.config.huber_sigmas)
-        for slot, pose in zip(slots, poses, strict=True):
-            m.keyframes[slot].pose = pose
-        bad = reprojection_chi2(poses, m.positions, obs, K) > self.config.chi2_px
-        for n, slot in enumerate(slots):
-            kf = m.keyframes[slot]
-            bad_rows = obs.point[bad & (obs.keyframe == n)]
-            if len(bad_rows):
-                kf.point_ids[np.isin(kf.point_ids, bad_rows)] = -1
-        newest = len(m.keyframes) - 1
-        bad_newest = obs.point[bad & (obs.keyframe == np.searchsorted(slots, newest))] if newest in slots else []
-        if len(bad_newest):
-            s.tracks = s.tracks.subset(~np.isin(s.tracks.rows, bad_newest))
-        self._remap(m.forget_unobserved())
 
     def _normalise_scale(self) -> None:
         """Scale the map about the first keyframe so that its median point depth is 1."""
         s = self.state
         first = s.map.keyframes[0]
-        factor = 1.0 / max(self._median_depth(first), 1e-9)
+        factor = 1.0 / max(median_depth(s, first), 1e-9)
         m, origin = s.map, first.pose[:3, 3].copy()
         m.positions = origin + factor * (m.positions - origin)
         for kf in m.keyframes:
             kf.pose = kf.pose.copy()
             kf.pose[:3, 3] = origin + factor * (kf.pose[:3, 3] - origin)
-
-    def _place_rows(self, kf: Keyframe) -> tuple[np.ndarray, np.ndarray]:
-        """The keyframe's ORB keypoints (indices) that lie on one of its map points' observations (within the
-        relocalisation tolerance), and those points' rows."""
-        has = np.flatnonzero(kf.point_ids >= 0)
-        orb = kf.orb
-        if len(has) == 0 or len(orb) == 0:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64)
-        radius = self.config.place_radius_px * self.extractor.level_sigmas(orb.octaves)
-        near, nearest = nearest_within(orb.keypoints, kf.features.keypoints[has], radius)
-        return near, kf.point_ids[has[nearest]]
-
-    def _place(self, kf: Keyframe) -> Place:
-        """The keyframe's ORB keypoints that lie on one of its map points' observations, with those points."""
-        s = self.state
-        near, rows = self._place_rows(kf)
-        orb = kf.orb
-        return Place(kf.index, kf.pose.copy(), orb.keypoints[near], orb.descriptors[near],
-                     s.map.positions[rows].copy(), map_id=s.map_id, output=s.output.copy(),
-                     gray=s.keyframe_images.get(kf.index))
 
     # ---- joining a restarted map to an older one -------------------------------------------------------------
     def _join_maps(self, index: int, kf: Keyframe, K: np.ndarray) -> list[dict[str, Any]]:
@@ -859,7 +651,7 @@ class VisualOdometry:
             s.join = None
             return []
         places = [p for p in s.retired if p.map_id != s.map_id]
-        near, rows = self._place_rows(kf)
+        near, rows = place_rows(self.parts, kf)
         points = np.full((len(kf.orb), 3), np.nan)
         points[near] = s.map.positions[rows]
         link = link_maps(self.recognizer, kf.orb, points, kf.pose, places, K,
@@ -877,7 +669,7 @@ class VisualOdometry:
         kf_camera = S @ kf.pose @ similarity(np.eye(3), np.zeros(3), 1.0 / similarity_scale(before))
         relative = similarity_inverse(place_camera) @ kf_camera
         correction = link.place.output @ S @ similarity_inverse(before)
-        self._move_map(similarity(S[:3, :3] / scale, S[:3, 3], 1.0), scale)
+        move_map(s, similarity(S[:3, :3] / scale, S[:3, 3], 1.0), scale)
         for place in s.retired:
             if place.map_id == s.map_id:
                 place.pose, place.points = moved_pose(S, place.pose), moved_points(S, place.points)
@@ -897,8 +689,8 @@ class VisualOdometry:
         c = self.config
         # A restarted map begins at the old map's last pose: only places near the keyframe there are worth a network
         # pass (the maps' coordinates agree roughly until joined; far places are left to ORB and loop closure).
-        places = [p for p in places if self._pose_distance(p.pose, kf.pose) <= c.learned_join_reach]
-        candidates = self._learned_candidates(index, s.keyframe_images[kf.index], places, by_words=False)
+        places = [p for p in places if pose_distance(s, p.pose, kf.pose) <= c.learned_join_reach]
+        candidates = learned_candidates(s, self.parts, index, s.keyframe_images[kf.index], places, by_words=False)
         if not candidates:
             return None
         has = np.flatnonzero(kf.point_ids >= 0)  # the keyframe's own map points, described where it tracks them
@@ -911,30 +703,6 @@ class VisualOdometry:
         points = np.full((len(current), 3), np.nan)
         points[len(current) - len(has):] = s.map.positions[kf.point_ids[has]]
         return link_from_hit(hit, points, kf.pose, places, c.join_min_pairs, c.join_max_spread)
-
-    def _retire(self, keyframes: list[Keyframe]) -> None:
-        """Keyframes leaving the map become places; the newest `learned_places` keep their image."""
-        s = self.state
-        places = (self._place(kf) for kf in keyframes)
-        s.retired.extend(p for p in places if len(p.points) >= self.config.reloc_min_inliers)
-        del s.retired[: max(0, len(s.retired) - self.config.reloc_keyframes)]
-        for place in s.retired[: max(0, len(s.retired) - self.config.learned_places)]:
-            place.gray = None
-        self.learned.forget({p.index for p in s.retired if p.gray is not None}
-                            | {kf.index for kf in s.map.keyframes})
-
-    def _sparse_depth(self, kf: Keyframe, camera: Intrinsics) -> np.ndarray:
-        """z-depth of the keyframe's points at their pixels, 0 elsewhere."""
-        s = self.state
-        depth = np.zeros((camera.height, camera.width), np.float32)
-        has = np.flatnonzero(kf.point_ids >= 0)
-        z = to_camera(s.map.positions[kf.point_ids[has]], kf.pose)[:, 2]
-        uv = kf.features.keypoints[has]
-        col = np.clip(uv[:, 0].astype(np.int64), 0, camera.width - 1)
-        row = np.clip(uv[:, 1].astype(np.int64), 0, camera.height - 1)
-        keep = z > 0
-        depth[row[keep], col[keep]] = z[keep]
-        return depth
 
     # ---- losing and finding the way back ---------------------------------------------------------------------
     def _lose_or_restart(self, index: int, gray: np.ndarray, camera: Intrinsics, reason: str) -> TrackingResult:
@@ -958,12 +726,12 @@ class VisualOdometry:
         s.lost_since, s.rotation_since, s.direct_since = index, None, None
         s.anchor = None
         if self.config.reinit_after_loss and s.previous_gray is not None and was_tracking:
-            self._replenish(s.previous_gray)  # the anchor's corners, not only its surviving tracks
+            replenish(s, self.parts, s.previous_gray)  # the anchor's corners, not only its surviving tracks
             t = s.tracks
             points = np.full((len(t), 3), np.nan)
             points[t.mapped] = s.map.positions[t.rows[t.mapped]]
             s.anchor = Anchor(s.last_tracked, s.pose.copy(), t.ids.copy(), t.uv.copy(), points,
-                                 s.velocity.copy(), s.pose.copy(), s.previous_gray)
+                              s.velocity.copy(), s.pose.copy(), s.previous_gray)
         s.velocity = np.eye(4)
         return TrackingResult(s.pose.copy(), tracked=False, keyframe_hint=False, quality=0.0,
                               events=[{"type": "tracking_lost", "reason": reason, "frame": index}])
@@ -982,7 +750,7 @@ class VisualOdometry:
             s.previous_gray = gray
             event = {"type": "relocalized", "frame": index, "place": s.map.keyframes[-1].index,
                      "inliers": inliers, "lost_frames": index - (s.lost_since if s.lost_since is not None
-                                                                  else index)}
+                                                                 else index)}
             s.status, s.lost_since, s.velocity, s.anchor = "tracking", None, np.eye(4), None
             return TrackingResult(pose, tracked=True, keyframe_hint=False, events=[event],
                                   quality=min(1.0, inliers / max(s.tracked_at_keyframe, 1)))
@@ -1001,10 +769,10 @@ class VisualOdometry:
         """Place recognition over the remembered keyframes (ORB, verified by PnP): a hit starts a new local map
         from the place's points seen in this frame (their positions, hence the scale, carry over); None: no hit."""
         s = self.state
-        features = self._orb(index, gray)
+        features = orb_features(s, self.parts, index, gray)
         if len(features) < self.config.min_features:
             return None
-        places = s.retired + [self._place(kf) for kf in s.map.keyframes]
+        places = s.retired + [place_of(s, self.parts, kf) for kf in s.map.keyframes]
         hit = self.recognizer.relocalise(features, places, camera_matrix(camera),
                                          self.extractor.level_sigmas(features.octaves))
         if hit is None:
@@ -1018,15 +786,15 @@ class VisualOdometry:
         s = self.state
         keyframes = s.map.keyframes
         usual = len(keyframes[-1].features.keypoints) if keyframes else 0
-        return len(self._orb(index, gray)) >= max(self.config.init_min_matches, 0.3 * usual)
+        return len(orb_features(s, self.parts, index, gray)) >= max(self.config.init_min_matches, 0.3 * usual)
 
     def _begin_new_map(self, index: int, gray: np.ndarray, camera: Intrinsics, lost_for: int) -> TrackingResult:
         """Give up finding the old map from here: its keyframes become places, and a new map initialises from
         this frame on, placed at the last pose with the old map's median scene depth (a guess: the two share no
         point) until a loop or relocalisation joins them. A `new_map` event says so."""
         s = self.state
-        depth = self._median_depth(s.map.keyframes[-1]) if s.map.keyframes else s.map_depth
-        self._retire(s.map.keyframes)
+        depth = median_depth(s, s.map.keyframes[-1]) if s.map.keyframes else s.map_depth
+        retire(s, self.parts, s.map.keyframes)
         s.map, s.tracks, s.anchor = LocalMap(), Tracks.empty(), None
         s.pending, s.pending_orientation, s.init_state = [], {}, ""
         s.previous_gray = s.keyframe_gray = None
@@ -1048,7 +816,7 @@ class VisualOdometry:
         at `pose` (their positions, hence the scale, carry over); the old keyframes become places."""
         s = self.state
         s.anchor = None
-        self._retire(s.map.keyframes)
+        retire(s, self.parts, s.map.keyframes)
         place_map = next((p.map_id for p in s.retired if p.index == place), s.map_id)
         if place_map != s.map_id:  # back in an older map's frame: its points carry that map's coordinates
             s.map_id, s.join = place_map, None
@@ -1057,13 +825,13 @@ class VisualOdometry:
         ids = np.arange(s.next_id, s.next_id + len(rows), dtype=np.int64)
         s.next_id += len(rows)
         s.tracks = Tracks(ids, np.asarray(uv, np.float32).reshape(-1, 2), rows)
-        kf = self._new_keyframe(index, pose, gray)
+        kf = new_keyframe(s, self.parts, index, pose, gray)
         s.tracked_at_keyframe = len(rows)
         s.previous_gray = gray
         event = {"type": "relocalized", "frame": index, "place": place, "inliers": len(rows), "method": method,
                  "lost_frames": index - (s.lost_since if s.lost_since is not None else index)}
         s.status, s.lost_since, s.velocity = "tracking", None, np.eye(4)
-        return TrackingResult(pose, tracked=True, keyframe_hint=True, depth=self._sparse_depth(kf, camera),
+        return TrackingResult(pose, tracked=True, keyframe_hint=True, depth=sparse_depth(s, kf, camera),
                               events=[event], quality=1.0)
 
     def _relocalise_learned(self, index: int, gray: np.ndarray, camera: Intrinsics) -> TrackingResult | None:
@@ -1097,10 +865,10 @@ class VisualOdometry:
                         pose, inlier = found
                         return self._restart_from(index, gray, camera, pose, uv[inlier], X[inlier], anchor.index,
                                                   "learned")
-        candidates = self._learned_candidates(index, gray)
+        candidates = learned_candidates(s, self.parts, index, gray)
         if not candidates:
             return None
-        current = self.learned.of_frame(index, gray, self._orb(index, gray).keypoints)
+        current = self.learned.of_frame(index, gray, orb_features(s, self.parts, index, gray).keypoints)
         if current is None:
             return None
         hit = self.learned.relocalise(current, candidates, K, c.learned_keyframe_min_inliers)
@@ -1116,44 +884,6 @@ class VisualOdometry:
         hit, uv = glued
         return self._restart_from(index, gray, camera, hit.pose, uv[hit.keypoints], hit.points, hit.place,
                                   "learned glue")
-
-    def _learned_candidates(self, index: int, gray: np.ndarray, places: list[Place] | None = None,
-                            by_words: bool = True) -> list[Place]:
-        """Remembered keyframes with an image to match a lost frame to by XFeat: the `learned_candidates` nearest
-        the last pose (viewing direction and position; a restarted map begins at the old map's last pose, so its
-        coordinates are near the old map's until joined) and as many most alike in ORB words, without repeats,
-        taken in turn (the most alike, the nearest, the second most alike, ...: a frame's network passes describe
-        the likeliest of each kind first)."""
-        s = self.state
-        c = self.config
-        if places is None:
-            places = s.retired + [self._place(kf) for kf in s.map.keyframes]
-        places = [p for p in places if p.gray is not None and len(p.points) >= c.reloc_min_inliers]
-        if not places:
-            return []
-        nearest = sorted(places, key=lambda p: self._pose_distance(p.pose, s.pose))[: c.learned_candidates]
-        features = self._orb(index, gray) if by_words else None
-        if features is None or len(features) < c.min_features:
-            return nearest
-        alike = self.recognizer.shortlist(features, places)[: c.learned_candidates]
-        chosen: list[Place] = []
-        for pair in zip_longest(alike, nearest):
-            chosen += [p for p in pair if p is not None and p not in chosen]
-        return chosen
-
-    def _pose_distance(self, a: np.ndarray, b: np.ndarray) -> float:
-        """How far apart two camera poses look: the angle between their viewing directions (radians) plus their
-        distance in median scene depths."""
-        s = self.state
-        turned = np.arccos(np.clip(a[:3, 2] @ b[:3, 2], -1.0, 1.0))
-        return float(turned + np.linalg.norm(a[:3, 3] - b[:3, 3]) / max(s.map_depth, 1e-6))
-
-    def _orb(self, index: int, gray: np.ndarray) -> Features:
-        """ORB features of frame `index` (extracted once per frame)."""
-        s = self.state
-        if s.orb_of is None or s.orb_of[0] != index:
-            s.orb_of = (index, self.extractor.extract(gray))
-        return s.orb_of[1]
 
     def _learned_place(self, anchor: Anchor) -> tuple[np.ndarray, np.ndarray]:
         """XFeat descriptors [n, 64] of the anchor image's keypoints that lie on one of its tracked map points
@@ -1183,9 +913,9 @@ class VisualOdometry:
         rows = np.where(t.rows < len(s.map), t.rows, -1)
         mapped = rows >= 0
         guess = predicted_pixels(t.uv, s.map.positions[rows[mapped]], mapped, anchor.predicted, predicted, K)
-        uv, ok = self._flow(gray, guess)
+        uv, ok = flow(s, self.parts, gray, guess)
         if ok.sum() < 0.5 * len(t):
-            uv_plain, ok_plain = self._flow(gray, None)
+            uv_plain, ok_plain = flow(s, self.parts, gray, None)
             if ok_plain.sum() > ok.sum():
                 uv, ok = uv_plain, ok_plain
         followed = Tracks(t.ids[ok], uv[ok], t.rows[ok])
@@ -1207,12 +937,12 @@ class VisualOdometry:
         if attempt.model == "homography" and two.parallax_deg < c.init_min_parallax_deg:
             return None  # a turn in place fits a homography too, and noise then passes for a small baseline
         scale, shared = anchor.scale_of(two.points, at[two.ib])
-        self._retire(s.map.keyframes)
+        retire(s, self.parts, s.map.keyframes)
         if c.join_maps:  # a map of its own until a place of the old one is recognised
             s.map_id, s.maps_made, s.join = s.maps_made, s.maps_made + 1, JoinState(index)
         kf = self._two_keyframe_map(index, gray, two, anchor.index, anchor.ids, anchor.uv)
-        self._adjust(K, LocalWindow(np.array([1]), np.array([0])))
-        self._move_map(anchor.pose, scale)
+        adjust(s, self.parts, K, LocalWindow(np.array([1]), np.array([0])))
+        move_map(s, anchor.pose, scale)
         s.anchor = None
         s.tracked_at_keyframe = int(s.tracks.mapped.sum())
         steps = max(index - anchor.index, 1)
@@ -1226,7 +956,7 @@ class VisualOdometry:
                  "lost_frames": index - (s.lost_since if s.lost_since is not None else index)}
         s.status, s.lost_since = "tracking", None
         joined = self._join_maps(index, kf, K) if s.join is not None else []  # the old map's last places
-        return TrackingResult(kf.pose, tracked=True, keyframe_hint=True, depth=self._sparse_depth(kf, camera),
+        return TrackingResult(kf.pose, tracked=True, keyframe_hint=True, depth=sparse_depth(s, kf, camera),
                               events=[event, *joined], quality=1.0)
 
     # ---- snapshots -------------------------------------------------------------------------------------------

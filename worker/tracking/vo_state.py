@@ -98,12 +98,13 @@ class VoParts:
 
     @classmethod
     def build(cls, config: VisualOdometryConfig) -> VoParts:
+        extractor, recognizer = OrbExtractor(config), PlaceRecognizer(config)
         c = config
         learned = LearnedPlaces(c.learned_keypoints, c.learned_min_similarity, c.chi2_px, c.reloc_min_inliers,
                                 c.learned_passes_per_frame, c.learned_threads, c.learned_glue_keypoints,
                                 c.learned_glue_min_confidence, c.learned_glue_candidates,
                                 c.learned_glue_point_inliers)
-        return cls(config, OrbExtractor(config), PlaceRecognizer(config), learned)
+        return cls(config, extractor, recognizer, learned)
 
 
 def _image(gray: np.ndarray | None) -> np.ndarray:
