@@ -41,13 +41,8 @@ from .direct_rotation import DirectSettings, align_rotation
 from .features import Features
 from .local_map import Keyframe, LocalMap
 from .map_join import (
-    MapLink,
-    link_from_hit,
-    link_maps,
     moved_points,
     moved_pose,
-    similarity,
-    similarity_inverse,
     similarity_scale,
 )
 from .optical_flow import predicted_pixels, refine_points
@@ -57,7 +52,9 @@ from .relocalization import Place
 from .rotation_only import angular_errors, bearings, fit_rotation, position_given_rotation
 from .tracks import Tracks, lookup_sorted
 from .two_view import TwoViewAttempt, TwoViewMap, two_view_from_matches
+from .vo_calibration import camera_of, freeze_focal, measure_focal
 from .vo_config import VisualOdometryConfig
+from .vo_map_join import join_maps, output_is_identity, to_output
 from .vo_mapping import (
     adjust,
     insert_keyframe,
@@ -68,7 +65,7 @@ from .vo_mapping import (
     sparse_depth,
     turn_keyframe,
 )
-from .vo_places import learned_candidates, orb_features, place_of, place_rows, pose_distance, retire
+from .vo_places import learned_candidates, orb_features, place_of, retire
 from .vo_state import STATE_VERSION, Anchor, JoinState, VoParts, VoState
 from .vo_tracks import flow, replenish
 from .xfeat import XFeatures, mutual_matches
@@ -142,10 +139,10 @@ class VisualOdometry:
         `motion_guess` (previous^-1 @ current in this odometry's units, e.g. a device's relative motion) replaces
         the constant-velocity guess when given."""
         s = self.state
-        camera = self._camera(frame, intrinsics)
+        camera = camera_of(s, frame, intrinsics)
         gray = cv2.cvtColor(frame.image, cv2.COLOR_RGB2GRAY)
         self.learned.begin_frame(frame.index)
-        if motion_guess is not None and not self._output_is_identity():  # output units -> the map's
+        if motion_guess is not None and not output_is_identity(s):  # output units -> the map's
             motion_guess = np.array(motion_guess, np.float64)
             motion_guess[:3, 3] /= similarity_scale(s.output)
         if s.status == "initializing":
@@ -165,24 +162,7 @@ class VisualOdometry:
         if result.tracked:
             s.last_tracked = frame.index
         result.submap_id = s.maps_started - 1
-        return self._to_output(result)
-
-    def _output_is_identity(self) -> bool:
-        s = self.state
-        return bool(np.array_equal(s.output, np.eye(4)))
-
-    def _to_output(self, result: TrackingResult) -> TrackingResult:
-        """The result in the output's coordinates (the map's, until a restarted map joined an older one)."""
-        s = self.state
-        if self._output_is_identity():
-            return result
-        result.pose = moved_pose(s.output, result.pose)
-        if result.depth is not None:
-            result.depth = result.depth * np.float32(similarity_scale(s.output))
-        for event in result.events:
-            if event.get("frames"):
-                event["frames"] = [[i, moved_pose(s.output, np.asarray(p)).tolist()] for i, p in event["frames"]]
-        return result
+        return to_output(s, result)
 
     def keyframe_added(self, frame: Frame, pose: np.ndarray) -> None:
         """The engine's keyframes do not change VO's own; they are remembered as places to come back to."""
@@ -191,21 +171,6 @@ class VisualOdometry:
             s.engine_keyframes.append((int(frame.index), np.asarray(pose, np.float64).copy()))
 
     # ---- camera ----------------------------------------------------------------------------------------------
-    def _camera(self, frame: Frame, intrinsics: Intrinsics | None) -> Intrinsics:
-        s = self.state
-        size = (frame.width, frame.height)
-        if s.image_size is not None and size != s.image_size:
-            raise ValueError(f"frame {frame.index} is {size[0]}x{size[1]} but this session's frames are "
-                             f"{s.image_size[0]}x{s.image_size[1]}")
-        intrinsics = intrinsics or frame.intrinsics
-        if intrinsics is not None and (intrinsics.width, intrinsics.height) != size:
-            raise ValueError(f"intrinsics are for {intrinsics.width}x{intrinsics.height} but frame {frame.index} "
-                             f"is {size[0]}x{size[1]}")
-        s.image_size = size
-        if intrinsics is not None:
-            return intrinsics
-        s.estimated_intrinsics = s.focal.intrinsics(*size)
-        return s.estimated_intrinsics
 
     # ---- optical flow ----------------------------------------------------------------------------------------
 
@@ -232,9 +197,8 @@ class VisualOdometry:
         ref_index, ref_ids, ref_uv = s.pending[reference]
         at, found = lookup_sorted(ref_ids, s.tracks.ids)
         common = np.flatnonzero(found)
-        if uncalibrated and not s.focal.frozen:
-            s.focal.observe_matches(ref_uv[at[common]], s.tracks.uv[common], camera)
-            camera = s.estimated_intrinsics = s.focal.intrinsics(camera.width, camera.height)
+        if uncalibrated:
+            camera = measure_focal(s, ref_uv[at[common]], s.tracks.uv[common], camera)
         K = camera_matrix(camera)
         ones = np.ones(len(common))
         attempt = two_view_from_matches(ref_uv[at[common]], s.tracks.uv[common], K, c, ones, ones,
@@ -252,7 +216,7 @@ class VisualOdometry:
             s.pending_orientation = {i: r for i, r in s.pending_orientation.items() if i in kept}
             state = "rotation_only" if attempt.rotation_only else "waiting_for_parallax"
             return self._waiting(index, orientation, state, attempt.reason, attempt.model, attempt.score_ratio)
-        s.focal.freeze()
+        freeze_focal(s)
         s.pending.append((index, s.tracks.ids.copy(), s.tracks.uv.copy()))
         return self._start_map(index, gray, attempt, reference, camera, uncalibrated, reference_orientation)
 
@@ -382,7 +346,7 @@ class VisualOdometry:
             return TrackingResult(pose, tracked=True, keyframe_hint=False, quality=quality)
         kf = insert_keyframe(s, self.parts, index, pose, gray, K)
         s.velocity = rigid(s.velocity @ invert_pose(pose) @ kf.pose)
-        events = self._join_maps(index, kf, K) if s.join is not None else []
+        events = join_maps(s, self.parts, index, kf, K) if s.join is not None else []
         if self._covered(index, kf.pose, K, camera):
             return TrackingResult(kf.pose, tracked=True, keyframe_hint=False, quality=quality, events=events)
         return TrackingResult(kf.pose, tracked=True, keyframe_hint=True, depth=sparse_depth(s, kf, camera),
@@ -637,72 +601,6 @@ class VisualOdometry:
             kf.pose[:3, 3] = origin + factor * (kf.pose[:3, 3] - origin)
 
     # ---- joining a restarted map to an older one -------------------------------------------------------------
-    def _join_maps(self, index: int, kf: Keyframe, K: np.ndarray) -> list[dict[str, Any]]:
-        """Try to join the restarted map to an older one at keyframe `kf` (see `map_join`): on a link, the map
-        (keyframes, points, its remembered places) moves into the older map's frame, scale included, and the
-        output transform takes the inverse move, so that poses handed out do not jump; the `maps_merged` event
-        carries the Sim(3) edge for the pose graph (`relative`: this frame in the place's frame, each in the units
-        of the poses handed out at the time) and `correction` (the similarity that takes the new map's output
-        poses into the older map's)."""
-        s = self.state
-        c, join = self.config, s.join
-        join.tried += 1
-        if join.tried > c.join_max_keyframes:
-            s.join = None
-            return []
-        places = [p for p in s.retired if p.map_id != s.map_id]
-        near, rows = place_rows(self.parts, kf)
-        points = np.full((len(kf.orb), 3), np.nan)
-        points[near] = s.map.positions[rows]
-        link = link_maps(self.recognizer, kf.orb, points, kf.pose, places, K,
-                         self.extractor.level_sigmas(kf.orb.octaves), c.reloc_min_inliers, c.join_min_pairs,
-                         c.join_max_spread)
-        method = "orb"
-        if link is None and c.learned_join:
-            link, method = self._learned_link(index, kf, places, K), "learned"
-        if link is None:
-            return []
-        S, scale = link.transform, link.scale
-        before = s.output
-        # Each camera with its output units (1 / the output scale of its time, in the older map's units).
-        place_camera = link.place.pose @ similarity(np.eye(3), np.zeros(3), 1.0 / similarity_scale(link.place.output))
-        kf_camera = S @ kf.pose @ similarity(np.eye(3), np.zeros(3), 1.0 / similarity_scale(before))
-        relative = similarity_inverse(place_camera) @ kf_camera
-        correction = link.place.output @ S @ similarity_inverse(before)
-        move_map(s, similarity(S[:3, :3] / scale, S[:3, 3], 1.0), scale)
-        for place in s.retired:
-            if place.map_id == s.map_id:
-                place.pose, place.points = moved_pose(S, place.pose), moved_points(S, place.points)
-                place.output, place.map_id = place.output @ similarity_inverse(S), link.place.map_id
-        s.output = before @ similarity_inverse(S)
-        s.velocity[:3, 3] *= scale
-        s.map_id, s.join = link.place.map_id, None
-        return [{"type": "maps_merged", "frame": index, "place": link.place.index, "since": join.since,
-                 "scale": similarity_scale(correction), "pairs": link.pairs, "spread": round(link.spread, 4),
-                 "method": method, "relative": relative.tolist(), "correction": correction.tolist()}]
-
-    def _learned_link(self, index: int, kf: Keyframe, places: list[Place], K: np.ndarray) -> MapLink | None:
-        """The join by XFeat where ORB found no place: the keyframe's XFeat keypoints and its own map points,
-        described by XFeat, matched to the older maps' places nearest its pose (`learned_join_reach`), verified by
-        PnP; the inliers on its own map points measure the scale."""
-        s = self.state
-        c = self.config
-        # A restarted map begins at the old map's last pose: only places near the keyframe there are worth a network
-        # pass (the maps' coordinates agree roughly until joined; far places are left to ORB and loop closure).
-        places = [p for p in places if pose_distance(s, p.pose, kf.pose) <= c.learned_join_reach]
-        candidates = learned_candidates(s, self.parts, index, s.keyframe_images[kf.index], places, by_words=False)
-        if not candidates:
-            return None
-        has = np.flatnonzero(kf.point_ids >= 0)  # the keyframe's own map points, described where it tracks them
-        current = self.learned.of_frame(kf.index, s.keyframe_images[kf.index], kf.features.keypoints[has])
-        if current is None:
-            return None
-        hit = self.learned.relocalise(current, candidates, K)
-        if hit is None:
-            return None
-        points = np.full((len(current), 3), np.nan)
-        points[len(current) - len(has):] = s.map.positions[kf.point_ids[has]]
-        return link_from_hit(hit, points, kf.pose, places, c.join_min_pairs, c.join_max_spread)
 
     # ---- losing and finding the way back ---------------------------------------------------------------------
     def _lose_or_restart(self, index: int, gray: np.ndarray, camera: Intrinsics, reason: str) -> TrackingResult:
@@ -955,7 +853,7 @@ class VisualOdometry:
                  else "scene depth", "shared_points": shared,
                  "lost_frames": index - (s.lost_since if s.lost_since is not None else index)}
         s.status, s.lost_since = "tracking", None
-        joined = self._join_maps(index, kf, K) if s.join is not None else []  # the old map's last places
+        joined = join_maps(s, self.parts, index, kf, K) if s.join is not None else []  # the old map's last places
         return TrackingResult(kf.pose, tracked=True, keyframe_hint=True, depth=sparse_depth(s, kf, camera),
                               events=[event, *joined], quality=1.0)
 
