@@ -13,23 +13,14 @@ from worker.geometry import Intrinsics
 
 from .base import TrackingResult
 from .direct_rotation import DirectSettings, align_rotation
-from .map_join import (
-    moved_points,
-    moved_pose,
-)
+from .map_join import moved_points, moved_pose
 from .optical_flow import predicted_pixels, refine_points
 from .pose_optimization import optimize_pose
 from .projection import camera_matrix, invert_pose, rigid, to_camera
 from .rotation_only import angular_errors, bearings, fit_rotation, position_given_rotation
 from .tracks import Tracks, lookup_sorted
 from .vo_map_join import join_maps
-from .vo_mapping import (
-    insert_keyframe,
-    median_depth,
-    needs_keyframe,
-    sparse_depth,
-    turn_keyframe,
-)
+from .vo_mapping import insert_keyframe, median_depth, needs_keyframe, sparse_depth, turn_keyframe
 from .vo_state import VoParts, VoState
 from .vo_tracks import flow
 

@@ -18,13 +18,7 @@ from .projection import camera_matrix, invert_pose, rigid
 from .tracks import Tracks, lookup_sorted
 from .two_view import TwoViewAttempt, TwoViewMap, two_view_from_matches
 from .vo_calibration import freeze_focal, measure_focal
-from .vo_mapping import (
-    adjust,
-    median_depth,
-    move_map,
-    new_keyframe,
-    sparse_depth,
-)
+from .vo_mapping import adjust, median_depth, move_map, new_keyframe, sparse_depth
 from .vo_state import VoParts, VoState
 from .vo_tracks import flow, replenish
 

@@ -21,9 +21,7 @@ from .map_join import (
     similarity_scale,
 )
 from .relocalization import Place
-from .vo_mapping import (
-    move_map,
-)
+from .vo_mapping import move_map
 from .vo_places import learned_candidates, place_rows, pose_distance
 from .vo_state import VoParts, VoState
 
@@ -97,6 +95,7 @@ def learned_link(s: VoState, parts: VoParts, index: int, kf: Keyframe, places: l
 
 
 def output_is_identity(s: VoState) -> bool:
+    """Whether poses are handed out in the map's coordinates (no restarted map joined an older one yet)."""
     return bool(np.array_equal(s.output, np.eye(4)))
 
 

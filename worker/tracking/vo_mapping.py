@@ -78,6 +78,8 @@ def turn_keyframe(s: VoState, parts: VoParts, index: int, pose: np.ndarray, gray
 
 
 def needs_keyframe(s: VoState, parts: VoParts, pose: np.ndarray, tracked: int) -> bool:
+    """Whether a frame at `pose` with `tracked` inliers becomes a keyframe: its tracks dropped, the baseline grew,
+    or it has been long enough with some baseline."""
     c = parts.config
     if s.frames_since_keyframe < c.keyframe_min_gap:
         return False
@@ -195,6 +197,7 @@ def move_map(s: VoState, transform: np.ndarray, scale: float) -> None:
 
 
 def median_depth(s: VoState, kf: Keyframe) -> float:
+    """Median depth of the keyframe's map points in its camera (1 without points)."""
     rows = kf.point_ids[kf.point_ids >= 0]
     if len(rows) == 0:
         return 1.0

@@ -19,18 +19,10 @@ from .pose_optimization import pnp_pose
 from .projection import camera_matrix, invert_pose, rigid
 from .tracks import Tracks, lookup_sorted
 from .two_view import two_view_from_matches
-from .vo_frame_tracking import (
-    follow,
-)
+from .vo_frame_tracking import follow
 from .vo_initialisation import initialise, two_keyframe_map
 from .vo_map_join import join_maps
-from .vo_mapping import (
-    adjust,
-    median_depth,
-    move_map,
-    new_keyframe,
-    sparse_depth,
-)
+from .vo_mapping import adjust, median_depth, move_map, new_keyframe, sparse_depth
 from .vo_places import learned_candidates, orb_features, place_of, retire
 from .vo_state import Anchor, JoinState, VoParts, VoState
 from .vo_tracks import flow, replenish
@@ -173,7 +165,7 @@ def restart_from(s: VoState, parts: VoParts, index: int, gray: np.ndarray, camer
 def relocalise_learned(s: VoState, parts: VoParts, index: int, gray: np.ndarray, camera: Intrinsics
                       ) -> TrackingResult | None:
     """XFeat matching of this frame to the anchor's map points (the last tracked frame) and then to remembered
-    keyframes (`_learned_candidates`), each verified by PnP + RANSAC and the robust refinement: the old map,
+    keyframes (`vo_places.learned_candidates`), each verified by PnP + RANSAC and the robust refinement: the old map,
     hence its scale, carries on past a turn too fast for optical flow and ORB (None: not found). Runs on every
     `learned_reloc_every`-th lost frame, the first one included, within the frame's network passes
     (`learned_passes_per_frame`: what is not described yet waits for the next try)."""

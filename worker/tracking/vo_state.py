@@ -108,6 +108,7 @@ class VoParts:
 
 
 def _image(gray: np.ndarray | None) -> np.ndarray:
+    """An image for the snapshot (none: an empty one)."""
     return np.zeros((0, 0), np.uint8) if gray is None else gray
 
 

@@ -10,6 +10,8 @@ from .vo_state import VoParts, VoState
 
 
 def flow(s: VoState, parts: VoParts, gray: np.ndarray, guess: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """The tracks' pixels [N, 2] in `gray` followed from the last tracked frame (`guess`: where the motion model
+    puts them) and which of them were followed [N]."""
     c = parts.config
     return track_points(s.previous_gray, gray, s.tracks.uv, guess, window=c.flow_window,
                         levels=c.flow_levels, max_fb_px=c.flow_fb_px)
