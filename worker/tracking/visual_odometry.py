@@ -21,13 +21,18 @@ tracked frame's (`direct_rotation`: the turn measured, the position predicted), 
 Poses are camera-to-world rigid 4x4 matrices (a Sim(3) with s = 1); the world is the camera of the frame the map
 was initialised from and the scale makes that map's median depth 1. Poses handed out are the map's moved by the
 output similarity (the identity until a restarted map is joined to an older one).
+
+`VisualOdometry` only sequences the phases, each a module of functions of the state (`vo_state.VoState`: all that
+changes while tracking, with the snapshot's fields) and the fixed parts (`vo_state.VoParts`: settings, ORB, places,
+XFeat): `vo_calibration` (the camera, the focal length), `vo_initialisation` (the two-view map),
+`vo_frame_tracking` (a frame on the map, the turn bridges), `vo_mapping` (keyframes, triangulation, the BA window),
+`vo_map_join` (a restarted map joined to an older one; the output similarity), `vo_recovery` (lost, relocalised,
+restarted), over `vo_tracks` (optical flow, new corners) and `vo_places` (keyframes as places).
 """
 
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass, field
-from itertools import zip_longest
 from typing import Any
 
 import cv2
@@ -38,95 +43,17 @@ from worker.geometry import Intrinsics
 
 from . import schur_native
 from .base import TrackingResult
-from .bundle_adjustment import Observations, bundle_adjust, reprojection_chi2
-from .covisibility import LocalWindow, covisible_window
-from .direct_rotation import DirectSettings, align_rotation
-from .features import Features, OrbExtractor
-from .learned_places import LearnedPlaces, nearest_within
-from .local_map import Keyframe, LocalMap
-from .map_join import (
-    MapLink,
-    link_from_hit,
-    link_maps,
-    moved_points,
-    moved_pose,
-    similarity,
-    similarity_inverse,
-    similarity_scale,
-)
-from .optical_flow import detect_corners, predicted_pixels, refine_points, track_points
-from .pose_optimization import optimize_pose, pnp_pose
-from .projection import camera_matrix, invert_pose, rigid, to_camera
-from .relocalization import Place, PlaceRecognizer
-from .reobservation import nearest_keypoints, search_by_projection
-from .rotation_only import angular_errors, bearings, fit_rotation, position_given_rotation
-from .self_calibration import FocalEstimator
-from .track_triangulation import triangulate_tracks
-from .tracks import Tracks, lookup_sorted
-from .two_view import TwoViewAttempt, TwoViewMap, two_view_from_matches
+from .learned_places import LearnedPlaces
+from .local_map import LocalMap
+from .map_join import similarity_scale
+from .relocalization import Place
+from .vo_calibration import camera_of
 from .vo_config import VisualOdometryConfig
-from .xfeat import XFeatures, mutual_matches
-
-STATE_VERSION = 3
-MIN_SHARED_FOR_SCALE = 10  # old map points a restarted map must share to take its scale from them
-
-
-@dataclass
-class Anchor:
-    """The last tracked frame of a lost map: index, pose, track ids [N] (ascending), pixels [N, 2] and the world
-    points [N, 3] its tracks measured (NaN: none)."""
-
-    index: int
-    pose: np.ndarray
-    ids: np.ndarray
-    uv: np.ndarray
-    points: np.ndarray
-    velocity: np.ndarray  # the camera motion per frame when tracking broke
-    predicted: np.ndarray  # where the motion model puts the latest frame the tracks were followed into
-    gray: np.ndarray  # its image (learned relocalisation describes its map points there)
-    descriptors: np.ndarray = field(default_factory=lambda: np.zeros((0, 64), np.float32))  # XFeat, lazily ...
-    world: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # ... of keypoints on these map points
-    described: bool = False  # whether XFeat described it (it may have no keypoint on a map point)
-
-    def scale_of(self, points: np.ndarray, rows: np.ndarray) -> tuple[float, int]:
-        """Scale from a new map (`points` [n, 3] in the anchor camera's frame, on the anchor's tracks `rows` [n])
-        to the old one, and how many shared points gave it (0: the old points' median depth did)."""
-        old = self.points[rows]
-        has = np.isfinite(old).all(axis=1) & (points[:, 2] > 0)
-        if has.sum() >= MIN_SHARED_FOR_SCALE:
-            depth = to_camera(old[has], self.pose)[:, 2]
-            ratio = depth / points[has, 2]
-            ratio = ratio[ratio > 0]
-            if len(ratio) >= MIN_SHARED_FOR_SCALE:
-                return float(np.median(ratio)), len(ratio)
-        seen = self.points[np.isfinite(self.points).all(axis=1)]
-        depth = to_camera(seen, self.pose)[:, 2]
-        depth = depth[depth > 0]
-        old_median = float(np.median(depth)) if len(depth) else 1.0
-        return old_median / max(float(np.median(points[:, 2])), 1e-9), 0
-
-    def to_state(self) -> dict[str, Any]:
-        return {"index": self.index, "pose": self.pose, "ids": self.ids, "uv": self.uv, "points": self.points,
-                "velocity": self.velocity, "predicted": self.predicted, "gray": self.gray,
-                "descriptors": self.descriptors, "world": self.world}
-
-    @classmethod
-    def from_state(cls, s: dict[str, Any]) -> Anchor:
-        return cls(int(s["index"]), np.asarray(s["pose"], np.float64).reshape(4, 4),
-                   np.asarray(s["ids"], np.int64).reshape(-1), np.asarray(s["uv"], np.float32).reshape(-1, 2),
-                   np.asarray(s["points"], np.float64).reshape(-1, 3),
-                   np.asarray(s["velocity"], np.float64).reshape(4, 4),
-                   np.asarray(s["predicted"], np.float64).reshape(4, 4), np.asarray(s["gray"], np.uint8),
-                   np.asarray(s["descriptors"], np.float32).reshape(-1, 64),
-                   np.asarray(s["world"], np.float64).reshape(-1, 3))
-
-
-@dataclass
-class JoinState:
-    """A map restarted after a loss, not joined to an older map yet: its first frame and the keyframes tried."""
-
-    since: int
-    tried: int = 0
+from .vo_frame_tracking import track_frame
+from .vo_initialisation import initialise
+from .vo_map_join import output_is_identity, to_output
+from .vo_recovery import lose, lose_or_restart, recognise_place, relocalise
+from .vo_state import STATE_VERSION, Anchor, JoinState, VoParts, VoState
 
 
 class VisualOdometry:
@@ -137,56 +64,59 @@ class VisualOdometry:
 
     def __init__(self, config: VisualOdometryConfig | None = None) -> None:
         self.config = config or VisualOdometryConfig()
-        self.extractor = OrbExtractor(self.config)
-        self.recognizer = PlaceRecognizer(self.config)
-        c = self.config  # XFeat against remembered keyframes, computed only when flow and ORB failed
-        self.learned = LearnedPlaces(c.learned_keypoints, c.learned_min_similarity, c.chi2_px, c.reloc_min_inliers,
-                                     c.learned_passes_per_frame, c.learned_threads, c.learned_glue_keypoints,
-                                     c.learned_glue_min_confidence, c.learned_glue_candidates,
-                                     c.learned_glue_point_inliers)
+        self.parts = VoParts.build(self.config)
         schur_native.available()  # builds (or loads) the compiled kernel now, not at the first keyframe
-        self._reset()
+        self.state = VoState.start(self.config)
 
-    def _reset(self) -> None:
-        self.status = "initializing"  # | "tracking" | "lost"
-        self.map = LocalMap()
-        self.retired: list[Place] = []  # keyframes that left the window, kept for relocalisation
-        self.keyframe_images: dict[int, np.ndarray] = {}  # the map keyframes' images (for learned matching)
-        self._orb_of: tuple[int, Features] | None = None  # the last frame's ORB features, extracted on demand
-        self.tracks = Tracks.empty()
-        self.next_id = 0
-        self.previous_gray: np.ndarray | None = None  # the last frame tracked (flow starts from it)
-        self.keyframe_gray: np.ndarray | None = None  # the last keyframe's image (tracks are refined against it)
-        self.pending: list[tuple[int, np.ndarray, np.ndarray]] = []  # (index, track ids, uv) of waiting frames
-        self.pending_orientation: dict[int, np.ndarray] = {}  # frame index -> orientation held while waiting
-        self.init_state = ""  # what initialisation waits for ("rotation_only", "waiting_for_parallax", ...)
-        self.pose = np.eye(4)
-        self.velocity = np.eye(4)  # camera motion of the last frame (previous^-1 @ current) ...
-        self.velocity_at = -1  # ... and the frame it was measured at (by two tracked frames; resets do not count)
-        self.frames_since_keyframe = 0
-        self.tracked_at_keyframe = 0
-        self.lost_since: int | None = None
-        self.rotation_since: int | None = None  # first frame of the current rotation-only run
-        self.direct_since: int | None = None  # first frame of the current run placed by image alignment ...
-        self.direct_depth = 1.0  # ... and the scene depth where it began
-        self.parallax_seen = False  # whether this frame's tracks showed the rotation-only run's translation
-        self.last_tracked = -1  # index of the last tracked frame
-        self.mapped_at_loss = 0  # tracks of map points when tracking was lost
-        self.anchor: Anchor | None = None  # the last tracked frame's tracks, while lost: a map restarts from them
-        self.maps_started = 1  # maps begun by an initialisation: the first, and each new map after a loss
-        self.map_origin = np.eye(4)  # where the next initialised map's reference keyframe is placed ...
-        self.map_depth = 1.0  # ... and the median scene depth it is given (the old map's, after a loss)
-        self.image_size: tuple[int, int] | None = None
-        self.estimated_intrinsics: Intrinsics | None = None
-        self.focal = FocalEstimator(self.config)
-        # (frame index, pose) of the engine's keyframes, to come back to
-        self.engine_keyframes: deque[tuple[int, np.ndarray]] = deque(maxlen=max(1, self.config.reuse_keyframes))
-        # Maps: the current one's id, how many were made, and the similarity from the map's coordinates to the
-        # poses handed out (it changes when a restarted map joins an older one, so that poses never jump).
-        self.map_id = 0
-        self.maps_made = 1
-        self.output = np.eye(4)
-        self.join: JoinState | None = None
+    # ---- what callers read (the state's, read-only here) -----------------------------------------------------
+    @property
+    def learned(self) -> LearnedPlaces:
+        """XFeat matching against remembered keyframes (its counters tell how often the network ran)."""
+        return self.parts.learned
+
+    @property
+    def status(self) -> str:
+        return self.state.status
+
+    @property
+    def pose(self) -> np.ndarray:
+        return self.state.pose
+
+    @property
+    def estimated_intrinsics(self) -> Intrinsics | None:
+        return self.state.estimated_intrinsics
+
+    @property
+    def map(self) -> LocalMap:
+        return self.state.map
+
+    @property
+    def map_id(self) -> int:
+        return self.state.map_id
+
+    @property
+    def map_depth(self) -> float:
+        return self.state.map_depth
+
+    @property
+    def join(self) -> JoinState | None:
+        return self.state.join
+
+    @property
+    def anchor(self) -> Anchor | None:
+        return self.state.anchor
+
+    @property
+    def retired(self) -> list[Place]:
+        return self.state.retired
+
+    @property
+    def keyframe_images(self) -> dict[int, np.ndarray]:
+        return self.state.keyframe_images
+
+    @property
+    def engine_keyframes(self) -> deque[tuple[int, np.ndarray]]:
+        return self.state.engine_keyframes
 
     # ---- PoseSource ------------------------------------------------------------------------------------------
     def track(self, frame: Frame, intrinsics: Intrinsics | None, motion_guess: np.ndarray | None = None
@@ -194,1121 +124,47 @@ class VisualOdometry:
         """Track the next frame (see the module docstring); bad frames lose tracking, they never raise.
         `motion_guess` (previous^-1 @ current in this odometry's units, e.g. a device's relative motion) replaces
         the constant-velocity guess when given."""
-        camera = self._camera(frame, intrinsics)
+        s, parts, index = self.state, self.parts, frame.index
+        camera = camera_of(s, frame, intrinsics)
         gray = cv2.cvtColor(frame.image, cv2.COLOR_RGB2GRAY)
-        self.learned.begin_frame(frame.index)
-        if motion_guess is not None and not self._output_is_identity():  # output units -> the map's
+        parts.learned.begin_frame(index)
+        if motion_guess is not None and not output_is_identity(s):  # output units -> the map's
             motion_guess = np.array(motion_guess, np.float64)
-            motion_guess[:3, 3] /= similarity_scale(self.output)
-        if self.status == "initializing":
+            motion_guess[:3, 3] /= similarity_scale(s.output)
+        if s.status == "initializing":
             # after a loss, the old map's places are looked for while the new map waits to be made
-            found = self._recognise_place(frame.index, gray, camera) if self.maps_started > 1 and self.retired else None
+            found = recognise_place(s, parts, index, gray, camera) if s.maps_started > 1 and s.retired else None
             if found is not None:
-                self.maps_started -= 1  # back on the old map: the new one was never made
-                self.pending, self.pending_orientation, self.init_state = [], {}, ""
-            result = found or self._initialise(frame.index, gray, camera, intrinsics is None)
-        elif self.status == "lost":
-            result = self._relocalise(frame.index, gray, camera)
+                s.maps_started -= 1  # back on the old map: the new one was never made
+                s.pending, s.pending_orientation, s.init_state = [], {}, ""
+            result = found or initialise(s, parts, index, gray, camera, intrinsics is None)
+        elif s.status == "lost":
+            result = relocalise(s, parts, index, gray, camera)
         else:
-            result = self._track(frame.index, gray, camera, motion_guess)
+            result = track_frame(s, parts, index, gray, camera, motion_guess)
+            if isinstance(result, str):  # lost: a map may restart from the last tracked frame at once
+                result = lose_or_restart(s, parts, index, gray, camera, result)
         if not np.all(np.isfinite(result.pose)):  # never hand out a NaN pose, whatever happened above
-            result = self._lose(frame.index, "non-finite pose estimate")
-        self.pose = result.pose
+            result = lose(s, parts, index, "non-finite pose estimate")
+        s.pose = result.pose
         if result.tracked:
-            self.last_tracked = frame.index
-        result.submap_id = self.maps_started - 1
-        return self._to_output(result)
-
-    def _output_is_identity(self) -> bool:
-        return bool(np.array_equal(self.output, np.eye(4)))
-
-    def _to_output(self, result: TrackingResult) -> TrackingResult:
-        """The result in the output's coordinates (the map's, until a restarted map joined an older one)."""
-        if self._output_is_identity():
-            return result
-        result.pose = moved_pose(self.output, result.pose)
-        if result.depth is not None:
-            result.depth = result.depth * np.float32(similarity_scale(self.output))
-        for event in result.events:
-            if event.get("frames"):
-                event["frames"] = [[i, moved_pose(self.output, np.asarray(p)).tolist()] for i, p in event["frames"]]
-        return result
+            s.last_tracked = index
+        result.submap_id = s.maps_started - 1
+        return to_output(s, result)
 
     def keyframe_added(self, frame: Frame, pose: np.ndarray) -> None:
         """The engine's keyframes do not change VO's own; they are remembered as places to come back to."""
         if self.config.reuse_keyframes > 0:
-            self.engine_keyframes.append((int(frame.index), np.asarray(pose, np.float64).copy()))
-
-    # ---- camera ----------------------------------------------------------------------------------------------
-    def _camera(self, frame: Frame, intrinsics: Intrinsics | None) -> Intrinsics:
-        size = (frame.width, frame.height)
-        if self.image_size is not None and size != self.image_size:
-            raise ValueError(f"frame {frame.index} is {size[0]}x{size[1]} but this session's frames are "
-                             f"{self.image_size[0]}x{self.image_size[1]}")
-        intrinsics = intrinsics or frame.intrinsics
-        if intrinsics is not None and (intrinsics.width, intrinsics.height) != size:
-            raise ValueError(f"intrinsics are for {intrinsics.width}x{intrinsics.height} but frame {frame.index} "
-                             f"is {size[0]}x{size[1]}")
-        self.image_size = size
-        if intrinsics is not None:
-            return intrinsics
-        self.estimated_intrinsics = self.focal.intrinsics(*size)
-        return self.estimated_intrinsics
-
-    # ---- optical flow ----------------------------------------------------------------------------------------
-    def _flow(self, gray: np.ndarray, guess: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        c = self.config
-        return track_points(self.previous_gray, gray, self.tracks.uv, guess, window=c.flow_window,
-                            levels=c.flow_levels, max_fb_px=c.flow_fb_px)
-
-    def _replenish(self, gray: np.ndarray) -> None:
-        """New candidate tracks at corners away from the existing ones, up to `max_tracks`."""
-        c = self.config
-        corners = detect_corners(gray, self.tracks.uv, c.max_tracks - len(self.tracks),
-                                 c.corner_min_distance * max(gray.shape), c.corner_quality)
-        ids = np.arange(self.next_id, self.next_id + len(corners), dtype=np.int64)
-        self.next_id += len(corners)
-        self.tracks = self.tracks.extend(ids, corners)
-
-    # ---- initialisation --------------------------------------------------------------------------------------
-    def _initialise(self, index: int, gray: np.ndarray, camera: Intrinsics, uncalibrated: bool) -> TrackingResult:
-        """Follow corners until a waiting frame (the reference) and this one make a two-view map; new corners join
-        at every frame, and the reference is the oldest waiting frame that still shares enough tracks (the waiting
-        frames before it are posed too when the map is made). While waiting, a frame holds the position and takes
-        the orientation the homography measures (a rotation without parallax is followed, not triangulated)."""
-        c = self.config
-        if self.pending:
-            uv, ok = self._flow(gray, None)
-            self.tracks = Tracks(self.tracks.ids[ok], uv[ok], self.tracks.rows[ok])
-        self.previous_gray = gray
-        shared = [int(np.isin(self.tracks.ids, ids, assume_unique=True).sum()) for _, ids, _ in self.pending]
-        usable = [n for n, count in enumerate(shared) if count >= c.init_min_matches]
-        if not usable:  # the view has moved on: wait from this frame
-            self._replenish(gray)
-            self.pending = [(index, self.tracks.ids.copy(), self.tracks.uv.copy())]
-            self.pending_orientation = {index: self.pose[:3, :3].copy()}
-            return self._waiting(index, self.pose[:3, :3], "waiting_for_matches", "too few shared tracks")
-        reference = usable[0]
-        ref_index, ref_ids, ref_uv = self.pending[reference]
-        at, found = lookup_sorted(ref_ids, self.tracks.ids)
-        common = np.flatnonzero(found)
-        if uncalibrated and not self.focal.frozen:
-            self.focal.observe_matches(ref_uv[at[common]], self.tracks.uv[common], camera)
-            camera = self.estimated_intrinsics = self.focal.intrinsics(camera.width, camera.height)
-        K = camera_matrix(camera)
-        ones = np.ones(len(common))
-        attempt = two_view_from_matches(ref_uv[at[common]], self.tracks.uv[common], K, c, ones, ones,
-                                        common, common)
-        reference_orientation = self.pending_orientation.get(ref_index, np.eye(3))
-        if attempt.map is None:
-            orientation = self.pose[:3, :3]
-            if attempt.model == "homography" and attempt.rotation is not None:
-                orientation = reference_orientation @ attempt.rotation
-            self._replenish(gray)
-            self.pending = (self.pending + [(index, self.tracks.ids.copy(), self.tracks.uv.copy())]
-                            )[-c.init_max_frames:]
-            self.pending_orientation[index] = orientation.copy()
-            kept = {i for i, _, _ in self.pending}
-            self.pending_orientation = {i: r for i, r in self.pending_orientation.items() if i in kept}
-            state = "rotation_only" if attempt.rotation_only else "waiting_for_parallax"
-            return self._waiting(index, orientation, state, attempt.reason, attempt.model, attempt.score_ratio)
-        self.focal.freeze()
-        self.pending.append((index, self.tracks.ids.copy(), self.tracks.uv.copy()))
-        return self._start_map(index, gray, attempt, reference, camera, uncalibrated, reference_orientation)
-
-    def _waiting(self, index: int, orientation: np.ndarray, state: str, reason: str, model: str = "",
-                 score_ratio: float = 0.0) -> TrackingResult:
-        """A frame while the map waits to be made: the held position, the measured orientation, quality 0 (a
-        placeholder the `initialized` event revises); an `initializing` event when the waiting state changes."""
-        pose = np.eye(4)
-        pose[:3, :3], pose[:3, 3] = orientation, self.pose[:3, 3]
-        events = []
-        if state != self.init_state:
-            self.init_state = state
-            events.append({"type": "initializing", "frame": index, "state": state, "reason": reason,
-                           "model": model, "score_ratio": round(float(score_ratio), 3)})
-        if self.maps_started > 1:  # after a loss the frame has no pose: the last one is held, and said so
-            return TrackingResult(self.pose.copy(), tracked=False, keyframe_hint=False, events=events, quality=0.0)
-        # before the first map the pose is a placeholder the world starts from (the `initialized` event revises it)
-        return TrackingResult(rigid(pose), tracked=True, keyframe_hint=False, events=events, quality=0.0)
-
-    def _start_map(self, index: int, gray: np.ndarray, attempt: TwoViewAttempt, reference: int, camera: Intrinsics,
-                   uncalibrated: bool, reference_orientation: np.ndarray) -> TrackingResult:
-        """The map of a successful two-view attempt (two.ia, two.ib: rows of the current tracks) between the
-        waiting frame `reference` and this one: two keyframes, adjusted and scaled; the other waiting frames are
-        posed against it. The world keeps the orientation the reference was given while waiting."""
-        two = attempt.map
-        K = camera_matrix(camera)
-        ref_index, ref_ids, ref_uv = self.pending[reference]
-        kf_b = self._two_keyframe_map(index, gray, two, ref_index, ref_ids, ref_uv)
-        self._adjust(K, LocalWindow(np.array([1]), np.array([0])))
-        self._normalise_scale()
-        world = np.eye(4)
-        world[:3, :3], world[:3, 3] = reference_orientation, self.map_origin[:3, 3]
-        self._move_map(world, self.map_depth)
-        pose = kf_b.pose
-        between, previous = [], world
-        for n, (i, ids, uv) in enumerate(self.pending[:-1]):
-            fraction = (n - reference) / (len(self.pending) - 1 - reference)
-            previous = world if n == reference else self._pose_between(ids, uv, fraction, world, pose, K)
-            between.append([i, previous.tolist()])
-        self.pending, self.pending_orientation, self.init_state = [], {}, ""
-        self.velocity = invert_pose(previous) @ pose
-        self.velocity_at = index
-        self.status = "tracking"
-        # After a loss the waiting frames were reported lost; the new map poses them now (`map` > 1: the engine
-        # ties them to this map's first keyframe, so that they move with it when the maps are joined).
-        event = {"type": "initialized", "frame": index, "frames": between, "map": self.maps_started,
-                 "points": len(self.map),
-                 "parallax_deg": round(two.parallax_deg, 3), "model": attempt.model,
-                 "score_ratio": round(attempt.score_ratio, 3)}
-        if uncalibrated:
-            event["intrinsics"] = camera.to_dict()
-        return TrackingResult(pose, tracked=True, keyframe_hint=True, depth=self._sparse_depth(kf_b, camera),
-                              events=[event], quality=1.0)
-
-    def _two_keyframe_map(self, index: int, gray: np.ndarray, two: TwoViewMap, ref_index: int, ref_ids: np.ndarray,
-                          ref_uv: np.ndarray) -> Keyframe:
-        """A new local map of the two-view points, the reference keyframe (at the origin) and this frame's."""
-        m = self.map = LocalMap()
-        rows = m.add_points(two.points, np.zeros((len(two.points), 32), np.uint8))
-        self.tracks.rows[:] = -1
-        self.tracks.rows[two.ib] = rows
-        # The reference keyframe keeps the tracks it shares with this frame; its image is gone, so it has no
-        # descriptors (it is no place to relocalise from).
-        at, found = lookup_sorted(ref_ids, self.tracks.ids)
-        ref_features = Features(ref_uv[at[found]], np.zeros((int(found.sum()), 32), np.uint8),
-                                np.zeros(int(found.sum()), np.int32))
-        kf_a = Keyframe(ref_index, np.eye(4), ref_features, self.tracks.rows[found].copy(),
-                        self.tracks.ids[found].copy())
-        m.keyframes = [kf_a]
-        return self._new_keyframe(index, two.pose_b, gray)
-
-    def _move_map(self, transform: np.ndarray, scale: float) -> None:
-        """Move the local map by the similarity x -> R (scale x) + t of `transform` (rigid 4x4): the poses stay
-        rigid, their positions scale."""
-        R, t = transform[:3, :3], transform[:3, 3]
-        m = self.map
-        m.positions = scale * m.positions @ R.T + t
-        for kf in m.keyframes:
-            pose = kf.pose.copy()
-            pose[:3, :3] = R @ kf.pose[:3, :3]
-            pose[:3, 3] = scale * R @ kf.pose[:3, 3] + t
-            kf.pose = rigid(pose)
-
-    def _pose_between(self, ids: np.ndarray, uv: np.ndarray, fraction: float, pose_a: np.ndarray, pose_b: np.ndarray,
-                      K: np.ndarray) -> np.ndarray:
-        """Pose of a frame between the two initial views from its tracks of map points (guess: interpolated)."""
-        relative = invert_pose(pose_a) @ pose_b
-        rotvec = cv2.Rodrigues(relative[:3, :3])[0].ravel() * fraction
-        step = np.eye(4)
-        step[:3, :3], step[:3, 3] = cv2.Rodrigues(rotvec)[0], relative[:3, 3] * fraction
-        guess = pose_a @ step
-        order = np.argsort(self.tracks.ids)
-        at, found = lookup_sorted(self.tracks.ids[order], ids)
-        rows = np.where(found, self.tracks.rows[order][at], -1)
-        has = rows >= 0
-        if has.sum() < self.config.min_tracked:
-            return guess
-        pose, inlier = optimize_pose(guess, self.map.positions[rows[has]], uv[has].astype(np.float64),
-                                     np.ones(int(has.sum())), K, self.config.chi2_px)
-        return pose if inlier.sum() >= self.config.min_tracked and np.all(np.isfinite(pose)) else guess
-
-    # ---- tracking --------------------------------------------------------------------------------------------
-    def _track(self, index: int, gray: np.ndarray, camera: Intrinsics, motion_guess: np.ndarray | None = None
-               ) -> TrackingResult:
-        c = self.config
-        K = camera_matrix(camera)
-        predicted = rigid(self.pose @ (self.velocity if motion_guess is None else motion_guess))
-        mapped_before = int(self.tracks.mapped.sum())
-        found = self._follow(gray, predicted, K)
-        if found is None or found[2] < max(c.min_tracked, c.min_survival * mapped_before):
-            self.parallax_seen = False
-            turned = self._follow_rotation(index, gray, K, predicted) if c.rotation_bridge else None
-            if turned is not None:
-                return turned
-            aligned = ""
-            if c.direct_fallback:
-                aligned = ("the tracks show translation adding up, not a turn" if self.parallax_seen
-                           else self._follow_direct(index, gray, K, predicted))
-            if isinstance(aligned, TrackingResult):
-                return aligned
-            refused = f"; image alignment: {aligned}" if aligned else ""
-            if found is None:
-                return self._lose_or_restart(index, gray, camera, "too few map points tracked (sudden motion, "
-                                             f"occlusion or a new view){refused}")
-            return self._lose_or_restart(index, gray, camera, f"{found[2]} of {mapped_before} tracked points found "
-                                         f"again (a sudden change){refused}")
-        pose, tracks, inliers = found
-        self.rotation_since = self.direct_since = None
-        self.tracks, self.previous_gray = tracks, gray
-        self.velocity, self.velocity_at = rigid(invert_pose(self.pose) @ pose), index
-        self.frames_since_keyframe += 1
-        quality = min(1.0, inliers / max(self.tracked_at_keyframe, 1))
-        if not self._needs_keyframe(pose, inliers):
-            return TrackingResult(pose, tracked=True, keyframe_hint=False, quality=quality)
-        kf = self._insert_keyframe(index, pose, gray, K)
-        self.velocity = rigid(self.velocity @ invert_pose(pose) @ kf.pose)
-        events = self._join_maps(index, kf, K) if self.join is not None else []
-        if self._covered(index, kf.pose, K, camera):
-            return TrackingResult(kf.pose, tracked=True, keyframe_hint=False, quality=quality, events=events)
-        return TrackingResult(kf.pose, tracked=True, keyframe_hint=True, depth=self._sparse_depth(kf, camera),
-                              quality=quality, events=events)
-
-    def _covered(self, index: int, pose: np.ndarray, K: np.ndarray, camera: Intrinsics) -> bool:
-        """Whether an engine keyframe at least `reuse_min_age` frames old lies near `pose` and sees at least
-        `reuse_overlap` of the frame's tracked map points (in its image, in front of it)."""
-        c = self.config
-        t = self.tracks
-        points = self.map.positions[t.rows[t.mapped]]
-        if c.reuse_keyframes <= 0 or len(points) < c.min_tracked:
-            return False
-        pose, points = moved_pose(self.output, pose), moved_points(self.output, points)  # the engine's poses
-        depth = to_camera(points, pose)[:, 2]
-        median = float(np.median(depth[depth > 0])) if np.any(depth > 0) else 1.0
-        for kf_index, kf_pose in self.engine_keyframes:
-            if index - kf_index < c.reuse_min_age:
-                continue
-            relative = invert_pose(kf_pose) @ pose
-            turned = np.degrees(np.linalg.norm(cv2.Rodrigues(relative[:3, :3])[0]))
-            if np.linalg.norm(relative[:3, 3]) > c.reuse_distance * median or turned > c.reuse_rotation_deg:
-                continue
-            seen = to_camera(points, kf_pose)
-            z = np.maximum(seen[:, 2], 1e-9)
-            u, v = K[0, 0] * seen[:, 0] / z + K[0, 2], K[1, 1] * seen[:, 1] / z + K[1, 2]
-            inside = (seen[:, 2] > 0) & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
-            if inside.mean() >= c.reuse_overlap:
-                return True
-        return False
-
-    def _follow(self, gray: np.ndarray, predicted: np.ndarray, K: np.ndarray
-                ) -> tuple[np.ndarray, Tracks, int] | None:
-        """The tracks carried from the last tracked frame into `gray`, less the pose's outliers, the pose and its
-        inlier count (None: too few); nothing is changed."""
-        t = self.tracks
-        guess = predicted_pixels(t.uv, self.map.positions[t.rows[t.mapped]], t.mapped, self.pose, predicted, K)
-        uv, ok = self._flow(gray, guess)
-        if (ok & t.mapped).sum() < 0.5 * t.mapped.sum():  # a wrong guess can mislead the flow: try none
-            uv_plain, ok_plain = self._flow(gray, None)
-            if (ok_plain & t.mapped).sum() > (ok & t.mapped).sum():
-                uv, ok = uv_plain, ok_plain
-        tracks = self._refine(Tracks(t.ids[ok], uv[ok], t.rows[ok]), gray, predicted)
-        found = self._pose_from_tracks(tracks, predicted, K)
-        if found is None:
-            return None
-        pose, inlier = found
-        keep = np.ones(len(tracks), bool)
-        keep[np.flatnonzero(tracks.mapped)[~inlier]] = False
-        return pose, tracks.subset(keep), int(inlier.sum())
-
-    def _follow_rotation(self, index: int, gray: np.ndarray, K: np.ndarray, predicted: np.ndarray
-                         ) -> TrackingResult | None:
-        """Track a frame whose map points are too few by the rotation every track agrees on (`rotation_only`):
-        the position comes from the map points still tracked, or is held; None when the tracks do not agree on a
-        rotation (parallax, a bad frame). Its tracks carry on; VO keyframes (not offered to the engine: a turn
-        gives multi-view stereo no baseline) keep new tracks coming, so that points are triangulated again once
-        the camera moves."""
-        c, t = self.config, self.tracks
-        guess = predicted_pixels(t.uv, self.map.positions[t.rows[t.mapped]], t.mapped, self.pose, predicted, K)
-        uv, ok = self._flow(gray, guess)
-        if ok.sum() < c.rotation_min_tracks:
-            return None
-        followed = np.flatnonzero(ok)
-        tolerance = c.rotation_tolerance_px / K[0, 0]
-        fit = fit_rotation(bearings(t.uv[followed], K), bearings(uv[followed], K), tolerance)
-        if fit is None or fit[1].sum() < max(c.rotation_min_tracks, c.rotation_min_share * len(followed)):
-            return None
-        turn, agree = fit  # previous camera -> this camera
-        orientation = self.pose[:3, :3] @ turn.T
-        keep = np.zeros(len(t), bool)
-        keep[followed[agree]] = True
-        position, measured = self.pose[:3, 3].copy(), 0
-        mapped = followed[t.mapped[followed]]
-        if len(mapped) >= c.rotation_position_points:
-            found = position_given_rotation(orientation, self.map.positions[t.rows[mapped]], bearings(uv[mapped], K),
-                                            2.0 * tolerance)
-            depth = self._median_depth(self.map.keyframes[-1]) if self.map.keyframes else self.map_depth
-            if (found is not None and found[1].sum() >= c.rotation_position_points
-                    and np.linalg.norm(found[0] - position) <= c.rotation_max_step * depth):
-                position, measured = found[0], int(found[1].sum())
-                keep[mapped] = found[1]
-        pose = np.eye(4)
-        pose[:3, :3], pose[:3, 3] = orientation, position
-        pose = rigid(pose)
-        tracks = Tracks(t.ids[keep], uv[keep], t.rows[keep])
-        if self.rotation_since is not None and not self._still_a_turn(tracks, pose, K, tolerance):
-            self.parallax_seen = True  # translation adds up: no turn model may place this frame
-            return None
-        self.tracks = tracks
-        self.previous_gray = gray
-        self.velocity, self.velocity_at = rigid(invert_pose(self.pose) @ pose), index
-        self.frames_since_keyframe += 1
-        self.direct_since = None  # the tracks measure the turn again: a run of aligned frames ends
-        self._turn_keyframe(index, pose, gray, K, run_began=self.rotation_since is not None)
-        events = []
-        if self.rotation_since is None:
-            self.rotation_since = index
-            events.append({"type": "rotation_only", "frame": index, "tracks": int(agree.sum()),
-                           "map_points": measured})
-        return TrackingResult(pose, tracked=True, keyframe_hint=False, events=events,
-                              quality=0.5 * float(agree.mean()), translation_measured=measured > 0)
-
-    def _turn_keyframe(self, index: int, pose: np.ndarray, gray: np.ndarray, K: np.ndarray, run_began: bool
-                       ) -> None:
-        """A keyframe where a turn model placed the frame: at a run's first frame, and again whenever the tracks
-        fall below `rotation_keyframe_share` of the last keyframe's (the view has turned on)."""
-        c = self.config
-        last = self.map.keyframes[-1] if self.map.keyframes else None
-        if run_began and last is not None and len(self.tracks) >= c.rotation_keyframe_share * len(last.track_ids):
-            return
-        self._new_keyframe(index, pose, gray)
-        self._triangulate(K, self.map.keyframes[-(c.window + c.fixed_keyframes + 1):])
-        self._retire(self.map.slide(c.map_keyframes if c.covisibility_ba else c.window + c.fixed_keyframes))
-        self._remap(self.map.forget_unobserved())
-        self.tracked_at_keyframe = max(int(self.tracks.mapped.sum()), 1)
-
-    def _follow_direct(self, index: int, gray: np.ndarray, K: np.ndarray, predicted: np.ndarray
-                       ) -> TrackingResult | str:
-        """Track a frame the tracks cannot place (stripes, a plain wall, blur) by aligning its whole image to the
-        last tracked frame's (`direct_rotation`): the turn measured where the image constrains it and predicted
-        where it does not, the position from the constant-velocity motion; why not when the fit is poor or the
-        image measures nothing (the frame is then lost). The tracks the flow follows carry on, and VO keyframes (not
-        offered to the engine) start new ones, so that points are triangulated on the poses of the run and feature
-        tracking takes over again as soon as they measure enough of them."""
-        c, t = self.config, self.tracks
-        if self.previous_gray is None:
-            return "no previous image"
-        if self.velocity_at != self.last_tracked:  # just relocalised or restarted: the motion model is a guess
-            return "no measured motion to predict the move from"
-        if self.direct_since is not None and index - self.direct_since >= c.direct_max_frames:
-            return f"the run of aligned frames reached {c.direct_max_frames}"
-        step = invert_pose(self.pose) @ predicted  # the predicted motion, previous camera -> this one
-        prior = step[:3, :3].T
-        if self.direct_since is None:  # the scene depth where the run begins (its keyframes have few points)
-            self.direct_depth = self._scene_depth()
-        depth = self.direct_depth
-        baseline = float(np.linalg.norm(step[:3, 3])) / max(depth, 1e-9)
-        if baseline > c.direct_max_baseline:
-            return f"the predicted move is {baseline:.3f} of the scene depth (> {c.direct_max_baseline}): not a turn"
-        settings = DirectSettings(prior_deg=c.direct_prior_deg, min_correlation=c.direct_min_correlation,
-                                  max_axis_sigma_deg=c.direct_max_axis_sigma_deg,
-                                  max_correction_deg=c.direct_max_correction_deg)
-        fit = align_rotation(self.previous_gray, gray, K, prior, -prior @ step[:3, 3], depth, settings=settings)
-        held = fit.accepted
-        if not held and c.direct_translation_sigma > 0:
-            # the predicted move may be wrong (it came from the frames before the tracks failed): let the centre
-            # move too, as a nuisance of the fit, and keep only the turn (the image's move assumes a plane)
-            fit = align_rotation(self.previous_gray, gray, K, prior, -prior @ step[:3, 3], depth,
-                                 c.direct_translation_sigma * depth, settings)
-        if not fit.accepted:
-            return fit.reason
-        motion = np.eye(4)
-        motion[:3, :3], motion[:3, 3] = fit.rotation.T, step[:3, 3]  # the turn measured, the centre predicted
-        pose = rigid(self.pose @ motion)
-        guess = predicted_pixels(t.uv, self.map.positions[t.rows[t.mapped]], t.mapped, self.pose, pose, K)
-        uv, ok = self._flow(gray, guess)
-        ok[t.mapped] &= np.linalg.norm(uv[t.mapped] - guess[t.mapped], axis=1) <= c.direct_track_tolerance_px
-        self.tracks = Tracks(t.ids[ok], uv[ok], t.rows[ok])
-        self.previous_gray = gray
-        self.velocity, self.velocity_at = rigid(invert_pose(self.pose) @ pose), index
-        self.frames_since_keyframe += 1
-        self.rotation_since = None
-        self._turn_keyframe(index, pose, gray, K, run_began=self.direct_since is not None)
-        events = []
-        if self.direct_since is None:
-            self.direct_since = index
-            events.append({"type": "rotation_only", "frame": index, "method": "photometric", "tracks": 0,
-                           "map_points": 0, "correlation": round(fit.correlation, 3),
-                           "measured_axes": fit.measured_axes})
-        return TrackingResult(pose, tracked=True, keyframe_hint=False, events=events,
-                              quality=(0.4 if held else 0.2) * max(fit.correlation, 0.0), translation_measured=False)
-
-    def _scene_depth(self) -> float:
-        """Median depth of the map points the last frame's tracks measure; else the newest keyframe's with points;
-        else the map's."""
-        t = self.tracks
-        if t.mapped.sum() >= self.config.min_tracked:
-            depth = to_camera(self.map.positions[t.rows[t.mapped]], self.pose)[:, 2]
-            if (depth > 0).sum() >= self.config.min_tracked:
-                return float(np.median(depth[depth > 0]))
-        for kf in reversed(self.map.keyframes):
-            if (kf.point_ids >= 0).sum() >= self.config.min_tracked:
-                return self._median_depth(kf)
-        return self.map_depth
-
-    def _still_a_turn(self, tracks: Tracks, pose: np.ndarray, K: np.ndarray, tolerance: float) -> bool:
-        """Whether the tracks shared with the last keyframe (made in this rotation-only run) still agree with a
-        turn about one centre: translation that adds up over frames shows as parallax against it."""
-        kf = self.map.keyframes[-1]
-        order = np.argsort(kf.track_ids)
-        at, found = lookup_sorted(kf.track_ids[order], tracks.ids)
-        if found.sum() < self.config.rotation_min_tracks:
-            return True  # too few shared tracks to tell: the frame-to-frame fit decides
-        then = bearings(kf.features.keypoints[order[at[found]]], K)
-        turn = pose[:3, :3].T @ kf.pose[:3, :3]  # keyframe camera -> this camera
-        agree = angular_errors(then, bearings(tracks.uv[found], K), turn) < 2.0 * tolerance
-        return bool(agree.mean() >= self.config.rotation_min_share)
-
-    def _refine(self, tracks: Tracks, gray: np.ndarray, predicted: np.ndarray) -> Tracks:
-        """The tracks that began at or before the last keyframe, matched against that keyframe's image where their
-        image scale has not changed much since (the match is a shift, not a zoom; moving forward zooms)."""
-        c = self.config
-        if self.keyframe_gray is None or not c.flow_refine_px or not self.map.keyframes:
-            return tracks
-        kf = self.map.keyframes[-1]
-        order = np.argsort(kf.track_ids)
-        at, found = lookup_sorted(kf.track_ids[order], tracks.ids)
-        zoom = np.ones(len(tracks))
-        mapped = tracks.mapped
-        if mapped.any():
-            points = self.map.positions[tracks.rows[mapped]]
-            then, now = to_camera(points, kf.pose)[:, 2], to_camera(points, predicted)[:, 2]
-            zoom[mapped] = then / np.maximum(now, 1e-9)
-            zoom[~mapped] = np.median(zoom[mapped])
-        found &= np.abs(zoom - 1.0) <= c.flow_refine_zoom
-        uv = tracks.uv.copy()
-        uv[found] = refine_points(self.keyframe_gray, gray, kf.features.keypoints[order[at[found]]], uv[found],
-                                  window=c.flow_window, max_shift_px=c.flow_refine_px)
-        return Tracks(tracks.ids, uv, tracks.rows)
-
-    def _pose_from_tracks(self, tracks: Tracks, guess: np.ndarray, K: np.ndarray
-                          ) -> tuple[np.ndarray, np.ndarray] | None:
-        """Pose from the tracks of map points (robust refinement, PnP + RANSAC when it fails) and the inlier mask
-        over those tracks, or None."""
-        c = self.config
-        mapped = np.flatnonzero(tracks.mapped)
-        if len(mapped) < c.min_tracked:
-            return None
-        points = self.map.positions[tracks.rows[mapped]]
-        uv = tracks.uv[mapped].astype(np.float64)
-        sigma = np.ones(len(mapped))
-        pose, inlier = optimize_pose(guess, points, uv, sigma, K, c.chi2_px)
-        if inlier.sum() < max(c.min_tracked, 0.5 * len(mapped)) or not np.all(np.isfinite(pose)):
-            ok, rvec, tvec, found = cv2.solvePnPRansac(points, uv, K, None, iterationsCount=100,
-                                                       reprojectionError=2.0 * np.sqrt(c.chi2_px),
-                                                       confidence=0.999, flags=cv2.SOLVEPNP_EPNP)
-            if not ok or found is None or len(found) < c.min_tracked:
-                return None
-            w2c = np.eye(4)
-            w2c[:3, :3], w2c[:3, 3] = cv2.Rodrigues(rvec)[0], tvec.ravel()
-            pose, inlier = optimize_pose(invert_pose(w2c), points, uv, sigma, K, c.chi2_px)
-            if inlier.sum() < c.min_tracked or not np.all(np.isfinite(pose)):
-                return None
-        return pose, inlier
-
-    def _median_depth(self, kf: Keyframe) -> float:
-        rows = kf.point_ids[kf.point_ids >= 0]
-        if len(rows) == 0:
-            return 1.0
-        return float(np.median(to_camera(self.map.positions[rows], kf.pose)[:, 2]))
-
-    def _needs_keyframe(self, pose: np.ndarray, tracked: int) -> bool:
-        c = self.config
-        if self.frames_since_keyframe < c.keyframe_min_gap:
-            return False
-        last = self.map.keyframes[-1]
-        baseline = np.linalg.norm(pose[:3, 3] - last.pose[:3, 3]) / max(self._median_depth(last), 1e-6)
-        weak = tracked < c.keyframe_tracked_ratio * self.tracked_at_keyframe
-        stale = self.frames_since_keyframe >= c.keyframe_max_gap and baseline > 0.2 * c.keyframe_baseline
-        return weak or stale or baseline > c.keyframe_baseline
-
-    # ---- keyframes and the map -------------------------------------------------------------------------------
-    def _new_keyframe(self, index: int, pose: np.ndarray, gray: np.ndarray) -> Keyframe:
-        """A keyframe of every track (after new corners are added), appended to the map."""
-        self._replenish(gray)
-        t = self.tracks
-        features = Features(t.uv.copy(), np.zeros((len(t), 32), np.uint8), np.zeros(len(t), np.int32))
-        kf = Keyframe(index, pose.copy(), features, t.rows.copy(), t.ids.copy(), self._orb(index, gray))
-        self.map.keyframes.append(kf)
-        kept = {k.index for k in self.map.keyframes}
-        self.keyframe_images = {i: g for i, g in self.keyframe_images.items() if i in kept}
-        self.keyframe_images[index] = gray
-        self.keyframe_gray = gray
-        self.frames_since_keyframe = 0
-        return kf
-
-    def _insert_keyframe(self, index: int, pose: np.ndarray, gray: np.ndarray, K: np.ndarray) -> Keyframe:
-        kf = self._new_keyframe(index, pose, gray)
-        c = self.config
-        self._triangulate(K, self.map.keyframes[-(c.window + c.fixed_keyframes + 1):])
-        if c.reobserve_points:
-            self._reobserve(kf, K)
-        gone = self.map.slide(c.map_keyframes if c.covisibility_ba else c.window + c.fixed_keyframes)
-        self._retire(gone)
-        self._remap(self.map.forget_unobserved())
-        count = len(self.map.keyframes)
-        if count >= 3:
-            if c.covisibility_ba:
-                window = covisible_window([k.point_ids for k in self.map.keyframes], count - 1, c.window,
-                                          c.covisible_fixed, min_fixed=c.fixed_keyframes)
-            else:
-                held = min(max(c.fixed_keyframes, count - c.window), count - 1)
-                window = LocalWindow(np.arange(held, count), np.arange(held))
-            self._adjust(K, window)
-        self.tracked_at_keyframe = int(self.tracks.mapped.sum())
-        return kf
-
-    def _triangulate(self, K: np.ndarray, keyframes: list[Keyframe]) -> None:
-        """Map points from the candidate tracks of the newest keyframe seen first by one of `keyframes` (oldest
-        first, the newest last; see `triangulate_tracks`)."""
-        m, t = self.map, self.tracks
-        candidate = t.rows < 0
-        new = triangulate_tracks(keyframes, t.ids[candidate], t.uv[candidate], K, self.config.chi2_px,
-                                 self.config.min_parallax_deg)
-        rows = m.add_points(new.points, np.zeros((len(new.points), 32), np.uint8))
-        for keyframe in m.keyframes:
-            at, found = lookup_sorted(new.ids, keyframe.track_ids)
-            keyframe.point_ids[found] = rows[at[found]]
-        at, found = lookup_sorted(new.ids, t.ids)
-        t.rows[found] = rows[at[found]]
-        if len(new.inconsistent):
-            self.tracks = t.subset(~np.isin(t.ids, new.inconsistent))
-
-    def _reobserve(self, kf: Keyframe, K: np.ndarray) -> None:
-        """Describe the points the tracks measure at the new keyframe `kf` (ORB), then match the described points
-        no track follows to its ORB features (`reobservation`): a candidate track on the keypoint takes the point,
-        and away from every track a new track starts there; `kf` observes them."""
-        c, m, t = self.config, self.map, self.tracks
-        radius = c.place_radius_px * self.extractor.level_sigmas(kf.orb.octaves)
-        mapped = np.flatnonzero(t.mapped)
-        bare = mapped[~m.descriptors[t.rows[mapped]].any(axis=1)]
-        nearest, near = nearest_keypoints(t.uv[bare].astype(np.float64), kf.orb, radius)
-        m.descriptors[t.rows[bare[near]]] = kf.orb.descriptors[nearest[near]]
-        followed = np.zeros(len(m), bool)
-        followed[t.rows[mapped]] = True
-        candidates = np.flatnonzero(~followed & m.descriptors.any(axis=1))
-        rows, keypoints = search_by_projection(m.positions, m.descriptors, candidates, kf.pose, K, self.image_size,
-                                               kf.orb, c.reobserve_radius_px, c.reobserve_max_hamming, c.match_ratio)
-        if len(rows) == 0 or len(t) == 0:
-            return
-        uv = kf.orb.keypoints[keypoints].astype(np.float32)
-        d2 = ((uv[:, None, :] - t.uv[None, :, :]) ** 2).sum(-1)
-        closest = d2.argmin(axis=1)
-        distance = np.sqrt(d2[np.arange(len(uv)), closest])
-        taken = np.flatnonzero((distance <= c.reobserve_snap_px) & (t.rows[closest] < 0))
-        take = np.zeros(len(uv), bool)
-        take[taken[np.unique(closest[taken], return_index=True)[1]]] = True  # one point per track
-        t.rows[closest[take]] = rows[take]
-        order = np.argsort(kf.track_ids)
-        at, found = lookup_sorted(kf.track_ids[order], t.ids[closest[take]])
-        kf.point_ids[order[at[found]]] = rows[take][found]
-        fresh = distance > c.corner_min_distance * max(self.image_size)
-        if fresh.any():
-            ids = np.arange(self.next_id, self.next_id + int(fresh.sum()), dtype=np.int64)
-            self.next_id += len(ids)
-            self.tracks = Tracks(np.r_[t.ids, ids], np.concatenate([t.uv, uv[fresh]]), np.r_[t.rows, rows[fresh]])
-            f = kf.features
-            kf.features = Features(np.concatenate([f.keypoints, uv[fresh]]),
-                                   np.concatenate([f.descriptors, np.zeros((len(ids), 32), np.uint8)]),
-                                   np.concatenate([f.octaves, np.zeros(len(ids), f.octaves.dtype)]))
-            kf.point_ids, kf.track_ids = np.r_[kf.point_ids, rows[fresh]], np.r_[kf.track_ids, ids]
-
-    def _remap(self, remap: np.ndarray) -> None:
-        """Follow the map's renumbering of points in the tracks (a track whose point went becomes a candidate)."""
-        self.tracks.rows = remap[self.tracks.rows]
-
-    def _adjust(self, K: np.ndarray, window: LocalWindow) -> None:
-        """Bundle adjustment of the window's free keyframes and the points they observe, its fixed keyframes held;
-        observations it finds wrong are dropped (and the tracks they came from when the newest keyframe made
-        them), and points nobody sees."""
-        m = self.map
-        slots = window.slots
-        obs = m.observations(self.extractor.level_sigmas)
-        keep = np.isin(obs.keyframe, slots)
-        obs = Observations(np.searchsorted(slots, obs.keyframe[keep]), obs.point[keep], obs.uv[keep],
-                           obs.sigma[keep])
-        if len(obs.point) == 0:
-            return
-        fixed = ~np.isin(slots, window.free)
-        poses = np.stack([m.keyframes[k].pose for k in slots])
-        poses, m.positions, _ = bundle_adjust(poses, fixed, m.positions, obs, K, self.config.ba_iterations,
-                                              self.config.huber_sigmas)
-        for slot, pose in zip(slots, poses, strict=True):
-            m.keyframes[slot].pose = pose
-        bad = reprojection_chi2(poses, m.positions, obs, K) > self.config.chi2_px
-        for n, slot in enumerate(slots):
-            kf = m.keyframes[slot]
-            bad_rows = obs.point[bad & (obs.keyframe == n)]
-            if len(bad_rows):
-                kf.point_ids[np.isin(kf.point_ids, bad_rows)] = -1
-        newest = len(m.keyframes) - 1
-        bad_newest = obs.point[bad & (obs.keyframe == np.searchsorted(slots, newest))] if newest in slots else []
-        if len(bad_newest):
-            self.tracks = self.tracks.subset(~np.isin(self.tracks.rows, bad_newest))
-        self._remap(m.forget_unobserved())
-
-    def _normalise_scale(self) -> None:
-        """Scale the map about the first keyframe so that its median point depth is 1."""
-        first = self.map.keyframes[0]
-        s = 1.0 / max(self._median_depth(first), 1e-9)
-        m, origin = self.map, first.pose[:3, 3].copy()
-        m.positions = origin + s * (m.positions - origin)
-        for kf in m.keyframes:
-            kf.pose = kf.pose.copy()
-            kf.pose[:3, 3] = origin + s * (kf.pose[:3, 3] - origin)
-
-    def _place_rows(self, kf: Keyframe) -> tuple[np.ndarray, np.ndarray]:
-        """The keyframe's ORB keypoints (indices) that lie on one of its map points' observations (within the
-        relocalisation tolerance), and those points' rows."""
-        has = np.flatnonzero(kf.point_ids >= 0)
-        orb = kf.orb
-        if len(has) == 0 or len(orb) == 0:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64)
-        radius = self.config.place_radius_px * self.extractor.level_sigmas(orb.octaves)
-        near, nearest = nearest_within(orb.keypoints, kf.features.keypoints[has], radius)
-        return near, kf.point_ids[has[nearest]]
-
-    def _place(self, kf: Keyframe) -> Place:
-        """The keyframe's ORB keypoints that lie on one of its map points' observations, with those points."""
-        near, rows = self._place_rows(kf)
-        orb = kf.orb
-        return Place(kf.index, kf.pose.copy(), orb.keypoints[near], orb.descriptors[near],
-                     self.map.positions[rows].copy(), map_id=self.map_id, output=self.output.copy(),
-                     gray=self.keyframe_images.get(kf.index))
-
-    # ---- joining a restarted map to an older one -------------------------------------------------------------
-    def _join_maps(self, index: int, kf: Keyframe, K: np.ndarray) -> list[dict[str, Any]]:
-        """Try to join the restarted map to an older one at keyframe `kf` (see `map_join`): on a link, the map
-        (keyframes, points, its remembered places) moves into the older map's frame, scale included, and the
-        output transform takes the inverse move, so that poses handed out do not jump; the `maps_merged` event
-        carries the Sim(3) edge for the pose graph (`relative`: this frame in the place's frame, each in the units
-        of the poses handed out at the time) and `correction` (the similarity that takes the new map's output
-        poses into the older map's)."""
-        c, join = self.config, self.join
-        join.tried += 1
-        if join.tried > c.join_max_keyframes:
-            self.join = None
-            return []
-        places = [p for p in self.retired if p.map_id != self.map_id]
-        near, rows = self._place_rows(kf)
-        points = np.full((len(kf.orb), 3), np.nan)
-        points[near] = self.map.positions[rows]
-        link = link_maps(self.recognizer, kf.orb, points, kf.pose, places, K,
-                         self.extractor.level_sigmas(kf.orb.octaves), c.reloc_min_inliers, c.join_min_pairs,
-                         c.join_max_spread)
-        method = "orb"
-        if link is None and c.learned_join:
-            link, method = self._learned_link(index, kf, places, K), "learned"
-        if link is None:
-            return []
-        S, s = link.transform, link.scale
-        before = self.output
-        # Each camera with its output units (1 / the output scale of its time, in the older map's units).
-        place_camera = link.place.pose @ similarity(np.eye(3), np.zeros(3), 1.0 / similarity_scale(link.place.output))
-        kf_camera = S @ kf.pose @ similarity(np.eye(3), np.zeros(3), 1.0 / similarity_scale(before))
-        relative = similarity_inverse(place_camera) @ kf_camera
-        correction = link.place.output @ S @ similarity_inverse(before)
-        self._move_map(similarity(S[:3, :3] / s, S[:3, 3], 1.0), s)
-        for place in self.retired:
-            if place.map_id == self.map_id:
-                place.pose, place.points = moved_pose(S, place.pose), moved_points(S, place.points)
-                place.output, place.map_id = place.output @ similarity_inverse(S), link.place.map_id
-        self.output = before @ similarity_inverse(S)
-        self.velocity[:3, 3] *= s
-        self.map_id, self.join = link.place.map_id, None
-        return [{"type": "maps_merged", "frame": index, "place": link.place.index, "since": join.since,
-                 "scale": similarity_scale(correction), "pairs": link.pairs, "spread": round(link.spread, 4),
-                 "method": method, "relative": relative.tolist(), "correction": correction.tolist()}]
-
-    def _learned_link(self, index: int, kf: Keyframe, places: list[Place], K: np.ndarray) -> MapLink | None:
-        """The join by XFeat where ORB found no place: the keyframe's XFeat keypoints and its own map points,
-        described by XFeat, matched to the older maps' places nearest its pose (`learned_join_reach`), verified by
-        PnP; the inliers on its own map points measure the scale."""
-        c = self.config
-        # A restarted map begins at the old map's last pose: only places near the keyframe there are worth a network
-        # pass (the maps' coordinates agree roughly until joined; far places are left to ORB and loop closure).
-        places = [p for p in places if self._pose_distance(p.pose, kf.pose) <= c.learned_join_reach]
-        candidates = self._learned_candidates(index, self.keyframe_images[kf.index], places, by_words=False)
-        if not candidates:
-            return None
-        has = np.flatnonzero(kf.point_ids >= 0)  # the keyframe's own map points, described where it tracks them
-        current = self.learned.of_frame(kf.index, self.keyframe_images[kf.index], kf.features.keypoints[has])
-        if current is None:
-            return None
-        hit = self.learned.relocalise(current, candidates, K)
-        if hit is None:
-            return None
-        points = np.full((len(current), 3), np.nan)
-        points[len(current) - len(has):] = self.map.positions[kf.point_ids[has]]
-        return link_from_hit(hit, points, kf.pose, places, c.join_min_pairs, c.join_max_spread)
-
-    def _retire(self, keyframes: list[Keyframe]) -> None:
-        """Keyframes leaving the map become places; the newest `learned_places` keep their image."""
-        places = (self._place(kf) for kf in keyframes)
-        self.retired.extend(p for p in places if len(p.points) >= self.config.reloc_min_inliers)
-        del self.retired[: max(0, len(self.retired) - self.config.reloc_keyframes)]
-        for place in self.retired[: max(0, len(self.retired) - self.config.learned_places)]:
-            place.gray = None
-        self.learned.forget({p.index for p in self.retired if p.gray is not None}
-                            | {kf.index for kf in self.map.keyframes})
-
-    def _sparse_depth(self, kf: Keyframe, camera: Intrinsics) -> np.ndarray:
-        """z-depth of the keyframe's points at their pixels, 0 elsewhere."""
-        depth = np.zeros((camera.height, camera.width), np.float32)
-        has = np.flatnonzero(kf.point_ids >= 0)
-        z = to_camera(self.map.positions[kf.point_ids[has]], kf.pose)[:, 2]
-        uv = kf.features.keypoints[has]
-        col = np.clip(uv[:, 0].astype(np.int64), 0, camera.width - 1)
-        row = np.clip(uv[:, 1].astype(np.int64), 0, camera.height - 1)
-        keep = z > 0
-        depth[row[keep], col[keep]] = z[keep]
-        return depth
-
-    # ---- losing and finding the way back ---------------------------------------------------------------------
-    def _lose_or_restart(self, index: int, gray: np.ndarray, camera: Intrinsics, reason: str) -> TrackingResult:
-        """Lose tracking; when a map restarts from the last tracked frame at once, this frame is tracked on it
-        (both events are reported: the old map's tracks broke here)."""
-        lost = self._lose(index, reason)
-        restarted = self._reinitialise(index, gray, camera) or self._relocalise_learned(index, gray, camera)
-        if restarted is None:
-            return lost
-        restarted.events = lost.events + restarted.events
-        return restarted
-
-    def _lose(self, index: int, reason: str) -> TrackingResult:
-        """Tracking is lost: the held pose, and the last tracked frame kept as the anchor a map may restart from
-        (when the loss breaks tracking, not a restart or an initialisation)."""
-        was_tracking = self.status == "tracking"
-        if was_tracking:
-            self.mapped_at_loss = int(self.tracks.mapped.sum())
-        self.status = "lost"
-        self.lost_since, self.rotation_since, self.direct_since = index, None, None
-        self.anchor = None
-        if self.config.reinit_after_loss and self.previous_gray is not None and was_tracking:
-            self._replenish(self.previous_gray)  # the anchor's corners, not only its surviving tracks
-            t = self.tracks
-            points = np.full((len(t), 3), np.nan)
-            points[t.mapped] = self.map.positions[t.rows[t.mapped]]
-            self.anchor = Anchor(self.last_tracked, self.pose.copy(), t.ids.copy(), t.uv.copy(), points,
-                                 self.velocity.copy(), self.pose.copy(), self.previous_gray)
-        self.velocity = np.eye(4)
-        return TrackingResult(self.pose.copy(), tracked=False, keyframe_hint=False, quality=0.0,
-                              events=[{"type": "tracking_lost", "reason": reason, "frame": index}])
-
-    def _relocalise(self, index: int, gray: np.ndarray, camera: Intrinsics) -> TrackingResult:
-        """Back on track when most tracks of the last tracked frame are found again in this one (a short loss:
-        bad frames, an occlusion); else place recognition over the remembered keyframes, where a hit starts a new
-        local map from the place's points seen in this frame (their positions, hence the scale, carry over)."""
-        c = self.config
-        K = camera_matrix(camera)
-        found = self._follow(gray, self.pose, K)
-        # Measured against the tracks at the loss: those followed through the lost frames are fewer.
-        if found is not None and found[2] >= c.recover_share * max(self.mapped_at_loss, self.tracks.mapped.sum()):
-            pose, self.tracks, inliers = found
-            self.previous_gray = gray
-            event = {"type": "relocalized", "frame": index, "place": self.map.keyframes[-1].index,
-                     "inliers": inliers, "lost_frames": index - (self.lost_since if self.lost_since is not None
-                                                                  else index)}
-            self.status, self.lost_since, self.velocity, self.anchor = "tracking", None, np.eye(4), None
-            return TrackingResult(pose, tracked=True, keyframe_hint=False, events=[event],
-                                  quality=min(1.0, inliers / max(self.tracked_at_keyframe, 1)))
-        recognised = self._recognise_place(index, gray, camera)
-        if recognised is not None:
-            return recognised
-        restarted = self._reinitialise(index, gray, camera) or self._relocalise_learned(index, gray, camera)
-        if restarted is not None:
-            return restarted
-        lost_for = index - (self.lost_since if self.lost_since is not None else index)
-        if c.new_map_after_lost and lost_for >= c.new_map_after_lost and self._textured(index, gray):
-            return self._begin_new_map(index, gray, camera, lost_for)
-        return TrackingResult(self.pose.copy(), tracked=False, keyframe_hint=False, quality=0.0)
-
-    def _recognise_place(self, index: int, gray: np.ndarray, camera: Intrinsics) -> TrackingResult | None:
-        """Place recognition over the remembered keyframes (ORB, verified by PnP): a hit starts a new local map
-        from the place's points seen in this frame (their positions, hence the scale, carry over); None: no hit."""
-        features = self._orb(index, gray)
-        if len(features) < self.config.min_features:
-            return None
-        places = self.retired + [self._place(kf) for kf in self.map.keyframes]
-        hit = self.recognizer.relocalise(features, places, camera_matrix(camera),
-                                         self.extractor.level_sigmas(features.octaves))
-        if hit is None:
-            return None
-        return self._restart_from(index, gray, camera, hit.pose, features.keypoints[hit.keypoints], hit.points,
-                                  hit.place, "place recognition")
-
-    def _textured(self, index: int, gray: np.ndarray) -> bool:
-        """Whether the frame has the features an initialisation needs, and at least 30 % of the last keyframe's (a
-        covered lens or a blurred frame begins no map)."""
-        keyframes = self.map.keyframes
-        usual = len(keyframes[-1].features.keypoints) if keyframes else 0
-        return len(self._orb(index, gray)) >= max(self.config.init_min_matches, 0.3 * usual)
-
-    def _begin_new_map(self, index: int, gray: np.ndarray, camera: Intrinsics, lost_for: int) -> TrackingResult:
-        """Give up finding the old map from here: its keyframes become places, and a new map initialises from
-        this frame on, placed at the last pose with the old map's median scene depth (a guess: the two share no
-        point) until a loop or relocalisation joins them. A `new_map` event says so."""
-        depth = self._median_depth(self.map.keyframes[-1]) if self.map.keyframes else self.map_depth
-        self._retire(self.map.keyframes)
-        self.map, self.tracks, self.anchor = LocalMap(), Tracks.empty(), None
-        self.pending, self.pending_orientation, self.init_state = [], {}, ""
-        self.previous_gray = self.keyframe_gray = None
-        self.velocity = np.eye(4)
-        self.frames_since_keyframe = self.tracked_at_keyframe = 0
-        self.map_origin, self.map_depth = self.pose.copy(), depth
-        self.maps_started += 1
-        if self.config.join_maps:  # joined to an older map once one of its keyframes recognises an older place
-            self.map_id, self.maps_made, self.join = self.maps_made, self.maps_made + 1, JoinState(index)
-        self.status, self.lost_since = "initializing", None
-        result = self._initialise(index, gray, camera, uncalibrated=False)
-        result.events = [{"type": "new_map", "frame": index, "map": self.maps_started, "lost_frames": lost_for,
-                          "scene_depth": round(depth, 4)}] + list(result.events or [])
-        return result
-
-    def _restart_from(self, index: int, gray: np.ndarray, camera: Intrinsics, pose: np.ndarray, uv: np.ndarray,
-                      points: np.ndarray, place: int, method: str) -> TrackingResult:
-        """A new local map from the old map's points (world [n, 3]) seen at pixels uv [n, 2] of this frame, posed
-        at `pose` (their positions, hence the scale, carry over); the old keyframes become places."""
-        self.anchor = None
-        self._retire(self.map.keyframes)
-        place_map = next((p.map_id for p in self.retired if p.index == place), self.map_id)
-        if place_map != self.map_id:  # back in an older map's frame: its points carry that map's coordinates
-            self.map_id, self.join = place_map, None
-        m = self.map = LocalMap()
-        rows = m.add_points(points, np.zeros((len(points), 32), np.uint8))
-        ids = np.arange(self.next_id, self.next_id + len(rows), dtype=np.int64)
-        self.next_id += len(rows)
-        self.tracks = Tracks(ids, np.asarray(uv, np.float32).reshape(-1, 2), rows)
-        kf = self._new_keyframe(index, pose, gray)
-        self.tracked_at_keyframe = len(rows)
-        self.previous_gray = gray
-        event = {"type": "relocalized", "frame": index, "place": place, "inliers": len(rows), "method": method,
-                 "lost_frames": index - (self.lost_since if self.lost_since is not None else index)}
-        self.status, self.lost_since, self.velocity = "tracking", None, np.eye(4)
-        return TrackingResult(pose, tracked=True, keyframe_hint=True, depth=self._sparse_depth(kf, camera),
-                              events=[event], quality=1.0)
-
-    def _relocalise_learned(self, index: int, gray: np.ndarray, camera: Intrinsics) -> TrackingResult | None:
-        """XFeat matching of this frame to the anchor's map points (the last tracked frame) and then to remembered
-        keyframes (`_learned_candidates`), each verified by PnP + RANSAC and the robust refinement: the old map,
-        hence its scale, carries on past a turn too fast for optical flow and ORB (None: not found). Runs on every
-        `learned_reloc_every`-th lost frame, the first one included, within the frame's network passes
-        (`learned_passes_per_frame`: what is not described yet waits for the next try)."""
-        c = self.config
-        if not c.learned_relocalisation:
-            return None
-        since = self.lost_since if self.lost_since is not None else index
-        if (index - since) % c.learned_reloc_every:  # the network costs more than a tracked frame
-            return None
-        K = camera_matrix(camera)
-        current: XFeatures | None = None
-        anchor = self.anchor
-        if anchor is not None and index - anchor.index > c.learned_reloc_frames:
-            self.anchor = anchor = None
-        if anchor is not None and anchor.gray.size:
-            if anchor.descriptors.size == 0 and not anchor.described:
-                anchor.descriptors, anchor.world = self._learned_place(anchor)
-            current = self.learned.of_frame(index, gray)
-            if current is not None and len(anchor.world) >= c.reloc_min_inliers:
-                ia, ib = mutual_matches(anchor.descriptors, current.descriptors, c.learned_min_similarity)
-                if len(ia) >= c.reloc_min_inliers:
-                    X, uv = anchor.world[ia], current.keypoints[ib].astype(np.float64)
-                    found = pnp_pose(X, uv, K, np.full(len(X), 2.0), c.chi2_px, c.reloc_min_inliers)
-                    if found is not None:
-                        pose, inlier = found
-                        return self._restart_from(index, gray, camera, pose, uv[inlier], X[inlier], anchor.index,
-                                                  "learned")
-        candidates = self._learned_candidates(index, gray)
-        if not candidates:
-            return None
-        current = self.learned.of_frame(index, gray, self._orb(index, gray).keypoints)
-        if current is None:
-            return None
-        hit = self.learned.relocalise(current, candidates, K, c.learned_keyframe_min_inliers)
-        if hit is not None:
-            return self._restart_from(index, gray, camera, hit.pose, current.keypoints[hit.keypoints], hit.points,
-                                      hit.place, "learned keyframe")
-        # Wide baselines: LighterGlue on every candidate, also those the pass budget left undescribed this frame (a
-        # jump's lost frames may be few: the fox's are, before a new map begins).
-        glue = c.learned_glue and self.learned.glue_due(index, c.learned_glue_every)
-        glued = self.learned.glue_relocalise(gray, candidates, K, c.learned_keyframe_min_inliers) if glue else None
-        if glued is None:
-            return None
-        hit, uv = glued
-        return self._restart_from(index, gray, camera, hit.pose, uv[hit.keypoints], hit.points, hit.place,
-                                  "learned glue")
-
-    def _learned_candidates(self, index: int, gray: np.ndarray, places: list[Place] | None = None,
-                            by_words: bool = True) -> list[Place]:
-        """Remembered keyframes with an image to match a lost frame to by XFeat: the `learned_candidates` nearest
-        the last pose (viewing direction and position; a restarted map begins at the old map's last pose, so its
-        coordinates are near the old map's until joined) and as many most alike in ORB words, without repeats,
-        taken in turn (the most alike, the nearest, the second most alike, ...: a frame's network passes describe
-        the likeliest of each kind first)."""
-        c = self.config
-        if places is None:
-            places = self.retired + [self._place(kf) for kf in self.map.keyframes]
-        places = [p for p in places if p.gray is not None and len(p.points) >= c.reloc_min_inliers]
-        if not places:
-            return []
-        nearest = sorted(places, key=lambda p: self._pose_distance(p.pose, self.pose))[: c.learned_candidates]
-        features = self._orb(index, gray) if by_words else None
-        if features is None or len(features) < c.min_features:
-            return nearest
-        alike = self.recognizer.shortlist(features, places)[: c.learned_candidates]
-        chosen: list[Place] = []
-        for pair in zip_longest(alike, nearest):
-            chosen += [p for p in pair if p is not None and p not in chosen]
-        return chosen
-
-    def _pose_distance(self, a: np.ndarray, b: np.ndarray) -> float:
-        """How far apart two camera poses look: the angle between their viewing directions (radians) plus their
-        distance in median scene depths."""
-        turned = np.arccos(np.clip(a[:3, 2] @ b[:3, 2], -1.0, 1.0))
-        return float(turned + np.linalg.norm(a[:3, 3] - b[:3, 3]) / max(self.map_depth, 1e-6))
-
-    def _orb(self, index: int, gray: np.ndarray) -> Features:
-        """ORB features of frame `index` (extracted once per frame)."""
-        if self._orb_of is None or self._orb_of[0] != index:
-            self._orb_of = (index, self.extractor.extract(gray))
-        return self._orb_of[1]
-
-    def _learned_place(self, anchor: Anchor) -> tuple[np.ndarray, np.ndarray]:
-        """XFeat descriptors [n, 64] of the anchor image's keypoints that lie on one of its tracked map points
-        (within `place_radius_px`), and those points [n, 3] (none while the frame has no network pass left)."""
-        found = self.learned.describe_image(anchor.gray)
-        anchor.described = found is not None
-        has = np.isfinite(anchor.points).all(axis=1)
-        if found is None or len(found) == 0 or not has.any():
-            return np.zeros((0, 64), np.float32), np.zeros((0, 3))
-        d2 = ((found.keypoints[:, None, :] - anchor.uv[None, has, :]) ** 2).sum(-1)
-        nearest = d2.argmin(axis=1)
-        near = np.flatnonzero(d2[np.arange(len(found)), nearest] <= (2.0 * self.config.place_radius_px) ** 2)
-        return found.descriptors[near], anchor.points[has][nearest[near]]
-
-    def _reinitialise(self, index: int, gray: np.ndarray, camera: Intrinsics) -> TrackingResult | None:
-        """A new map from a two-view reconstruction between the last tracked frame (the anchor, whose pose is
-        known) and this one, placed at the anchor and scaled by the old map points the two share (else by the
-        old map's depth at the anchor); None while that fails. The anchor's tracks are followed meanwhile."""
-        c = self.config
-        anchor = self.anchor
-        if anchor is None:
-            return None
-        K = camera_matrix(camera)
-        t = self.tracks
-        predicted = rigid(anchor.predicted @ anchor.velocity)  # the motion model guides the flow while lost
-        rows = np.where(t.rows < len(self.map), t.rows, -1)
-        mapped = rows >= 0
-        guess = predicted_pixels(t.uv, self.map.positions[rows[mapped]], mapped, anchor.predicted, predicted, K)
-        uv, ok = self._flow(gray, guess)
-        if ok.sum() < 0.5 * len(t):
-            uv_plain, ok_plain = self._flow(gray, None)
-            if ok_plain.sum() > ok.sum():
-                uv, ok = uv_plain, ok_plain
-        followed = Tracks(t.ids[ok], uv[ok], t.rows[ok])
-        at, found = lookup_sorted(anchor.ids, followed.ids)
-        common = np.flatnonzero(found)
-        if len(common) < c.reinit_min_matches:  # the flow lost the anchor's view: its tracks stay those of the
-            return None  # last frame they were followed into (learned matching may still find it)
-        anchor.predicted = predicted
-        self.tracks, self.previous_gray = followed, gray
-        ones = np.ones(len(common))
-        settings = c.model_copy(update={"init_min_parallax_deg": c.reinit_min_parallax_deg,
-                                        "init_min_matches": c.reinit_min_matches,
-                                        "init_min_points": min(c.init_min_points, c.reinit_min_matches)})
-        attempt = two_view_from_matches(anchor.uv[at[common]], self.tracks.uv[common], K, settings, ones, ones,
-                                        common, common)
-        if attempt.map is None:
-            return None
-        two = attempt.map
-        if attempt.model == "homography" and two.parallax_deg < c.init_min_parallax_deg:
-            return None  # a turn in place fits a homography too, and noise then passes for a small baseline
-        scale, shared = anchor.scale_of(two.points, at[two.ib])
-        self._retire(self.map.keyframes)
-        if c.join_maps:  # a map of its own until a place of the old one is recognised
-            self.map_id, self.maps_made, self.join = self.maps_made, self.maps_made + 1, JoinState(index)
-        kf = self._two_keyframe_map(index, gray, two, anchor.index, anchor.ids, anchor.uv)
-        self._adjust(K, LocalWindow(np.array([1]), np.array([0])))
-        self._move_map(anchor.pose, scale)
-        self.anchor = None
-        self.tracked_at_keyframe = int(self.tracks.mapped.sum())
-        steps = max(index - anchor.index, 1)
-        relative = invert_pose(anchor.pose) @ kf.pose
-        self.velocity = np.eye(4)
-        self.velocity[:3, :3] = cv2.Rodrigues(cv2.Rodrigues(relative[:3, :3])[0] / steps)[0]
-        self.velocity[:3, 3] = relative[:3, 3] / steps
-        event = {"type": "relocalized", "frame": index, "method": "reinitialized", "place": anchor.index,
-                 "inliers": len(two.points), "model": attempt.model, "scale_from": "shared points" if shared
-                 else "scene depth", "shared_points": shared,
-                 "lost_frames": index - (self.lost_since if self.lost_since is not None else index)}
-        self.status, self.lost_since = "tracking", None
-        joined = self._join_maps(index, kf, K) if self.join is not None else []  # the old map's last places
-        return TrackingResult(kf.pose, tracked=True, keyframe_hint=True, depth=self._sparse_depth(kf, camera),
-                              events=[event, *joined], quality=1.0)
+            self.state.engine_keyframes.append((int(frame.index), np.asarray(pose, np.float64).copy()))
 
     # ---- snapshots -------------------------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
         """Everything to continue after a restart (msgpack-able; bounded by the window and the place memory)."""
-        def image(gray: np.ndarray | None) -> np.ndarray:
-            return np.zeros((0, 0), np.uint8) if gray is None else gray
-
-        return {
-            "version": STATE_VERSION, "config": self.config.model_dump(), "status": self.status,
-            "pose": self.pose, "velocity": self.velocity, "frames_since_keyframe": self.frames_since_keyframe,
-            "tracked_at_keyframe": self.tracked_at_keyframe,
-            "lost_since": -1 if self.lost_since is None else self.lost_since,
-            "rotation_since": -1 if self.rotation_since is None else self.rotation_since,
-            "direct_since": -1 if self.direct_since is None else self.direct_since,
-            "direct_depth": self.direct_depth, "velocity_at": self.velocity_at,
-            "image_size": [] if self.image_size is None else list(self.image_size),
-            "focal": self.focal.state_dict(),
-            "estimated_intrinsics": {} if self.estimated_intrinsics is None else self.estimated_intrinsics.to_dict(),
-            "pending": [{"index": i, "ids": ids, "uv": uv, "orientation": self.pending_orientation.get(i, np.eye(3))}
-                        for i, ids, uv in self.pending],
-            "init_state": self.init_state, "last_tracked": self.last_tracked, "mapped_at_loss": self.mapped_at_loss,
-            "anchor": {} if self.anchor is None else self.anchor.to_state(),
-            "previous_gray": image(self.previous_gray), "keyframe_gray": image(self.keyframe_gray),
-            "tracks": self.tracks.to_state(), "next_id": self.next_id,
-            "map": self.map.to_state(), "retired": [p.to_state() for p in self.retired],
-            "engine_keyframes": [{"index": i, "pose": p} for i, p in self.engine_keyframes],
-            "maps_started": self.maps_started, "map_origin": self.map_origin, "map_depth": self.map_depth,
-            "map_id": self.map_id, "maps_made": self.maps_made, "output": self.output,
-            "join": {} if self.join is None else {"since": self.join.since, "tried": self.join.tried},
-            "keyframe_images": [{"index": i, "gray": g} for i, g in self.keyframe_images.items()],
-        }
+        return {"version": STATE_VERSION, "config": self.config.model_dump(), **self.state.state_dict()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Continue from `state_dict()` (the configuration comes with the state)."""
         if int(state.get("version", -1)) != STATE_VERSION:
             raise ValueError(f"visual odometry state version {state.get('version')!r}, expected {STATE_VERSION}")
         self.__init__(VisualOdometryConfig(**state["config"]))
-        self.status = str(state["status"])
-        self.pose = np.asarray(state["pose"], np.float64).reshape(4, 4)
-        self.velocity = np.asarray(state["velocity"], np.float64).reshape(4, 4)
-        self.frames_since_keyframe = int(state["frames_since_keyframe"])
-        self.tracked_at_keyframe = int(state["tracked_at_keyframe"])
-        self.lost_since = None if int(state["lost_since"]) < 0 else int(state["lost_since"])
-        self.rotation_since = None if int(state.get("rotation_since", -1)) < 0 else int(state["rotation_since"])
-        self.direct_since = None if int(state.get("direct_since", -1)) < 0 else int(state["direct_since"])
-        self.direct_depth = float(state.get("direct_depth", 1.0))
-        self.velocity_at = int(state.get("velocity_at", -1))
-        self.image_size = tuple(int(v) for v in state["image_size"]) or None
-        self.focal.load_state_dict(state["focal"])
-        if state["estimated_intrinsics"]:
-            self.estimated_intrinsics = Intrinsics.from_dict(state["estimated_intrinsics"])
-        self.pending = [(int(p["index"]), np.asarray(p["ids"], np.int64).reshape(-1),
-                         np.asarray(p["uv"], np.float32).reshape(-1, 2)) for p in state["pending"]]
-        self.pending_orientation = {int(p["index"]): np.asarray(p["orientation"], np.float64).reshape(3, 3)
-                                    for p in state["pending"]}
-        self.init_state = str(state["init_state"])
-        self.last_tracked = int(state["last_tracked"])
-        self.mapped_at_loss = int(state["mapped_at_loss"])
-        self.anchor = Anchor.from_state(state["anchor"]) if state["anchor"] else None
-        for name in ("previous_gray", "keyframe_gray"):
-            gray = np.asarray(state[name], np.uint8)
-            setattr(self, name, np.ascontiguousarray(gray) if gray.size else None)
-        self.tracks = Tracks.from_state(state["tracks"])
-        self.next_id = int(state["next_id"])
-        self.map = LocalMap.from_state(state["map"])
-        self.retired = [Place.from_state(p) for p in state["retired"]]
-        self.engine_keyframes.extend((int(k["index"]), np.asarray(k["pose"], np.float64).reshape(4, 4))
-                                     for k in state.get("engine_keyframes", []))
-        self.maps_started = int(state.get("maps_started", 1))
-        self.map_origin = np.asarray(state.get("map_origin", np.eye(4)), np.float64).reshape(4, 4)
-        self.map_depth = float(state.get("map_depth", 1.0))
-        self.map_id, self.maps_made = int(state.get("map_id", 0)), int(state.get("maps_made", 1))
-        self.output = np.asarray(state.get("output", np.eye(4)), np.float64).reshape(4, 4)
-        join = state.get("join") or {}
-        self.join = JoinState(int(join["since"]), int(join["tried"])) if join else None
-        self.keyframe_images = {int(k["index"]): np.ascontiguousarray(np.asarray(k["gray"], np.uint8))
-                                for k in state.get("keyframe_images", [])}
+        self.state.load_state_dict(state)
