@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from protocol.codec import pack
 from worker.config import LoopConfig
 from worker.geometry import Intrinsics, se3_part
 from worker.loop.correction_check import implausible_correction
@@ -108,7 +109,9 @@ class LoopClosingStage(QueuedStage):
         self.solves_given_up = 0  # solves that failed or ended implausibly: nothing moved
         self._corrections: list[LoopCorrection] = []
         self._corrections_lock = threading.Lock()
-        self._stage = StageThread("loop-closing", self._process, threaded)
+        self.name = "loop-closing"
+        self._init_queue()
+        self._stage = StageThread("loop-closing", self._handle_numbered, threaded)
 
     def take_corrections(self) -> list[LoopCorrection]:
         """The corrections made since the last call, oldest first."""
@@ -118,6 +121,13 @@ class LoopClosingStage(QueuedStage):
 
     # -- work (the stage's thread) -------------------------------------------------------------------------------
     def _process(self, item: GraphKeyframe | LoopQuery | CameraUpdate | PosePrior | MapJoin) -> None:
+        with self.lock:  # a snapshot (`snapshot_now`) sees the state between two items
+            try:
+                self._process_one(item)
+            finally:
+                self._done(item)
+
+    def _process_one(self, item: GraphKeyframe | LoopQuery | CameraUpdate | PosePrior | MapJoin) -> None:
         try:
             self._process_item(item)
         except ValueError as error:  # a degenerate node or edge (non-finite, a scale near 0): left out, not fatal
@@ -237,6 +247,20 @@ class LoopClosingStage(QueuedStage):
         return fit.relative.numpy()
 
     # -- snapshot ------------------------------------------------------------------------------------------------
+    def snapshot_now(self, deliver: Callable[[Callable[[], bytes]], None],  # type: ignore[override]
+                     external: dict[str, bytes] | None = None) -> None:
+        """The stage's state as of now, packed, handed to `deliver(make_part)` without waiting for its queue
+        (QueuedStage.snapshot_now): the graph between two items, the items not done yet and the corrections
+        tracking has not taken yet, as data; a restored stage works through them (`load_state_dict`)."""
+        def pack_state(items: list[Any]) -> bytes:
+            with self._corrections_lock:
+                corrections = [{"poses": [[k, v] for k, v in c.poses.items()], "event": c.event}
+                               for c in self._corrections]
+            return pack({**self.state_dict(), "queued": [item_state(item) for item in items],
+                         "corrections": corrections}, external=external)
+
+        super().snapshot_now(deliver, pack_state)
+
     def state_dict(self) -> dict[str, Any]:
         """The stage's state between two work items (call it from `at_marker`, or when idle)."""
         return {"pose_graph": self.pose_graph.state_dict(),
@@ -252,3 +276,45 @@ class LoopClosingStage(QueuedStage):
             self.depth_points.load_state_dict(state["depth_points"])
         self.loops = int(state.get("loops", 0))
         self.priors_unsolved = int(state.get("priors_unsolved", 0))
+        with self._corrections_lock:
+            self._corrections = [LoopCorrection({int(k): np.asarray(v, np.float64) for k, v in c["poses"]},
+                                                dict(c["event"])) for c in state.get("corrections") or []]
+        for item in state.get("queued") or []:  # submitted before the snapshot, not done in it: done now
+            self.submit(item_from_state(item))
+
+
+def item_state(item: GraphKeyframe | LoopQuery | CameraUpdate | PosePrior | MapJoin) -> dict[str, Any]:
+    """A work item as plain data (arrays stay arrays)."""
+    if isinstance(item, GraphKeyframe):
+        return {"kind": "keyframe", "kf_id": item.kf_id, "world_pose": item.world_pose, "previous": item.previous,
+                "relative": item.relative, "edge": item.kind, "scene_depth": item.scene_depth}
+    if isinstance(item, LoopQuery):
+        return {"kind": "query", "kf_id": item.kf_id, "image": item.image, "depth": item.depth, "K": item.K,
+                "intrinsics": None if item.intrinsics is None else item.intrinsics.to_dict()}
+    if isinstance(item, MapJoin):
+        return {"kind": "join", "i": item.i, "j": item.j, "relative": item.relative, "event": item.event}
+    if isinstance(item, CameraUpdate):
+        return {"kind": "camera", "K": item.K}
+    return {"kind": "prior", **item.to_dict()}
+
+
+def item_from_state(state: dict[str, Any]) -> GraphKeyframe | LoopQuery | CameraUpdate | PosePrior | MapJoin:
+    def tensor(value: Any) -> torch.Tensor | None:
+        return None if value is None else torch.from_numpy(np.array(value))
+
+    def array(value: Any) -> np.ndarray | None:
+        return None if value is None else np.asarray(value, np.float64)
+
+    kind = state["kind"]
+    if kind == "keyframe":
+        return GraphKeyframe(int(state["kf_id"]), array(state["world_pose"]), state["previous"],
+                             array(state["relative"]), state["edge"], state["scene_depth"])
+    if kind == "query":
+        intrinsics = None if state["intrinsics"] is None else Intrinsics.from_dict(state["intrinsics"])
+        return LoopQuery(int(state["kf_id"]), tensor(state["image"]), intrinsics, tensor(state["depth"]),
+                         tensor(state["K"]))
+    if kind == "join":
+        return MapJoin(int(state["i"]), int(state["j"]), array(state["relative"]), dict(state["event"]))
+    if kind == "camera":
+        return CameraUpdate(tensor(state["K"]))
+    return PosePrior.from_dict(state)

@@ -61,7 +61,7 @@ class MappingStage(QueuedStage):
         self.timings = timings or StageTimes()
         self.device = device
         self.map = build_gaussian_map(cfg, device)
-        self.lock = threading.RLock()
+        self._init_queue()
         self._readers_waiting = 0  # threads waiting for the lock to read the map
         self._readers_lock = threading.Lock()
         self.keyframes_mapped = 0
@@ -71,27 +71,19 @@ class MappingStage(QueuedStage):
         # Where keyframes whose loop query waited for their depth go once it is built (the loop-closing stage).
         self.loop_closing: Callable[[LoopQuery], None] | None = None
         self._waiting: deque[tuple[int, float]] = deque()  # (kf_id, submit time) of keyframe jobs not yet done
-        # Every job submitted and not yet in the map (the running one included), in order; a job leaves under the
-        # map's lock, as it enters the map: a snapshot taken under the lock has each job in one place, never two.
-        self._unfinished: deque[tuple[int, KeyframeJob | PoseUpdateJob]] = deque()  # (submission number, job)
-        self._submitted = 0
-        self._cuts: list[_Cut] = []  # snapshots asked for and not taken yet
         self._waiting_lock = threading.Lock()
         self._owed: dict[int, int] = {}  # keyframe -> refinement iterations shed, oldest first
         self.caught_up = 0
-        self._stage = StageThread("mapping", self._process, threaded,
+        self._stage = StageThread("mapping", self._handle_numbered, threaded,
                                   idle=self._catch_up if cfg.idle_refine else None)
 
     # -- submission (the tracking thread) ------------------------------------------------------------------------
     def submit(self, job: KeyframeJob | PoseUpdateJob) -> None:
         """Queue a job; never blocks (inline when not threaded)."""
-        with self._waiting_lock:
-            if isinstance(job, KeyframeJob):
+        if isinstance(job, KeyframeJob):
+            with self._waiting_lock:
                 self._waiting.append((job.kf_id, time.monotonic()))
-            self._submitted += 1
-            self._unfinished.append((self._submitted, job))
-            number = self._submitted
-        self._stage.submit((number, job))
+        super().submit(job)
 
     def use_multiview_depth(self, stereo: StereoBuilder) -> None:
         """The session's keyframe depth comes from multi-view stereo, built by `stereo`: prune new keyframes' views
@@ -118,11 +110,7 @@ class MappingStage(QueuedStage):
                 "keyframes_caught_up": self.caught_up, "keyframes_owed": len(self._owed)}
 
     # -- work (the stage's thread) -------------------------------------------------------------------------------
-    def _process(self, item: tuple[int, KeyframeJob | PoseUpdateJob]) -> None:
-        number, job = item
-        for cut in [c for c in self._cuts if c.number < number]:  # a snapshot is cut before this job
-            with self.lock:
-                cut.take()
+    def _process(self, job: KeyframeJob | PoseUpdateJob) -> None:
         start = time.perf_counter()
         if isinstance(job, KeyframeJob):
             try:
@@ -165,14 +153,6 @@ class MappingStage(QueuedStage):
                 self._owed[job.kf_id] = self.cfg.refine_iterations - iterations
             self._done(job)
 
-    def _done(self, job: KeyframeJob | PoseUpdateJob) -> None:
-        """`job` is in the map (or was shed): it leaves the unfinished jobs (call under the map's lock)."""
-        with self._waiting_lock:
-            for i, (_, waiting) in enumerate(self._unfinished):
-                if waiting is job:
-                    del self._unfinished[i]
-                    return
-
     def _build(self, job: KeyframeJob) -> None:
         """A job's surfel grid: from its views' multi-view depth, else from its sensor depth."""
         if job.views is not None:
@@ -208,6 +188,7 @@ class MappingStage(QueuedStage):
     def _catch_up(self) -> bool:
         """Idle work: refine the oldest keyframe whose refinement was shed; False when none is owed."""
         start = time.perf_counter()
+        self._wait_for_readers()
         with self.lock:
             if not self._owed:
                 return False
@@ -291,34 +272,17 @@ class MappingStage(QueuedStage):
         with self._reading():
             return self.map.to_ply_bytes()
 
-    def snapshot_now(self, deliver: Callable[[Callable[[], bytes]], None],
+    def snapshot_now(self, deliver: Callable[[Callable[[], bytes]], None],  # type: ignore[override]
                      external: dict[str, bytes] | None = None) -> None:
         """The stage's state as of now, packed (protocol.codec), handed to `deliver(make_part)` without waiting for
-        the queue: the map between two steps and, as data, the jobs submitted so far and not in it yet (the one
-        being built included), which a restored stage maps again (`load_state_dict`). A thread of its own takes it
-        as soon as it gets the map's lock (one refinement step at most); the stage's thread takes it first if it
-        is about to start a job submitted after this call."""
-        with self._waiting_lock:
-            cut = _Cut(self._submitted, lambda: self._packed_state(cut.number, external), deliver)
-        if not self._stage.threaded:
-            cut.take()
-            return
-        self._cuts.append(cut)
+        the queue (QueuedStage.snapshot_now): the map between two steps and, as data, the jobs submitted so far and
+        not in it yet, which a restored stage maps again (`load_state_dict`)."""
+        def pack_state(jobs: list[KeyframeJob | PoseUpdateJob]) -> bytes:
+            queued = [{"keyframe": job.state_dict()} if isinstance(job, KeyframeJob)
+                      else {"poses": [[k, v] for k, v in job.poses.items()]} for job in jobs]
+            return pack({**self.state_dict(), "queued": queued}, external=external)
 
-        def take() -> None:
-            with self._reading():
-                cut.take()
-            self._cuts.remove(cut)
-
-        threading.Thread(target=take, name="mapping-snapshot", daemon=True).start()
-
-    def _packed_state(self, number: int, external: dict[str, bytes] | None) -> bytes:
-        """The state with the unfinished jobs up to submission `number` (call under the map's lock)."""
-        with self._waiting_lock:
-            unfinished = [job for n, job in self._unfinished if n <= number]
-        queued = [{"keyframe": job.state_dict()} if isinstance(job, KeyframeJob)
-                  else {"poses": [[k, v] for k, v in job.poses.items()]} for job in unfinished]
-        return pack({**self.state_dict(), "queued": queued}, external=external)
+        super().snapshot_now(deliver, pack_state)
 
     def state_dict(self) -> dict:
         with self.lock:
@@ -337,21 +301,3 @@ class MappingStage(QueuedStage):
         for item in d.get("queued") or []:  # submitted before the snapshot, not in its map: mapped now
             self.submit(KeyframeJob.from_state(item["keyframe"]) if "keyframe" in item else
                         PoseUpdateJob({int(k): np.asarray(v, np.float64) for k, v in item["poses"]}))
-
-
-class _Cut:
-    """A snapshot of the stage asked for after submission `number`: taken once, by whichever thread comes first."""
-
-    def __init__(self, number: int, make: Callable[[], bytes], deliver: Callable[[Callable[[], bytes]], None]) -> None:
-        self.number = number
-        self._make = make
-        self._deliver = deliver
-        self._taken = False
-        self._lock = threading.Lock()
-
-    def take(self) -> None:
-        with self._lock:
-            if self._taken:
-                return
-            self._taken = True
-        self._deliver(self._make)

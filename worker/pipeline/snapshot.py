@@ -1,12 +1,11 @@
 """A session's snapshot: everything needed to continue it in any process, as msgpack (never pickle).
 
 Format 2 keeps each stage's part packed apart: the tracking part is packed at once (the next frames change what it
-refers to); the map at once too, between two of its refinement steps, with the jobs submitted and not in it yet as
-data (a backlog is not waited for); the loop-closing state by its stage once it has done what was submitted before
-(a marker in its queue; `SnapshotFuture`). Keyframe jobs not handed to mapping yet are data in the depth source's
-part. Format 1 (one dict, made after waiting for the stages) and format-2 snapshots of earlier versions (the
-multi-view frame ring in `keyframe_depth`, loops waiting in `loop_after_depth`, the model's path in the counters)
-restore too.
+refers to); the map and the loop-closing state at once too, each between two of its stage's work steps, with the
+items submitted to it and not done yet as data (a backlog is not waited for; `QueuedStage.snapshot_now`,
+`SnapshotFuture`). Keyframe jobs not handed to mapping yet are data in the depth source's part. Format 1 (one
+dict, made after waiting for the stages) and format-2 snapshots of earlier versions (the multi-view frame ring in
+`keyframe_depth`, loops waiting in `loop_after_depth`, the model's path in the counters) restore too.
 """
 
 from __future__ import annotations
@@ -41,7 +40,7 @@ def begin_snapshot(system: SessionParts, stored_chunks: Mapping[int, int] | None
                                                       "map": done.get("map"), "loop": done["loop"]}))
     if mapping is not None:  # at once: the map between two refinement steps, its backlog as data
         mapping.snapshot_now(lambda make: future.deliver("map", make), external=arrays)
-    loop_stage.at_marker(lambda: future.deliver("loop", lambda: pack(loop_stage.state_dict(), external=arrays)))
+    loop_stage.snapshot_now(lambda make: future.deliver("loop", make), external=arrays)
     future.chunks = chunks
     return future
 

@@ -3,19 +3,22 @@
 A stage (mapping, loop closing) receives work items from the stage before it. `submit` never blocks the producer:
 the queue is unbounded and each stage bounds its own backlog by shedding work (it sees its backlog through
 `pending`). `at_marker(fn)` runs `fn` in the stage's thread once every item submitted before it is done: a
-consistent cut of the pipeline (snapshots) without stopping the producer. A threaded stage may have `idle` work: a
-small step run whenever its queue is empty (it returns False when there is nothing to do, and the thread then waits
-for the next item). With `threaded=False` every item runs inline, in submission order, and idle work never runs:
-deterministic runs for tests and offline evaluation.
+consistent cut of the pipeline without stopping the producer. `QueuedStage.snapshot_now` cuts a stage without
+waiting for its queue: its state as of now, under its lock, with the items not done yet as data. A threaded stage
+may have `idle` work: a small step run whenever its queue is empty (it returns False when there is nothing to do,
+and the thread then waits for the next item). With `threaded=False` every item runs inline, in submission order,
+and idle work never runs: deterministic runs for tests and offline evaluation.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import queue
 import threading
-from collections.abc import Callable
+from collections import deque
+from collections.abc import Callable, Iterator
 from typing import Any
 
 log = logging.getLogger(__name__)
@@ -133,13 +136,80 @@ class StageThread:
 
 class QueuedStage:
     """Base of the pipeline's stages: the queue-and-thread controls, delegated to `self._stage` (a StageThread the
-    subclass makes with its own handler)."""
+    subclass makes with `self._handle_numbered` as its handler, after `_init_queue()`), and snapshots without waiting
+    for the queue (`snapshot_now`). The subclass's `_process(item)` does the work; it calls `_done(item)` under
+    `self.lock` at the moment the item's effect is in the stage's state, so that a snapshot taken under the lock has
+    each item in one place: in the state, or among the items not done yet."""
 
     _stage: StageThread
+    lock: threading.RLock
+    name = "stage"
+
+    def _init_queue(self) -> None:
+        self.lock = threading.RLock()
+        self._unfinished: deque[tuple[int, Any]] = deque()  # (submission number, item), in order
+        self._submitted = 0
+        self._unfinished_lock = threading.Lock()
+        self._cuts: list[_Cut] = []  # snapshots asked for and not taken yet
 
     def submit(self, item: Any) -> None:
         """Queue a work item; never blocks (handled at once when not threaded)."""
-        self._stage.submit(item)
+        with self._unfinished_lock:
+            self._submitted += 1
+            self._unfinished.append((self._submitted, item))
+            number = self._submitted
+        self._stage.submit((number, item))
+
+    def _handle_numbered(self, numbered: tuple[int, Any]) -> None:
+        number, item = numbered
+        for cut in [c for c in self._cuts if c.number < number]:  # a snapshot asked for before this item
+            with self.lock:
+                cut.take()
+        self._process(item)
+
+    def _process(self, item: Any) -> None:
+        raise NotImplementedError
+
+    def _done(self, item: Any) -> None:
+        """`item`'s effect is in the state (or it was dropped): it leaves the items not done (under `self.lock`)."""
+        with self._unfinished_lock:
+            for i, (_, waiting) in enumerate(self._unfinished):
+                if waiting is item:
+                    del self._unfinished[i]
+                    return
+
+    @contextlib.contextmanager
+    def _reading(self) -> Iterator[None]:
+        """The state's lock for a read from another thread."""
+        with self.lock:
+            yield
+
+    def snapshot_now(self, deliver: Callable[[Callable[[], bytes]], None], pack_state: Callable[[list[Any]], bytes]
+                     ) -> None:
+        """The stage's state as of now, handed to `deliver(make_part)` without waiting for the queue: `make_part()`
+        is `pack_state(items)`, called under the lock with the items submitted so far and not done yet (the one
+        running included). A thread of its own makes it as soon as it gets the lock (one work step at most); the
+        stage's thread makes it first if it is about to start an item submitted after this call."""
+        with self._unfinished_lock:
+            number = self._submitted
+
+        def make() -> bytes:
+            with self._unfinished_lock:
+                items = [item for n, item in self._unfinished if n <= number]
+            return pack_state(items)
+
+        cut = _Cut(number, make, deliver)
+        if not self._stage.threaded:
+            cut.take()
+            return
+        self._cuts.append(cut)
+
+        def take() -> None:
+            with self._reading():
+                cut.take()
+            self._cuts.remove(cut)
+
+        threading.Thread(target=take, name=f"{self.name}-snapshot", daemon=True).start()
 
     def at_marker(self, action: Callable[[], None]) -> None:
         """Run `action` in the stage's thread once every item submitted so far is done."""
@@ -159,6 +229,24 @@ class QueuedStage:
     def pending(self) -> int:
         """Items submitted and not done yet."""
         return self._stage.pending
+
+
+class _Cut:
+    """A snapshot asked for after submission `number`: made once, by whichever thread comes first."""
+
+    def __init__(self, number: int, make: Callable[[], bytes], deliver: Callable[[Callable[[], bytes]], None]) -> None:
+        self.number = number
+        self._make = make
+        self._deliver = deliver
+        self._taken = False
+        self._lock = threading.Lock()
+
+    def take(self) -> None:
+        with self._lock:
+            if self._taken:
+                return
+            self._taken = True
+        self._deliver(self._make)
 
 
 def _lower_priority(increment: int) -> None:
