@@ -124,6 +124,28 @@ def test_a_snapshot_does_not_wait_for_the_mapping_backlog(frames) -> None:
     restored.close()
 
 
+def test_a_snapshot_does_not_wait_for_the_loop_closing_backlog(frames) -> None:
+    # Loop closing stalled: its keyframe nodes and loop queries wait in its queue; the snapshot takes its state now,
+    # with them as data, and the restored stage works through them.
+    system = SlamSystem(live_config())
+    system.push(frames[0])  # the session's loop-closing stage exists from its first frame
+    with system.loop_stage.lock:
+        push_all_within(system, frames[1:])
+        future = system.begin_snapshot()
+        time.sleep(0.2)
+        assert not future.done()  # the loop part needs the stage's lock
+    blob = future.result(timeout=300)
+    queued = unpack(unpack(blob)["loop"])["queued"]
+    kinds = {item["kind"] for item in queued}
+    assert {"keyframe", "query"} <= kinds, kinds
+    system.close()
+    restored = SlamSystem.restore(blob)
+    restored.loop_stage.wait_idle()
+    keyframes = [i for i, _, _ in restored.trajectory("keyframes")]
+    assert sorted(restored.pose_graph.nodes) == keyframes
+    restored.close()
+
+
 def test_keyframes_made_after_an_optimisation_follow_the_newest_corrected_one() -> None:
     def at(x: float) -> np.ndarray:
         pose = np.eye(4)
