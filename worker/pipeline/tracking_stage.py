@@ -87,8 +87,10 @@ class TrackingStage:
                                       edge_kind="restart" if self.events.restart_seam else None)
             self.events.restart_seam = False
             self.counters["keyframes"] += 1
-            if self.depth_source is not None:  # its job waits there until the frame is done (loops move it)
+            if self.depth_source is not None:
                 self.depth_source.add_keyframe(frame, world, tracking, self.loop_queries == "after_depth")
+                if not self.depth_source.needs_later_frames:  # in the map before a loop closure can move it
+                    self.hand_to_mapping()
             events += self._query_loops(frame, prediction)
         self.events.after_keyframe_decision(tracking.events, frame.index if is_kf else None, tracking.submap_id,
                                             pose, self.last_keyframe)

@@ -19,6 +19,7 @@ class DepthSource:
     moves them with loop corrections (`move`). Jobs are data: `state_dict` carries the waiting ones."""
 
     name = "none"
+    needs_later_frames = False  # a keyframe's job needs frames after it (multi-view stereo)
 
     def __init__(self) -> None:
         self.pending: list[KeyframeJob] = []

@@ -77,6 +77,7 @@ class MultiViewDepth(DepthSource):
     """The frame ring and the keyframes waiting for later frames (see the module docstring)."""
 
     name = "mvs"
+    needs_later_frames = True
 
     def __init__(self, camera: SessionCamera, buffer_frames: int, frames_after: int,
                  builder: StereoBuilder | None = None) -> None:
