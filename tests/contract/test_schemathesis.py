@@ -55,7 +55,9 @@ def schemathesis_cli() -> str:
 
 @pytest.fixture(scope="module")
 def stack():
-    gateway_env = {"FLASHMONO_API_KEYS": API_KEYS, "FLASHMONO_REQUEST_TIMEOUT_S": "10"}
+    # the fuzzing creates many sessions with one key: no per-key limit, so that later tests can still create theirs
+    gateway_env = {"FLASHMONO_API_KEYS": API_KEYS, "FLASHMONO_REQUEST_TIMEOUT_S": "10",
+                   "FLASHMONO_MAX_LIVE_SESSIONS": "0"}
     with LocalStack(workers=1, gateway_env=gateway_env, worker_env=WORKER_ENV) as local:
         yield local
 
@@ -92,7 +94,9 @@ def test_what_the_run_found_once_stays_fixed(stack):
     the schema accepts, a body that is not UTF-8."""
     with httpx.Client(base_url=stack.base_url, headers={"X-API-Key": ADMIN_KEY}, timeout=30) as api:
         assert api.request("OPTIONS", "/v1/sessions").headers["allow"] == "GET, POST"
-        sid = api.post("/v1/sessions", json={}).json()["id"]
+        created = api.post("/v1/sessions", json={})
+        assert created.status_code == 201, created.text
+        sid = created.json()["id"]
         assert api.request("PATCH", f"/v1/sessions/{sid}").headers["allow"] == "DELETE, GET"
         for path in ("map", "map.ply"):
             answer = api.get(f"/v1/sessions/{sid}/{path}")
