@@ -91,6 +91,14 @@ AREAS: tuple[Area, ...] = (
          (Column("ack_p99_ms", "ack p99", "ms", {"32 sessions, 30 FPS": "<= 20"}),
           Column("ingest_fps", "ingest", "fps", {"32 sessions, unthrottled": ">= 1,000"}),
           Column("ack_p50_ms", "ack p50", "ms"))),
+    Area("failover", "Failover for an SDK stream",
+         "`python -m bench sdk_failover --kills 3`: `flashmono serve`'s stack with two SLAM workers, a session as "
+         "openapi.yaml documents it, streamed at 30 frames/s by the SDK with its default flow control; the worker "
+         "owning it is SIGKILLed a third of the way in. The gap is from the kill to the next pose the SDK receives; "
+         "acked lost counts frames the SDK saw acked with neither a pose in the final trajectory nor a `skipped`.",
+         (Column("gap_max_s", "worst gap", "s", "<= 3"), Column("acked_lost", "acked lost", "", "0"),
+          Column("kills", "kills", "")),
+         ("sequence", "mode", "size")),
     Area("map_formats", "Map formats web clients read",
          "`python -m bench web_viewer`: a real ICL map written in each format; bytes per surfel over the wire.",
          (Column("bytes_per_surfel", "bytes / surfel", "B"),)),

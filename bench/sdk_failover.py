@@ -300,7 +300,7 @@ def main(argv: list[str]) -> int:
         base = case(opts)
         for row in rows:
             recorder.write({**base, "run": row["run"]}, values(row), detail=row)
-        recorder.write({**base, "run": "all"}, {"gaps_s": gaps, "gap_max_s": max(gaps, default=None),
-                                                "acked_lost": sum(r["acked_lost"] for r in rows),
-                                                "kills": len(rows), "met_target": all(ok(r) for r in rows)})
+        summary = {"gaps_s": gaps, "gap_max_s": max(gaps, default=None), "kills": len(rows),
+                   "acked_lost": sum(r["acked_lost"] for r in rows), "met_target": all(ok(r) for r in rows)}
+        recorder.write({**base, "run": "all", "area": "failover"}, summary)
     return 0 if rows and all(ok(r) for r in rows) else 1
