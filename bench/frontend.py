@@ -13,6 +13,7 @@ import time
 
 import torch
 
+from bench.record import Recorder
 from worker.frontend import build_model, get_config, parameter_tally
 
 
@@ -39,7 +40,17 @@ def _row(label: str, size: tuple[int, int], timings) -> str:
             f"{statistics.median(cpu):.1f} | {len(wall)} |")
 
 
-def bench_cpu(configs: list[str], threads: list[int], iters: int) -> list[str]:
+def _record(recorder: Recorder | None, mode: str, size: tuple[int, int], timings) -> None:
+    """A record (area "frontend") of one row: the median wall time per frame, as the scoreboard shows it."""
+    if recorder is None:
+        return
+    wall, cpu = timings
+    recorder.write({"area": "frontend", "sequence": f"{size[1]}x{size[0]}", "mode": mode},
+                   {"latency_ms": round(statistics.median(wall), 1), "latency_min_ms": round(min(wall), 1),
+                    "cpu_ms": round(statistics.median(cpu), 1), "frames": len(wall)})
+
+
+def bench_cpu(configs: list[str], threads: list[int], iters: int, recorder: Recorder | None = None) -> list[str]:
     rows = []
     for name in configs:
         model = build_model(name)
@@ -53,11 +64,12 @@ def bench_cpu(configs: list[str], threads: list[int], iters: int) -> list[str]:
                 with torch.inference_mode():
                     times = _time_steps(model.step, image, model.init_state(), iters)
                 rows.append(_row(f"{name} ({params:.1f} M), CPU fp32, {n_threads} thread(s)", (h, w), times))
+                _record(recorder, f"{name}, CPU fp32, {n_threads} thread{'s' if n_threads > 1 else ''}", (h, w), times)
                 print(rows[-1], flush=True)
     return rows
 
 
-def bench_gpu(iters: int) -> list[str]:
+def bench_gpu(iters: int, recorder: Recorder | None = None) -> list[str]:
     rows = []
     model = build_model("paper", device="cuda")
     image = torch.rand(1, 3, 384, 512, device="cuda")
@@ -67,10 +79,12 @@ def bench_gpu(iters: int) -> list[str]:
         with torch.inference_mode():
             times = _time_steps(model.step, image, model.init_state(), iters, sync=sync)
         rows.append(_row(f"paper, GPU {precision} eager", (384, 512), times))
+        _record(recorder, f"paper size, GPU {precision} eager", (384, 512), times)
         print(rows[-1], flush=True)
     stepper = model.compile_step(384, 512, precision="bf16")
     times = _time_steps(stepper.step, image, model.init_state(), iters, sync=sync)
     rows.append(_row("paper, GPU bf16 + CUDA graphs", (384, 512), times))
+    _record(recorder, "paper size, GPU bf16 + CUDA graphs", (384, 512), times)
     print(rows[-1], flush=True)
     return rows
 
@@ -82,12 +96,13 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--iters", type=int, default=20)
     parser.add_argument("--paper", action="store_true", help="also time the paper model on CPU (slow, 3 GB)")
     args = parser.parse_args(argv)
+    recorder = Recorder("frontend", argv)
     configs = [c for c in args.configs.split(",") if c] + (["paper"] if args.paper else [])
     print("| model, device | frame (WxH) | median wall ms/frame | min wall ms | median process-CPU ms | frames |")
     print("|---|---|---|---|---|---|")
-    bench_cpu(configs, [int(t) for t in args.threads.split(",")], args.iters)
+    bench_cpu(configs, [int(t) for t in args.threads.split(",")], args.iters, recorder)
     if torch.cuda.is_available():
-        bench_gpu(args.iters)
+        bench_gpu(args.iters, recorder)
     else:
         print("(no CUDA device: GPU rows skipped)")
     return 0

@@ -10,7 +10,11 @@ A run may carry a label (`LABEL=RUN_DIR`): runs of one label are repeats of one 
 `mapping.final_refine_seed`s, say), and each label then gets the mean and spread of its runs on the common frames,
 so that a difference between two modes can be read against how far one mode moves by chance.
 
-Usage: python -m bench held_out -- [LABEL=]RUN_DIR [LABEL=]RUN_DIR [...]
+Usage: python -m bench held_out -- [--sequence NAME] [LABEL=]RUN_DIR [LABEL=]RUN_DIR [...]
+
+Each label (each run without one) is written as a record of the scoreboard's area "real": the common-frame PSNR
+(`psnr_db`, `psnr_normalised_db`) of its mode on the sequence (`--sequence`, as the scoreboard names it; default
+the runs' own `sequence`).
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ import argparse
 import json
 import statistics
 from pathlib import Path
+from typing import Any
 
 
 def common_scores(runs: dict[str, dict]) -> tuple[list[int], dict[str, dict[str, float]]]:
@@ -44,6 +49,28 @@ def group_summary(means: dict[str, dict[str, float]], labels: dict[str, str]) ->
     return out
 
 
+def records(metrics: dict[str, dict], means: dict[str, dict[str, float]], labels: dict[str, str], common: list[int],
+            sequence: str | None) -> list[tuple[dict[str, Any], dict[str, Any]]]:
+    """(case, values) per label: area "real", the sequence, the mode (and the label, where two labels share a mode);
+    values the mean common-frame PSNR of its runs (as captured and normalised), their spread and counts."""
+    groups: dict[str, list[str]] = {}
+    for name, label in labels.items():
+        groups.setdefault(label, []).append(name)
+    modes = {label: str(metrics[names[0]].get("mode", "unknown")).replace("_", "-") for label, names in groups.items()}
+    out = []
+    for label, names in groups.items():
+        psnrs = [means[name]["psnr"] for name in names]
+        case = {"area": "real", "sequence": sequence or str(metrics[names[0]].get("sequence", "unknown")),
+                "mode": modes[label]}
+        if list(modes.values()).count(modes[label]) > 1:
+            case["variant"] = label
+        out.append((case, {"psnr_db": round(statistics.mean(psnrs), 3),
+                           "psnr_normalised_db": round(statistics.mean(means[n]["psnr_normalised"] for n in names), 3),
+                           "psnr_std_db": round(statistics.stdev(psnrs), 3) if len(psnrs) > 1 else 0.0,
+                           "runs": len(names), "common_frames": len(common)}))
+    return out
+
+
 def _labelled(argument: str) -> tuple[str, Path]:
     label, sep, folder = argument.partition("=")
     return (label, Path(folder)) if sep and label else (argument, Path(argument))
@@ -53,7 +80,12 @@ def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench held_out", description=__doc__.splitlines()[0])
     parser.add_argument("runs", nargs="+", help="flashmono run output folders (metrics.json), each as LABEL=DIR to "
                         "group repeats of one mode")
+    parser.add_argument("--sequence", default=None, help="the sequence's name in the records (the scoreboard's, "
+                        "e.g. 'KITTI 00 frames 0-199'; default: the runs' metrics.json `sequence`)")
     args = parser.parse_args(argv)
+    from bench.record import Recorder
+
+    recorder = Recorder("held_out", argv)
     labels = {str(folder): label for label, folder in map(_labelled, args.runs)}
     metrics = {name: json.loads((Path(name) / "metrics.json").read_text()) for name in labels}
     missing = [name for name, m in metrics.items() if "held_out" not in m]
@@ -70,4 +102,6 @@ def main(argv: list[str]) -> int:
         for label, g in group_summary(means, labels).items():
             print(f"  {label}: {g['runs']} runs, common frames {g['mean']:.3f} +- {g['std']:.3f} dB "
                   f"(min {g['min']:.2f}, max {g['max']:.2f})")
+    for case, values in records(metrics, means, labels, common, args.sequence):
+        recorder.write(case, values, compared=list(labels))
     return 0

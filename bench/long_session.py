@@ -46,7 +46,7 @@ from typing import Any
 
 import numpy as np
 
-from bench.record import JOURNAL_INBOX
+from bench.record import JOURNAL_INBOX, Recorder
 
 ROOT = Path(__file__).resolve().parent.parent
 SHARED_ICL = Path("/work/shared/data/icl_livingroom1_micro")
@@ -387,6 +387,34 @@ def plot(rows: list[dict], path: Path, title: str) -> None:
     plt.close(fig)
 
 
+def record_case(args: argparse.Namespace) -> dict:
+    """The run's record case (area "long_session"), named as the scoreboard's rows are."""
+    name = {"icl": "ICL", "synthetic": "synthetic room"}.get(args.source, args.source if
+                                                            args.source.startswith("synthetic://") else
+                                                            Path(args.source).name)
+    sequence = name if args.source.startswith("synthetic://") else f"{name} forward and back"
+    case = {"area": "long_session", "sequence": f"{sequence}, {args.frames:,} frames", "mode": args.mode}
+    settings = ([] if args.size == "320x240" else [args.size]) + (
+        [] if args.preset == "rgbd" else [f"preset {args.preset}"]) + (
+        [] if args.kill_at is None else [f"killed at {args.kill_at}"]) + (["no finish"] if args.no_finish else [])
+    return {**case, "variant": ", ".join(settings)} if settings else case
+
+
+def record_values(summary: dict, rows: list[dict], buckets: int = 6) -> dict:
+    """The scoreboard's figures: tracking per frame at the end (median of the last sixth) and at the start, the
+    peak RSS, `finish`, ATE, keyframes."""
+    part = max(1, len(rows) // buckets)
+    tracking = [r["tracking_ms"] for r in rows]
+    values = {"tracking_ms": round(float(np.median(tracking[-part:])), 2) if rows else None,
+              "tracking_start_ms": round(float(np.median(tracking[:part])), 2) if rows else None,
+              "rss_peak_mib": round(summary["peak_rss_mib"]),
+              "finish_s": None if summary["finish_s"] is None else round(summary["finish_s"], 2),
+              "ate_m": None if summary["ate_m"] is None else round(summary["ate_m"], 5),
+              "keyframes": summary["keyframes"], "loops": summary["loops"], "frames": summary["frames"],
+              "streaming_s": round(summary["streaming_s"], 2), "surfels": summary["surfels_final"]}
+    return values
+
+
 def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench long_session")
     parser.add_argument("--source", default="synthetic", help="synthetic, icl, or a sequence path")
@@ -411,6 +439,7 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--csv", default=None)
     parser.add_argument("--write-results", action="store_true")
     args = parser.parse_args(argv)
+    recorder = Recorder("long_session", argv)
     load_before = os.getloadavg()
     rows: list[dict] = []
     checkpoint = Path(args.checkpoint_dir) if args.checkpoint_dir else None
@@ -428,6 +457,7 @@ def main(argv: list[str]) -> int:
             writer = csv.DictWriter(handle, fieldnames=FIELDS)
             writer.writeheader()
             writer.writerows(rows)
+    recorder.write(record_case(args), record_values(summary, rows))
     if args.write_results:
         RESULTS.write_text(RESULTS.read_text().rstrip("\n") + f"\n\n{title}: {json.dumps(summary)}\n\n{table}\n")
     return 0

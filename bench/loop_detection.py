@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 import torch
 
+from bench.record import Recorder
 from worker.frontend import build_model
 from worker.frontend.preprocess import prepare_image
 from worker.frontend.tracker import SubmapTracker, TrackerConfig
@@ -63,7 +64,8 @@ def _retrieval(descriptor, images, overlap: np.ndarray, window: int) -> dict[str
             "queries": len(ratios)}
 
 
-def _long_session(sizes: list[int], queries: int, shortlist: int | None) -> None:
+def _long_session(sizes: list[int], queries: int, shortlist: int | None,
+                  recorder: Recorder | None = None) -> None:
     """Loop closure time per keyframe against the keyframe count, in RGB-D mode (ORB + index + PnP on depth): a
     database of N keyframes re-adds the ICL keyframes under new ids (every pass revisits the room, like a camera
     played forward and back), then `queries` more keyframes go through LoopCloser.process_keyframe."""
@@ -113,6 +115,12 @@ def _long_session(sizes: list[int], queries: int, shortlist: int | None) -> None
         print(f"keyframes {size:5d}: CPU per keyframe: loop detection median {1e3 * np.median(detection):7.1f} ms, "
               f"relocalization {1e3 * np.median(relocalization):6.1f} ms, together {1e3 * np.median(total):7.1f} ms "
               f"({loops}/{queries} closed a loop)", flush=True)
+        if recorder is not None:
+            mode = "loop detection per keyframe" + ("" if shortlist is None else f" (shortlist {shortlist})")
+            recorder.write({"area": "loop", "sequence": f"{size:,} keyframes", "mode": mode},
+                           {"latency_ms": round(1e3 * float(np.median(detection)), 1),
+                            "relocalization_ms": round(1e3 * float(np.median(relocalization)), 1),
+                            "loops_closed": loops, "queries": queries})
 
 
 def main(argv: list[str]) -> int:
@@ -126,9 +134,10 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--shortlist", type=int, default=None, help="LoopConfig.shortlist (default: the config's)")
     parser.add_argument("--only-long", action="store_true", help="only the time per keyframe against the count")
     args = parser.parse_args(argv)
+    recorder = Recorder("loop_detection", argv)
     if args.only_long:
         torch.set_num_threads(args.threads)
-        _long_session([int(n) for n in args.long.split(",")], args.queries, args.shortlist)
+        _long_session([int(n) for n in args.long.split(",")], args.queries, args.shortlist, recorder)
         return 0
     torch.set_num_threads(args.threads)
     frames = load_rgbd_folder(DATA)
@@ -146,8 +155,11 @@ def main(argv: list[str]) -> int:
         print(f"{descriptor.name:12s} describe {r['describe_ms']:6.1f} ms  query {r['query_ms']:6.1f} ms "
               f"(database up to {r['db_size']})  top-1 true overlap {r['top1_overlap']:.3f} = "
               f"{100 * r['overlap_ratio']:.1f}% of the best available ({r['queries']} queries)")
+        recorder.write({"sequence": "icl_mini", "mode": f"retrieval, {descriptor.name}",
+                        "variant": f"window {args.window}"},
+                       {k: round(v, 4) if isinstance(v, float) else v for k, v in r.items()})
     if "orb" in wanted and args.long:
-        _long_session([int(n) for n in args.long.split(",")], args.queries, args.shortlist)
+        _long_session([int(n) for n in args.long.split(",")], args.queries, args.shortlist, recorder)
     with torch.no_grad():
         state = model.init_state(1)
         for image in images[:8]:

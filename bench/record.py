@@ -25,6 +25,12 @@ RESULTS_DIR = ROOT / "bench" / "results"
 JOURNAL_DIR = ROOT / "bench" / "journal"
 JOURNAL_INBOX = JOURNAL_DIR / "inbox.md"  # where `--write-results` narrative goes now that RESULTS.md is generated
 CASE_ORDER = ("area", "sequence", "mode", "size", "variant")
+RESULTS_ENV = "FLASHMONO_BENCH_RESULTS"  # another results folder (tests, trial runs): records go to $it/<benchmark>/
+
+
+def results_dir() -> Path:
+    """Where records are written: `$FLASHMONO_BENCH_RESULTS` when set, else bench/results/."""
+    return Path(os.environ[RESULTS_ENV]) if os.environ.get(RESULTS_ENV) else RESULTS_DIR
 
 
 def commit() -> str:
@@ -88,7 +94,7 @@ class Recorder:
     def __init__(self, benchmark: str, argv: list[str] | None = None, folder: Path | None = None) -> None:
         self.benchmark = benchmark
         self.command = " ".join(["python -m bench", benchmark, *(sys.argv[1:] if argv is None else argv)])
-        self.folder = folder or RESULTS_DIR / benchmark
+        self.folder = folder or results_dir() / benchmark
         self.load_start = loadavg()
 
     def write(self, case: dict[str, Any], values: dict[str, Any], **extra: Any) -> Path:

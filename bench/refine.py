@@ -24,6 +24,8 @@ import cv2
 import numpy as np
 import torch
 
+from bench.record import Recorder
+
 DATA = Path(__file__).resolve().parent.parent / "tests" / "data" / "icl_mini"
 
 
@@ -62,6 +64,7 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--device", default="cpu", help="cpu, or cuda (rasterizer: gsplat when it imports)")
     parser.add_argument("--final", type=int, default=0, help="iterations of the end-of-run pass (0: none)")
     args = parser.parse_args(argv)
+    recorder = Recorder("refine", argv)
     torch.set_num_threads(args.threads)
 
     from worker.mapping import GaussianMap, MapConfig, raster_cpu, raster_gsplat, rasterize, voxelize
@@ -116,13 +119,38 @@ def main(argv: list[str]) -> int:
           f"{1000 * statistics.median(r['refine_cpu_s'] for r in steady) / args.iterations:.0f} ms CPU), "
           f"voxelization keeps {statistics.mean(r['voxelized'] / r['pixels'] for r in rows):.1%} of pixels, "
           f"mean PSNR gain {statistics.mean(r['psnr_after'] - r['psnr_before'] for r in rows):+.2f} dB")
+    values = {"keyframe_s": round(statistics.median(r["refine_s"] for r in steady), 3),
+              "keyframe_cpu_s": round(statistics.median(r["refine_cpu_s"] for r in steady), 3),
+              "add_keyframe_s": round(statistics.median(r["add_s"] for r in steady), 3),
+              "psnr_gain_db": round(statistics.mean(r["psnr_after"] - r["psnr_before"] for r in rows), 3)}
     if args.final > 0:
-        _final_pass(gmap, frames, args.final, args.device, sync)
+        final_s, before, after = _final_pass(gmap, frames, args.final, args.device, sync)
+        values.update({"final_s": round(final_s, 3), "final_psnr_before_db": round(before, 3),
+                       "final_psnr_after_db": round(after, 3)})
+    H, W = frames[0]["image"].shape[:2] if frames else (240, 320)
+    recorder.write(record_case(len(frames), W, H, args, raster_gsplat.available()), values)
     return 0
 
 
-def _final_pass(gmap, frames: list[dict], iterations: int, device: str, sync) -> None:
-    """Time `refine_global(iterations)` and print the keyframes' mean PSNR before and after it."""
+def record_case(keyframes: int, width: int, height: int, args: argparse.Namespace, gsplat: bool) -> dict:
+    """The run's record case (area "refinement"), named as the scoreboard's rows are; settings other than the
+    defaults the scoreboard's figures use (20 iterations, window 5, stride 4, the final pass's 200) say so."""
+    if args.device == "cuda":
+        mode = "GPU (gsplat)" if gsplat else "GPU (pure-torch reference)"
+    else:
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+        mode = f"CPU, {cores} vCPUs" + ("" if args.threads == min(2, os.cpu_count() or 1) else
+                                        f", {args.threads} thread{'s' if args.threads != 1 else ''}")
+    settings = [f"{name} {value}" for name, value, default in
+                (("iterations", args.iterations, 20), ("window", args.window, 5), ("stride", args.stride, 4),
+                 ("final", args.final, 200)) if value != default]
+    case = {"area": "refinement", "sequence": f"ICL, {keyframes} keyframes {width}x{height}", "mode": mode}
+    return {**case, "variant": ", ".join(settings)} if settings else case
+
+
+def _final_pass(gmap, frames: list[dict], iterations: int, device: str, sync) -> tuple[float, float, float]:
+    """Time `refine_global(iterations)` and print the keyframes' mean PSNR before and after it; returns (seconds,
+    PSNR before, PSNR after)."""
     from worker.mapping import rasterize
     from worker.mapping.gaussian_map import rigid_viewmat
     from worker.mapping.losses import psnr
@@ -144,9 +172,11 @@ def _final_pass(gmap, frames: list[dict], iterations: int, device: str, sync) ->
     gmap.refine_global(iterations)
     sync()
     elapsed = time.perf_counter() - t0
+    after = mean_psnr()
     print(f"final refinement: {iterations} iterations over {len(frames)} keyframes in {elapsed:.2f} s "
           f"({1000 * elapsed / iterations:.0f} ms/iteration); keyframes' mean PSNR {before:.2f} -> "
-          f"{mean_psnr():.2f} dB", flush=True)
+          f"{after:.2f} dB", flush=True)
+    return elapsed, before, after
 
 
 if __name__ == "__main__":

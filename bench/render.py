@@ -25,6 +25,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from bench.record import Recorder
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DATA_DIRS = (Path("/work/shared/data/icl_livingroom1_micro"), REPO_ROOT / "tests" / "data" / "icl_mini")
 SIZES = ((320, 240), (640, 480))
@@ -156,6 +158,14 @@ def machine() -> str:
             f"load average {load:.1f} at start")
 
 
+def record_case(width: int, height: int, count: int, backend: str, threads: int) -> dict:
+    """A row's record case (area "rasterizer"), named as the scoreboard's rows are."""
+    cores = f"{threads} thread{'s' if threads != 1 else ''}"
+    mode = {"cpu": f"CPU, {cores}", "reference": f"pure-torch reference, CPU, {cores}",
+            "gsplat": "GPU (gsplat)"}.get(backend, backend)
+    return {"area": "rasterizer", "sequence": f"{width}x{height}, {count / 1000:g}k surfels", "mode": mode}
+
+
 def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench render", description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="320x240 / 50k only, 3 repeats")
@@ -167,6 +177,7 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--counts", type=_counts, default=COUNTS, help="comma-separated surfel counts")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     args = parser.parse_args(argv)
+    recorder = Recorder("render", argv)
     torch.set_num_threads(args.threads)
     sizes, counts, repeats = (SIZES[:1], COUNTS[:1], 3) if args.quick else (args.sizes, args.counts, args.repeats)
 
@@ -196,6 +207,11 @@ def main(argv: list[str]) -> int:
                 n = args.reference_repeats if backend == "reference" else repeats
                 r = bench_backend(surfels, viewmat, K, width, height, backend, n, device)
                 results[backend] = r
+                recorder.write(record_case(width, height, count, backend, args.threads),
+                               {"fwd_ms": round(r["fwd"], 2), "fwd_bwd_ms": round(r["fb"], 2),
+                                "fwd_min_ms": round(r["fwd_min"], 2), "fwd_bwd_min_ms": round(r["fb_min"], 2),
+                                "fwd_cpu_ms": round(r["fwd_cpu"], 2), "fwd_bwd_cpu_ms": round(r["fb_cpu"], 2),
+                                "alpha_mean": round(r["coverage"], 4), "repeats": n})
                 print(f"{width}x{height:<4} {count:>8} {backend:>9} {r['fwd']:>8.1f} ({r['fwd_min']:.1f}) "
                       f"{r['fb']:>9.1f} ({r['fb_min']:.1f}) {r['fwd_cpu']:>10.1f} / {r['fb_cpu']:.1f} "
                       f"{r['coverage']:>6.3f}", flush=True)

@@ -23,6 +23,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tests"))
 sys.path.insert(0, str(REPO / "tests" / "viewer"))
+FORMAT_NAMES = {"ply": "PLY, SH degree 0", "spz": "SPZ v3", "splat": ".splat"}  # the scoreboard's map_formats rows
 WEBGL_FLAGS = ["--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"]
 
 
@@ -166,12 +167,27 @@ async def page_figures(chromium: str, url: str, session_id: str, files: MapFiles
                 "errors": page.console_errors[:3]}
 
 
+def round_trip_record(row: dict, surfels: int, real: bool, map_name: str) -> tuple[dict, dict]:
+    """(case, values) of one round-trip row: the real map's rows feed the scoreboard's area "map_formats" (bytes per
+    surfel); the resized maps' rows are records of their own."""
+    values = {("bytes_per_surfel" if k == "per_surfel" else k): round(v, 4) if isinstance(v, float) else v
+              for k, v in row.items() if k != "format"}
+    mode = FORMAT_NAMES.get(row["format"], row["format"])
+    if real:
+        return {"area": "map_formats", "sequence": f"{map_name} ({surfels:,} surfels)", "mode": mode}, values
+    return {"sequence": f"{map_name} resized to {surfels:,} surfels", "mode": mode, "variant": "round trip"}, values
+
+
 def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench web_viewer")
     parser.add_argument("--ply", help="a map PLY (default: the engine maps the bundled ICL sequence)")
     parser.add_argument("--sizes", default="50000,500000")
     parser.add_argument("--formats", default="spz,splat")
     args = parser.parse_args(argv)
+    from bench.record import Recorder
+
+    recorder = Recorder("web_viewer", argv)
+    map_name = Path(args.ply).name if args.ply else "ICL map"
     from cdp import ensure_chromium
     from live_stack import LiveStack
 
@@ -195,6 +211,7 @@ def main(argv: list[str]) -> int:
                 f"{row['opacity_255']:12.2f}  {row['log_scale']:9.4f}  {row['rotation_deg_mean']:.3f}/"
                 f"{row['rotation_deg_max']:.3f}")
             print(f"{row['format']:6}  {n:8d}  {row['per_surfel']:12.2f}  {extra}")
+            recorder.write(*round_trip_record(row, n, n == len(real), map_name))
     chromium = ensure_chromium()
     frames = list(open_frames(REPO / "tests" / "data" / "icl_mini", max_frames=8, stride=8, use_gt_poses=True))
     with LiveStack(workers=1, engine="passthrough") as stack:
@@ -210,6 +227,9 @@ def main(argv: list[str]) -> int:
                 r = asyncio.run(page_figures(chromium, stack.url, session.id, files, fmt))
                 print(f"{n:7d}  {fmt:6}  {r['bytes'] / 1e6:16.2f}  {r['fetch_ms']:8.0f}  {r['decode_ms']:9.0f}  "
                       f"{r['first_splat_frame_ms']:26.0f}  {r['fps']:.2f}  {r['errors'] or ''}", flush=True)
+                recorder.write({"sequence": f"{map_name} resized to {n:,} surfels", "mode": FORMAT_NAMES.get(fmt, fmt),
+                                "variant": "page, SwiftShader"},
+                               {k: round(v, 3) if isinstance(v, float) else v for k, v in r.items()})
         files.close()
     print(f"load average at the end: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     return 0
