@@ -29,6 +29,7 @@ import cv2
 import numpy as np
 
 from bench.mvs import _K, DATA, _range_from_points
+from bench.record import Recorder
 from bench.render import machine
 
 
@@ -40,7 +41,29 @@ def largest_hole(empty: np.ndarray) -> float:
     return float(stats[1:, cv2.CC_STAT_AREA].max()) / empty.size
 
 
-def bench_icl(args) -> list[str]:
+def record(rows: list[dict], args: argparse.Namespace) -> tuple[dict, dict]:
+    """(case, values) of the keyframes' depth (area "real", posed RGB): the keyframe depth as the engine makes it
+    (stereo, hole fill, planes, border planes) against the sensor's, mean over the keyframes; the earlier stages'
+    figures beside."""
+    def mean(key: str) -> float | None:
+        values = [r[key] for r in rows if np.isfinite(r[key])]
+        return round(statistics.mean(values), 5) if values else None
+
+    sequence = args.sequence or ("ICL living room" if args.data == DATA else args.data.name)
+    case = {"area": "real", "sequence": sequence, "mode": "posed-rgb"}
+    settings = ([] if args.every == 6 else [f"every {args.every}"]) + (
+        [] if tuple(args.resize) == (320, 240) else ["x".join(map(str, args.resize))])
+    if settings:
+        case["variant"] = ", ".join(settings)
+    values = {"depth_l1_m": mean("borders_l1"), "depth_coverage_share": mean("borders_cov"),
+              "planes_depth_l1_m": mean("planes_l1"), "planes_coverage_share": mean("planes_cov"),
+              "stereo_depth_l1_m": mean("stereo_l1"), "stereo_coverage_share": mean("cov_before"),
+              "filled_share": mean("filled"), "keyframes": len(rows),
+              "keyframes_meeting_target": sum(r["borders_l1"] <= 0.1 and r["borders_cov"] >= 0.7 for r in rows)}
+    return case, values
+
+
+def bench_icl(args, recorder: Recorder | None = None) -> list[str]:
     from worker.data import open_source
     from worker.depth import MultiViewDepthConfig, estimate_depth, select_neighbours
     from worker.depth.border_planes import fill_from_borders
@@ -94,6 +117,8 @@ def bench_icl(args) -> list[str]:
               f"{100 * row['planes_cov']:5.1f} % {planes_ms:6.1f} ms | + borders: L1 "
               f"{100 * row['borders_l1']:5.2f} cm @ "
               f"{100 * row['borders_cov']:5.1f} % {borders_ms:6.1f} ms", flush=True)
+    if recorder is not None:
+        recorder.write(*record(rows, args))
     l1 = [r["l1"] for r in rows if np.isfinite(r["l1"])]
     mean = {key: statistics.mean(r[key] for r in rows) for key in ("filled", "cov_before", "cov_after",
                                                                   "hole_before", "hole_after", "stereo_l1")}
@@ -145,9 +170,12 @@ def main(argv: list[str]) -> int:
                         help="frame size (default 320x240; 240x320 for portrait captures)")
     parser.add_argument("--renders", type=Path, nargs="*", default=[], help="flashmono run output folders")
     parser.add_argument("--no-icl", action="store_true")
+    parser.add_argument("--sequence", default=None, help="the sequence's name in the record (the scoreboard's, "
+                        "e.g. 'TUM fr3/cabinet'; default 'ICL living room' for the default --data, else its name)")
     args = parser.parse_args(argv)
+    recorder = Recorder("hole_fill", argv)
     print(f"machine: {machine()}")
-    lines = [] if args.no_icl or not args.data.exists() else bench_icl(args)
+    lines = [] if args.no_icl or not args.data.exists() else bench_icl(args, recorder)
     lines += [render_holes(folder) for folder in args.renders]
     print(f"load average at the end: {os.getloadavg()[0]:.1f}")
     for line in lines:

@@ -58,3 +58,45 @@ def test_map_size_writes_its_own_record(bench_results: Path) -> None:
     assert values["keyframes"] == 2 and values["surfels"] > 0 and values["rss_peak_mib"] > 0
     assert {"merge_ms", "refine_ms", "rss_mib"} <= set(values)
     assert [row["keyframes"] for row in record["rows"]] == [1, 2]
+
+
+def _transcribed_cases() -> list[dict]:
+    cases = []
+    for path in (RESULTS_DIR / "transcribed").glob("*.json"):
+        raw = json.loads(path.read_text())
+        cases += [r["case"] for r in (raw if isinstance(raw, list) else [raw])]
+    return cases
+
+
+def test_default_runs_name_their_cases_as_the_transcribed_records_do() -> None:
+    """A fresh run at the settings the scoreboard quotes replaces the transcribed record of its case."""
+    import argparse
+
+    from bench.hole_fill import record as hole_fill_record
+    from bench.long_session import record_case as long_case
+    from bench.mvs import DATA
+    from bench.pose_graph import record_cases
+    from bench.render import record_case as render_case
+    from bench.training import SHIPPED
+    from bench.training import record_case as training_case
+    from bench.web_viewer import round_trip_record
+
+    transcribed = _transcribed_cases()
+    long_args = argparse.Namespace(source="icl", frames=18000, mode="rgbd", size="320x240", preset="rgbd",
+                                   kill_at=None, no_finish=False)
+    row = {"borders_l1": 0.04, "borders_cov": 0.75, "planes_l1": 0.05, "planes_cov": 0.7, "stereo_l1": 0.04,
+           "cov_before": 0.5, "filled": 0.1}
+    produced = [
+        *record_cases(2000, 100, per_keyframe=True, threshold=None),
+        long_case(long_args),
+        render_case(320, 240, 50_000, "cpu", 2),
+        render_case(320, 240, 50_000, "gsplat", 2),
+        training_case("synthetic (held out)", str(SHIPPED), argparse.Namespace(synthetic=10, frames=24,
+                                                                              first_seed=10_000)),
+        round_trip_record({"format": "spz", "bytes": 1, "per_surfel": 14.5}, 68_614, True, "ICL map")[0],
+        hole_fill_record([row], argparse.Namespace(sequence=None, data=DATA, every=6, resize=(320, 240)))[0],
+        hole_fill_record([row], argparse.Namespace(sequence="TUM fr3/cabinet", data=DATA, every=6,
+                                                   resize=(320, 240)))[0],
+    ]
+    for case in produced:
+        assert case in transcribed, case
