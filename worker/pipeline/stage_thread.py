@@ -162,7 +162,9 @@ class QueuedStage:
 
     def _handle_numbered(self, numbered: tuple[int, Any]) -> None:
         number, item = numbered
-        for cut in [c for c in self._cuts if c.number < number]:  # a snapshot asked for before this item
+        with self._unfinished_lock:
+            due = [c for c in self._cuts if c.number < number]  # snapshots asked for before this item
+        for cut in due:
             with self.lock:
                 cut.take()
         self._process(item)
@@ -202,12 +204,14 @@ class QueuedStage:
         if not self._stage.threaded:
             cut.take()
             return
-        self._cuts.append(cut)
+        with self._unfinished_lock:
+            self._cuts.append(cut)
 
         def take() -> None:
             with self._reading():
                 cut.take()
-            self._cuts.remove(cut)
+            with self._unfinished_lock:
+                self._cuts.remove(cut)
 
         threading.Thread(target=take, name=f"{self.name}-snapshot", daemon=True).start()
 
