@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from worker.data.sources.base import load_matrix_rows
 from worker.geometry import quat_to_rotmat, rotmat_to_quat, sim3_decompose
 
 
@@ -80,23 +81,9 @@ def tum_rows_from_poses(poses: np.ndarray) -> np.ndarray:
 def read_tum(path: str | Path) -> Trajectory:
     """Read a TUM trajectory file. Raises ValueError with the line number on malformed lines."""
     path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"trajectory file not found: {path}")
-    rows = []
-    for line_no, line in enumerate(path.read_text().splitlines(), 1):
-        line = line.split("#", 1)[0].strip()
-        if not line:
-            continue
-        parts = line.replace(",", " ").split()
-        if len(parts) != 8:
-            raise ValueError(f"{path}:{line_no}: a TUM line has 8 numbers (t tx ty tz qx qy qz qw), got {len(parts)}")
-        try:
-            rows.append([float(v) for v in parts])
-        except ValueError as exc:
-            raise ValueError(f"{path}:{line_no}: {exc}") from exc
-    if not rows:
+    data = load_matrix_rows(path, 8)  # t tx ty tz qx qy qz qw
+    if not len(data):
         raise ValueError(f"{path}: no poses")
-    data = np.asarray(rows)
     return Trajectory(data[:, 0], poses_from_tum_rows(data))
 
 
