@@ -28,6 +28,7 @@ from protocol.limits import MAX_RENDER_SIDE
 from worker.config import SlamConfig
 from worker.data.frame import Frame, FrameResult
 from worker.geometry import Intrinsics
+from worker.maps.session_in_map import SessionInMap
 from worker.pipeline import snapshot
 from worker.pipeline.assembly import Assembly, assemble, idle_loop_stage
 from worker.pipeline.depth_registration import DepthRegistration
@@ -48,12 +49,13 @@ from worker.tracking.sources import choose_tracking
 class SlamSystem:
     """Monocular / posed / RGB-D 2DGS SLAM over a stream of `Frame`s (see the module docstring)."""
 
-    def __init__(self, config: SlamConfig | None = None, intrinsics: Intrinsics | None = None) -> None:
+    def __init__(self, config: SlamConfig | None = None, intrinsics: Intrinsics | None = None,
+                 in_map: SessionInMap | None = None) -> None:
         self.config = config if config is not None else SlamConfig.preset("default")
         if not isinstance(self.config, SlamConfig):
             raise ValueError(f"config must be a SlamConfig, got {type(self.config).__name__}")
         torch.set_num_threads(self.config.num_threads)
-        self.intrinsics = intrinsics
+        self.intrinsics, self.in_map = intrinsics, in_map  # in_map: the stored map it runs in (worker.maps)
         self.timings = StageTimes()  # the runtime breakdown of paper appendix E
         self.counters: dict[str, float] = {"frames": 0, "frames_tracked": 0, "frames_registered_later": 0,
                                            "keyframes": 0, "loops": 0, "frontend_seconds": 0.0,
@@ -85,7 +87,7 @@ class SlamSystem:
         self.with_depth = with_depth
         self.tracking_stage.loop_closing.close()
         self.parts = parts = assemble(self.config, tracking, with_depth, self.tracking_stage, self.mapping_stage,
-                                      self.timings)
+                                      self.timings, self.in_map)
         self.tracking, self.mode, self.depth_source = parts.tracking, parts.mode, parts.depth_source
         self.learned, self.model, self.model_id = parts.learned, parts.model, parts.model_id
         self.loop_closer, self.depth_points = parts.loop_closer, parts.depth_points
@@ -100,13 +102,8 @@ class SlamSystem:
         """The keyframe pose graph (the loop-closing stage's: read it only while that stage is idle)."""
         return self.loop_stage.pose_graph
 
-    @property
-    def pose_source(self):
-        return self.tracking_stage.pose_source
-
-    @property
-    def tracker(self):
-        return None if self.learned is None else self.learned.tracker
+    pose_source = property(lambda self: self.tracking_stage.pose_source)
+    tracker = property(lambda self: None if self.learned is None else self.learned.tracker)
 
     @property
     def model_intrinsics(self) -> Intrinsics | None:
@@ -243,8 +240,8 @@ class SlamSystem:
         return snapshot.begin_snapshot(self, stored_chunks)
 
     @classmethod
-    def restore(cls, data: bytes, chunks: Mapping[int | str, bytes] | None = None) -> SlamSystem:
-        """A system continuing from `snapshot()` bytes (never unpickles anything); `chunks` holds what an
-        incremental snapshot (`begin_snapshot(stored_chunks)`) left out: trajectory chunks by number, arrays by
-        digest."""
-        return snapshot.restore(cls, data, chunks)
+    def restore(cls, data: bytes, chunks: Mapping[int | str, bytes] | None = None,
+                in_map: SessionInMap | None = None) -> SlamSystem:
+        """A system continuing from `snapshot()` bytes (never unpickles), in the stored map `in_map` if any;
+        `chunks`: what an incremental snapshot left out (trajectory chunks by number, arrays by digest)."""
+        return snapshot.restore(cls, data, chunks, in_map)

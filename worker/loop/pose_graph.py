@@ -288,6 +288,21 @@ class Sim3PoseGraph:
             self.priors.append(prior)
             return prior
 
+    def move_world(self, transform: np.ndarray) -> None:
+        """Express the whole graph in another world: every node and prior pose left-multiplied by the similarity
+        `transform` (edges, being relative, stay; the length unit follows its scale). The next solve is a batch."""
+        S = _as_matrix(transform)
+        scale = float(np.cbrt(np.linalg.det(S[:3, :3])))
+        if not np.all(np.isfinite(S)) or not scale > 0:
+            raise ValueError("a world move must be a finite similarity")
+        with self._lock:
+            self.nodes = {k: S @ v for k, v in self.nodes.items()}
+            self.priors = [PosePrior(p.key, S @ p.pose, p.sigmas) for p in self.priors]
+            if self.length_unit is not None:
+                self.length_unit = valid_unit(self.length_unit * scale)
+                self._noises = {kind: self._noise_model(kind) for kind in EDGE_KINDS}
+            self._drop_solver()
+
     def edges_of_kind(self, kind: str) -> list[PoseGraphEdge]:
         return [e for e in self.edges if e.kind == kind]
 

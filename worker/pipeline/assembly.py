@@ -16,6 +16,7 @@ from worker.config import SlamConfig
 from worker.depth.border_planes import BorderSettings
 from worker.depth.world_planes import PlaneSettings
 from worker.loop.pose_graph import DEFAULT_SIGMAS, EdgeSigmas, Sim3PoseGraph
+from worker.maps.session_in_map import SessionInMap
 from worker.pipeline.depth_sources import (
     DepthSource,
     ModelSurfels,
@@ -61,8 +62,9 @@ class Assembly:
 
 
 def assemble(config: SlamConfig, tracking: str, with_depth: bool, stage: TrackingStage,
-             mapping: MappingStage | None, timings: StageTimes) -> Assembly:
-    """Build the session's parts for pose source `tracking` and wire them into `stage` and `mapping`."""
+             mapping: MappingStage | None, timings: StageTimes, in_map: SessionInMap | None = None) -> Assembly:
+    """Build the session's parts for pose source `tracking` and wire them into `stage` and `mapping`; a session
+    in a stored map (`in_map`) has tracking query it and loop closing find the queries in it."""
     source_name = choose_depth_source(config.input.depth_source, tracking, with_depth)
     needs_model = tracking == "model" or source_name == "model" or (with_depth and config.input.surfel_init == "model")
     learned = LearnedModel.build(config) if needs_model else None
@@ -94,6 +96,10 @@ def assemble(config: SlamConfig, tracking: str, with_depth: bool, stage: Trackin
         stage.camera.model_estimate = learned.intrinsics_at
     if mapping is not None:
         mapping.loop_closing = stage.loop_closing_submit
+    if in_map is not None:
+        in_map.attach(session_metric=with_depth or tracking == "device")
+        stage.in_map = loop_stage.in_map = in_map
+        in_map.start_loading()
     log.info("session tracking: %s (mode %s), surfels from %s", tracking, MODE_OF_TRACKING[tracking], source_name)
     return Assembly(tracking, source_name, learned, model, model_id, closer, depth_points, loop_stage)
 

@@ -25,6 +25,7 @@ from worker.config import LoopConfig
 from worker.geometry import Intrinsics, se3_part
 from worker.loop.correction_check import implausible_correction
 from worker.loop.pose_graph import PosePrior, Sim3PoseGraph
+from worker.maps.session_in_map import MapQuery, SessionInMap, prior_pose
 from worker.pipeline.loop_closer import DepthKeyframePoints, LoopCloser
 from worker.pipeline.stage_thread import QueuedStage, StageThread
 from worker.pipeline.stage_times import StageTimes
@@ -42,6 +43,7 @@ class GraphKeyframe:
     relative: np.ndarray | None = None  # previous^-1 @ this, as tracked
     kind: str = "sequential"
     scene_depth: float | None = None  # the scene's median depth known when it was made (pose units), if any
+    corrections_seen: int = 0  # corrections tracking had applied when it made the node (see `_in_current_world`)
 
 
 @dataclass
@@ -83,6 +85,10 @@ class LoopCorrection:
     event: dict[str, Any]
 
 
+# What the stage takes, in order
+LoopItem = GraphKeyframe | LoopQuery | CameraUpdate | PosePrior | MapJoin | MapQuery
+# A session in a stored map solves its graph after this many keyframes were fixed in the map.
+MAP_PRIORS_PER_SOLVE = 3
 # ICP of two keyframes' depth for metric loops: relative pose refined, or None when they do not fit.
 # It pairs points closer than this many scene length units (worker.geometry.scene_units; ICL, 1.85 m: 4.6 cm).
 ICP_REACH = 0.025
@@ -109,6 +115,12 @@ class LoopClosingStage(QueuedStage):
         self.solves_given_up = 0  # solves that failed or ended implausibly: nothing moved
         self._corrections: list[LoopCorrection] = []
         self._corrections_lock = threading.Lock()
+        self.corrections_made = 0
+        # The stored map the session runs in (worker.maps), set by assembly; its anchoring moves the whole graph
+        # into the map's world: (the number of the correction that did it, the similarity) for each such move
+        self.in_map: SessionInMap | None = None
+        self.world_moves: list[tuple[int, np.ndarray]] = []
+        self.map_priors_unsolved = 0
         self.name = "loop-closing"
         self._init_queue()
         self._stage = StageThread("loop-closing", self._handle_numbered, threaded)
@@ -120,14 +132,14 @@ class LoopClosingStage(QueuedStage):
         return out
 
     # -- work (the stage's thread) -------------------------------------------------------------------------------
-    def _process(self, item: GraphKeyframe | LoopQuery | CameraUpdate | PosePrior | MapJoin) -> None:
+    def _process(self, item: LoopItem) -> None:
         with self.lock:  # a snapshot (`snapshot_now`) sees the state between two items
             try:
                 self._process_one(item)
             finally:
                 self._done(item)
 
-    def _process_one(self, item: GraphKeyframe | LoopQuery | CameraUpdate | PosePrior | MapJoin) -> None:
+    def _process_one(self, item: LoopItem) -> None:
         try:
             self._process_item(item)
         except ValueError as error:  # a degenerate node or edge (non-finite, a scale near 0): left out, not fatal
@@ -138,13 +150,16 @@ class LoopClosingStage(QueuedStage):
             log.warning("loop-closing stage: the pose graph could not be solved with %s: left out",
                         type(item).__name__)
 
-    def _process_item(self, item: GraphKeyframe | LoopQuery | CameraUpdate | PosePrior | MapJoin) -> None:
+    def _process_item(self, item: LoopItem) -> None:
+        if isinstance(item, MapQuery):
+            self._locate_in_map(item)
+            return
         if isinstance(item, MapJoin):
             self._join_maps(item)
             return
         if isinstance(item, PosePrior):  # a device's pose of a keyframe (seeded tracking), after its node
-            if item.key in self.pose_graph.nodes:
-                self.pose_graph.add_prior(item.key, item.pose, item.sigmas)
+            if item.key in self.pose_graph.nodes:  # in the device's world, which a map's anchoring moved
+                self.pose_graph.add_prior(item.key, self._world_transform() @ item.pose, item.sigmas)
                 self.pose_graph.flush()
                 self.priors_unsolved += 1
                 if self.solve_priors_every and self.priors_unsolved >= self.solve_priors_every:
@@ -157,7 +172,7 @@ class LoopClosingStage(QueuedStage):
         if isinstance(item, GraphKeyframe):
             if self.pose_graph.length_unit is None:  # the first scene depth known is the graph's length unit
                 self.pose_graph.set_length_unit(item.scene_depth)
-            self.pose_graph.add_node(item.kf_id, item.world_pose)
+            self.pose_graph.add_node(item.kf_id, self._in_current_world(item.world_pose, item.corrections_seen))
             if item.previous is not None:
                 self.pose_graph.add_edge(item.previous, item.kf_id, item.relative, kind=item.kind)
             self.pose_graph.flush()  # iSAM2 takes the keyframe now: a later loop's solve has less to do
@@ -214,9 +229,72 @@ class LoopClosingStage(QueuedStage):
             self.solves_given_up += 1
             return False
         event = {**event, "pgo_error_before": result.initial_error, "pgo_error_after": result.final_error}
-        with self._corrections_lock:
-            self._corrections.append(LoopCorrection(dict(result.poses), event))
+        self._hand_back(LoopCorrection(dict(result.poses), event))
         return True
+
+    def _hand_back(self, correction: LoopCorrection) -> None:
+        with self._corrections_lock:
+            self._corrections.append(correction)
+            self.corrections_made += 1
+
+    # -- a stored map (worker.maps) ------------------------------------------------------------------------------
+    def _locate_in_map(self, query: MapQuery) -> None:
+        """Find the frame in the stored map: before the session is anchored, a fix counts towards the anchoring,
+        which moves the whole session into the map's world once fixes agree; after, a keyframe's fix is a prior
+        on its node (solved every few). A frame query with a newer one waiting is shed (it would only be late)."""
+        in_map = self.in_map
+        if in_map is None or (not query.keyframe and self._newer_map_query_waiting(query)):
+            return
+        if in_map.anchored and (not query.keyframe or query.frame not in self.pose_graph.nodes):
+            return
+        with self.timings.measure("map_relocalization"):
+            fix = in_map.locate(query)
+        if fix is None:
+            return
+        scene_depth = self.pose_graph.length_unit or 1.0
+        if not in_map.anchored:
+            own = self._in_current_world(query.own_pose, query.corrections_seen)
+            transform = in_map.anchoring.propose(query.frame, own, fix, scene_depth)
+            if transform is not None:
+                in_map.relocalized_at = query.frame
+                self._move_world(transform, {"type": "relocalized", "map_id": in_map.map_id, "frame": query.frame,
+                                             **fix.quality()})
+            return
+        node = self.pose_graph.nodes[query.frame]
+        self.pose_graph.add_prior(query.frame, prior_pose(fix.pose, node), in_map.prior_sigmas(scene_depth))
+        self.pose_graph.flush()
+        self.map_priors_unsolved += 1
+        if self.map_priors_unsolved >= MAP_PRIORS_PER_SOLVE:
+            self.map_priors_unsolved = 0
+            self._solve({"type": "drift_corrected", "keyframe": int(query.frame), "source": "map"},
+                        self.pose_graph.state_dict())
+
+    def _newer_map_query_waiting(self, query: MapQuery) -> bool:
+        with self._unfinished_lock:
+            return any(isinstance(item, MapQuery) and item.frame > query.frame for _, item in self._unfinished)
+
+    def _move_world(self, transform: np.ndarray, event: dict[str, Any]) -> None:
+        """Express the session in another world (the stored map's): every node moves by `transform`; tracking
+        takes the moved keyframes as a correction, and nodes or queries it made before taking it are moved here
+        as they come (`_in_current_world`)."""
+        self.pose_graph.move_world(transform)
+        self._hand_back(LoopCorrection(dict(self.pose_graph.nodes), event))
+        self.world_moves.append((self.corrections_made, np.asarray(transform, np.float64)))
+
+    def _in_current_world(self, pose: np.ndarray, corrections_seen: int) -> np.ndarray:
+        """`pose`, made by tracking after it had applied `corrections_seen` corrections, in the graph's world now."""
+        out = np.asarray(pose, np.float64)
+        for number, transform in self.world_moves:
+            if corrections_seen < number:
+                out = transform @ out
+        return out
+
+    def _world_transform(self) -> np.ndarray:
+        """Every world move so far, composed (the tracking world's first frame -> the graph's world)."""
+        out = np.eye(4)
+        for _, transform in self.world_moves:
+            out = transform @ out
+        return out
 
     def _join_maps(self, join: MapJoin) -> None:
         """Add the Sim(3) edge joining two maps, solve, and hand the moved keyframes back (`maps_merged`)."""
@@ -266,7 +344,11 @@ class LoopClosingStage(QueuedStage):
         return {"pose_graph": self.pose_graph.state_dict(),
                 "loop": None if self.closer is None else self.closer.state_dict(),
                 "depth_points": None if self.depth_points is None else self.depth_points.state_dict(),
-                "loops": self.loops, "priors_unsolved": self.priors_unsolved}
+                "loops": self.loops, "priors_unsolved": self.priors_unsolved,
+                "corrections_made": self.corrections_made,
+                "world_moves": [[number, transform] for number, transform in self.world_moves],
+                "in_map": None if self.in_map is None else self.in_map.state_dict(),
+                "map_priors_unsolved": self.map_priors_unsolved}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.pose_graph.load_state_dict(state["pose_graph"])
@@ -276,6 +358,11 @@ class LoopClosingStage(QueuedStage):
             self.depth_points.load_state_dict(state["depth_points"])
         self.loops = int(state.get("loops", 0))
         self.priors_unsolved = int(state.get("priors_unsolved", 0))
+        self.corrections_made = int(state.get("corrections_made", 0))
+        self.world_moves = [(int(n), np.asarray(t, np.float64)) for n, t in state.get("world_moves") or []]
+        self.map_priors_unsolved = int(state.get("map_priors_unsolved", 0))
+        if self.in_map is not None and state.get("in_map") is not None:
+            self.in_map.load_state_dict(state["in_map"])
         with self._corrections_lock:
             self._corrections = [LoopCorrection({int(k): np.asarray(v, np.float64) for k, v in c["poses"]},
                                                 dict(c["event"])) for c in state.get("corrections") or []]
@@ -283,11 +370,14 @@ class LoopClosingStage(QueuedStage):
             self.submit(item_from_state(item))
 
 
-def item_state(item: GraphKeyframe | LoopQuery | CameraUpdate | PosePrior | MapJoin) -> dict[str, Any]:
+def item_state(item: LoopItem) -> dict[str, Any]:
     """A work item as plain data (arrays stay arrays)."""
     if isinstance(item, GraphKeyframe):
         return {"kind": "keyframe", "kf_id": item.kf_id, "world_pose": item.world_pose, "previous": item.previous,
-                "relative": item.relative, "edge": item.kind, "scene_depth": item.scene_depth}
+                "relative": item.relative, "edge": item.kind, "scene_depth": item.scene_depth,
+                "corrections_seen": item.corrections_seen}
+    if isinstance(item, MapQuery):
+        return item.state()
     if isinstance(item, LoopQuery):
         return {"kind": "query", "kf_id": item.kf_id, "image": item.image, "depth": item.depth, "K": item.K,
                 "intrinsics": None if item.intrinsics is None else item.intrinsics.to_dict()}
@@ -298,7 +388,7 @@ def item_state(item: GraphKeyframe | LoopQuery | CameraUpdate | PosePrior | MapJ
     return {"kind": "prior", **item.to_dict()}
 
 
-def item_from_state(state: dict[str, Any]) -> GraphKeyframe | LoopQuery | CameraUpdate | PosePrior | MapJoin:
+def item_from_state(state: dict[str, Any]) -> LoopItem:
     def tensor(value: Any) -> torch.Tensor | None:
         return None if value is None else torch.from_numpy(np.array(value))
 
@@ -308,7 +398,10 @@ def item_from_state(state: dict[str, Any]) -> GraphKeyframe | LoopQuery | Camera
     kind = state["kind"]
     if kind == "keyframe":
         return GraphKeyframe(int(state["kf_id"]), array(state["world_pose"]), state["previous"],
-                             array(state["relative"]), state["edge"], state["scene_depth"])
+                             array(state["relative"]), state["edge"], state["scene_depth"],
+                             int(state.get("corrections_seen", 0)))
+    if kind == "map_query":
+        return MapQuery.from_state(state)
     if kind == "query":
         intrinsics = None if state["intrinsics"] is None else Intrinsics.from_dict(state["intrinsics"])
         return LoopQuery(int(state["kf_id"]), tensor(state["image"]), intrinsics, tensor(state["depth"]),

@@ -66,8 +66,9 @@ def tracking_state(system: SessionParts, trajectory: dict[str, Any] | None = Non
     }
 
 
-def restore(cls: type, data: bytes, chunks: Mapping[int | str, bytes] | None = None) -> Any:
-    """A system of class `cls` (worker.slam.SlamSystem) continuing from snapshot bytes (see its `restore`)."""
+def restore(cls: type, data: bytes, chunks: Mapping[int | str, bytes] | None = None, in_map: Any = None) -> Any:
+    """A system of class `cls` (worker.slam.SlamSystem) continuing from snapshot bytes (see its `restore`), in the
+    stored map `in_map` (worker.maps.SessionInMap) when it runs in one."""
     from worker.config import SlamConfig
     from worker.loop.bag import HiddenStateBag
     from worker.pipeline.assembly import TRACKING_OF_MODE
@@ -78,7 +79,7 @@ def restore(cls: type, data: bytes, chunks: Mapping[int | str, bytes] | None = N
                                                   {k: v for k, v in chunks.items() if isinstance(k, int)})
     config = SlamConfig.from_dict(state["config"])
     intrinsics = None if state["intrinsics"] is None else Intrinsics.from_dict(state["intrinsics"])
-    system = cls(config, intrinsics)
+    system = cls(config, intrinsics, in_map=in_map)
     if state["mode"] is not None:
         system.setup(state.get("tracking") or TRACKING_OF_MODE[state["mode"]], with_depth=bool(state["with_depth"]))
     if system.model_id != state["model_id"]:

@@ -18,6 +18,7 @@ STAGES: dict[str, tuple[str, str, str]] = {
     "loop_detection": ("frontend", "loop closure detection", "frame"),
     "loop_relocalization": ("frontend", "loop frame relocalization", "event"),
     "pgo": ("frontend", "PGO (Sim(3) optimization)", "event"),
+    "map_relocalization": ("frontend", "finding frames in a stored map", "event"),
     "map_depth": ("backend", "multi-view depth of keyframes", "event"),
     "map_merge": ("backend", "merge & voxelization (fusion, pruning)", "frame"),
     "map_refine": ("backend", "refine", "frame"),

@@ -23,6 +23,7 @@ import torch
 
 from worker.data.frame import Frame, FrameResult
 from worker.geometry import Intrinsics, sim3_inverse
+from worker.maps.session_in_map import MapQuery, SessionInMap
 from worker.pipeline.depth_sources.base import DepthSource
 from worker.pipeline.keyframes import MotionKeyframeSelector
 from worker.pipeline.loop_stage import GraphKeyframe, LoopClosingStage, LoopQuery
@@ -35,7 +36,8 @@ from worker.pipeline.trajectory import Trajectory
 from worker.tracking.base import TrackingResult
 
 # The counter each kind of correction counts in.
-CORRECTION_COUNTERS = {"maps_merged": "maps_merged", "drift_corrected": "drift_corrections"}
+CORRECTION_COUNTERS = {"maps_merged": "maps_merged", "drift_corrected": "drift_corrections",
+                       "relocalized": "map_relocalizations"}
 
 
 class TrackingStage:
@@ -65,6 +67,8 @@ class TrackingStage:
         self.events = PoseEvents(self.trajectory, self.loop_closing_submit, counters)
         self.last_frame: tuple[Frame, bool] | None = None  # the newest frame, when not a keyframe, and if tracked
         self.last_frame_mapped: int | None = None  # the final frame's index when finish() mapped it too
+        self.in_map: SessionInMap | None = None  # the stored map the session runs in (worker.maps), if any
+        self.corrections_taken = 0  # loop-closing corrections applied so far
 
     def loop_closing_submit(self, item) -> None:
         """Submit `item` to the loop-closing stage the session has now."""
@@ -95,6 +99,8 @@ class TrackingStage:
         self.events.after_keyframe_decision(tracking.events, frame.index if is_kf else None, tracking.submap_id,
                                             pose, self.last_keyframe)
         world = self.add_frame(frame, pose, is_kf, tracking.submap_id)
+        if tracking.tracked:
+            self._query_map(frame, is_kf, world)
         self.last_frame = None if is_kf else (frame, tracking.tracked)
         self.hand_to_mapping()
         return FrameResult(frame.index, frame.timestamp, world, is_kf, tracking.submap_id, self.revision, events,
@@ -125,6 +131,20 @@ class TrackingStage:
             self.loop_closing.submit(LoopQuery(frame.index, prediction[0].tensor, self.model_intrinsics()))
         return self.apply_loop_corrections() if not self.loop_closing.pending else []
 
+    def _query_map(self, frame: Frame, is_keyframe: bool, world: np.ndarray) -> None:
+        """Hand the frame to loop closing to find it in the stored map the session runs in: every frame until
+        the session is anchored in the map (loop closing sheds those it is late for), then each keyframe."""
+        in_map = self.in_map
+        if in_map is None or (in_map.anchored and not is_keyframe):
+            return
+        small = self._tracked_frame if self._tracked_frame is not None and self._tracked_frame.index == frame.index \
+            else at_most(frame, self.max_side)
+        K = self.camera.for_frame(frame).scaled(small.width, small.height).matrix()
+        gray = cv2.cvtColor(np.ascontiguousarray(small.image), cv2.COLOR_RGB2GRAY)
+        depth = None if not self.with_depth or small.depth is None else np.asarray(small.depth, np.float32)
+        self.loop_closing.submit(MapQuery(frame.index, is_keyframe, np.asarray(world, np.float64).copy(), gray,
+                                          np.asarray(K, np.float64), depth, self.corrections_taken))
+
     def hand_to_mapping(self, force: bool = False) -> None:
         """The depth source's ready jobs to the mapping stage; none while the pose source is still estimating the
         camera (unless `force`)."""
@@ -150,6 +170,7 @@ class TrackingStage:
         and the map move to the optimised keyframe poses. Returns their events."""
         events = []
         for correction in self.loop_closing.take_corrections():
+            self.corrections_taken += 1
             revision, changed = self.apply_correction(correction.poses)
             if self.depth_source is not None and self.mapping is not None:
                 self.depth_source.move(changed)
@@ -197,7 +218,8 @@ class TrackingStage:
         the odometry edge from the previous keyframe, of kind `edge_kind` when given); returns its world pose."""
         kf_id, previous = frame.index, self.last_keyframe
         world = self.trajectory.add_keyframe(kf_id, tracked_pose, reference=previous)
-        node = GraphKeyframe(kf_id, world.copy(), scene_depth=self.selector.scene_depth)
+        node = GraphKeyframe(kf_id, world.copy(), scene_depth=self.selector.scene_depth,
+                             corrections_seen=self.corrections_taken)
         if previous is not None:
             node.previous = previous
             node.relative = (sim3_inverse(torch.from_numpy(self.trajectory.tracked_keyframe_poses[previous]))
@@ -237,6 +259,7 @@ class TrackingStage:
         return {"trajectory": self.trajectory.state_dict() if trajectory is None else trajectory,
                 "selector": self.selector.state_dict(),
                 "last_keyframe": self.last_keyframe, "submap_of": [[k, v] for k, v in self.submap_of.items()],
+                "corrections_taken": self.corrections_taken,
                 "pose_source": None if self.pose_source is None else self.pose_source.state_dict(),
                 "depth_source": None if self.depth_source is None else self.depth_source.state_dict()}
 
@@ -245,6 +268,7 @@ class TrackingStage:
         self.selector.load_state_dict(state["selector"])
         self.last_keyframe = state["last_keyframe"]
         self.submap_of = {int(k): int(v) for k, v in state["submap_of"]}
+        self.corrections_taken = int(state.get("corrections_taken", 0))
         if state.get("pose_source") and self.pose_source is not None:
             self.pose_source.load_state_dict(state["pose_source"])
         if state.get("depth_source") is not None and self.depth_source is not None:

@@ -1,0 +1,70 @@
+"""The own-world -> map-world transform: never from one fix, rigid when metric, a similarity when up to scale."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from worker.maps.anchoring import MapAnchoring, fit_similarity
+from worker.maps.localizer import MapFix
+
+
+def _pose(angle: float, axis: int, position: list[float]) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    R = np.eye(3)
+    i, j = [k for k in range(3) if k != axis]
+    R[i, i], R[i, j], R[j, i], R[j, j] = c, -s, s, c
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, position
+    return T
+
+
+def _fix(pose: np.ndarray, inliers: int = 100) -> MapFix:
+    return MapFix(pose, view=0, inliers=inliers, matches=150, reprojection_px=1.0, depth_agreement=0.9)
+
+
+WORLD = _pose(0.7, 1, [1.0, -0.5, 2.0])  # own world -> map world
+
+
+def test_two_agreeing_fixes_anchor_a_metric_session_one_does_not() -> None:
+    anchoring = MapAnchoring(metric=True)
+    own = [_pose(0.1 * k, 2, [0.1 * k, 0.0, 0.0]) for k in range(3)]
+    assert anchoring.propose(0, own[0], _fix(WORLD @ own[0]), scene_depth=2.0) is None
+    transform = anchoring.propose(1, own[1], _fix(WORLD @ own[1], 120), scene_depth=2.0)
+    assert transform is not None and np.allclose(transform, WORLD, atol=1e-9)
+    assert anchoring.anchored
+
+
+def test_a_fix_that_disagrees_does_not_anchor() -> None:
+    anchoring = MapAnchoring(metric=True)
+    own = [_pose(0.0, 2, [0.1 * k, 0.0, 0.0]) for k in range(2)]
+    wrong = _pose(0.0, 2, [0.5, 0.0, 0.0]) @ WORLD  # 50 cm off: a false match
+    anchoring.propose(0, own[0], _fix(WORLD @ own[0]), scene_depth=2.0)
+    assert anchoring.propose(1, own[1], _fix(wrong @ own[1]), scene_depth=2.0) is None
+    assert not anchoring.anchored
+
+
+def test_an_up_to_scale_session_meets_the_map_by_a_similarity() -> None:
+    scale = 0.37
+    similarity = WORLD.copy()
+    similarity[:3, :3] *= scale
+    own = [_pose(0.05 * k, 0, [0.4 * k, 0.1 * k * k, 0.0]) for k in range(4)]
+    in_map = []
+    for T in own:
+        moved = similarity @ T
+        rigid = moved.copy()
+        rigid[:3, :3] /= scale
+        in_map.append(rigid)
+    assert np.allclose(fit_similarity(own, in_map), similarity, atol=1e-9)
+    anchoring = MapAnchoring(metric=False, agreeing=3)
+    results = [anchoring.propose(k, T, _fix(M), scene_depth=1.0) for k, (T, M) in enumerate(zip(own, in_map))]
+    assert results[0] is None and results[1] is None  # two fixes measure a scale but nothing checks it
+    assert results[2] is not None and np.allclose(results[2], similarity, atol=1e-9)
+
+
+def test_the_anchoring_survives_its_state() -> None:
+    anchoring = MapAnchoring(metric=True)
+    own = [_pose(0.0, 2, [0.1 * k, 0.0, 0.0]) for k in range(2)]
+    anchoring.propose(0, own[0], _fix(WORLD @ own[0]), scene_depth=2.0)
+    restored = MapAnchoring(metric=True)
+    restored.load_state_dict(anchoring.state_dict())
+    assert restored.propose(1, own[1], _fix(WORLD @ own[1]), scene_depth=2.0) is not None

@@ -1,0 +1,148 @@
+"""The transform that takes a session's own world into a stored map's world, from frames located in the map.
+
+A session in a map tracks in its own world from its first frame. Each verified fix (`MapFix`: the frame's pose in
+the map) beside the frame's own pose measures that transform; one fix alone is never trusted: the session anchors
+once `agreeing` fixes of different frames give the same transform (within `position_tolerance` of the scene's
+depth and `angle_tolerance_deg`). A metric session (sensor depth or device poses) measures a rigid transform from
+each fix; an up-to-scale one (RGB only) needs fixes apart from each other to measure the scale, and fits one
+similarity to all of them (rotation averaged, then scale and translation by least squares on camera centres).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .localizer import MapFix
+
+
+def _inverse(T: np.ndarray) -> np.ndarray:
+    """The inverse of a 4x4 similarity [sR | t]."""
+    scale = float(np.cbrt(np.linalg.det(T[:3, :3])))
+    R = T[:3, :3] / scale
+    out = np.eye(4)
+    out[:3, :3] = R.T / scale
+    out[:3, 3] = -(R.T @ T[:3, 3]) / scale
+    return out
+
+
+def _rotation_angle_deg(R: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def _nearest_rotation(M: np.ndarray) -> np.ndarray:
+    U, _, Vt = np.linalg.svd(M)
+    D = np.diag([1.0, 1.0, float(np.sign(np.linalg.det(U @ Vt)))])
+    return U @ D @ Vt
+
+
+@dataclass
+class Observation:
+    """One located frame: its own-world pose (rigid, or a similarity after corrections) and its pose in the map."""
+
+    frame: int
+    own: np.ndarray
+    in_map: np.ndarray
+    inliers: int
+    scene_depth: float
+
+
+@dataclass
+class MapAnchoring:
+    """Collects fixes until they agree on the own-world -> map-world transform (see the module docstring)."""
+
+    metric: bool
+    agreeing: int = 2
+    position_tolerance: float = 0.05  # of the scene's depth
+    angle_tolerance_deg: float = 3.0
+    min_baseline: float = 0.1  # up to scale: camera centres this far apart (of the scene's depth) measure the scale
+    keep: int = 8
+    transform: np.ndarray | None = None
+    observations: list[Observation] = field(default_factory=list)
+
+    @property
+    def anchored(self) -> bool:
+        return self.transform is not None
+
+    def propose(self, frame: int, own_pose: np.ndarray, fix: MapFix, scene_depth: float) -> np.ndarray | None:
+        """Add a fix of `frame` (own-world pose `own_pose`); the transform when the fixes agree now, else None."""
+        if self.anchored:
+            return None
+        self.observations.append(Observation(int(frame), np.asarray(own_pose, np.float64), fix.pose,
+                                             fix.inliers, max(float(scene_depth), 1e-6)))
+        self.observations = self.observations[-self.keep:]
+        transform = self._rigid_agreement() if self.metric else self._similarity_agreement()
+        if transform is not None:
+            self.transform = transform
+        return transform
+
+    def _rigid_agreement(self) -> np.ndarray | None:
+        """The newest fix's transform when `agreeing - 1` other frames' fixes give the same one."""
+        newest = self.observations[-1]
+        candidate = newest.in_map @ _inverse(newest.own)
+        agree = [o for o in self.observations[:-1] if o.frame != newest.frame
+                 and self._same(candidate, o.in_map @ _inverse(o.own), newest.scene_depth)]
+        if len(agree) + 1 < self.agreeing:
+            return None
+        best = max([newest, *agree], key=lambda o: o.inliers)
+        return best.in_map @ _inverse(best.own)
+
+    def _same(self, a: np.ndarray, b: np.ndarray, scene_depth: float) -> bool:
+        delta = _inverse(a) @ b
+        return (np.linalg.norm(delta[:3, 3]) <= self.position_tolerance * scene_depth
+                and _rotation_angle_deg(delta[:3, :3] / np.cbrt(np.linalg.det(delta[:3, :3])))
+                <= self.angle_tolerance_deg)
+
+    def _similarity_agreement(self) -> np.ndarray | None:
+        """One similarity fitted to every fix, when they span a baseline and it explains each of them."""
+        obs = self.observations
+        if len(obs) < max(self.agreeing, 2):
+            return None
+        map_centres = np.stack([o.in_map[:3, 3] for o in obs])
+        depth = float(np.median([o.scene_depth for o in obs]))
+        if np.linalg.norm(map_centres - map_centres.mean(0), axis=1).max() < self.min_baseline * depth:
+            return None
+        transform = fit_similarity([o.own for o in obs], [o.in_map for o in obs])
+        if transform is None:
+            return None
+        scale = float(np.cbrt(np.linalg.det(transform[:3, :3])))
+        for o in obs:
+            moved = transform @ o.own
+            rotation = moved[:3, :3] / np.cbrt(np.linalg.det(moved[:3, :3]))
+            if (np.linalg.norm(moved[:3, 3] - o.in_map[:3, 3]) > self.position_tolerance * depth
+                    or _rotation_angle_deg(rotation.T @ o.in_map[:3, :3]) > self.angle_tolerance_deg):
+                return None
+        return transform if np.isfinite(scale) and scale > 0 else None
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"transform": self.transform,
+                "observations": [{"frame": o.frame, "own": o.own, "in_map": o.in_map, "inliers": o.inliers,
+                                  "scene_depth": o.scene_depth} for o in self.observations]}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.transform = None if state.get("transform") is None else np.asarray(state["transform"], np.float64)
+        self.observations = [Observation(int(o["frame"]), np.asarray(o["own"], np.float64),
+                                         np.asarray(o["in_map"], np.float64), int(o["inliers"]),
+                                         float(o["scene_depth"])) for o in state.get("observations") or []]
+
+
+def fit_similarity(own: list[np.ndarray], in_map: list[np.ndarray]) -> np.ndarray | None:
+    """The similarity S with S @ own_i ~ in_map_i: rotation from the poses' rotations, scale and translation by
+    least squares on the camera centres. None when the centres do not spread (no scale to measure)."""
+    rotations = [m[:3, :3] @ (o[:3, :3] / np.cbrt(np.linalg.det(o[:3, :3]))).T for o, m in zip(own, in_map)]
+    R = _nearest_rotation(np.sum(rotations, axis=0))
+    a = np.stack([R @ o[:3, 3] for o in own])
+    b = np.stack([m[:3, 3] for m in in_map])
+    a0, b0 = a - a.mean(0), b - b.mean(0)
+    spread = float(np.sum(a0 * a0))
+    if spread <= 1e-12:
+        return None
+    scale = float(np.sum(a0 * b0) / spread)
+    if scale <= 0:
+        return None
+    out = np.eye(4)
+    out[:3, :3] = scale * R
+    out[:3, 3] = b.mean(0) - scale * a.mean(0)
+    return out

@@ -1,0 +1,146 @@
+"""A session that runs in a stored map: which map, how (`localize` or `extend`), the map's keyframes as the
+localizer sees them, and how far the session's own world has been anchored in the map's.
+
+The loop-closing stage owns it (worker.pipeline.loop_stage): it locates the frames tracking hands it
+(`MapQuery`), anchors the session's world once fixes agree (worker.maps.anchoring) and moves the whole session into
+the map's world then; later fixes of keyframes become pose-graph priors that hold the session to the map.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+
+from worker.loop.pose_graph import EdgeSigmas
+
+from .anchoring import MapAnchoring
+from .localizer import LocalizerSettings, MapFix, MapLocalizer, MapView
+
+MapMode = Literal["localize", "extend"]
+MAP_MODES: tuple[str, ...] = ("localize", "extend")
+# A keyframe's fix in the map as a pose-graph prior: rotation (rad), translation (of the scene's depth), log-scale
+# (free: an up-to-scale session's keyframes keep the scale the graph gives them).
+PRIOR_ROTATION = 0.02
+PRIOR_TRANSLATION = 0.02
+PRIOR_LOG_SCALE = 1e3
+
+
+@dataclass
+class MapQuery:
+    """A frame to find in the stored map: its index, whether it is a keyframe (a graph node), its world pose when
+    tracking made the query, its grey image, camera matrix and depth (own units; None without), and how many
+    corrections tracking had applied then (a world move made after that is not in `own_pose` yet)."""
+
+    frame: int
+    keyframe: bool
+    own_pose: np.ndarray
+    gray: np.ndarray
+    K: np.ndarray
+    depth: np.ndarray | None = None
+    corrections_seen: int = 0
+
+    def state(self) -> dict[str, Any]:
+        return {"kind": "map_query", "frame": self.frame, "keyframe": self.keyframe, "own_pose": self.own_pose,
+                "gray": self.gray, "K": self.K, "depth": self.depth, "corrections_seen": self.corrections_seen}
+
+    @classmethod
+    def from_state(cls, s: dict[str, Any]) -> MapQuery:
+        depth = s.get("depth")
+        return cls(int(s["frame"]), bool(s["keyframe"]), np.asarray(s["own_pose"], np.float64),
+                   np.asarray(s["gray"], np.uint8), np.asarray(s["K"], np.float64),
+                   None if depth is None else np.asarray(depth, np.float32), int(s["corrections_seen"]))
+
+
+class SessionInMap:
+    """The stored map a session runs in (see the module docstring). `views` gives the map's keyframes (called once,
+    in the loop-closing stage's thread); `map_metric`: the map's poses are metric. When the session's are too
+    (`attach`), its world meets the map's by a rigid transform, else by a similarity."""
+
+    def __init__(self, map_id: str, version: int, mode: MapMode, views: Callable[[], list[MapView]],
+                 map_metric: bool = True, settings: LocalizerSettings | None = None) -> None:
+        if mode not in MAP_MODES:
+            raise ValueError(f"map mode must be one of {', '.join(MAP_MODES)}, got {mode!r}")
+        self.map_id = map_id
+        self.version = int(version)
+        self.mode = mode
+        self.map_metric = map_metric
+        self.attach(session_metric=True)
+        self.fixes = 0
+        self.misses = 0
+        self.relocalized_at: int | None = None  # the frame whose fix anchored the session
+        self._views = views
+        self._settings = settings
+        self._localizer: MapLocalizer | None = None
+        self._loading: threading.Thread | None = None
+        self._lock = threading.Lock()
+        self._build_lock = threading.Lock()
+        self.load_seconds: float | None = None
+
+    def attach(self, session_metric: bool) -> None:
+        """Set how the session's world meets the map's, once the session knows its input (its first frame)."""
+        self.metric = bool(session_metric and self.map_metric)
+        self.anchoring = MapAnchoring(metric=self.metric, agreeing=2 if self.metric else 3)
+
+    def start_loading(self) -> None:
+        """Build the map's places in a thread of their own now, so the first query finds them ready."""
+        with self._lock:
+            if self._localizer is not None or self._loading is not None:
+                return
+            self._loading = threading.Thread(target=lambda: self.localizer, name="map-places", daemon=True)
+            self._loading.start()
+
+    @property
+    def anchored(self) -> bool:
+        return self.anchoring.anchored
+
+    @property
+    def localizer(self) -> MapLocalizer:
+        """The map's keyframes as places (built on first use, or by `start_loading`)."""
+        with self._build_lock:
+            if self._localizer is None:
+                started = time.perf_counter()
+                self._localizer = MapLocalizer(self._views(), self._settings)
+                self.load_seconds = time.perf_counter() - started
+            return self._localizer
+
+    def locate(self, query: MapQuery) -> MapFix | None:
+        """The query frame's verified pose in the map, or None (counted)."""
+        fix = self.localizer.locate(query.gray, query.K, query.depth)
+        if fix is None:
+            self.misses += 1
+        else:
+            self.fixes += 1
+        return fix
+
+    def prior_sigmas(self, scene_depth: float) -> EdgeSigmas:
+        """How firmly a keyframe's fix holds it (translation in pose units: a share of the scene's depth)."""
+        return EdgeSigmas(PRIOR_ROTATION, PRIOR_TRANSLATION * scene_depth, PRIOR_LOG_SCALE)
+
+    def stats(self) -> dict[str, Any]:
+        return {"map_id": self.map_id, "map_version": self.version, "map_mode": self.mode,
+                "map_relocalized": self.anchored, "map_fixes": self.fixes, "map_misses": self.misses,
+                "map_load_seconds": self.load_seconds}
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"map_id": self.map_id, "version": self.version, "mode": self.mode, "metric": self.metric,
+                "anchoring": self.anchoring.state_dict(), "fixes": self.fixes, "misses": self.misses,
+                "relocalized_at": self.relocalized_at}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.anchoring.load_state_dict(state["anchoring"])
+        self.fixes, self.misses = int(state.get("fixes", 0)), int(state.get("misses", 0))
+        at = state.get("relocalized_at")
+        self.relocalized_at = None if at is None else int(at)
+
+
+def prior_pose(fix_pose: np.ndarray, node: np.ndarray) -> np.ndarray:
+    """A fix as a node's prior: the fix's rotation and position with the node's current scale."""
+    scale = float(np.cbrt(np.linalg.det(node[:3, :3])))
+    out = np.asarray(fix_pose, np.float64).copy()
+    out[:3, :3] *= scale
+    return out
