@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from worker.tracking.dense_alignment import PyramidLevel, align, build_pyramid
 from worker.tracking.features import Features, OrbExtractor
 from worker.tracking.relocalization import Place, PlaceRecognizer
 from worker.tracking.vo_config import VisualOdometryConfig
@@ -45,6 +46,9 @@ class LocalizerSettings:
     min_depth_agreement: float = 0.6
     depth_tolerance: float = 0.05
     candidates: int = 5
+    refine_with_depth: bool = True  # RGB-D frames in a metric map: dense alignment to the keyframe found
+    min_overlap: float = 0.5  # ... accepted where this share of the keyframe's surface meets the frame's
+    max_refinement_move: float = 0.05  # ... and it moves the PnP pose less than this (of the scene's depth)
 
 
 @dataclass
@@ -75,6 +79,8 @@ class MapLocalizer:
         self.extractor = OrbExtractor(self.vo_config)
         self.recognizer = PlaceRecognizer(self.vo_config)
         self.places = [p for p in (self._place(v) for v in views) if p is not None]
+        self._views = {int(v.id): v for v in views}
+        self._pyramids: dict[int, list[PyramidLevel]] = {}
 
     def __len__(self) -> int:
         return len(self.places)
@@ -121,7 +127,31 @@ class MapLocalizer:
         agreement = None if depth is None else _depth_agreement(found.pose, found.points, uv, depth,
                                                                  self.settings.depth_tolerance)
         fix = MapFix(found.pose, found.place, len(found.keypoints), matches, error, agreement)
-        return fix if self._verified(fix) else None
+        if not self._verified(fix):
+            return None
+        if depth is not None and self.settings.refine_with_depth:
+            fix.pose = self._refined(fix, gray, depth, K)
+        return fix
+
+    def _refined(self, fix: MapFix, gray: np.ndarray, depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+        """The fix's pose refined by dense RGB-D alignment of the frame to the keyframe it was found from
+        (photometric and point-to-plane), or the PnP pose where the alignment does not clearly hold."""
+        view = self._views.get(fix.view)
+        if view is None or view.depth is None or abs(np.linalg.det(view.pose[:3, :3]) - 1.0) > 1e-6:
+            return fix.pose  # an up-to-scale map's keyframe: its depth is not in the frame's units
+        reference = self._pyramids.get(fix.view)
+        if reference is None:
+            reference = self._pyramids[fix.view] = _pyramid(view.gray, view.depth, view.K)
+        current = _pyramid(gray, depth, K)
+        start = np.linalg.inv(fix.pose) @ view.pose  # T_cur_ref
+        result = align(reference, current, start)
+        if not result.ok or result.overlap < self.settings.min_overlap:
+            return fix.pose
+        refined = view.pose @ np.linalg.inv(result.T)
+        scene = float(np.median(view.depth[view.depth > 0])) if np.any(view.depth > 0) else 1.0
+        if np.linalg.norm(refined[:3, 3] - fix.pose[:3, 3]) > self.settings.max_refinement_move * scene:
+            return fix.pose
+        return refined
 
     def _matches_tried(self, features: Features, place_id: int) -> int:
         from worker.tracking.matching import ratio_matches
@@ -137,6 +167,15 @@ class MapLocalizer:
         if not np.isfinite(fix.reprojection_px) or fix.reprojection_px > s.max_reprojection_px:
             return False
         return fix.depth_agreement is None or fix.depth_agreement >= s.min_depth_agreement
+
+
+def _pyramid(gray: np.ndarray, depth: np.ndarray, K: np.ndarray) -> list[PyramidLevel]:
+    """Dense-alignment levels of a grey image and its depth (brought to the image's size), 3 levels."""
+    height, width = gray.shape
+    depth = np.nan_to_num(np.asarray(depth, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    if depth.shape != (height, width):
+        depth = cv2.resize(depth, (width, height), interpolation=cv2.INTER_NEAREST)
+    return build_pyramid(gray.astype(np.float32) / 255.0, depth, np.asarray(K, np.float64), levels=3)
 
 
 def _camera_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:

@@ -25,8 +25,8 @@ MapMode = Literal["localize", "extend"]
 MAP_MODES: tuple[str, ...] = ("localize", "extend")
 # A keyframe's fix in the map as a pose-graph prior: rotation (rad), translation (of the scene's depth), log-scale
 # (free: an up-to-scale session's keyframes keep the scale the graph gives them).
-PRIOR_ROTATION = 0.02
-PRIOR_TRANSLATION = 0.02
+PRIOR_ROTATION = 0.01
+PRIOR_TRANSLATION = 0.01
 PRIOR_LOG_SCALE = 1e3
 
 

@@ -88,7 +88,7 @@ class LoopCorrection:
 # What the stage takes, in order
 LoopItem = GraphKeyframe | LoopQuery | CameraUpdate | PosePrior | MapJoin | MapQuery
 # A session in a stored map solves its graph after this many keyframes were fixed in the map.
-MAP_PRIORS_PER_SOLVE = 3
+MAP_PRIORS_PER_SOLVE = 1
 # ICP of two keyframes' depth for metric loops: relative pose refined, or None when they do not fit.
 # It pairs points closer than this many scene length units (worker.geometry.scene_units; ICL, 1.85 m: 4.6 cm).
 ICP_REACH = 0.025
