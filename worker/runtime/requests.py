@@ -29,7 +29,7 @@ class RequestError(ValueError):
 def serve_request(engine: SessionEngine, kind: str, params: dict[str, Any]) -> tuple[str, bytes]:
     """(content type, body) for a "render" or "export_ply" request (params "format": ply, spz or splat)."""
     if kind == "export_ply":  # the map in any of worker.mapping.map_formats.FORMATS (the name predates them)
-        from worker.mapping.map_formats import FORMATS, encode_map
+        from protocol.splats import FORMATS, encode_map
 
         fmt = str(params.get("format", "ply"))
         if fmt not in FORMATS:
