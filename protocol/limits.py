@@ -30,3 +30,10 @@ def websocket_max_size(max_frame_bytes: int = MAX_FRAME_BYTES) -> int:
     """The WebSocket layer's message bound for a frame bound: room for a frame message over the limit to reach the
     gateway and be answered `too_large` instead of the socket closing with 1009."""
     return max_frame_bytes * 2 + 1024
+
+MAX_MAP_PACKAGE_BYTES = 256 * 1024 * 1024
+"""Default bound of one map package (protocol.map_package), uploaded or made from a session
+(FLASHMONO_MAX_MAP_BYTES)."""
+
+MAX_MAP_KEYFRAMES = 20_000
+"""Keyframes one map package may hold."""
