@@ -14,12 +14,23 @@ single instance ignores the braces. Per session `{id}`:
   fm:{id}:inflight       string "<seq>:<attempts>" of the frame being processed (poison-frame quarantine)
   fm:{id}:lease          string worker id owning the session (expires unless renewed)
   fm:{id}:archiving      string a worker moving the finished session to the blob store (expires)
+Per map `{map.<id>}` (a map's keys share one hash tag too, `map.` keeping it apart from the session ids; the
+scripts that write them are protocol.map_store's):
+  fm:{map.<id>}:map       hash   the map record: id, name, owner (the creator's key hash, as a session's), status,
+                                 created_at, updated_at, latest (version), versions (the last allocated),
+                                 index_member; per version v: v<v>.meta (the package's metadata, JSON), v<v>.size
+                                 (bytes), v<v>.created_at, v<v>.session_id (the session that made it, or "")
+  fm:{map.<id>}:packages  hash   version -> the package bytes (protocol.map_package); every version kept until the
+                                 map is deleted
+  fm:{map.<id>}:sessions  hash   session id -> JSON {role: built|used, map_mode, at}: the sessions that built the map
+                                 and those created in it
 Global: the work queues are split into `PARTITIONS` streams, each its own hash tag, so that on a cluster they
 spread over the shards; a session's job and requests always go to the partition of its id, and workers read the
 partitions in turn:
   fm:{jobs.P}            stream one entry per session to run (consumer group "workers"), P = 0..PARTITIONS-1
   fm:{requests.P}        stream render/export requests for finished sessions (any worker)
   fm:sessions            zset   members "<created_us>:<id>" (score 0, lexicographic order) for listing
+  fm:maps                zset   members "<created_us>:<map id>" (the same) for listing maps
   fm:worker:{wid}        string heartbeat of a live worker (expires)
   fm:workerstats:{wid}   hash   per-stage latency sums and counts
   fm:workermachine:{wid} string JSON: the worker's machine (cores, CUDA, trained weights) for GET /v1/presets
@@ -38,6 +49,7 @@ from typing import Literal, get_args
 
 GROUP = "workers"
 SESSIONS_INDEX = "fm:sessions"
+MAPS_INDEX = "fm:maps"
 PARTITIONS = 8
 WORKER_PREFIX = "fm:worker:"
 WORKER_STATS_PREFIX = "fm:workerstats:"
@@ -150,6 +162,27 @@ def all_session_keys(session_id: str) -> list[str]:
     return [session(session_id), inbox(session_id), outbox(session_id), poses(session_id), rejected(session_id),
             snapshot(session_id), snapshot_chunks(session_id), session_requests(session_id), lease(session_id),
             inflight(session_id), archiving(session_id)]
+
+
+def _map_tagged(map_id: str, part: str) -> str:
+    return f"fm:{{map.{map_id}}}:{part}"
+
+
+def map_record(map_id: str) -> str:
+    return _map_tagged(map_id, "map")
+
+
+def map_packages(map_id: str) -> str:
+    return _map_tagged(map_id, "packages")
+
+
+def map_sessions(map_id: str) -> str:
+    return _map_tagged(map_id, "sessions")
+
+
+def all_map_keys(map_id: str) -> list[str]:
+    """Every key of one map, every version included (deleted together; one hash slot)."""
+    return [map_record(map_id), map_packages(map_id), map_sessions(map_id)]
 
 
 # --- the layout before hash tags (read by worker.runtime.migrate only) -----------------------------------------

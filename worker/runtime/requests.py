@@ -1,9 +1,10 @@
-"""Render and export requests: parse the gateway's request, run it on an engine, post the reply."""
+"""Render, export and map package requests: parse the gateway's request, run it on an engine, post the reply."""
 
 from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Callable
 from typing import Any
 
 import cv2
@@ -12,6 +13,7 @@ import redis
 
 from protocol import keys
 from protocol.codec import pack
+from protocol.map_package import CONTENT_TYPE as MAP_CONTENT_TYPE
 from worker.runtime.engine import SessionEngine
 
 log = logging.getLogger(__name__)
@@ -27,20 +29,44 @@ class RequestError(ValueError):
 
 
 def serve_request(engine: SessionEngine, kind: str, params: dict[str, Any]) -> tuple[str, bytes]:
-    """(content type, body) for a "render" or "export_ply" request (params "format": ply, spz or splat)."""
-    if kind == "export_ply":  # the map in any of worker.mapping.map_formats.FORMATS (the name predates them)
-        from protocol.splats import FORMATS, encode_map
-
-        fmt = str(params.get("format", "ply"))
-        if fmt not in FORMATS:
-            raise RequestError(400, f"unknown map format {fmt!r}; choose one of {', '.join(FORMATS)}")
-        try:
-            encoded = encode_map(engine.export_ply(), fmt, int(params.get("sh_degree", 0)))
-        except ValueError as err:  # e.g. a map without Gaussians (the passthrough engine's point list)
-            raise RequestError(409, f"the map cannot be written as {fmt}: {err}") from err
-        return encoded.content_type, encoded.body
-    if kind != "render":
+    """(content type, body) for a "render", "export_ply" (params "format": ply, spz or splat) or "map_package"
+    (params "name", "session_ids") request."""
+    serve = _SERVERS.get(kind)
+    if serve is None:
         raise RequestError(400, f"unknown request kind {kind!r}")
+    return serve(engine, params)
+
+
+def _export_map(engine: SessionEngine, params: dict[str, Any]) -> tuple[str, bytes]:
+    """The map in any of protocol.splats.FORMATS (the request's name, export_ply, predates them)."""
+    from protocol.splats import FORMATS, encode_map
+
+    fmt = str(params.get("format", "ply"))
+    if fmt not in FORMATS:
+        raise RequestError(400, f"unknown map format {fmt!r}; choose one of {', '.join(FORMATS)}")
+    try:
+        encoded = encode_map(engine.export_ply(), fmt, int(params.get("sh_degree", 0)))
+    except ValueError as err:  # e.g. a map without Gaussians (the passthrough engine's point list)
+        raise RequestError(409, f"the map cannot be written as {fmt}: {err}") from err
+    return encoded.content_type, encoded.body
+
+
+def _map_package(engine: SessionEngine, params: dict[str, Any]) -> tuple[str, bytes]:
+    """The session's map as a map package (worker.maps.build_package)."""
+    if getattr(engine, "mapping_stage", None) is None:
+        raise RequestError(409, "this session's engine keeps no map to package (the passthrough engine, or a "
+                                "session with mapping disabled)")
+    from worker.maps import build_package
+
+    name, session_ids = str(params.get("name") or ""), [str(s) for s in params.get("session_ids") or []]
+    try:
+        return MAP_CONTENT_TYPE, build_package(engine, name, session_ids)
+    except ValueError as err:  # e.g. a map without keyframes (MapPackageError is one)
+        raise RequestError(409, f"the session's map cannot be packaged: {err}") from err
+
+
+def _render(engine: SessionEngine, params: dict[str, Any]) -> tuple[str, bytes]:
+    """A PNG of the map from a camera: colour (RGB) or depth (16-bit, millimetres)."""
     pose = np.asarray(params["pose"], dtype=np.float64).reshape(4, 4)
     width, height = int(params["width"]), int(params["height"])
     K = np.array([[params["fx"], 0.0, params["cx"]], [0.0, params["fy"], params["cy"]], [0.0, 0.0, 1.0]])
@@ -55,6 +81,10 @@ def serve_request(engine: SessionEngine, kind: str, params: dict[str, Any]) -> t
     if not ok:
         raise RequestError(500, "PNG encoding failed")
     return "image/png", buf.tobytes()
+
+
+_SERVERS: dict[str, Callable[[SessionEngine, dict[str, Any]], tuple[str, bytes]]] = {
+    "render": _render, "export_ply": _export_map, "map_package": _map_package}
 
 
 def handle_request(client: redis.Redis, engine: SessionEngine | None, fields: dict[bytes, bytes]) -> None:
