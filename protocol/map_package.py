@@ -29,7 +29,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
-from typing import Any
+from typing import Any, Literal, get_args
 
 import numpy as np
 
@@ -41,7 +41,8 @@ from protocol.splats.ply_records import read_gaussian_records
 FORMAT = "flashmono.map/1"
 CONTENT_TYPE = "application/x-flashmono-map"
 FILE_SUFFIX = ".fmap"
-SCALES = ("metric", "up_to_scale")
+MapScale = Literal["metric", "up_to_scale"]
+SCALES: tuple[str, ...] = get_args(MapScale)
 BOUNDS_PERCENTILES = (1.0, 99.0)
 MAX_TEXT = 200  # characters of a name, a mode, a session id, a timestamp
 EXPOSURE_SIZE = 6

@@ -17,12 +17,14 @@ from service import (
     hardening,
     routes_events,
     routes_health,
+    routes_maps,
     routes_presets,
     routes_results,
     routes_sessions,
     routes_stream,
 )
 from service.auth import Authenticator
+from service.maps import MapStore
 from service.metrics import GatewayMetrics
 from service.outbox_hub import OutboxHub
 from service.registry import Registry
@@ -66,6 +68,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.registry = Registry(client, BlobStore(settings.blob_dir) if settings.blob_dir else None,
                                       wait_replicas=settings.redis_wait_replicas,
                                       wait_timeout_ms=settings.redis_wait_ms)
+        app.state.maps = MapStore(client)
         app.state.outbox_hub = OutboxHub(client)
         app.state.outbox_hub.start()
         try:
@@ -80,8 +83,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.auth = Authenticator(settings)
     app.state.metrics = GatewayMetrics()
     app.state.validate_preset = check_preset
-    hardening.install(app, settings.max_body_bytes)
-    for module in (routes_sessions, routes_presets, routes_results, routes_stream, routes_events, routes_health):
+    hardening.install(app, settings.max_body_bytes, {routes_maps.router.prefix: settings.max_map_bytes})
+    for module in (routes_sessions, routes_maps, routes_presets, routes_results, routes_stream, routes_events,
+                   routes_health):
         app.include_router(module.router)
     if VIEWER_DIR.is_dir():
         app.mount("/viewer/static", StaticFiles(directory=VIEWER_DIR), name="viewer-static")

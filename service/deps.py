@@ -1,10 +1,12 @@
-"""Shared route helpers: the registry from the app, and session look-up with ownership checks."""
+"""Shared route helpers: the registry and the map store from the app, and session and map look-ups with ownership
+checks."""
 
 from __future__ import annotations
 
 from fastapi import HTTPException, Request
 
 from service.auth import Principal
+from service.maps import MapStore
 from service.registry import Registry
 
 
@@ -12,16 +14,31 @@ def registry(request: Request) -> Registry:
     return request.app.state.registry
 
 
-async def session_for(registry: Registry, principal: Principal, session_id: str, write: bool) -> dict[str, str]:
-    """The raw session record, or 404; 403 when the caller may not touch it.
+def map_store(request: Request) -> MapStore:
+    return request.app.state.maps
 
-    Writes (streaming, delete) need the session's creator (or admin); reads need the creator, or a read/admin key.
-    """
+
+def check_access(principal: Principal, record: dict[str, str], write: bool, what: str) -> None:
+    """403 unless the caller may touch `record` (a session's or a map's): writes (streaming, delete, extending a map)
+    need its creator (or admin); reads need its creator, or a read/admin key."""
+    if principal.owns(record.get("owner")) or (not write and principal.can_read_any()):
+        return
+    raise HTTPException(403, f"this API key did not create this {what}")
+
+
+async def session_for(registry: Registry, principal: Principal, session_id: str, write: bool) -> dict[str, str]:
+    """The raw session record, or 404; 403 when the caller may not touch it (`check_access`)."""
     record = await registry.get_raw(session_id)
     if record is None:
         raise HTTPException(404, f"session {session_id} not found")
-    if principal.owns(record.get("owner")):
-        return record
-    if not write and principal.can_read_any():
-        return record
-    raise HTTPException(403, "this API key did not create this session")
+    check_access(principal, record, write, "session")
+    return record
+
+
+async def map_for(maps: MapStore, principal: Principal, map_id: str, write: bool) -> dict[str, str]:
+    """The raw map record, or 404; 403 when the caller may not touch it (`check_access`)."""
+    record = await maps.get_raw(map_id)
+    if record is None:
+        raise HTTPException(404, f"map {map_id} not found")
+    check_access(principal, record, write, "map")
+    return record

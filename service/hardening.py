@@ -10,6 +10,7 @@ import hashlib
 import json
 import logging
 import re
+from collections.abc import Mapping
 from pathlib import Path
 from urllib.parse import urlsplit
 
@@ -53,13 +54,14 @@ _VENDOR_HEADERS = [*_VIEWER_HEADERS[:-1], (b"cache-control", b"public, max-age=8
 _SECRET_QUERY = re.compile(r"(?i)((?:api_key|apikey|token|access_token)=)[^&\s\"']+")
 
 
-def install(app: FastAPI, max_body_bytes: int) -> None:
-    """JSON error handlers and the header/body-limit middleware; the access-log redaction (idempotent)."""
+def install(app: FastAPI, max_body_bytes: int, larger_bodies: Mapping[str, int] | None = None) -> None:
+    """JSON error handlers and the header/body-limit middleware (`larger_bodies`: path -> its own, larger bound,
+    e.g. map uploads); the access-log redaction (idempotent)."""
     for error in REDIS_DOWN:
         app.add_exception_handler(error, _storage_unavailable)
     app.add_exception_handler(Exception, _internal_error)
     app.add_exception_handler(StarletteHTTPException, _http_error)
-    app.add_middleware(BodyLimitMiddleware, max_body_bytes=max_body_bytes)
+    app.add_middleware(BodyLimitMiddleware, max_body_bytes=max_body_bytes, larger_bodies=larger_bodies)
     app.add_middleware(SecurityHeadersMiddleware)
     redact_access_logs()
 
@@ -108,24 +110,27 @@ async def _internal_error(request: Request, exc: Exception) -> JSONResponse:
 
 
 class BodyLimitMiddleware:
-    """413 with a JSON body for any HTTP request body over `max_body_bytes` (declared or streamed)."""
+    """413 with a JSON body for any HTTP request body over `max_body_bytes` (declared or streamed), or over the
+    bound `larger_bodies` gives its path."""
 
-    def __init__(self, app: ASGIApp, max_body_bytes: int) -> None:
+    def __init__(self, app: ASGIApp, max_body_bytes: int, larger_bodies: Mapping[str, int] | None = None) -> None:
         self.app = app
         self.max_body_bytes = max_body_bytes
+        self.larger_bodies = dict(larger_bodies or {})
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
+        limit = self.larger_bodies.get(scope["path"].rstrip("/") or "/", self.max_body_bytes)
         declared = dict(scope["headers"]).get(b"content-length")
         if declared is not None:  # the server delivers no more than the declared length
-            if not declared.isdigit() or int(declared) > self.max_body_bytes:
-                await self._refuse(send)
+            if not declared.isdigit() or int(declared) > limit:
+                await self._refuse(send, limit)
                 return
             await self.app(scope, receive, send)
             return
-        # chunked: read it here, up to the limit (bodies this small are fine in memory), then hand it on
+        # chunked: read it here, up to the limit (the routes read their bodies whole anyway), then hand it on
         chunks, size, more = [], 0, True
         while more:
             message = await receive()
@@ -134,8 +139,8 @@ class BodyLimitMiddleware:
             chunks.append(message.get("body", b""))
             size += len(chunks[-1])
             more = message.get("more_body", False)
-            if size > self.max_body_bytes:
-                await self._refuse(send)
+            if size > limit:
+                await self._refuse(send, limit)
                 return
         replayed = False
 
@@ -148,8 +153,8 @@ class BodyLimitMiddleware:
 
         await self.app(scope, replay, send)
 
-    async def _refuse(self, send: Send) -> None:
-        body = json.dumps({"detail": f"request body exceeds the limit of {self.max_body_bytes} bytes"}).encode()
+    async def _refuse(self, send: Send, limit: int) -> None:
+        body = json.dumps({"detail": f"request body exceeds the limit of {limit} bytes"}).encode()
         await send({"type": "http.response.start", "status": 413,
                     "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]})
         await send({"type": "http.response.body", "body": body})

@@ -20,6 +20,7 @@ from redis.exceptions import NoScriptError
 
 from protocol import keys
 from protocol.poses import similarity_scale
+from service.paging import index_member, index_page
 from worker.runtime.archive import BlobStore
 from worker.runtime.connection import is_cluster
 from worker.runtime.failpoints import failpoint
@@ -87,7 +88,7 @@ return 1
 INGEST_ACCEPTED, NO_SESSION, NOT_ACCEPTING, SEQ_NOT_INCREASING, QUEUE_FULL, SIZE_MISMATCH = 0, -1, -2, -3, -4, -5
 _INT_FIELDS = ("frames_received", "frames_processed", "frames_rejected", "frames_skipped", "keyframes", "revision")
 _FLOAT_FIELDS = ("mapping_lag_s", "frame_rate")
-_OPTIONAL_INT_FIELDS = ("mapping_lag_keyframes", "tracking_side")
+_OPTIONAL_INT_FIELDS = ("mapping_lag_keyframes", "tracking_side", "map_version")
 
 
 def now_iso() -> str:
@@ -141,8 +142,10 @@ class Registry:
             "frame_rate": body.get("frame_rate") or "",
             "intrinsics": json.dumps(body.get("intrinsics")), "depth_camera": json.dumps(body.get("depth_camera")),
             "metadata": json.dumps(body.get("metadata") or {}), "owner": owner, "last_seq": -1,
+            "map_id": body.get("map_id") or "", "map_version": body.get("map_version") or "",
+            "map_mode": body.get("map_mode") or "",
         }
-        member = f"{datetime.now(UTC).timestamp() * 1e6:020.0f}:{session_id}"
+        member = index_member(session_id)
         # atomic on a single instance; on a cluster these keys sit on several shards, so it is one round trip per
         # shard in this order: the record first, its job last (a record without a job is a session never started)
         pipe = self.client.pipeline(transaction=not self.cluster)
@@ -179,28 +182,10 @@ class Registry:
                             cursor: str | None, owner: str | None) -> tuple[list[dict[str, Any]], str | None]:
         """Newest first. `cursor` is the index member of the last session of the previous page; next_cursor is
         None exactly when no further session matches."""
-        matches: list[tuple[str, dict[str, Any]]] = []
-        upper = f"({cursor}" if cursor else "+"
-        batch = max(limit * 2, 50)
-        while len(matches) <= limit:
-            members = await self.client.zrevrangebylex(keys.SESSIONS_INDEX, upper, "-", start=0, num=batch)
-            if not members:
-                break
-            pipe = self.client.pipeline(transaction=False)
-            for member in members:
-                pipe.hgetall(keys.session(member.decode().split(":", 1)[1]))
-            for member, raw in zip(members, await pipe.execute()):
-                upper = f"({member.decode()}"
-                record = {k.decode(): v.decode() for k, v in raw.items()}
-                if record and _matches(record, status, device_id, name, owner):
-                    matches.append((member.decode(), parse_session(record)))
-                    if len(matches) > limit:
-                        break
-            if len(members) < batch:
-                break
-        page = matches[:limit]
-        next_cursor = page[-1][0] if len(matches) > limit else None
-        return [session for _, session in page], next_cursor
+        records, next_cursor = await index_page(
+            self.client, keys.SESSIONS_INDEX, keys.session,
+            lambda record: _matches(record, status, device_id, name, owner), limit, cursor)
+        return [parse_session(record) for record in records], next_cursor
 
     async def delete_session(self, session_id: str, record: dict[str, str]) -> None:
         failpoint("delete:gateway")
@@ -378,6 +363,7 @@ def parse_session(record: dict[str, Any]) -> dict[str, Any]:
     for name in _FLOAT_FIELDS:
         out[name] = float(record[name]) if record.get(name) else None
     out["tracking_state"] = record.get("tracking_state") or None
+    out["map_id"], out["map_mode"] = record.get("map_id") or None, record.get("map_mode") or None
     out["skip_frames"] = record.get("skip_frames") == "1"
     out["last_seq"] = int(record.get("last_seq") or -1)
     return out

@@ -4,36 +4,24 @@ from __future__ import annotations
 
 import asyncio
 import re
-import time
 from typing import Annotated, Literal
 
 import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 from fastapi.responses import PlainTextResponse
 
-from protocol import keys
 from protocol.limits import MAX_RENDER_SIDE, MIN_RENDER_SIDE
 from protocol.poses import split_similarity
 from service.auth import Principal, caller
 from service.deps import registry, session_for
 from service.pose_check import pose_problem
-from service.registry import ArchiveUnavailable, Registry, RequestTimeout, parse_session
+from service.registry import ArchiveUnavailable, Registry, parse_session
 from service.schemas import ErrorBody, Trajectory
+from service.worker_requests import WORKER_ANSWERS, ask_worker
 
 router = APIRouter(prefix="/v1/sessions/{session_id}", tags=["results"],
                    responses={401: {"model": ErrorBody}, 403: {"model": ErrorBody}, 404: {"model": ErrorBody}})
 
-# Seconds a client waits before asking again when no worker owns a live session (a worker takes it over within a
-# lease: a few seconds)
-NO_OWNER_RETRY_AFTER_S = 2
-_WORKER_ANSWERS = {
-    409: {"model": ErrorBody, "description": "the session failed, or has no map yet (no frame streamed)"},
-    503: {"model": ErrorBody, "description": "no worker owns this live session right now (its worker went away and "
-          "another takes it over, or the fleet is full): retry after `Retry-After` seconds",
-          "headers": {"Retry-After": {"description": "seconds to wait before retrying",
-                                      "schema": {"type": "integer"}}}},
-    504: {"model": ErrorBody, "description": "the owning worker did not answer within the request timeout"},
-}
 # A number as JSON Schema (ECMA 262) and Python's `re` both read it; render_params applies the same pattern
 _NUMBER = r"[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][-+]?[0-9]+)?"
 RENDER_POSE_PATTERN = rf"^ *{_NUMBER} *(?:, *{_NUMBER} *){{15}}$"
@@ -80,7 +68,7 @@ def tum_text(poses: list[dict]) -> str:
             responses={200: {"content": {"image/png": {}}, "description": "color: RGB PNG; depth: 16-bit PNG, mm"},
                        400: {"model": ErrorBody, "description": "the pose is not a camera-to-world pose (not rigid, "
                              "a reflection, ...), the size exceeds the pixel limit, or the camera is not given and "
-                             "the session has no intrinsics"}, **_WORKER_ANSWERS})
+                             "the session has no intrinsics"}, **WORKER_ANSWERS})
 async def render_view(
     session_id: str,
     request: Request,
@@ -116,7 +104,7 @@ async def render_view(
 
 @router.get("/map.ply", response_class=Response,
             responses={200: {"content": {"application/octet-stream": {}}, "description": "binary PLY"},
-                       **_WORKER_ANSWERS})
+                       **WORKER_ANSWERS})
 async def export_map(
     session_id: str,
     request: Request,
@@ -139,7 +127,7 @@ async def export_map(
 @router.get("/map", response_class=Response,
             responses={200: {"content": {"application/octet-stream": {}},
                              "description": "the map file (X-Map-Format, X-Map-Revision headers)"},
-                       **_WORKER_ANSWERS})
+                       **WORKER_ANSWERS})
 async def export_map_as(
     session_id: str,
     request: Request,
@@ -167,25 +155,8 @@ async def export_map_as(
 
 async def _ask_worker(request: Request, reg: Registry, session_id: str, record: dict[str, str], kind: str,
                       params: dict) -> Response:
-    status = record["status"]
-    live = status in keys.LIVE_STATUSES
-    if status == "failed":
-        raise HTTPException(409, f"session failed: {record.get('error', '')}")
-    if status == "created":  # no worker takes a session before its first frame: there is nothing to ask it
-        raise HTTPException(409, "the session has no map yet: no frame has been streamed to it")
-    if live and await reg.lease_holder(session_id) is None:
-        raise HTTPException(503, "no worker owns this session right now; retry shortly",
-                            headers={"Retry-After": str(NO_OWNER_RETRY_AFTER_S)})
-    t0 = time.perf_counter()
-    try:
-        reply = await reg.request(session_id, kind, params, live=live,
-                                  timeout_s=request.app.state.settings.request_timeout_s)
-    except RequestTimeout as err:
-        raise HTTPException(504, str(err)) from err
-    request.app.state.metrics.request_latency.labels(kind).observe(time.perf_counter() - t0)
-    if not reply.get("ok"):
-        raise HTTPException(int(reply.get("status", 500)), reply.get("detail", "worker error"))
-    return Response(content=reply["body"], media_type=reply["content_type"])
+    content_type, body = await ask_worker(request, reg, session_id, record, kind, params)
+    return Response(content=body, media_type=content_type)
 
 
 def render_params(record: dict[str, str], pose: str, width: int | None, height: int | None, fx: float | None,

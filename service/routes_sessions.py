@@ -8,7 +8,8 @@ from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 from fastapi.exceptions import RequestValidationError
 
 from service.auth import Principal, caller
-from service.deps import registry, session_for
+from service.deps import check_access, map_store, registry, session_for
+from service.maps import MapStore
 from service.registry import Registry, parse_session
 from service.schemas import ErrorBody, Session, SessionCreate, SessionList, SessionStatus
 
@@ -23,23 +24,44 @@ router = APIRouter(prefix="/v1/sessions", tags=["sessions"],
                         422: {"description": "invalid body: not JSON, or a field the schema or its rules refuse"},
                         429: {"model": ErrorBody, "description": "the key's quota of live sessions is used up"}})
 async def create_session(body: SessionCreate, request: Request, principal: Principal = Depends(caller),
-                         reg: Registry = Depends(registry)) -> dict:
-    """Create a session; a worker picks it up. Needs the `stream` scope."""
+                         reg: Registry = Depends(registry), maps: MapStore = Depends(map_store)) -> dict:
+    """Create a session; a worker picks it up. Needs the `stream` scope. With `map_id`, the session runs in that
+    saved map (`map_mode`), at its latest version."""
     request.app.state.auth.require(principal, "stream")
     if body.preset is not None:
         check = request.app.state.validate_preset
         try:
             check(body.preset)
-        except (ValueError, KeyError) as err:  # the same 422 body as every other invalid field
-            raise RequestValidationError([{"type": "value_error", "loc": ("body", "preset"), "input": body.preset,
-                                           "msg": f"unknown preset {body.preset!r}: {err}"}]) from err
+        except (ValueError, KeyError) as err:
+            raise _invalid("preset", body.preset, f"unknown preset {body.preset!r}: {err}") from err
+    in_map = await _map_fields(body, principal, maps)
     quota = request.app.state.settings.max_live_sessions
     if quota and await reg.live_sessions_of(principal.key_id) >= quota:
         raise HTTPException(429, f"this API key has {quota} live sessions, its limit (FLASHMONO_MAX_LIVE_SESSIONS): "
                                  "finish or delete one first")
-    session = await reg.create_session(body.model_dump(mode="json"), owner=principal.key_id)
+    session = await reg.create_session({**body.model_dump(mode="json"), **in_map}, owner=principal.key_id)
+    if in_map:
+        await maps.add_session(in_map["map_id"], session["id"], in_map["map_mode"])
     request.app.state.metrics.sessions_created.inc()
     return session
+
+
+def _invalid(field: str, value: object, message: str) -> RequestValidationError:
+    """The same 422 body as every other invalid field."""
+    return RequestValidationError([{"type": "value_error", "loc": ("body", field), "input": value, "msg": message}])
+
+
+async def _map_fields(body: SessionCreate, principal: Principal, maps: MapStore) -> dict:
+    """{map_id, map_version, map_mode} of a session created in a map (none without `map_id`): 422 for an unknown
+    map, 403 for one the key may not read (`extend`: may not change)."""
+    if body.map_id is None:
+        return {}
+    record = await maps.get_raw(body.map_id)
+    if record is None:
+        raise _invalid("map_id", body.map_id, f"unknown map {body.map_id!r}")
+    mode = body.map_mode or "localize"
+    check_access(principal, record, write=mode == "extend", what="map")
+    return {"map_id": body.map_id, "map_version": int(record["latest"]), "map_mode": mode}
 
 
 @router.get("", response_model=SessionList)

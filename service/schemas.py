@@ -9,6 +9,8 @@ from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, Strict, Stri
 
 from protocol.keys import SessionStatus
 from protocol.limits import MAX_IMAGE_SIDE
+from protocol.map_package import MapScale
+from protocol.map_store import MapMode, MapStatus, SessionRole
 from protocol.presets import PresetName
 from service.presets import preset_field_description
 
@@ -142,6 +144,12 @@ FRAME_RATE_DOC = (
     "settings takes it into account and the session's `settings` names it")
 
 
+MAP_ID_DOC = ("start the session in this saved map (GET /v1/maps): its version at creation (`map_version`); 422 for an "
+              "unknown map, 403 for one this key may not read (`extend`: may not change)")
+MAP_MODE_DOC = ("with `map_id`: `localize` (the default) tracks in the map and leaves it as it is; `extend` also maps "
+                "what is new and adds a version to the map when the session finishes")
+
+
 class SessionSettings(BaseModel):
     """The engine settings the session runs with: named by the client, or chosen by the worker."""
 
@@ -170,6 +178,14 @@ class SessionCreate(BaseModel):
     name: str | None = Field(default=None, max_length=200)
     device_id: str | None = Field(default=None, max_length=200)
     metadata: dict[str, Any] = Field(default_factory=dict)
+    map_id: str | None = Field(default=None, max_length=64, description=MAP_ID_DOC)
+    map_mode: MapMode | None = Field(default=None, description=MAP_MODE_DOC)
+
+    @model_validator(mode="after")
+    def _map_mode_needs_a_map(self) -> SessionCreate:
+        if self.map_mode is not None and self.map_id is None:
+            raise ValueError("map_mode needs map_id: the map to localize in or extend")
+        return self
 
 
 class Session(BaseModel):
@@ -217,6 +233,10 @@ class Session(BaseModel):
     warnings: list[str] = Field(
         default_factory=list, description="what the worker noticed about the input, e.g. depth not registered to "
         "the colour image")
+    map_id: str | None = Field(None, description="the saved map the session runs in (null: none)")
+    map_version: int | None = Field(None, description="the map's version the session runs in: its latest when the "
+                                                      "session was created")
+    map_mode: MapMode | None = Field(None, description=MAP_MODE_DOC)
 
 
 class SessionList(BaseModel):
@@ -278,3 +298,81 @@ class PresetList(BaseModel):
         default_factory=list, description="what `auto` (no preset named) chooses on each kind of machine among the "
         "live workers")
     input_modes: str = Field(description="how the input mode follows from the fields a frame carries")
+
+
+class MapCreate(BaseModel):
+    """Save a finished session's map."""
+
+    model_config = ConfigDict(extra="forbid")
+    session_id: str = Field(max_length=64, description="a finished session this key created")
+    name: str = Field(max_length=200)
+
+
+class MapCamera(BaseModel):
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+
+class MapBounds(BaseModel):
+    min: list[float] = Field(description="x, y, z")
+    max: list[float] = Field(description="x, y, z")
+
+
+class MapMeta(BaseModel):
+    """What a map package holds (protocol.map_package)."""
+
+    name: str = Field(description="as the package names it")
+    surfels: int
+    keyframes: int
+    bounds: MapBounds | None = Field(description="the 1st-99th percentile box of the surfel centres, in map units "
+                                                 "(null without surfels)")
+    scale: MapScale = Field(description="metric (sensor depth or device poses: metres) or up_to_scale")
+    camera: MapCamera = Field(description="the first keyframe's")
+    mode: str = Field(description="the input mode of the session that built it: rgbd, posed-rgbd, posed-rgb, rgb")
+    sessions: list[str] = Field(description="the sessions that built it (where it was built)")
+    created_at: str = Field(description="ISO 8601, when the package was made")
+
+
+class MapVersion(BaseModel):
+    version: int
+    created_at: str = Field(description="ISO 8601, UTC: when it was stored")
+    size_bytes: int = Field(description="of the package")
+    session_id: str | None = Field(description="the session that made it (null: uploaded)")
+    meta: MapMeta
+
+
+class MapSession(BaseModel):
+    id: str
+    role: SessionRole = Field(description="built: its map was saved as this map; used: created in the map")
+    map_mode: MapMode | None = Field(description="used: how the session runs in the map")
+    status: SessionStatus | None = Field(description="the session's status now (null: deleted)")
+
+
+class MapSummary(BaseModel):
+    id: str
+    name: str
+    status: MapStatus
+    created_at: str = Field(description="ISO 8601, UTC")
+    updated_at: str = Field(description="ISO 8601, UTC: the latest version's")
+    latest_version: int
+    size_bytes: int = Field(description="of the latest version's package")
+    meta: MapMeta = Field(description="of the latest version")
+
+
+class Map(MapSummary):
+    versions: list[MapVersion] = Field(description="every version kept, oldest first")
+    sessions: list[MapSession]
+
+
+class MapList(BaseModel):
+    maps: list[MapSummary]
+    next_cursor: str | None = Field(description="pass as ?cursor= for the next page; null on the last page")
+
+
+class MapSessionList(BaseModel):
+    map_id: str
+    sessions: list[MapSession]

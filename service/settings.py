@@ -11,7 +11,7 @@ from pydantic import Field, ValidationError, field_validator, model_validator
 from pydantic_settings import BaseSettings, EnvSettingsSource, NoDecode, SettingsConfigDict
 from pydantic_settings.sources.utils import parse_env_vars
 
-from protocol.limits import DEFAULT_MAX_QUEUE, MAX_FRAME_BYTES, MAX_RENDER_PIXELS
+from protocol.limits import DEFAULT_MAX_QUEUE, MAX_FRAME_BYTES, MAX_MAP_PACKAGE_BYTES, MAX_RENDER_PIXELS
 from protocol.settings_model import explain
 
 SCOPES = ("stream", "read", "admin")
@@ -41,6 +41,9 @@ class Settings(BaseSettings):
                                                               "reply")
     max_render_pixels: int = Field(MAX_RENDER_PIXELS, ge=1, description="bound of width x height of one render")
     max_body_bytes: int = Field(1024 * 1024, ge=1024, description="bound of one HTTP request body")
+    max_map_bytes: int = Field(MAX_MAP_PACKAGE_BYTES, ge=1024, description="bound of one map package: the body of "
+                                                                            "an upload (POST /v1/maps), and a map "
+                                                                            "made from a session")
     allowed_origins: Annotated[frozenset[str], NoDecode] = Field(
         frozenset(), description="comma-separated origins a browser may open the WebSockets from besides the "
                                  "gateway's own (`*`: any)")

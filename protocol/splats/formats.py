@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal, get_args
 
 from .arrays import splat_arrays_from_ply
 from .ply_records import ply_with_sh_degree
 from .splat_file import encode_splat
 from .spz import encode_spz
 
-FORMATS = ("ply", "spz", "splat")
+MapFormat = Literal["ply", "spz", "splat"]
+FORMATS: tuple[str, ...] = get_args(MapFormat)
 
 
 @dataclass(frozen=True)

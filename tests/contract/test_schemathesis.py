@@ -4,9 +4,10 @@ fuzzing and stateful phases, bounded, finds nothing.
 
 Every default check runs (status codes, content types, response schemas and headers, server errors, positive and
 negative data, the `Allow` header of 405s, auth that is not ignored, ...) plus one of ours (schemathesis_hooks.py).
-Two rejections the schema cannot express are allowed for positive data (schemathesis.toml below): a session's
-cross-field rules (422: the principal point inside the image, a rigid depth-to-colour extrinsic) and a render's
-pose that is well formed but not a camera pose, or a size over the pixel limit (400).
+Three rejections the schema cannot express are allowed for positive data (schemathesis.toml below): a session's
+cross-field rules (422: the principal point inside the image, a rigid depth-to-colour extrinsic, a map that does not
+exist), a render's pose that is well formed but not a camera pose, or a size over the pixel limit (400), and an
+uploaded map whose bytes are no map package (400).
 
 Bounds: FLASHMONO_SCHEMATHESIS_EXAMPLES cases per operation (default 60) and FLASHMONO_SCHEMATHESIS_SEED (default
 a fixed one; `random` for a fresh one each run)."""
@@ -45,6 +46,10 @@ checks.positive_data_acceptance.expected-statuses = {json.dumps([*ALWAYS_ACCEPTA
 [[operations]]
 include-name = "GET /v1/sessions/{{session_id}}/render"
 checks.positive_data_acceptance.expected-statuses = {json.dumps([*ALWAYS_ACCEPTABLE, "400"])}
+
+[[operations]]
+include-name = "POST /v1/maps"
+checks.positive_data_acceptance.expected-statuses = {json.dumps([*ALWAYS_ACCEPTABLE, "400"])}
 """
 
 
@@ -82,7 +87,7 @@ def test_schemathesis_finds_nothing(stack, tmp_path):
     output = run.stdout + run.stderr
     assert run.returncode == 0, output[-20000:]
     summary = output[output.find("SUMMARY"):]
-    assert "Tested: 12" in summary and "Selected: 12/12" in summary, summary
+    assert "Tested: 19" in summary and "Selected: 19/19" in summary, summary
     for phase in ("Coverage", "Fuzzing", "Stateful"):
         assert f"✅ {phase}" in summary, summary  # ran and passed (not skipped)
     cases = summary[summary.find("Test cases:"):].splitlines()[:2]
