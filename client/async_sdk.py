@@ -19,6 +19,7 @@ import json
 import time
 from collections import deque
 from collections.abc import AsyncIterator, Awaitable, Callable
+from pathlib import Path
 from typing import Any
 from urllib.parse import quote
 
@@ -40,6 +41,8 @@ from client.models import (
     TRACKING_EVENT_TYPES,
     InputEvent,
     LoopClosedEvent,
+    MapInfo,
+    MapPage,
     PoseEvent,
     Session,
     SessionPage,
@@ -460,7 +463,7 @@ class AsyncFlashMonoClient:
 
     async def _call(self, call: rest.Call) -> Any:
         try:
-            response = await self._http.request(call.method, call.path, params=call.params or None, json=call.json)
+            response = await self._http.request(call.method, call.path, **call.request_options())
         except httpx.TransportError as err:
             raise ServerUnreachableError(f"cannot reach {self.server_url}: {err}") from err
         rest.raise_for_error(response)
@@ -477,10 +480,11 @@ class AsyncFlashMonoClient:
     async def create_session(self, *, intrinsics: Any = None, preset: str | None = None, name: str | None = None,
                              device_id: str | None = None, metadata: dict[str, Any] | None = None,
                              pose_mode: str | None = None, skip_frames: bool | None = None,
-                             tracking_side: int | None = None, frame_rate: float | None = None) -> Session:
+                             tracking_side: int | None = None, frame_rate: float | None = None,
+                             map_id: str | None = None, map_mode: str | None = None) -> Session:
         """A new session (see FlashMonoClient.create_session)."""
         return await self._call(rest.create_session(intrinsics, preset, name, device_id, metadata, pose_mode,
-                                                    skip_frames, tracking_side, frame_rate))
+                                                    skip_frames, tracking_side, frame_rate, map_id, map_mode))
 
     async def presets(self) -> dict[str, Any]:
         """GET /v1/presets: {presets: [{name, purpose, input}], input_modes}."""
@@ -528,6 +532,30 @@ class AsyncFlashMonoClient:
         """The session's surfel map as PLY bytes (sh_degree 3: with the 45 zero f_rest coefficients); format "spz"
         or "splat" for web viewers."""
         return await self._call(rest.map_ply(session_id, sh_degree, format))
+
+    # ------------------------------------------------------------------------------------------------ maps
+    async def create_map(self, session_id: str, name: str) -> MapInfo:
+        """Save the map of a finished session this key created as a new map named `name`."""
+        return await self._call(rest.create_map(session_id, name))
+
+    async def upload_map(self, path_or_bytes: str | Path | bytes, name: str | None = None) -> MapInfo:
+        """Upload a map package (a file or its bytes) as a new map; `name` defaults to the package's."""
+        return await self._call(rest.upload_map(rest.package_bytes(path_or_bytes), name))
+
+    async def list_maps(self, *, limit: int | None = None, cursor: str | None = None) -> MapPage:
+        return await self._call(rest.list_maps(limit, cursor))
+
+    async def get_map(self, map_id: str) -> MapInfo:
+        """A map with every version and the sessions that built or used it."""
+        return await self._call(rest.get_map(map_id))
+
+    async def delete_map(self, map_id: str) -> None:
+        await self._call(rest.delete_map(map_id))
+
+    async def download_saved_map(self, map_id: str, format: str = "ply", *, version: int | None = None,
+                                 sh_degree: int = 0) -> bytes:
+        """A saved map's file: "package" or its surfels as "ply", "spz" or "splat" (see FlashMonoClient)."""
+        return await self._call(rest.map_file(map_id, format, version, sh_degree))
 
     # ------------------------------------------------------------------------------------------- streaming
     def open_stream(self, session_id: str, *, window: int = 4, max_pending: int = 8, max_retries: int = 20,

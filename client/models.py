@@ -1,4 +1,4 @@
-"""What the SDK returns: sessions, trajectories and live stream events, parsed from the server's JSON."""
+"""What the SDK returns: sessions, saved maps, trajectories and live stream events, parsed from the server's JSON."""
 
 from __future__ import annotations
 
@@ -59,6 +59,9 @@ class Session:
     tracking_side: int | None = None  # the tracking resolution's long side (None: the worker's default)
     frame_rate: float | None = None  # the camera's frame rate, as the client gave it
     settings: dict[str, Any] | None = None  # {preset, decided: auto|named, tracking_side, overrides, reasons}
+    map_id: str | None = None  # the saved map the session runs in
+    map_version: int | None = None  # that map's version (its latest when the session was created)
+    map_mode: str | None = None  # "localize" or "extend"
 
     @classmethod
     def from_json(cls, data: dict[str, Any]) -> Session:
@@ -92,6 +95,9 @@ class Session:
             tracking_side=data.get("tracking_side"),
             frame_rate=data.get("frame_rate"),
             settings=data.get("settings"),
+            map_id=data.get("map_id"),
+            map_version=data.get("map_version"),
+            map_mode=data.get("map_mode"),
         )
 
 
@@ -100,6 +106,43 @@ class SessionPage:
     """One page of the fleet listing; pass `next_cursor` back to get the next one (None: last page)."""
 
     sessions: list[Session]
+    next_cursor: str | None
+
+
+@dataclass(frozen=True)
+class MapInfo:
+    """A saved map as the gateway reports it: `meta` of its latest version (name, surfels, keyframes, bounds, scale,
+    camera, mode, sessions, created_at); `versions` and `sessions` only from get_map / create_map / upload_map.
+    `raw` keeps every field the server sent."""
+
+    id: str
+    name: str
+    status: str
+    latest_version: int
+    size_bytes: int
+    meta: dict[str, Any]
+    created_at: str | None = None
+    updated_at: str | None = None
+    versions: list[dict[str, Any]] = field(default_factory=list)
+    sessions: list[dict[str, Any]] = field(default_factory=list)
+    raw: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> MapInfo:
+        if not isinstance(data, dict) or "id" not in data:
+            raise ValueError(f"not a map object: {data!r}")
+        return cls(id=str(data["id"]), name=str(data.get("name", "")), status=str(data.get("status", "unknown")),
+                   latest_version=int(data.get("latest_version") or 0), size_bytes=int(data.get("size_bytes") or 0),
+                   meta=dict(data.get("meta") or {}), created_at=data.get("created_at"),
+                   updated_at=data.get("updated_at"), versions=list(data.get("versions") or []),
+                   sessions=list(data.get("sessions") or []), raw=dict(data))
+
+
+@dataclass(frozen=True)
+class MapPage:
+    """One page of the maps listing; pass `next_cursor` back to get the next one (None: last page)."""
+
+    maps: list[MapInfo]
     next_cursor: str | None
 
 

@@ -8,13 +8,14 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 from urllib.parse import quote
 
 import httpx
 
 from client.errors import error_for_status
-from client.models import Session, SessionPage, Trajectory, pose_to_list
+from client.models import MapInfo, MapPage, Session, SessionPage, Trajectory, pose_to_list
 
 API_PREFIX = "/v1"
 
@@ -26,6 +27,13 @@ class Call:
     parse: Callable[[httpx.Response], Any]
     params: dict[str, Any] = field(default_factory=dict)
     json: Any = None
+    content: bytes | None = None  # a binary body (with its content type in `headers`)
+    headers: dict[str, str] = field(default_factory=dict)
+
+    def request_options(self) -> dict[str, Any]:
+        """The keyword arguments of httpx's `request` beside method and path."""
+        return {"params": self.params or None, "json": self.json, "content": self.content,
+                "headers": self.headers or None}
 
 
 def raise_for_error(response: httpx.Response) -> None:
@@ -79,10 +87,14 @@ def intrinsics_payload(intrinsics: Any) -> dict[str, float] | None:
 def create_session(intrinsics: Any = None, preset: str | None = None, name: str | None = None,
                    device_id: str | None = None, metadata: dict[str, Any] | None = None,
                    pose_mode: str | None = None, skip_frames: bool | None = None,
-                   tracking_side: int | None = None, frame_rate: float | None = None) -> Call:
+                   tracking_side: int | None = None, frame_rate: float | None = None, map_id: str | None = None,
+                   map_mode: str | None = None) -> Call:
+    if map_mode is not None and map_mode not in MAP_MODES:
+        raise ValueError(f"map_mode must be one of {', '.join(MAP_MODES)}, got {map_mode!r}")
     body = _drop_none({"intrinsics": intrinsics_payload(intrinsics), "preset": preset, "name": name,
                        "device_id": device_id, "metadata": metadata, "pose_mode": pose_mode,
-                       "skip_frames": skip_frames, "tracking_side": tracking_side, "frame_rate": frame_rate})
+                       "skip_frames": skip_frames, "tracking_side": tracking_side, "frame_rate": frame_rate,
+                       "map_id": map_id, "map_mode": map_mode})
     return Call("POST", f"{API_PREFIX}/sessions", lambda r: Session.from_json(r.json()), json=body)
 
 
@@ -151,6 +163,61 @@ def map_ply(session_id: str, sh_degree: int = 0, format: str = "ply") -> Call:
         return Call("GET", _session_path(session_id, "/map.ply"), lambda r: r.content,
                     params={"sh_degree": sh_degree})
     return Call("GET", _session_path(session_id, "/map"), lambda r: r.content, params={"format": format})
+
+
+MAP_MODES = ("localize", "extend")
+MAP_FILE_FORMATS = ("package", *MAP_FORMATS)
+MAP_PACKAGE_TYPE = "application/x-flashmono-map"
+
+
+def _map_path(map_id: str, suffix: str = "") -> str:
+    if not map_id or not isinstance(map_id, str):
+        raise ValueError("a map id is required")
+    return f"{API_PREFIX}/maps/{quote(map_id, safe='')}{suffix}"
+
+
+def create_map(session_id: str, name: str) -> Call:
+    _session_path(session_id)  # validates the id
+    return Call("POST", f"{API_PREFIX}/maps", lambda r: MapInfo.from_json(r.json()),
+                json={"session_id": session_id, "name": name})
+
+
+def package_bytes(path_or_bytes: str | Path | bytes) -> bytes:
+    """A map package's bytes: given, or read from a file."""
+    if isinstance(path_or_bytes, bytes | bytearray | memoryview):
+        return bytes(path_or_bytes)
+    return Path(path_or_bytes).read_bytes()
+
+
+def upload_map(package: bytes, name: str | None = None) -> Call:
+    return Call("POST", f"{API_PREFIX}/maps", lambda r: MapInfo.from_json(r.json()), params=_drop_none({"name": name}),
+                content=package, headers={"content-type": MAP_PACKAGE_TYPE})
+
+
+def list_maps(limit: int | None = None, cursor: str | None = None) -> Call:
+    def parse(response: httpx.Response) -> MapPage:
+        data = response.json()
+        return MapPage([MapInfo.from_json(m) for m in data.get("maps", [])], data.get("next_cursor"))
+
+    return Call("GET", f"{API_PREFIX}/maps", parse, params=_drop_none({"limit": limit, "cursor": cursor}))
+
+
+def get_map(map_id: str) -> Call:
+    return Call("GET", _map_path(map_id), lambda r: MapInfo.from_json(r.json()))
+
+
+def delete_map(map_id: str) -> Call:
+    return Call("DELETE", _map_path(map_id), lambda r: None)
+
+
+def map_file(map_id: str, format: str = "ply", version: int | None = None, sh_degree: int = 0) -> Call:
+    """A saved map's file: its package ("package", to upload elsewhere) or its surfels as PLY, SPZ or .splat."""
+    if format not in MAP_FILE_FORMATS:
+        raise ValueError(f"format must be one of {', '.join(MAP_FILE_FORMATS)}, got {format!r}")
+    if format == "package":
+        return Call("GET", _map_path(map_id, "/export"), lambda r: r.content, params=_drop_none({"version": version}))
+    return Call("GET", _map_path(map_id, "/map"), lambda r: r.content,
+                params=_drop_none({"format": format, "version": version, "sh_degree": sh_degree or None}))
 
 
 def health() -> Call:

@@ -9,6 +9,8 @@
         png = client.render(session.id, trajectory.poses[-1].pose, width=320, height=240, fx=262.5, fy=262.5,
                             cx=159.75, cy=119.75)
         ply = client.download_map(session.id)
+        saved = client.create_map(session.id, "walk")            # keep the map; start a session in it later:
+        again = client.create_session(map_id=saved.id)           # map_mode "localize" (default) or "extend"
 
 REST calls go through httpx; `stream` runs the WebSocket stream of `AsyncFlashMonoClient` on a private event
 loop, calling `on_event` for each live pose / loop closure. Errors are the typed exceptions of client.errors.
@@ -17,6 +19,7 @@ loop, calling `on_event` for each live pose / loop closure. Errors are the typed
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 import httpx
@@ -40,6 +43,8 @@ from client.errors import (
 from client.models import (
     InputEvent,
     LoopClosedEvent,
+    MapInfo,
+    MapPage,
     PoseEvent,
     Session,
     SessionPage,
@@ -52,7 +57,8 @@ from client.streaming import WireOptions
 
 __all__ = [
     "AsyncFlashMonoClient", "AuthError", "BackpressureError", "BadRequestError", "ConflictError",
-    "FlashMonoClient", "FlashMonoError", "InputEvent", "LoopClosedEvent", "NotFoundError", "PermissionDeniedError",
+    "FlashMonoClient", "FlashMonoError", "InputEvent", "LoopClosedEvent", "MapInfo", "MapPage", "NotFoundError",
+    "PermissionDeniedError",
     "PoseEvent", "RateLimitError", "ServerError", "ServerUnreachableError", "Session", "SessionPage", "StreamError",
     "StreamSummary", "TrackingEvent", "Trajectory", "TrajectoryPose", "WireOptions",
 ]
@@ -82,7 +88,7 @@ class FlashMonoClient:
 
     def _call(self, call: rest.Call) -> Any:
         try:
-            response = self._http.request(call.method, call.path, params=call.params or None, json=call.json)
+            response = self._http.request(call.method, call.path, **call.request_options())
         except httpx.TransportError as err:
             raise ServerUnreachableError(f"cannot reach {self.server_url}: {err}") from err
         rest.raise_for_error(response)
@@ -99,7 +105,8 @@ class FlashMonoClient:
     def create_session(self, *, intrinsics: Any = None, preset: str | None = None, name: str | None = None,
                        device_id: str | None = None, metadata: dict[str, Any] | None = None,
                        pose_mode: str | None = None, skip_frames: bool | None = None,
-                       tracking_side: int | None = None, frame_rate: float | None = None) -> Session:
+                       tracking_side: int | None = None, frame_rate: float | None = None,
+                       map_id: str | None = None, map_mode: str | None = None) -> Session:
         """A new session; intrinsics as {fx, fy, cx, cy, width, height}, an Intrinsics or [fx, fy, cx, cy].
         pose_mode: "seeded" tracks from the images starting from the device poses frames carry, with them as priors
         (the default with depth), "prior" uses them as the odometry refined by loop closures (the default without
@@ -108,9 +115,10 @@ class FlashMonoClient:
         tracks every frame however late. tracking_side: track frames at most this long a side (None: as the
         server's settings choose). preset: None lets the worker choose from the input and its machine (`auto`;
         the session's `settings` says what it chose and why). A mobile app streaming its camera live sets
-        skip_frames=True and frame_rate (e.g. 30), and nothing else."""
+        skip_frames=True and frame_rate (e.g. 30), and nothing else. map_id: start in a saved map (its latest
+        version), map_mode "localize" (the default) or "extend" (the session adds a version when it finishes)."""
         return self._call(rest.create_session(intrinsics, preset, name, device_id, metadata, pose_mode,
-                                              skip_frames, tracking_side, frame_rate))
+                                              skip_frames, tracking_side, frame_rate, map_id, map_mode))
 
     def presets(self) -> dict[str, Any]:
         """GET /v1/presets: {presets: [{name, purpose, input}], input_modes}."""
@@ -157,6 +165,42 @@ class FlashMonoClient:
         f_rest coefficients fixed-record 3DGS readers expect (248 bytes a surfel). format="spz" (Niantic SPZ v3)
         or "splat" (antimatter15, 32 bytes a surfel) give what web splat viewers read."""
         return self._call(rest.map_ply(session_id, sh_degree, format))
+
+    # ------------------------------------------------------------------------------------------------ maps
+    def create_map(self, session_id: str, name: str) -> MapInfo:
+        """Save the map of a finished session this key created as a new map named `name`."""
+        return self._call(rest.create_map(session_id, name))
+
+    def upload_map(self, path_or_bytes: str | Path | bytes, name: str | None = None) -> MapInfo:
+        """Upload a map package (a file or its bytes, as `download_saved_map(format="package")` gives) as a new map;
+        `name` defaults to the package's."""
+        return self._call(rest.upload_map(rest.package_bytes(path_or_bytes), name))
+
+    def list_maps(self, *, limit: int | None = None, cursor: str | None = None) -> MapPage:
+        return self._call(rest.list_maps(limit, cursor))
+
+    def iter_maps(self, *, page_size: int = 100) -> Iterator[MapInfo]:
+        """Every map this key may read, newest first, following the pagination cursor."""
+        cursor = None
+        while True:
+            page = self.list_maps(limit=page_size, cursor=cursor)
+            yield from page.maps
+            if not page.next_cursor:
+                return
+            cursor = page.next_cursor
+
+    def get_map(self, map_id: str) -> MapInfo:
+        """A map with every version and the sessions that built or used it."""
+        return self._call(rest.get_map(map_id))
+
+    def delete_map(self, map_id: str) -> None:
+        self._call(rest.delete_map(map_id))
+
+    def download_saved_map(self, map_id: str, format: str = "ply", *, version: int | None = None,
+                           sh_degree: int = 0) -> bytes:
+        """A saved map's file: "package" (to upload elsewhere) or its surfels as "ply", "spz" or "splat"; the latest
+        version unless `version` is given. (`download_map` downloads a session's map.)"""
+        return self._call(rest.map_file(map_id, format, version, sh_degree))
 
     # ------------------------------------------------------------------------------------------- streaming
     def stream(self, session_id: str, source: Any, *, on_event: EventCallback | None = None,
