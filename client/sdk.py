@@ -130,13 +130,7 @@ class FlashMonoClient:
 
     def iter_sessions(self, *, page_size: int = 100, **filters: Any) -> Iterator[Session]:
         """Every session matching `filters` (status, device_id, name), following the pagination cursor."""
-        cursor = None
-        while True:
-            page = self.list_sessions(limit=page_size, cursor=cursor, **filters)
-            yield from page.sessions
-            if not page.next_cursor:
-                return
-            cursor = page.next_cursor
+        return _follow_cursor(lambda cursor: self.list_sessions(limit=page_size, cursor=cursor, **filters), "sessions")
 
     def get_session(self, session_id: str) -> Session:
         return self._call(rest.get_session(session_id))
@@ -181,13 +175,7 @@ class FlashMonoClient:
 
     def iter_maps(self, *, page_size: int = 100) -> Iterator[MapInfo]:
         """Every map this key may read, newest first, following the pagination cursor."""
-        cursor = None
-        while True:
-            page = self.list_maps(limit=page_size, cursor=cursor)
-            yield from page.maps
-            if not page.next_cursor:
-                return
-            cursor = page.next_cursor
+        return _follow_cursor(lambda cursor: self.list_maps(limit=page_size, cursor=cursor), "maps")
 
     def get_map(self, map_id: str) -> MapInfo:
         """A map with every version and the sessions that built or used it."""
@@ -218,3 +206,14 @@ class FlashMonoClient:
                 return await client.stream(session_id, source, on_event=on_event, on_sent=on_sent, **options)
 
         return run_coroutine(run)
+
+
+def _follow_cursor(fetch: Callable[[str | None], Any], items: str) -> Iterator[Any]:
+    """The `items` of every page `fetch(cursor)` gives (a SessionPage or a MapPage), following `next_cursor`."""
+    cursor = None
+    while True:
+        page = fetch(cursor)
+        yield from getattr(page, items)
+        if not page.next_cursor:
+            return
+        cursor = page.next_cursor

@@ -3,6 +3,8 @@ checks."""
 
 from __future__ import annotations
 
+from collections.abc import Awaitable, Callable
+
 from fastapi import HTTPException, Request
 
 from service.auth import Principal
@@ -28,17 +30,18 @@ def check_access(principal: Principal, record: dict[str, str], write: bool, what
 
 async def session_for(registry: Registry, principal: Principal, session_id: str, write: bool) -> dict[str, str]:
     """The raw session record, or 404; 403 when the caller may not touch it (`check_access`)."""
-    record = await registry.get_raw(session_id)
-    if record is None:
-        raise HTTPException(404, f"session {session_id} not found")
-    check_access(principal, record, write, "session")
-    return record
+    return await _record_for(registry.get_raw, principal, session_id, write, "session")
 
 
 async def map_for(maps: MapStore, principal: Principal, map_id: str, write: bool) -> dict[str, str]:
     """The raw map record, or 404; 403 when the caller may not touch it (`check_access`)."""
-    record = await maps.get_raw(map_id)
+    return await _record_for(maps.get_raw, principal, map_id, write, "map")
+
+
+async def _record_for(load: Callable[[str], Awaitable[dict[str, str] | None]], principal: Principal, item_id: str,
+                      write: bool, what: str) -> dict[str, str]:
+    record = await load(item_id)
     if record is None:
-        raise HTTPException(404, f"map {map_id} not found")
-    check_access(principal, record, write, "map")
+        raise HTTPException(404, f"{what} {item_id} not found")
+    check_access(principal, record, write, what)
     return record
