@@ -43,7 +43,8 @@ class MapStore:
                                     args=[session_id, session_entry("built", None, created)])
         await self.client.zadd(keys.MAPS_INDEX, {member: 0})  # last: a listed map always has its version
         record = await self.get_raw(map_id)
-        assert record is not None
+        if record is None:  # deleted by another request between these calls
+            raise MapNotFound(f"map {map_id} was deleted while it was created")
         return record
 
     async def get_raw(self, map_id: str) -> dict[str, str] | None:

@@ -39,6 +39,7 @@ _CREATE_BODY = {"required": True, "content": {
                         413: {"model": ErrorBody, "description": "the body exceeds FLASHMONO_MAX_MAP_BYTES"},
                         415: {"model": ErrorBody, "description": "neither JSON nor a map package"},
                         422: {"description": "invalid JSON body"},
+                        502: {"model": ErrorBody, "description": "the worker's package failed its check"},
                         **{k: v for k, v in WORKER_ANSWERS.items() if k != 409}})
 async def create_map(
     request: Request,
