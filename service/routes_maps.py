@@ -4,6 +4,7 @@ exported, served as splats and deleted; sessions start in one with `map_id` (rou
 from __future__ import annotations
 
 import asyncio
+import json
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
@@ -32,7 +33,8 @@ _CREATE_BODY = {"required": True, "content": {
 
 
 @router.post("", status_code=201, response_model=Map, openapi_extra={"requestBody": _CREATE_BODY},
-             responses={400: {"model": ErrorBody, "description": "the uploaded package is corrupt (what is wrong)"},
+             responses={400: {"model": ErrorBody, "description": "the uploaded package is corrupt (what is wrong), or "
+                              "the JSON body is not UTF-8 text"},
                         404: {"model": ErrorBody, "description": "no such session"},
                         409: {"model": ErrorBody, "description": "the session is not finished, failed, or its "
                               "engine keeps no map"},
@@ -76,14 +78,22 @@ async def create_map(
 
 
 async def _map_create(request: Request) -> MapCreate:
+    """The JSON body, parsed as FastAPI parses the bodies it reads itself (400: not UTF-8; 422: not JSON, or
+    invalid)."""
     body = await request.body()
     if len(body) > request.app.state.settings.max_body_bytes:
         raise HTTPException(413, f"a JSON body exceeds the limit of {request.app.state.settings.max_body_bytes} "
                                  "bytes")
     try:
-        return MapCreate.model_validate_json(body)
+        return MapCreate.model_validate(json.loads(body))
+    except UnicodeDecodeError as err:
+        raise HTTPException(400, "the body could not be parsed (not UTF-8 text)") from err
+    except json.JSONDecodeError as err:
+        raise RequestValidationError([{"type": "json_invalid", "loc": ("body", err.pos), "msg": "JSON decode error",
+                                       "input": {}, "ctx": {"error": err.msg}}]) from err
     except ValidationError as err:  # the same 422 body as every other invalid field
-        raise RequestValidationError([{**e, "loc": ("body", *e["loc"])} for e in err.errors()]) from err
+        raise RequestValidationError([{**e, "loc": ("body", *e["loc"])} for e in err.errors(include_url=False)]
+                                     ) from err
 
 
 async def _checked(data: bytes, max_bytes: int, status: int) -> MapPackage:

@@ -96,7 +96,7 @@ def test_schemathesis_finds_nothing(stack, tmp_path):
 
 def test_what_the_run_found_once_stays_fixed(stack):
     """The findings of the first run, each asked directly: Allow of a 405, a session with no frame yet, a render pose
-    the schema accepts, a body that is not UTF-8."""
+    the schema accepts, a body that is not UTF-8 (or not JSON), to either route that takes JSON."""
     with httpx.Client(base_url=stack.base_url, headers={"X-API-Key": ADMIN_KEY}, timeout=30) as api:
         assert api.request("OPTIONS", "/v1/sessions").headers["allow"] == "GET, POST"
         created = api.post("/v1/sessions", json={})
@@ -115,6 +115,11 @@ def test_what_the_run_found_once_stays_fixed(stack):
             assert answer.status_code == 400 and "16 comma-separated" in answer.json()["detail"], answer.text
         answer = api.post("/v1/sessions", content=b'{"name": "\xff"}', headers={"content-type": "application/json"})
         assert answer.status_code == 400
+        for path in ("/v1/sessions", "/v1/maps"):  # the maps route parses its JSON itself, the same way
+            answer = api.post(path, content=b'R\xc6', headers={"content-type": "application/json"})
+            assert answer.status_code == 400, (path, answer.text)
+            answer = api.post(path, content=b'{"name": ', headers={"content-type": "application/json"})
+            assert answer.status_code == 422 and answer.json()["detail"][0]["type"] == "json_invalid", answer.text
         assert api.post("/v1/sessions", json={"skip_frames": 0}).status_code == 422
 
 
