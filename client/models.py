@@ -53,7 +53,7 @@ class Session:
     estimated_intrinsics: dict[str, Any] | None = None  # the camera the engine uses: given, or estimated
     frames_skipped: int = 0  # skipped by the tracker under overload (newest first wins)
     skip_frames: bool = False  # whether the tracker may skip late frames (a live camera asks for it)
-    tracking_state: str | None = None  # "tracking", "initializing" or "lost" at the newest frame
+    tracking_state: str | None = None  # "tracking", "initializing", "lost" or "not_relocalized"
     mapping_lag_keyframes: int | None = None  # keyframes tracked but not yet mapped
     mapping_lag_s: float | None = None  # how long the oldest of them has waited
     tracking_side: int | None = None  # the tracking resolution's long side (None: the worker's default)

@@ -15,10 +15,12 @@ MapMode = Literal["localize", "extend"]
 MAP_MODES: tuple[str, ...] = get_args(MapMode)
 
 # A new version of an existing map, atomically: the next version number, its package, its fields in the record, and
-# `latest`. KEYS: record, packages. ARGV: package, meta JSON, size, created_at, session id. Returns the version, or
-# -1 when the map is gone (deleted meanwhile: nothing is written).
+# `latest`. KEYS: record, packages. ARGV: package, meta JSON, size, created_at, session id, the version it was made
+# from ('' for any). Returns the version, -1 when the map is gone (deleted meanwhile), -2 when the version it was
+# made from is no longer the newest (nothing is written either way).
 ADD_VERSION = """
 if redis.call('EXISTS', KEYS[1]) == 0 then return -1 end
+if ARGV[6] ~= '' and redis.call('HGET', KEYS[1], 'latest') ~= ARGV[6] then return -2 end
 local v = redis.call('HINCRBY', KEYS[1], 'versions', 1)
 redis.call('HSET', KEYS[2], v, ARGV[1])
 local p = 'v' .. v .. '.'
@@ -44,9 +46,10 @@ def version_field(version: int, name: str) -> str:
     return f"v{version}.{name}"
 
 
-def version_args(package: bytes, meta: dict[str, Any], session_id: str, created_at: str) -> list[Any]:
-    """ADD_VERSION's ARGV."""
-    return [package, json.dumps(meta), len(package), created_at, session_id]
+def version_args(package: bytes, meta: dict[str, Any], session_id: str, created_at: str,
+                 parent: int | None = None) -> list[Any]:
+    """ADD_VERSION's ARGV (`parent`: the version the package was made from, None: any)."""
+    return [package, json.dumps(meta), len(package), created_at, session_id, "" if parent is None else str(parent)]
 
 
 def session_entry(role: SessionRole, map_mode: str | None, at: str) -> str:

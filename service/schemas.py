@@ -201,9 +201,11 @@ class Session(BaseModel):
     frames_skipped: int = Field(
         0, description="frames the tracker skipped under overload (a newer frame was waiting: newest first wins); "
         "each got a `skipped` message instead of a pose")
-    tracking_state: Literal["tracking", "initializing", "lost"] | None = Field(
+    tracking_state: Literal["tracking", "initializing", "lost", "not_relocalized"] | None = Field(
         None, description="whether the newest processed frame was tracked (initializing: RGB only, waiting for "
-        "parallax to make the first map); null before the first frame")
+        "parallax to make the first map; not_relocalized: a session in a map (`map_id`), tracked but not yet found "
+        "in the map: its poses are in its own world until a `relocalized` message with the map's id, which "
+        "revises them into the map's); null before the first frame")
     mapping_lag_keyframes: int | None = Field(
         None, description="keyframes tracked but not yet in the map (the mapping stage runs behind tracking)")
     mapping_lag_s: float | None = Field(None, description="seconds the oldest of those keyframes has waited")

@@ -206,7 +206,8 @@ class SlamSystem:
             raise ValueError("render_view needs a 4x4 pose and a 3x3 K")
         if not (0 < width <= MAX_RENDER_SIDE and 0 < height <= MAX_RENDER_SIDE):
             raise ValueError(f"render size must be within 1..{MAX_RENDER_SIDE}, got {width}x{height}")
-        out = self.mapping_stage.render(pose, Km, int(width), int(height), as_captured_at)
+        renderer = self.mapping_stage if self.in_map is None else self.in_map.renderer(self.mapping_stage)
+        out = renderer.render(pose, Km, int(width), int(height), as_captured_at)
         rgb = (out.rgb.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
         return rgb, out.depth.to(torch.float32).cpu().numpy()
 

@@ -12,17 +12,19 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 
+from protocol.map_package import MapPackage
+from protocol.map_store import MAP_MODES, MapMode
 from worker.loop.pose_graph import EdgeSigmas
 
 from .anchoring import MapAnchoring
 from .localizer import LocalizerSettings, MapFix, MapLocalizer, MapView
+from .stored_map import StoredMapRenderer
+from .views import views_of_package
 
-MapMode = Literal["localize", "extend"]
-MAP_MODES: tuple[str, ...] = ("localize", "extend")
 # A keyframe's fix in the map as a pose-graph prior: rotation (rad), translation (of the scene's depth), log-scale
 # (free: an up-to-scale session's keyframes keep the scale the graph gives them).
 PRIOR_ROTATION = 0.01
@@ -73,6 +75,8 @@ class SessionInMap:
         self.fixes = 0
         self.misses = 0
         self.relocalized_at: int | None = None  # the frame whose fix anchored the session
+        self.package: MapPackage | None = None  # the stored map itself (`from_package`), for renders and merges
+        self._renderer: StoredMapRenderer | None = None
         self._views = views
         self._settings = settings
         self._localizer: MapLocalizer | None = None
@@ -80,6 +84,24 @@ class SessionInMap:
         self._lock = threading.Lock()
         self._build_lock = threading.Lock()
         self.load_seconds: float | None = None
+
+    @classmethod
+    def from_package(cls, map_id: str, version: int, mode: MapMode, package: MapPackage | None) -> SessionInMap:
+        """A session in the stored map `package` (None: the map is gone; the session keeps the world it was
+        anchored in, and nothing more is located)."""
+        if package is None:
+            return cls(map_id, version, mode, list)
+        in_map = cls(map_id, version, mode, lambda: views_of_package(package), map_metric=package.scale == "metric")
+        in_map.package = package
+        return in_map
+
+    def renderer(self, own: Any) -> Any:
+        """What the session's renders show: the stored map when it localizes in it, else its own map `own`."""
+        if self.mode != "localize" or self.package is None:
+            return own
+        if self._renderer is None:
+            self._renderer = StoredMapRenderer(self.package)
+        return self._renderer
 
     def attach(self, session_metric: bool) -> None:
         """Set how the session's world meets the map's, once the session knows its input (its first frame)."""

@@ -47,11 +47,12 @@ class SessionEngine(Protocol):
 def create_engine(kind: str, preset: str | None, intrinsics: Intrinsics | None,
                   pose_mode: str | None = None, tracking_side: int | None = None,
                   depth_camera: dict[str, Any] | None = None,
-                  overrides: dict[str, Any] | None = None) -> SessionEngine:
+                  overrides: dict[str, Any] | None = None, in_map: Any = None) -> SessionEngine:
     """A fresh engine of `kind` for a new session. `preset` None: the settings `choose_settings` picks for an input
     not known yet on this machine; `overrides` (a settings choice's) are merged into the preset; `pose_mode`
     (prior/fixed/ignore/seeded) and `tracking_side` (the tracking resolution's long side) override both;
-    `depth_camera` (the session's: intrinsics + depth_to_color) registers depth to the colour camera."""
+    `depth_camera` (the session's: intrinsics + depth_to_color) registers depth to the colour camera; `in_map`
+    (worker.maps.SessionInMap) the stored map the session runs in."""
     if kind == "slam":
         from worker.config import deep_merge
         from worker.slam import SlamConfig, SlamSystem
@@ -68,7 +69,7 @@ def create_engine(kind: str, preset: str | None, intrinsics: Intrinsics | None,
         if depth_camera:
             merged["input"]["depth_camera"] = {**depth_camera["intrinsics"],
                                                "depth_to_color": depth_camera["depth_to_color"]}
-        return SlamSystem(SlamConfig.preset(preset, **merged), intrinsics=intrinsics)
+        return SlamSystem(SlamConfig.preset(preset, **merged), intrinsics=intrinsics, in_map=in_map)
     if kind == "passthrough":
         return PassthroughEngine(intrinsics=intrinsics, delay_s=_passthrough_delay_s(),
                                  finish_delay_s=_passthrough_finish_delay_s())
@@ -85,12 +86,14 @@ def _passthrough_finish_delay_s() -> float:
     return float(os.environ.get("FLASHMONO_PASSTHROUGH_FINISH_MS", "0")) / 1000.0
 
 
-def restore_engine(kind: str, blob: bytes, chunks: Mapping[int | str, bytes] | None = None) -> SessionEngine:
-    """An engine rebuilt from `snapshot()` bytes (and, for a chunked snapshot, the `chunks` it lists)."""
+def restore_engine(kind: str, blob: bytes, chunks: Mapping[int | str, bytes] | None = None,
+                   in_map: Any = None) -> SessionEngine:
+    """An engine rebuilt from `snapshot()` bytes (and, for a chunked snapshot, the `chunks` it lists), in the
+    stored map `in_map` when the session runs in one."""
     if kind == "slam":
         from worker.slam import SlamSystem
 
-        return SlamSystem.restore(blob, chunks)
+        return SlamSystem.restore(blob, chunks, in_map=in_map)
     if kind == "passthrough":
         engine = PassthroughEngine.restore(blob, chunks)
         engine.delay_s, engine.finish_delay_s = _passthrough_delay_s(), _passthrough_finish_delay_s()

@@ -36,6 +36,7 @@ from worker.runtime.progress import FinishProgress
 from worker.runtime.quarantine import FrameAttempts
 from worker.runtime.record import SessionRecord
 from worker.runtime.requests import handle_request
+from worker.runtime.session_map import extend_stored_map, session_in_map
 from worker.runtime.session_settings import named_preset, session_settings, this_machine
 from worker.runtime.settings import RuntimeConfig
 from worker.runtime.snapshots import SnapshotWriter, read_snapshot
@@ -249,7 +250,13 @@ class SessionRunner(threading.Thread):
                                     pose_mode=self._session.get("pose_mode") or None,
                                     tracking_side=self._tracking_side(),
                                     depth_camera=json.loads(self._session.get("depth_camera") or "null"),
-                                    overrides=overrides)
+                                    overrides=overrides, in_map=self._in_map())
+
+    def _in_map(self, restoring: bool = False) -> Any:
+        """The stored map the session runs in (a worker.maps.SessionInMap), for a SLAM engine."""
+        if self.config.engine != "slam":
+            return None
+        return session_in_map(self.client, self._session, restoring)
 
     def _decode(self, message: dict[str, Any]) -> Frame:
         """The frame at the session's working size; the session's first frame decides its settings (and the
@@ -275,7 +282,7 @@ class SessionRunner(threading.Thread):
         ensure_group(self.client, keys.session_requests(self.session_id))
         snap = read_snapshot(self.client, self.session_id)
         if snap is not None:
-            self.engine = restore_engine(snap.engine, snap.data, snap.chunks)
+            self.engine = restore_engine(snap.engine, snap.data, snap.chunks, in_map=self._in_map(restoring=True))
             self._snapshots.restored(snap)
             self._last_id = snap.stream_id
             log.info("session %s restored from snapshot at seq %s", self.session_id, snap.seq)
@@ -415,6 +422,9 @@ class SessionRunner(threading.Thread):
                       "mapping_lag_s": round(float(figures["mapping_lag_s"]), 3)}
         if self._tracking_state is not None:
             fields["tracking_state"] = self._tracking_state
+            in_map = getattr(self.engine, "in_map", None)
+            if in_map is not None and not in_map.anchored and self._tracking_state == "tracking":
+                fields["tracking_state"] = "not_relocalized"  # tracking, in its own world until it is
         if fields and not self._record.update(fields):
             raise SessionGone
 
@@ -642,10 +652,13 @@ class SessionRunner(threading.Thread):
         last_seq = max(self._done_seqs) if self._done_seqs else -1
         # loops closed while finishing, the final refinement's camera corrections: told like the others
         finish_events = list(getattr(self.engine, "finish_events", []))
+        extended = extend_stored_map(self.client, self.engine, self.session_id)  # an `extend` session's map
+        if extended is not None:
+            self._publish_tracking_event(last_seq, extended)
         if finish_events:
             self._publish_revision(revision, finish_events)
-            for event in finish_events:
-                if event.get("type") in MAP_EVENTS:
+            for event in finish_events:  # a relocalization in a stored map may come this late too
+                if event.get("type") in PUBLISHED_EVENTS:
                     self._publish_tracking_event(last_seq, event)
         else:
             self._revision = revision
