@@ -295,6 +295,7 @@ async def stream_case(stack, frames, intrinsics, messages: list[bytes], args) ->
             body["preset"] = args.preset
         if args.tracking_side:
             body["tracking_side"] = args.tracking_side
+        body.update(getattr(args, "session_fields", None) or {})  # e.g. a saved map to run in (bench.map_reuse)
         created = await http.post("/v1/sessions", json=body)
         created.raise_for_status()
         sid = created.json()["id"]

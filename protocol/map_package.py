@@ -10,7 +10,11 @@ One msgpack document (protocol.codec: arrays as raw bytes + dtype + shape):
                     "depth": float16 [ceil(H/2), ceil(W/2)] camera-frame z in map units (0/NaN: none) or None,
                     "exposure": float32 [6] or None (optional: per-channel gain and bias, worker.mapping.exposure),
                     "rendered": bool (optional: image and depth are the map's render at the pose, the engine no
-                    longer held the photo)}, ...],
+                    longer held the photo),
+                    "places": {"keypoints": float32 [n, 2], "descriptors": uint8 [n, 32] (ORB), "points": float64
+                    [n, 3] (the keypoints' world points), "bag": float32 [words] (their bag of words)} or None
+                    (optional: what relocalizing in the map needs of the keyframe, made when it was packaged)},
+                    ...],
      "surfels_ply": bytes (the engine's binary Gaussian PLY, SH degree 0, with its int32 `keyframe_id` column: each
                     surfel moves with its keyframe),
      "engine": {"voxel_size": float or None, "background": None or {"face_cells": n, "rgb": uint8 [6, n, n, 3],
@@ -46,6 +50,10 @@ SCALES: tuple[str, ...] = get_args(MapScale)
 BOUNDS_PERCENTILES = (1.0, 99.0)
 MAX_TEXT = 200  # characters of a name, a mode, a session id, a timestamp
 EXPOSURE_SIZE = 6
+# A keyframe's places (optional): what relocalizing in the map needs of it, made once when the map is packaged
+PLACE_FIELDS = ("keypoints", "descriptors", "points", "bag")
+MAX_PLACE_POINTS = 20_000
+MAX_PLACE_WORDS = 1 << 20
 
 
 class MapPackageError(ValueError):
@@ -65,10 +73,12 @@ class MapKeyframe:
     depth: np.ndarray | None = None
     exposure: np.ndarray | None = None
     rendered: bool = False
+    places: dict[str, np.ndarray] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return {"id": self.id, "pose": self.pose, "K": self.K, "width": self.width, "height": self.height,
-                "jpeg": self.jpeg, "depth": self.depth, "exposure": self.exposure, "rendered": self.rendered}
+                "jpeg": self.jpeg, "depth": self.depth, "exposure": self.exposure, "rendered": self.rendered,
+                "places": self.places}
 
 
 @dataclass
@@ -183,6 +193,27 @@ def _check_keyframe(kf: MapKeyframe) -> None:
         exposure = _array(kf.exposure, "float32", (EXPOSURE_SIZE,), f"{where}: exposure")
         if not np.isfinite(exposure).all():
             raise MapPackageError(f"{where}: the exposure is not finite")
+    if kf.places is not None:
+        _check_places(kf.places, where)
+
+
+def _check_places(places: Any, where: str) -> None:
+    """A keyframe's places: its corners that have a depth (keypoints, ORB descriptors, world points) and its bag
+    of words, all consistent and finite."""
+    if not isinstance(places, dict) or set(places) != set(PLACE_FIELDS):
+        raise MapPackageError(f"{where}: 'places' must hold exactly {', '.join(PLACE_FIELDS)}")
+    n = places["keypoints"].shape[0] if isinstance(places["keypoints"], np.ndarray) else -1
+    if not 0 <= n <= MAX_PLACE_POINTS:
+        raise MapPackageError(f"{where}: places must have 0..{MAX_PLACE_POINTS} keypoints")
+    _array(places["keypoints"], "float32", (n, 2), f"{where}: places keypoints")
+    _array(places["descriptors"], "uint8", (n, 32), f"{where}: places descriptors")
+    _array(places["points"], "float64", (n, 3), f"{where}: places points")
+    bag = places["bag"]
+    if not isinstance(bag, np.ndarray) or bag.dtype != np.float32 or bag.ndim != 1 or bag.size > MAX_PLACE_WORDS:
+        raise MapPackageError(f"{where}: places bag must be a float32 vector of at most {MAX_PLACE_WORDS} words")
+    if not (np.isfinite(places["keypoints"]).all() and np.isfinite(places["points"]).all()
+            and np.isfinite(bag).all()):
+        raise MapPackageError(f"{where}: places are not finite")
 
 
 def _bounds(records: np.ndarray) -> dict[str, list[float]] | None:
@@ -246,7 +277,7 @@ def _keyframe(d: Any, index: int) -> MapKeyframe:
     return MapKeyframe(id=kf_id, pose=_get(d, "pose", np.ndarray, where), K=_get(d, "K", np.ndarray, where),
                        width=_get(d, "width", int, where), height=_get(d, "height", int, where),
                        jpeg=_get(d, "jpeg", bytes, where), depth=_optional_array(d, "depth"),
-                       exposure=_optional_array(d, "exposure"), rendered=rendered)
+                       exposure=_optional_array(d, "exposure"), rendered=rendered, places=d.get("places"))
 
 
 def _engine(d: Any) -> dict[str, Any]:

@@ -16,6 +16,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from worker.loop.descriptors import default_vocabulary
+from worker.loop.vocabulary import Vocabulary
 from worker.tracking.dense_alignment import PyramidLevel, align, build_pyramid
 from worker.tracking.features import Features, OrbExtractor
 from worker.tracking.relocalization import Place, PlaceRecognizer
@@ -25,13 +27,26 @@ from worker.tracking.vo_config import VisualOdometryConfig
 @dataclass
 class MapView:
     """A keyframe of a stored map: id, camera-to-world pose (a similarity in an up-to-scale map), camera matrix,
-    grey image uint8 [H, W] and depth [h, w] in the keyframe's units (any resolution; 0 or NaN: none)."""
+    grey image uint8 [H, W] (or its JPEG, decoded when first needed) and depth [h, w] in the keyframe's units (any
+    resolution; 0 or NaN: none); `place` when the map was packaged with it (`describe_view`)."""
 
     id: int
     pose: np.ndarray
     K: np.ndarray
-    gray: np.ndarray
+    gray: np.ndarray | None
     depth: np.ndarray | None
+    jpeg: bytes | None = None
+    place: Place | None = None
+
+    def image(self) -> np.ndarray:
+        """The grey image (decoded from the JPEG once)."""
+        if self.gray is None:
+            if self.jpeg is None:
+                raise ValueError(f"map view {self.id} has no image")
+            self.gray = cv2.imdecode(np.frombuffer(self.jpeg, np.uint8), cv2.IMREAD_GRAYSCALE)
+            if self.gray is None:
+                raise ValueError(f"map view {self.id}: the image does not decode")
+        return self.gray
 
 
 @dataclass(frozen=True)
@@ -78,35 +93,14 @@ class MapLocalizer:
                                               reloc_min_inliers=max(10, self.settings.min_inliers))
         self.extractor = OrbExtractor(self.vo_config)
         self.recognizer = PlaceRecognizer(self.vo_config)
-        self.places = [p for p in (self._place(v) for v in views) if p is not None]
+        self.places = [p for p in (v.place or describe_view(v, self.extractor, self.recognizer.vocabulary,
+                                                             self.settings.min_inliers) for v in views)
+                       if p is not None]
         self._views = {int(v.id): v for v in views}
         self._pyramids: dict[int, list[PyramidLevel]] = {}
 
     def __len__(self) -> int:
         return len(self.places)
-
-    def _place(self, view: MapView) -> Place | None:
-        """The view's corners that have a depth, lifted into the map's world; None without enough of them."""
-        if view.depth is None:
-            return None
-        features = self.extractor.extract(view.gray)
-        height, width = view.gray.shape
-        depth = np.nan_to_num(np.asarray(view.depth, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
-        if depth.shape != (height, width):
-            depth = cv2.resize(depth, (width, height), interpolation=cv2.INTER_NEAREST)
-        cols = np.clip(features.keypoints[:, 0].astype(np.int64), 0, width - 1)
-        rows = np.clip(features.keypoints[:, 1].astype(np.int64), 0, height - 1)
-        z = depth[rows, cols].astype(np.float64)
-        keep = z > 0
-        if keep.sum() < self.settings.min_inliers:
-            return None
-        uv1 = np.column_stack([features.keypoints[keep].astype(np.float64), np.ones(int(keep.sum()))])
-        camera_points = (np.linalg.inv(np.asarray(view.K, np.float64)) @ uv1.T).T * z[keep, None]
-        pose = np.asarray(view.pose, np.float64)
-        world = camera_points @ pose[:3, :3].T + pose[:3, 3]
-        place = Place(int(view.id), pose, features.keypoints[keep], features.descriptors[keep], world)
-        place.bag = self.recognizer.vocabulary.bag_of_words(place.descriptors)
-        return place
 
     def locate(self, gray: np.ndarray, K: np.ndarray, depth: np.ndarray | None = None) -> MapFix | None:
         """The frame's verified pose in the map, or None (see `LocalizerSettings` for what verified means).
@@ -141,7 +135,7 @@ class MapLocalizer:
             return fix.pose  # an up-to-scale map's keyframe: its depth is not in the frame's units
         reference = self._pyramids.get(fix.view)
         if reference is None:
-            reference = self._pyramids[fix.view] = _pyramid(view.gray, view.depth, view.K)
+            reference = self._pyramids[fix.view] = _pyramid(view.image(), view.depth, view.K)
         current = _pyramid(gray, depth, K)
         start = np.linalg.inv(fix.pose) @ view.pose  # T_cur_ref
         result = align(reference, current, start)
@@ -167,6 +161,49 @@ class MapLocalizer:
         if not np.isfinite(fix.reprojection_px) or fix.reprojection_px > s.max_reprojection_px:
             return False
         return fix.depth_agreement is None or fix.depth_agreement >= s.min_depth_agreement
+
+
+def describe_view(view: MapView, extractor: OrbExtractor | None = None, vocabulary: Vocabulary | None = None,
+                  min_points: int = LocalizerSettings.min_inliers) -> Place | None:
+    """The view as a place to relocalize against: its ORB corners that have a depth, lifted into the map's world,
+    and their bag of words; None with fewer than `min_points` of them (or no depth)."""
+    if view.depth is None:
+        return None
+    extractor = extractor or OrbExtractor(VisualOdometryConfig())
+    gray = view.image()
+    features = extractor.extract(gray)
+    height, width = gray.shape
+    depth = np.nan_to_num(np.asarray(view.depth, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    if depth.shape != (height, width):
+        depth = cv2.resize(depth, (width, height), interpolation=cv2.INTER_NEAREST)
+    cols = np.clip(features.keypoints[:, 0].astype(np.int64), 0, width - 1)
+    rows = np.clip(features.keypoints[:, 1].astype(np.int64), 0, height - 1)
+    z = depth[rows, cols].astype(np.float64)
+    keep = z > 0
+    if keep.sum() < min_points:
+        return None
+    uv1 = np.column_stack([features.keypoints[keep].astype(np.float64), np.ones(int(keep.sum()))])
+    camera_points = (np.linalg.inv(np.asarray(view.K, np.float64)) @ uv1.T).T * z[keep, None]
+    pose = np.asarray(view.pose, np.float64)
+    world = camera_points @ pose[:3, :3].T + pose[:3, 3]
+    place = Place(int(view.id), pose, features.keypoints[keep], features.descriptors[keep], world)
+    place.bag = (vocabulary or default_vocabulary()).bag_of_words(place.descriptors)
+    return place
+
+
+def place_arrays(place: Place) -> dict[str, np.ndarray]:
+    """A place as the map package keeps it (protocol.map_package: a keyframe's `places`)."""
+    return {"keypoints": np.asarray(place.keypoints, np.float32), "descriptors": np.asarray(place.descriptors,
+                                                                                            np.uint8),
+            "points": np.asarray(place.points, np.float64), "bag": np.asarray(place.bag, np.float32)}
+
+
+def place_from_arrays(view_id: int, pose: np.ndarray, arrays: dict[str, np.ndarray]) -> Place:
+    """The place a map package kept for keyframe `view_id` (see `place_arrays`)."""
+    place = Place(int(view_id), np.asarray(pose, np.float64), np.asarray(arrays["keypoints"], np.float32),
+                  np.asarray(arrays["descriptors"], np.uint8), np.asarray(arrays["points"], np.float64))
+    place.bag = np.asarray(arrays["bag"], np.float32)
+    return place
 
 
 def _pyramid(gray: np.ndarray, depth: np.ndarray, K: np.ndarray) -> list[PyramidLevel]:

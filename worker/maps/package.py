@@ -23,6 +23,8 @@ from worker.mapping.background import DirectionalBackground
 from worker.mapping.keyframe_archive import ArchivedKeyframe
 from worker.settings_choice import SessionInput
 
+from .views import with_places
+
 
 def build_package(system: Any, name: str, session_ids: list[str]) -> bytes:
     """The map of a finished `worker.slam.SlamSystem` as package bytes named `name`, built by `session_ids`.
@@ -42,7 +44,7 @@ def build_package(system: Any, name: str, session_ids: list[str]) -> bytes:
 def package_from_map(gmap: GaussianMap, name: str, session_ids: list[str], scale: str, mode: str) -> MapPackage:
     """A GaussianMap as a MapPackage (see the module docstring); `scale` and `mode` describe the session's input."""
     state = gmap.state_dict()
-    keyframes = [_keyframe(gmap, entry) for entry in state["keyframes"]]
+    keyframes = with_places([_keyframe(gmap, entry) for entry in state["keyframes"]])
     ply = ply_with_sh_degree(gmap.to_ply_bytes(include_keyframe_id=True), 0)
     engine = {"voxel_size": state["voxel_size"], "background": _background(state["background"])}
     return MapPackage(name=name, keyframes=keyframes, surfels_ply=ply, scale=scale, mode=mode,
