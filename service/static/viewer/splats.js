@@ -8,6 +8,7 @@
 import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
 import { SparkControls, SparkRenderer, SplatFileType, SplatMesh } from "@sparkjsdev/spark";
+import { drawLayers } from "./overlay.js";
 
 const GL_FROM_CV = new THREE.Matrix4().makeScale(1, -1, -1);
 // SPZ stores right-up-back axes (its specification); the map's world is right-down-forward: a half turn about x.
@@ -35,18 +36,6 @@ export function pinholeProjection(k, width, height, near = NEAR, far = FAR) {
   );
 }
 
-function frustumSegments(pose, k, size) {
-  // apex and the four image corners at depth `size`, in the camera frame, then to the world
-  const m = new THREE.Matrix4().set(...pose);
-  const s = Math.cbrt(Math.abs(m.determinant())) || 1;
-  const corners = [[0, 0], [k.width, 0], [k.width, k.height], [0, k.height]].map(([u, v]) =>
-    new THREE.Vector3(((u - k.cx) / k.fx) * size * s, ((v - k.cy) / k.fy) * size * s, size * s).applyMatrix4(m));
-  const apex = new THREE.Vector3(0, 0, 0).applyMatrix4(m);
-  const out = [];
-  for (let i = 0; i < 4; i++) out.push(apex, corners[i], corners[i], corners[(i + 1) % 4]);
-  return out;
-}
-
 export class SplatView {
   constructor(canvas, { onFrame = () => {} } = {}) {
     this.canvas = canvas;
@@ -61,6 +50,7 @@ export class SplatView {
     this.scene.add(this.spark);
     this.intrinsics = null; // pinhole of the session's camera (scaled to the canvas), else a 60-degree view
     this.mesh = null;
+    this.layers = []; // what the overlay draws: [{id, poses, color}]
     this.loaded = null; // {format, bytes, splats, revision, ms}
     this.overlay = new THREE.Group();
     this.scene.add(this.overlay);
@@ -179,30 +169,13 @@ export class SplatView {
 
   // Trajectory (blue), keyframe frustums (yellow), loop closures (red) in the world frame.
   setTrajectory(poses, keyframes, loops) {
-    for (const child of [...this.overlay.children]) {
-      this.overlay.remove(child);
-      child.geometry.dispose();
-      child.material.dispose();
-    }
-    if (!poses.length) return;
-    const centres = poses.map((p) => new THREE.Vector3(p[3], p[7], p[11]));
-    const path = new THREE.Line(new THREE.BufferGeometry().setFromPoints(centres),
-      new THREE.LineBasicMaterial({ color: 0x4fc3f7 }));
-    this.overlay.add(path);
-    const extent = new THREE.Box3().setFromPoints(centres).getSize(new THREE.Vector3()).length();
-    const k = this.intrinsics || { width: 4, height: 3, fx: 3.2, fy: 3.2, cx: 2, cy: 1.5 };
-    const size = Math.max(0.02, 0.06 * extent);
-    const segments = keyframes.flatMap((pose) => frustumSegments(pose, k, size));
-    if (segments.length) {
-      this.overlay.add(new THREE.LineSegments(new THREE.BufferGeometry().setFromPoints(segments),
-        new THREE.LineBasicMaterial({ color: 0xffd54f })));
-    }
-    for (const loop of loops) {
-      const marker = new THREE.Mesh(new THREE.SphereGeometry(size * 0.3, 12, 8),
-        new THREE.MeshBasicMaterial({ color: 0xff5252 }));
-      marker.position.set(...loop.position);
-      this.overlay.add(marker);
-    }
+    this.setTrajectories([{ poses, keyframes, loops }]);
+  }
+
+  // Several trajectories, each its own colours: [{poses, keyframes, loops, color, keyframeColor}] (overlay.js).
+  setTrajectories(layers) {
+    drawLayers(this.overlay, layers, this.intrinsics);
+    this.layers = layers.map((layer) => ({ id: layer.id ?? null, poses: layer.poses.length, color: layer.color }));
   }
 
   showOverlay(visible) {

@@ -4,12 +4,13 @@
 // history, bookmarks and Referer headers, and is forgotten when the tab closes.
 
 import { Api } from "./api.js";
-import { OrbitView, VirtualCamera, drawTopDown, position } from "./scene.js";
+import { EventFeed } from "./events.js";
+import { MOVE_KEYS, ServerView } from "./render_view.js";
+import { OrbitView, drawTopDown, position } from "./scene.js";
 
 const POLL_TRAJECTORY_MS = 1000;
 const MAP_REFRESH_MIN_MS = 2000; // a streaming session's map is fetched again at most this often
 const POLL_SESSIONS_MS = 4000;
-const RENDER_MAX_WIDTH = 320;
 
 const $ = (id) => document.getElementById(id);
 const KEY_STORE = "flashmono.apiKey";
@@ -31,20 +32,12 @@ const state = {
   keyframes: [],
   loops: [], // {revision, position}
   revision: null,
-  camera: new VirtualCamera(),
-  cameraPlaced: false,
-  renderKind: "color",
-  rendering: false,
-  renderQueued: false,
-  renderTimer: null,
-  renderUrl: null,
   splats: null, // the SplatView, once WebGL and the renderer loaded
   mapFormat: "spz",
   mapKey: null, // what the shown map reflects: revision, keyframes and status of the session
   mapLoading: false,
   mapFetchedAt: 0,
   splatPosePlaced: false,
-  events: null, // the WebSocket of the session's live events
   sessionList: [],
 };
 // What tests and curious users can read: how much has been drawn and rendered.
@@ -54,6 +47,20 @@ window.viewerState = { posesDrawn: 0, renders: 0, lastError: null, loopClosures:
   events: [], livePoses: 0 };
 
 const orbit = new OrbitView($("view3d"));
+const serverView = new ServerView(state.api, $("render"), {
+  onRendered: () => {
+    window.viewerState.renders += 1;
+    document.body.dataset.renders = String(window.viewerState.renders);
+  },
+  onError: (err) => setStatus(`render: ${err.message}`, true),
+});
+const feed = new EventFeed($("events"), $("tracking-state"), {
+  onPose: () => { window.viewerState.livePoses += 1; },
+  onEvent: (message) => {
+    window.viewerState.events.push(message);
+    if (message.type === "loop_closed") state.mapFetchedAt = 0; // the corrected map as soon as the revision shows
+  },
+});
 
 function setStatus(text, isError = false) {
   const el = $("status");
@@ -122,16 +129,15 @@ async function refreshSessions() {
 
 function selectSession(id) {
   Object.assign(state, { sessionId: id, session: null, poses: [], keyframes: [], loops: [], revision: null,
-    cameraPlaced: false, mapKey: null, splatPosePlaced: false });
+    mapKey: null, splatPosePlaced: false });
+  serverView.open(id);
   const url = new URL(window.location.href);
   url.searchParams.set("session", id);
   window.history.replaceState(null, "", url);
   for (const li of $("sessions").children) li.classList.toggle("selected", li.dataset.id === id);
   $("download-map").disabled = false;
   window.viewerState.events = [];
-  $("tracking-state").textContent = "tracking: –";
-  $("tracking-state").className = "";
-  watchEvents(id);
+  feed.open(id, state.api.apiKey);
   pollSession();
 }
 
@@ -160,11 +166,7 @@ async function pollSession() {
       + `frames · ${session.keyframes} keyframes · revision ${all.revision}`;
     drawTrajectory();
     updateSplats(session);
-    if (!state.cameraPlaced && poses.length) {
-      state.camera.setFromPose(poses[poses.length - 1]);
-      state.cameraPlaced = true;
-      scheduleRender();
-    }
+    serverView.follow(session, poses);
     setStatus(`live · ${poses.length} poses`);
   } catch (err) {
     setStatus(`session ${id}: ${err.message}`, true);
@@ -176,50 +178,6 @@ function drawTrajectory() {
   orbit.update(state.poses, state.keyframes, state.loops);
   window.viewerState.posesDrawn = drawn;
   document.body.dataset.posesDrawn = String(drawn);
-}
-
-// --------------------------------------------------------------------------------------- live events
-
-const EVENT_TYPES = new Set(["tracking_lost", "relocalized", "initialized", "loop_closed", "finished", "error"]);
-const MAX_EVENTS_SHOWN = 12;
-
-// The session's live feed (WS /v1/sessions/{id}/events): tracking events and loop closures as they happen.
-function watchEvents(id) {
-  if (state.events) state.events.close();
-  state.events = null;
-  $("events").replaceChildren();
-  const scheme = window.location.protocol === "https:" ? "wss" : "ws";
-  const query = state.api.apiKey ? `?api_key=${encodeURIComponent(state.api.apiKey)}` : "";
-  const ws = new WebSocket(`${scheme}://${window.location.host}/v1/sessions/${encodeURIComponent(id)}/events${query}`);
-  state.events = ws;
-  ws.addEventListener("message", (e) => {
-    if (id !== state.sessionId) return;
-    let message;
-    try { message = JSON.parse(e.data); } catch (_) { return; }
-    if (message.type === "pose") {
-      window.viewerState.livePoses += 1;
-      return;
-    }
-    if (!EVENT_TYPES.has(message.type)) return;
-    showEvent(message);
-    if (message.type === "loop_closed") state.mapFetchedAt = 0; // the corrected map as soon as the revision shows
-  });
-}
-
-function showEvent(message) {
-  window.viewerState.events.push(message);
-  const li = document.createElement("li");
-  li.className = message.type;
-  const at = message.seq !== undefined ? ` @${message.seq}` : "";
-  li.textContent = `${message.type.replace("_", " ")}${at}`;
-  $("events").prepend(li);
-  while ($("events").children.length > MAX_EVENTS_SHOWN) $("events").lastChild.remove();
-  const tracking = { tracking_lost: ["lost", "lost"], relocalized: ["tracking", "ok"], initialized: ["tracking", "ok"],
-    finished: ["finished", ""] }[message.type];
-  if (tracking) {
-    $("tracking-state").textContent = `tracking: ${tracking[0]}`;
-    $("tracking-state").className = tracking[1];
-  }
 }
 
 // ------------------------------------------------------------------------------------------- splat view
@@ -307,77 +265,8 @@ async function loadSplatMap(id, key) {
 // The exact reference: the server renders the splat view's camera (pose and pinhole) as a PNG.
 function exactServerView() {
   if (!state.splats || !state.sessionId) return;
-  state.camera.setFromPose(state.splats.pose());
-  state.cameraPlaced = true;
-  renderNow();
+  serverView.placeAt(state.splats.pose(), true);
   $("render").scrollIntoView({ block: "nearest" });
-}
-
-// ------------------------------------------------------------------------------------------ rendered view
-
-function renderCamera() {
-  const k = (state.session && state.session.intrinsics) || null;
-  const width = k && k.width ? k.width : 320;
-  const height = k && k.height ? k.height : 240;
-  const scale = Math.min(1, RENDER_MAX_WIDTH / width);
-  const fx = k ? k.fx : 0.8 * width, fy = k ? k.fy : 0.8 * width;
-  const cx = k ? k.cx : width / 2, cy = k ? k.cy : height / 2;
-  return { width: Math.round(width * scale), height: Math.round(height * scale), fx: fx * scale, fy: fy * scale,
-    cx: cx * scale, cy: cy * scale };
-}
-
-function scheduleRender() {
-  clearTimeout(state.renderTimer);
-  state.renderTimer = setTimeout(renderNow, 120);
-}
-
-async function renderNow() {
-  if (!state.sessionId || !state.cameraPlaced) return;
-  if (state.rendering) {
-    state.renderQueued = true;
-    return;
-  }
-  state.rendering = true;
-  try {
-    const blob = await state.api.render(state.sessionId, state.camera.pose(), renderCamera(), state.renderKind);
-    if (state.renderUrl) URL.revokeObjectURL(state.renderUrl);
-    state.renderUrl = URL.createObjectURL(blob);
-    $("render").src = state.renderUrl;
-    window.viewerState.renders += 1;
-    document.body.dataset.renders = String(window.viewerState.renders);
-  } catch (err) {
-    setStatus(`render: ${err.message}`, true);
-  } finally {
-    state.rendering = false;
-    if (state.renderQueued) {
-      state.renderQueued = false;
-      scheduleRender();
-    }
-  }
-}
-
-function stepSize() {
-  const pts = state.poses.map(position);
-  if (pts.length < 2) return 0.05;
-  let extent = 0;
-  for (let i = 0; i < 3; i++) extent = Math.max(extent, Math.max(...pts.map((p) => p[i])) - Math.min(...pts.map((p) => p[i])));
-  return Math.max(0.01, 0.05 * extent);
-}
-
-const MOVES = {
-  forward: (c, s) => c.translate([0, 0, s]), back: (c, s) => c.translate([0, 0, -s]),
-  left: (c, s) => c.translate([-s, 0, 0]), right: (c, s) => c.translate([s, 0, 0]),
-  up: (c, s) => c.translate([0, -s, 0]), down: (c, s) => c.translate([0, s, 0]),
-  "yaw-left": (c) => c.rotate("y", -0.1), "yaw-right": (c) => c.rotate("y", 0.1),
-  "pitch-up": (c) => c.rotate("x", 0.1), "pitch-down": (c) => c.rotate("x", -0.1),
-};
-const KEYS = { w: "forward", s: "back", a: "left", d: "right", q: "up", e: "down", ArrowLeft: "yaw-left",
-  ArrowRight: "yaw-right", ArrowUp: "pitch-up", ArrowDown: "pitch-down" };
-
-function move(name) {
-  if (!state.cameraPlaced) return;
-  MOVES[name](state.camera, stepSize());
-  scheduleRender();
 }
 
 // ----------------------------------------------------------------------------------------------- download
@@ -430,24 +319,18 @@ function init() {
   $("status-filter").addEventListener("change", drawSessions);
   $("download-map").addEventListener("click", downloadMap);
   $("snap-camera").addEventListener("click", () => {
-    if (!state.poses.length) return;
-    state.camera.setFromPose(state.poses[state.poses.length - 1]);
-    state.cameraPlaced = true;
-    scheduleRender();
+    if (state.poses.length) serverView.placeAt(state.poses[state.poses.length - 1]);
   });
-  $("render-kind").addEventListener("change", (e) => {
-    state.renderKind = e.target.value;
-    scheduleRender();
-  });
+  $("render-kind").addEventListener("change", (e) => serverView.setKind(e.target.value));
   for (const button of $("camera-controls").querySelectorAll("button")) {
-    button.addEventListener("click", () => move(button.dataset.move));
+    button.addEventListener("click", () => serverView.move(button.dataset.move));
   }
   window.addEventListener("keydown", (e) => {
     if (e.target instanceof HTMLInputElement || e.target === $("splats")) return; // the splat view's own keys
-    const name = KEYS[e.key] || KEYS[e.key.toLowerCase()];
+    const name = MOVE_KEYS[e.key] || MOVE_KEYS[e.key.toLowerCase()];
     if (name) {
       e.preventDefault();
-      move(name);
+      serverView.move(name);
     }
   });
   $("splat-mode").addEventListener("change", (e) => state.splats && state.splats.setMode(e.target.value));
