@@ -33,8 +33,19 @@ export class Api {
     return response;
   }
 
-  async sessions(limit = 50) {
-    return (await this.request("/v1/sessions", { limit })).json();
+  // A page of sessions, newest first: {sessions, next_cursor}; `filters` as the API's (status, name, device_id).
+  async sessions(limit = 50, cursor = null, filters = {}) {
+    return (await this.request("/v1/sessions", { limit, cursor, ...filters })).json();
+  }
+
+  // A page of saved maps, newest first: {maps, next_cursor}.
+  async maps(limit = 50, cursor = null) {
+    return (await this.request("/v1/maps", { limit, cursor })).json();
+  }
+
+  // A saved map: its latest version's metadata, every version, and the sessions that built or used it.
+  async savedMap(id) {
+    return (await this.request(`/v1/maps/${encodeURIComponent(id)}`)).json();
   }
 
   async createSession(body) {
@@ -55,8 +66,9 @@ export class Api {
     return (await this.request(`/v1/sessions/${encodeURIComponent(id)}/render`, params)).blob();
   }
 
-  // The map file in `format` (ply, spz or splat): the Response, for .blob() or .arrayBuffer().
-  async map(id, format = "ply") {
-    return this.request(`/v1/sessions/${encodeURIComponent(id)}/map`, { format });
+  // The map file in `format` (ply, spz or splat) of a session (`kind` "sessions") or a saved map ("maps"): the
+  // Response, for .blob() or .arrayBuffer().
+  async map(id, format = "ply", kind = "sessions") {
+    return this.request(`/v1/${kind}/${encodeURIComponent(id)}/map`, { format });
   }
 }

@@ -1,6 +1,7 @@
-// The session's map as Gaussian splats in WebGL (Spark on three.js, vendored under ./vendor), with the trajectory,
-// keyframe frustums and loop closures in the same scene, orbit and fly controls (mouse, keyboard, touch) and a
-// camera that can be put exactly at a tracked pose with the session's intrinsics (the server renders the same view).
+// A session's or a saved map's map as Gaussian splats in WebGL (Spark on three.js, vendored under ./vendor), with
+// trajectories, keyframe frustums and loop closures in the same scene (overlay.js), orbit and fly controls (mouse,
+// keyboard, touch), an overview from outside the map, and a camera that can be put exactly at a tracked pose with
+// the session's intrinsics (the server renders the same view).
 //
 // The scene is in the map's world frame (OpenCV: x right, y down, z forward); a three.js camera looks down its -z
 // with y up, so its world matrix is the pose times diag(1, -1, -1).
@@ -8,6 +9,7 @@
 import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
 import { SparkControls, SparkRenderer, SplatFileType, SplatMesh } from "@sparkjsdev/spark";
+import { quantileBounds } from "./bounds.js";
 import { drawLayers } from "./overlay.js";
 
 const GL_FROM_CV = new THREE.Matrix4().makeScale(1, -1, -1);
@@ -16,6 +18,10 @@ const SPZ_TO_WORLD = new THREE.Quaternion(1, 0, 0, 0);
 const FILE_TYPES = { spz: SplatFileType.SPZ, splat: SplatFileType.SPLAT, ply: SplatFileType.PLY };
 const NEAR = 0.01;
 const FAR = 1000;
+// An overview looks at the map's centre from behind and above where the first camera stood (it looked along +z,
+// with -y up) and a little to its right.
+const OVERVIEW_FROM = new THREE.Vector3(0.35, -0.75, -1).normalize();
+const OVERVIEW_MARGIN = 1.1; // the bounding sphere fills the narrower side of the view less this
 
 // A three.js object's pose from a camera-to-world similarity (16 row-major numbers; the scale is dropped).
 function cameraMatrix(pose) {
@@ -51,6 +57,7 @@ export class SplatView {
     this.intrinsics = null; // pinhole of the session's camera (scaled to the canvas), else a 60-degree view
     this.mesh = null;
     this.layers = []; // what the overlay draws: [{id, poses, color}]
+    this.touched = false; // whether the user moved the camera since the last overview
     this.loaded = null; // {format, bytes, splats, revision, ms}
     this.overlay = new THREE.Group();
     this.scene.add(this.overlay);
@@ -68,6 +75,8 @@ export class SplatView {
     canvas.addEventListener("focus", () => { this.fly.fpsMovement.enable = this.mode === "fly"; });
     canvas.addEventListener("blur", () => { this.fly.fpsMovement.enable = false; });
     canvas.addEventListener("pointerdown", () => canvas.focus());
+    const touch = () => { this.touched = true; };
+    for (const event of ["pointerdown", "wheel", "keydown"]) canvas.addEventListener(event, touch);
     this.renderer.setAnimationLoop(() => this.frame());
   }
 
@@ -151,6 +160,17 @@ export class SplatView {
     return this.loaded;
   }
 
+  // Nothing shown: no map, no trajectories (another session or map is opened).
+  clear() {
+    if (this.mesh) {
+      this.scene.remove(this.mesh);
+      this.mesh.dispose();
+    }
+    this.mesh = null;
+    this.loaded = null;
+    this.setTrajectories([]);
+  }
+
   // Every splat as Spark decoded it (the browser's reading of the file, for tests): flat arrays.
   readSplats(limit = Infinity) {
     const out = { centers: [], scales: [], quats: [], opacities: [], colors: [] };
@@ -176,6 +196,36 @@ export class SplatView {
   setTrajectories(layers) {
     drawLayers(this.overlay, layers, this.intrinsics);
     this.layers = layers.map((layer) => ({ id: layer.id ?? null, poses: layer.poses.length, color: layer.color }));
+  }
+
+  // The box of the loaded map's splat centres in the world (1st to 99th percentile on each axis); null without one.
+  splatBounds() {
+    if (!this.mesh) return null;
+    this.mesh.updateMatrixWorld(true);
+    const flat = [];
+    const p = new THREE.Vector3();
+    this.mesh.forEachSplat((i, center) => {
+      p.copy(center).applyMatrix4(this.mesh.matrixWorld);
+      flat.push(p.x, p.y, p.z);
+    });
+    return quantileBounds(flat);
+  }
+
+  // The camera outside `bounds` ({min, max}, world), looking at its centre with all of it in view; the orbit turns
+  // about that centre. Returns {position, target}.
+  overview(bounds) {
+    const min = new THREE.Vector3(...bounds.min), max = new THREE.Vector3(...bounds.max);
+    const centre = min.clone().add(max).multiplyScalar(0.5);
+    const radius = Math.max(0.05, min.distanceTo(max) / 2);
+    const k = this.viewIntrinsics();
+    const halfAngle = Math.min(Math.atan(k.width / (2 * k.fx)), Math.atan(k.height / (2 * k.fy)));
+    this.camera.position.copy(centre).addScaledVector(OVERVIEW_FROM, OVERVIEW_MARGIN * radius / Math.sin(halfAngle));
+    this.camera.lookAt(centre);
+    this.camera.updateMatrixWorld(true);
+    this.orbit.target.copy(centre);
+    if (this.mode === "orbit") this.orbit.update();
+    this.touched = false;
+    return { position: this.camera.position.toArray(), target: centre.toArray() };
   }
 
   showOverlay(visible) {

@@ -1,16 +1,23 @@
-// The Flash-Mono web viewer: session list, live trajectory (top-down and 3D), loop closures, a rendered view from
-// a camera the user moves, and the map download. Query parameters: ?session=ID; the API key may come as #api_key=KEY
-// (or ?api_key=KEY): it is moved to sessionStorage and removed from the address bar at once, so it stays out of the
-// history, bookmarks and Referer headers, and is forgotten when the tab closes.
+// The Flash-Mono web viewer: session and saved-map lists, a session's live trajectory (top-down and 3D), loop
+// closures, a rendered view from a camera the user moves, a saved map with its sessions' trajectories, the splat view
+// (opened on an overview of the whole map) and the map download. Query parameters: ?session=ID or ?map=ID (a saved
+// map); the API key may come as #api_key=KEY (or ?api_key=KEY): it is moved to sessionStorage and removed from the
+// address bar at once, so it stays out of the history, bookmarks and Referer headers, and is forgotten when the tab
+// closes.
 
 import { Api } from "./api.js";
+import { boundsOf, unionBounds } from "./bounds.js";
+import { mapEntry, mapFacts, sessionEntry } from "./entries.js";
 import { EventFeed } from "./events.js";
+import { PagedList } from "./lists.js";
+import { MapSessions, drawLegend, latestPose, mapLayers } from "./map_view.js";
 import { MOVE_KEYS, ServerView } from "./render_view.js";
 import { OrbitView, drawTopDown, position } from "./scene.js";
 
 const POLL_TRAJECTORY_MS = 1000;
 const MAP_REFRESH_MIN_MS = 2000; // a streaming session's map is fetched again at most this often
 const POLL_SESSIONS_MS = 4000;
+const POLL_MAP_MS = 3000; // an open map: new versions, sessions created in it, their trajectories
 
 const $ = (id) => document.getElementById(id);
 const KEY_STORE = "flashmono.apiKey";
@@ -27,7 +34,9 @@ localStorage.removeItem(KEY_STORE); // older viewers kept the key there for good
 const state = {
   api: new Api(urlKey || sessionStorage.getItem(KEY_STORE) || ""),
   sessionId: params.get("session"),
-  session: null,
+  mapId: params.get("map"), // a saved map open instead of a session
+  map: null, // its record, and its sessions as map_view.js loads them
+  mapSessions: [],
   poses: [],
   keyframes: [],
   loops: [], // {revision, position}
@@ -37,14 +46,15 @@ const state = {
   mapKey: null, // what the shown map reflects: revision, keyframes and status of the session
   mapLoading: false,
   mapFetchedAt: 0,
-  splatPosePlaced: false,
-  sessionList: [],
+  overviewPlaced: false, // the splat view shows the whole map (or path) once for what is open
+  splatsShown: false, // whether the splats of what is open are loaded (the overview frames them then, once)
 };
+const sessionsInMap = new MapSessions(state.api);
 // What tests and curious users can read: how much has been drawn and rendered.
 window.viewerState = { posesDrawn: 0, renders: 0, lastError: null, loopClosures: 0, mapDownloads: 0, lastMap: null,
   splat: { ready: false, error: null, fps: 0, frames: 0, firstSplatFrameMs: null, maps: 0, map: null,
-    history: [] },
-  events: [], livePoses: 0 };
+    history: [], overview: null },
+  events: [], livePoses: 0, map: null };
 
 const orbit = new OrbitView($("view3d"));
 const serverView = new ServerView(state.api, $("render"), {
@@ -71,13 +81,6 @@ function setStatus(text, isError = false) {
 
 // ----------------------------------------------------------------------------------------------- sessions
 
-function ago(iso) {
-  const s = Math.max(0, (Date.now() - Date.parse(iso)) / 1000);
-  return s < 90 ? `${Math.round(s)} s ago` : s < 5400 ? `${Math.round(s / 60)} min ago` : `${Math.round(s / 3600)} h ago`;
-}
-
-const LIVE = new Set(["created", "streaming", "finishing", "abandoned"]);
-
 function sessionMatches(s) {
   const text = $("session-filter").value.trim().toLowerCase();
   const status = $("status-filter").value;
@@ -85,60 +88,75 @@ function sessionMatches(s) {
   return !text || [s.name, s.id, s.device_id].some((v) => v && v.toLowerCase().includes(text));
 }
 
-// The fleet: each session's status, frames, keyframes, last pose time, tracking state, and a link to its live view.
+// The fleet (each session's status, frames, keyframes, last pose time, tracking state while live, a link to its
+// view) and the saved maps, a page at a time.
+const sessionList = new PagedList({
+  list: $("sessions"), more: $("more-sessions"), matches: sessionMatches,
+  entry: (s) => sessionEntry(s, selectSession), onError: (err) => setStatus(`sessions: ${err.message}`, true),
+  fetchPage: async (limit, cursor) => {
+    const status = $("status-filter").value;
+    const page = await state.api.sessions(limit, cursor, status ? { status } : {});
+    return { items: page.sessions, next: page.next_cursor };
+  },
+});
+const mapList = new PagedList({
+  list: $("maps"), more: $("more-maps"), entry: (m) => mapEntry(m, openMap),
+  onError: (err) => setStatus(`maps: ${err.message}`, true),
+  fetchPage: async (limit, cursor) => {
+    const page = await state.api.maps(limit, cursor);
+    return { items: page.maps, next: page.next_cursor };
+  },
+});
+
 function drawSessions() {
-  const list = $("sessions");
-  list.replaceChildren();
-  const shown = state.sessionList.filter(sessionMatches);
-  for (const s of shown) {
-    const li = document.createElement("li");
-    li.dataset.id = s.id;
-    li.dataset.status = s.status;
-    li.classList.toggle("selected", s.id === state.sessionId);
-    const title = document.createElement("span");
-    title.textContent = s.name || s.id;
-    const link = document.createElement("a");
-    link.href = `/viewer?session=${encodeURIComponent(s.id)}`;
-    link.textContent = "live view";
-    link.addEventListener("click", (e) => { e.preventDefault(); e.stopPropagation(); selectSession(s.id); });
-    const meta = document.createElement("span");
-    meta.className = "meta";
-    meta.textContent = `${s.status} · ${s.frames_processed} frames · ${s.keyframes} keyframes · last pose `
-      + `${s.frames_processed ? ago(s.updated_at) : "–"} · ${s.device_id || "no device"}`;
-    const trackingState = s.tracking_state || (LIVE.has(s.status) && !s.frames_processed ? "waiting" : null);
-    const tracking = document.createElement("span");
-    tracking.className = `meta tracking-${trackingState || "none"}`;
-    tracking.textContent = trackingState ? `tracking: ${trackingState}` : "";
-    li.append(title, link, meta, tracking);
-    li.addEventListener("click", () => selectSession(s.id));
-    list.append(li);
-  }
-  window.viewerState.sessionsShown = shown.length;
+  window.viewerState.sessionsShown = sessionList.draw();
 }
 
-async function refreshSessions() {
-  try {
-    const { sessions } = await state.api.sessions(200);
-    state.sessionList = sessions;
-    drawSessions();
-    if (!state.sessionId) setStatus(sessions.length ? "pick a session" : "no sessions yet");
-  } catch (err) {
-    setStatus(`sessions: ${err.message}`, true);
+async function refreshLists() {
+  const [sessions, maps] = await Promise.all([
+    sessionList.refresh().catch((err) => setStatus(`sessions: ${err.message}`, true)),
+    mapList.refresh().catch((err) => setStatus(`maps: ${err.message}`, true)),
+  ]);
+  window.viewerState.sessionsShown = sessions ?? 0;
+  window.viewerState.mapsShown = maps ?? 0;
+  if (!state.sessionId && !state.mapId && sessions !== undefined) {
+    setStatus(sessions || maps ? "pick a session or a map" : "no sessions yet");
   }
+}
+
+// What is open: the address, the lists' selection, the page's mode (a map hides the session-only views).
+function show(kind, id) {
+  const url = new URL(window.location.href);
+  url.searchParams.delete(kind === "map" ? "session" : "map");
+  url.searchParams.set(kind, id);
+  window.history.replaceState(null, "", url);
+  sessionList.select(kind === "session" ? id : null);
+  mapList.select(kind === "map" ? id : null);
+  document.body.dataset.mode = kind;
+  $("download-map").disabled = false;
+  Object.assign(state, { mapKey: null, overviewPlaced: false, splatsShown: false });
+  if (state.splats) state.splats.clear(); // not the last one's map under this one's path
+  Object.assign(window.viewerState.splat, { map: null, mapError: null, overview: null });
 }
 
 function selectSession(id) {
   Object.assign(state, { sessionId: id, session: null, poses: [], keyframes: [], loops: [], revision: null,
-    mapKey: null, splatPosePlaced: false });
+    mapId: null, map: null, mapSessions: [] });
   serverView.open(id);
-  const url = new URL(window.location.href);
-  url.searchParams.set("session", id);
-  window.history.replaceState(null, "", url);
-  for (const li of $("sessions").children) li.classList.toggle("selected", li.dataset.id === id);
-  $("download-map").disabled = false;
+  show("session", id);
   window.viewerState.events = [];
   feed.open(id, state.api.apiKey);
   pollSession();
+}
+
+function openMap(id) {
+  feed.close();
+  Object.assign(state, { mapId: id, map: null, mapSessions: [], sessionId: null, session: null, poses: [],
+    keyframes: [], loops: [] });
+  serverView.open(null);
+  show("map", id);
+  $("map-legend").replaceChildren();
+  pollMap();
 }
 
 // --------------------------------------------------------------------------------------------- trajectory
@@ -167,7 +185,7 @@ async function pollSession() {
     drawTrajectory();
     updateSplats(session);
     serverView.follow(session, poses);
-    setStatus(`live · ${poses.length} poses`);
+    setStatus(`${session.status} · ${poses.length} poses`);
   } catch (err) {
     setStatus(`session ${id}: ${err.message}`, true);
   }
@@ -178,6 +196,29 @@ function drawTrajectory() {
   orbit.update(state.poses, state.keyframes, state.loops);
   window.viewerState.posesDrawn = drawn;
   document.body.dataset.posesDrawn = String(drawn);
+}
+
+// ------------------------------------------------------------------------------------------------ saved map
+
+async function pollMap() {
+  const id = state.mapId;
+  if (!id) return;
+  try {
+    const { map, sessions } = await sessionsInMap.load(id);
+    if (id !== state.mapId) return; // the user switched meanwhile
+    Object.assign(state, { map, mapSessions: sessions });
+    $("session-title").textContent = `map ${map.name} (${map.id})`;
+    $("session-stats").textContent = `${mapFacts(map)} · sessions in it: ${sessions.length}`;
+    drawLegend($("map-legend"), sessions);
+    const drawn = sessions.filter((s) => s.drawn);
+    window.viewerState.map = { id, version: map.latest_version, bounds: map.meta.bounds,
+      sessions: sessions.map((s) => ({ id: s.id, role: s.role, status: s.status, drawn: s.drawn, note: s.note,
+        color: s.color, poses: s.poses.length })) };
+    updateMapSplats();
+    setStatus(`map · ${drawn.length} of ${sessions.length} sessions drawn`);
+  } catch (err) {
+    setStatus(`map ${id}: ${err.message}`, true);
+  }
 }
 
 // ------------------------------------------------------------------------------------------- splat view
@@ -222,30 +263,66 @@ function updateSplats(session) {
   const k = session.estimated_intrinsics || session.intrinsics;
   if (k) view.setIntrinsics(k);
   view.setTrajectory(state.poses, state.keyframes, state.loops);
-  if (!state.splatPosePlaced && state.poses.length) {
-    view.setPose(state.poses[state.poses.length - 1]);
-    state.splatPosePlaced = true;
-  }
+  if (!state.overviewPlaced && state.poses.length) placeOverview(); // the path until the map comes
   const key = `${session.revision}|${session.keyframes}|${session.status}|${state.mapFormat}`;
   const due = performance.now() - state.mapFetchedAt >= MAP_REFRESH_MIN_MS;
   // not while the session finishes: such a request waits out the final refinement, and the finished map follows
   const finishing = session.status === "finishing";
   if (session.keyframes > 0 && key !== state.mapKey && due && !state.mapLoading && !finishing) {
-    loadSplatMap(session.id, key);
+    loadSplatMap("sessions", session.id, key);
   }
 }
 
-async function loadSplatMap(id, key) {
+// An open saved map: its sessions' trajectories (those in its world) and its splats, loaded again for a new version.
+function updateMapSplats() {
+  const view = state.splats;
+  if (!view || !state.map) return;
+  view.setIntrinsics(state.map.meta.camera);
+  view.setTrajectories(mapLayers(state.mapSessions));
+  if (!state.overviewPlaced) placeOverview();
+  const key = `${state.map.id}|v${state.map.latest_version}|${state.mapFormat}`;
+  if (key !== state.mapKey && !state.mapLoading) loadSplatMap("maps", state.map.id, key);
+}
+
+const openId = () => state.sessionId || state.mapId;
+
+function updateOpenSplats() {
+  if (state.map) updateMapSplats();
+  else if (state.session) updateSplats(state.session);
+}
+
+// The box an overview frames: a map's metadata bounds; a session's path with its loaded splats.
+function overviewBounds() {
+  const path = state.map ? state.mapSessions.flatMap((s) => s.poses) : state.poses;
+  const pathBounds = boundsOf(path.map(position));
+  if (state.map) return state.map.meta.bounds || pathBounds;
+  return unionBounds(pathBounds, state.splatsShown ? state.splats.splatBounds() : null);
+}
+
+// The splat view on the whole map (or path), from outside it, looking at its centre.
+function placeOverview() {
+  const bounds = state.splats && overviewBounds();
+  if (!bounds) return;
+  window.viewerState.splat.overview = { bounds, ...state.splats.overview(bounds) };
+  state.overviewPlaced = true;
+}
+
+// The map file of a session or a saved map (`kind`: "sessions" or "maps") into the splat view.
+async function loadSplatMap(kind, id, key) {
   state.mapLoading = true;
   state.mapFetchedAt = performance.now();
   const format = state.mapFormat;
   try {
     const t0 = performance.now();
-    const bytes = new Uint8Array(await (await state.api.map(id, format)).arrayBuffer());
+    const bytes = new Uint8Array(await (await state.api.map(id, format, kind)).arrayBuffer());
     const fetchMs = performance.now() - t0;
-    if (id !== state.sessionId) return;
+    if (id !== openId()) return;
     const loaded = await state.splats.loadMap(bytes, format, key);
+    if (id !== openId()) return;
     state.mapKey = key;
+    const first = !state.splatsShown;
+    state.splatsShown = true;
+    if (first && !state.splats.touched) placeOverview(); // again, now with the splats' extent
     window.viewerState.splat.maps += 1;
     window.viewerState.splat.map = { ...loaded, fetchMs, key, loadedAt: performance.now() };
     window.viewerState.splat.history.push({ splats: loaded.splats, key, bytes: loaded.bytes });
@@ -262,6 +339,11 @@ async function loadSplatMap(id, key) {
   }
 }
 
+// The newest tracked pose: the session's, or that of the newest session drawn in the open map.
+function newestPose() {
+  return state.map ? latestPose(state.mapSessions) : state.poses.at(-1) || null;
+}
+
 // The exact reference: the server renders the splat view's camera (pose and pinhole) as a PNG.
 function exactServerView() {
   if (!state.splats || !state.sessionId) return;
@@ -272,7 +354,7 @@ function exactServerView() {
 // ----------------------------------------------------------------------------------------------- download
 
 async function downloadMap() {
-  const id = state.sessionId;
+  const id = openId();
   if (!id) return;
   // The result goes to its own line next to the button: the status line is rewritten by every trajectory poll,
   // which would hide the outcome within a second.
@@ -283,7 +365,7 @@ async function downloadMap() {
   mapStatus.textContent = "downloading…";
   try {
     const format = $("download-format").value;
-    const blob = await (await state.api.map(id, format)).blob();
+    const blob = await (await state.api.map(id, format, state.mapId ? "maps" : "sessions")).blob();
     const name = `${id}.${format}`;
     const link = document.createElement("a");
     link.href = URL.createObjectURL(blob);
@@ -300,7 +382,7 @@ async function downloadMap() {
     mapStatus.classList.add("error");
     setStatus(`map: ${err.message}`, true);
   } finally {
-    button.disabled = !state.sessionId;
+    button.disabled = !openId();
   }
 }
 
@@ -312,11 +394,15 @@ function init() {
   keyInput.addEventListener("change", () => {
     state.api.apiKey = keyInput.value.trim();
     sessionStorage.setItem(KEY_STORE, state.api.apiKey);
-    refreshSessions();
+    refreshLists();
   });
-  $("refresh-sessions").addEventListener("click", refreshSessions);
+  $("refresh-sessions").addEventListener("click", refreshLists);
+  $("refresh-maps").addEventListener("click", refreshLists);
   $("session-filter").addEventListener("input", drawSessions);
-  $("status-filter").addEventListener("change", drawSessions);
+  $("status-filter").addEventListener("change", () => { // at once among those loaded, then from the API
+    drawSessions();
+    sessionList.reset().then(drawSessions, (err) => setStatus(`sessions: ${err.message}`, true));
+  });
   $("download-map").addEventListener("click", downloadMap);
   $("snap-camera").addEventListener("click", () => {
     if (state.poses.length) serverView.placeAt(state.poses[state.poses.length - 1]);
@@ -336,18 +422,22 @@ function init() {
   $("splat-mode").addEventListener("change", (e) => state.splats && state.splats.setMode(e.target.value));
   $("splat-format").addEventListener("change", (e) => {
     state.mapFormat = e.target.value;
-    if (state.session) updateSplats(state.session);
+    updateOpenSplats();
   });
   $("splat-overlay").addEventListener("change", (e) => state.splats && state.splats.showOverlay(e.target.checked));
   $("splat-to-pose").addEventListener("click", () => {
-    if (state.splats && state.poses.length) state.splats.setPose(state.poses[state.poses.length - 1]);
+    const pose = newestPose();
+    if (state.splats && pose) state.splats.setPose(pose);
   });
+  $("splat-overview").addEventListener("click", placeOverview);
   $("splat-exact").addEventListener("click", exactServerView);
-  startSplatView().then(() => state.session && updateSplats(state.session));
-  refreshSessions();
-  if (state.sessionId) selectSession(state.sessionId);
-  setInterval(refreshSessions, POLL_SESSIONS_MS);
+  startSplatView().then(updateOpenSplats);
+  refreshLists();
+  if (state.mapId) openMap(state.mapId);
+  else if (state.sessionId) selectSession(state.sessionId);
+  setInterval(refreshLists, POLL_SESSIONS_MS);
   setInterval(pollSession, POLL_TRAJECTORY_MS);
+  setInterval(pollMap, POLL_MAP_MS);
   drawTrajectory();
 }
 
