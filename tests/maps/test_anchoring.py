@@ -19,7 +19,7 @@ def _pose(angle: float, axis: int, position: list[float]) -> np.ndarray:
 
 
 def _fix(pose: np.ndarray, inliers: int = 100) -> MapFix:
-    return MapFix(pose, view=0, inliers=inliers, matches=150, reprojection_px=1.0, depth_agreement=0.9)
+    return MapFix(pose, view=0, inliers=inliers, matches=150, reprojection_px=1.0, depth_agreement=0.8)
 
 
 WORLD = _pose(0.7, 1, [1.0, -0.5, 2.0])  # own world -> map world
@@ -68,3 +68,13 @@ def test_the_anchoring_survives_its_state() -> None:
     restored = MapAnchoring(metric=True)
     restored.load_state_dict(anchoring.state_dict())
     assert restored.propose(1, own[1], _fix(WORLD @ own[1]), scene_depth=2.0) is not None
+
+
+def test_one_fix_the_frames_depth_confirms_anchors_alone() -> None:
+    own = _pose(0.0, 2, [0.1, 0.0, 0.0])
+    confirmed = MapFix(WORLD @ own, view=0, inliers=150, matches=200, reprojection_px=1.0, depth_agreement=0.95)
+    assert np.allclose(MapAnchoring(metric=True).propose(0, own, confirmed, scene_depth=2.0), WORLD)
+    without_depth = MapFix(WORLD @ own, view=0, inliers=150, matches=200, reprojection_px=1.0,
+                           depth_agreement=None)
+    assert MapAnchoring(metric=True).propose(0, own, without_depth, scene_depth=2.0) is None
+    assert MapAnchoring(metric=False).propose(0, own, confirmed, scene_depth=2.0) is None  # a scale to measure

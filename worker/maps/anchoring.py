@@ -3,7 +3,8 @@
 A session in a map tracks in its own world from its first frame. Each verified fix (`MapFix`: the frame's pose in
 the map) beside the frame's own pose measures that transform; one fix alone is never trusted: the session anchors
 once `agreeing` fixes of different frames give the same transform (within `position_tolerance` of the scene's
-depth and `angle_tolerance_deg`). A metric session (sensor depth or device poses) measures a rigid transform from
+depth and `angle_tolerance_deg`), or one fix alone when the frame's own depth confirms it (`confirmed`: many
+inliers, nearly all where the depth sees them; such a match does not happen by chance). A metric session (sensor depth or device poses) measures a rigid transform from
 each fix; an up-to-scale one (RGB only) needs fixes apart from each other to measure the scale, and fits one
 similarity to all of them (rotation averaged, then scale and translation by least squares on camera centres).
 """
@@ -16,6 +17,10 @@ from typing import Any
 import numpy as np
 
 from .localizer import MapFix
+
+# A fix the frame's depth confirms (see `confirmed`) anchors a metric session alone.
+CONFIRMED_INLIERS = 100
+CONFIRMED_DEPTH_AGREEMENT = 0.9
 
 
 def _inverse(T: np.ndarray) -> np.ndarray:
@@ -67,13 +72,17 @@ class MapAnchoring:
         return self.transform is not None
 
     def propose(self, frame: int, own_pose: np.ndarray, fix: MapFix, scene_depth: float) -> np.ndarray | None:
-        """Add a fix of `frame` (own-world pose `own_pose`); the transform when the fixes agree now, else None."""
+        """Add a fix of `frame` (own-world pose `own_pose`); the transform when the fixes agree now (or this one is
+        confirmed by the frame's depth), else None."""
         if self.anchored:
             return None
         self.observations.append(Observation(int(frame), np.asarray(own_pose, np.float64), fix.pose,
                                              fix.inliers, max(float(scene_depth), 1e-6)))
         self.observations = self.observations[-self.keep:]
-        transform = self._rigid_agreement() if self.metric else self._similarity_agreement()
+        if self.metric and confirmed(fix):
+            transform = fix.pose @ _inverse(np.asarray(own_pose, np.float64))
+        else:
+            transform = self._rigid_agreement() if self.metric else self._similarity_agreement()
         if transform is not None:
             self.transform = transform
         return transform
@@ -126,6 +135,13 @@ class MapAnchoring:
         self.observations = [Observation(int(o["frame"]), np.asarray(o["own"], np.float64),
                                          np.asarray(o["in_map"], np.float64), int(o["inliers"]),
                                          float(o["scene_depth"])) for o in state.get("observations") or []]
+
+
+def confirmed(fix: MapFix) -> bool:
+    """Whether the frame's own depth confirms a fix beyond doubt: at least CONFIRMED_INLIERS inliers and
+    CONFIRMED_DEPTH_AGREEMENT of them where the depth sees them."""
+    return (fix.depth_agreement is not None and fix.depth_agreement >= CONFIRMED_DEPTH_AGREEMENT
+            and fix.inliers >= CONFIRMED_INLIERS)
 
 
 def fit_similarity(own: list[np.ndarray], in_map: list[np.ndarray]) -> np.ndarray | None:
