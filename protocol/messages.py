@@ -3,8 +3,8 @@ back (`ServerMessage`: results, acks, errors and the engine's events), with the 
 
 openapi.yaml's `x-websocket` is generated from these classes (`protocol.schema`, `service.websocket_doc`): a field,
 its type and its description are written once, here. `to_dict()`/`to_json()` give the wire form, `type` first
-(the gateway recognises `{"type": "finished"` by its prefix). Events the engine reports pass through with whatever
-fields it adds (`OPEN`); their classes name the fields clients may rely on.
+(the gateway recognises `{"type": "finished"` by its prefix). Each class of the engine's events declares every
+field the engine sends, scalars only; `OPEN`, a newer server may add more, which `from_dict` drops.
 """
 
 from __future__ import annotations
@@ -101,6 +101,17 @@ def info(*, doc: str = "", schema: dict[str, Any] | None = None, default: Any = 
     return field(default=default, metadata={"doc": doc, "schema": schema or {}})
 
 
+def at_frame() -> Any:
+    """The optional `frame` of an engine event: the frame it is about, which may precede the one carrying it."""
+    return info(doc=("the frame the engine found it at (its seq); `seq` is the frame whose result carried it, later "
+                     "when the event waited for a verdict or a keyframe"), default=None)
+
+
+def solve_error(when: str) -> Any:
+    """The optional pose-graph error of an event a pose-graph solve made, `when` ("before"/"after") the solve."""
+    return info(doc=f"the pose graph's error {when} the solve", default=None)
+
+
 @dataclass(frozen=True, kw_only=True)
 class Message:
     """One WebSocket message; subclasses set `TYPE` and declare the fields after `type`."""
@@ -126,8 +137,13 @@ class Message:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> Message:
-        """The message for a wire dict of this type (fields it does not declare are dropped)."""
+        """The message for a wire dict of this type (fields it does not declare are dropped); ValueError when a field
+        it requires is missing."""
         names = {item.name for item in fields(cls)}
+        missing = [item.name for item in fields(cls)
+                   if item.default is MISSING and item.default_factory is MISSING and item.name not in data]
+        if missing:
+            raise ValueError(f"a {cls.TYPE} message without {', '.join(missing)}")
         return cls(**{k: v for k, v in data.items() if k in names})
 
 
@@ -252,6 +268,13 @@ class LoopClosed(ServerMessage):
     DOC: ClassVar[str] = "a loop closure rewrote past poses: GET the trajectory for revision `revision`"
     OPEN: ClassVar[bool] = True
     revision: int
+    from_keyframe: int | None = info(doc="the newest keyframe of the loop (the one that recognised the place)",
+                                     default=None)
+    to_keyframe: int | None = info(doc="the older keyframe it recognised", default=None)
+    source: str | None = info(doc="how the loop was verified (pnp, pnp_xfeat, hidden_state)", default=None)
+    scale: float | None = info(doc="the loop edge's scale change (1 with metric input)", default=None)
+    pgo_error_before: float | None = solve_error("before")
+    pgo_error_after: float | None = solve_error("after")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -267,6 +290,7 @@ class TrackingLost(ServerMessage):
     OPEN: ClassVar[bool] = True
     seq: int = info(doc="the frame it is at")
     reason: str | None = None
+    frame: int | None = at_frame()
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -279,6 +303,33 @@ class Relocalized(ServerMessage):
     )
     OPEN: ClassVar[bool] = True
     seq: int
+    frame: int | None = at_frame()
+    method: str | None = info(
+        default=None,
+        doc="how tracking came back: absent for a short loss (the last tracked frame's points found again); place "
+        "recognition, learned, learned keyframe, learned glue (visual odometry against a remembered keyframe), "
+        "reinitialized (a new map from two views scaled to the old), device (device poses again), device_pose (a "
+        "seeded session's odometry restarted at the device's pose)",
+    )
+    reason: str | None = info(doc="device_pose: why the odometry was restarted", default=None)
+    place: int | None = info(doc="visual odometry: the earlier frame it was placed against", default=None)
+    keyframe: int | None = info(
+        doc="the keyframe it was placed against (RGB-D odometry; a saved map: the map's keyframe)", default=None
+    )
+    map_id: str | None = info(
+        doc="the saved map the session was relocalized in (a session started in a saved map); absent: its own map",
+        default=None,
+    )
+    inliers: int | None = info(
+        doc="correspondences that placed the camera (PnP inliers; reinitialized: the two-view points)", default=None
+    )
+    reprojection_px: float | None = info(doc="median reprojection error of the inliers, pixels", default=None)
+    lost_frames: int | None = info(doc="frames tracking was lost for", default=None)
+    model: str | None = info(doc="reinitialized: the two-view model (homography or essential)", default=None)
+    scale_from: str | None = info(
+        doc="reinitialized: what scaled the new map to the old (shared points or scene depth)", default=None
+    )
+    shared_points: int | None = info(doc="reinitialized: old map points the two views share", default=None)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -295,6 +346,9 @@ class Initializing(ServerMessage):
     state: str | None = None
     reason: str | None = None
     model: str | None = None
+    score_ratio: float | None = info(doc="how much better the homography fits than the essential matrix",
+                                     default=None)
+    frame: int | None = at_frame()
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -311,6 +365,17 @@ class Initialized(ServerMessage):
     seq: int
     revision: int | None = None
     frames_revised: int | None = None
+    frame: int | None = at_frame()
+    map: int | None = info(doc="the map's number (1: the session's first)", default=None)
+    points: int | None = info(doc="map points the two views triangulated", default=None)
+    parallax_deg: float | None = info(doc="the two views' median parallax", default=None)
+    model: str | None = info(doc="the two-view model (homography or essential)", default=None)
+    score_ratio: float | None = info(doc="how much better the homography fits than the essential matrix",
+                                     default=None)
+    focal_trusted: bool | None = info(
+        doc="RGB-D sessions without intrinsics: whether the focal length estimated from the first frames is trusted",
+        default=None,
+    )
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -326,6 +391,8 @@ class NewMap(ServerMessage):
     seq: int
     map: int | None = None
     lost_frames: int | None = None
+    scene_depth: float | None = info(doc="the old map's median scene depth the new one starts with", default=None)
+    frame: int | None = at_frame()
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -352,6 +419,7 @@ class RotationOnly(ServerMessage):
     measured_axes: int | None = info(
         doc=("photometric: rotation axes the image measured (the others follow the predicted turn)"), default=None
     )
+    frame: int | None = at_frame()
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -369,6 +437,14 @@ class MapsMerged(ServerMessage):
     place: int | None = info(doc="the older frame the restarted map recognised", default=None)
     since: int | None = info(doc="the first frame of the restarted map", default=None)
     scale: float | None = info(doc="how much the restarted map was scaled to fit", default=None)
+    frame: int | None = at_frame()
+    method: str | None = info(doc="how the place was recognised (orb or learned)", default=None)
+    pairs: int | None = info(doc="point pairs that measured the join", default=None)
+    spread: float | None = None
+    from_keyframe: int | None = info(doc="the restarted map's keyframe that recognised the place", default=None)
+    to_keyframe: int | None = info(doc="the older map's keyframe it was joined to", default=None)
+    pgo_error_before: float | None = solve_error("before")
+    pgo_error_after: float | None = solve_error("after")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -385,6 +461,8 @@ class DriftCorrected(ServerMessage):
     seq: int
     revision: int | None = None
     keyframe: int | None = info(doc="the newest keyframe whose device pose was used", default=None)
+    pgo_error_before: float | None = solve_error("before")
+    pgo_error_after: float | None = solve_error("after")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -417,6 +495,8 @@ class DevicePoseJump(ServerMessage):
         doc=("how far the device's motion into this frame is from the tracked motion (pose units)"), default=None
     )
     rotation_deg: float | None = None
+    action: str | None = info(doc="what the session did about it", default=None)
+    frame: int | None = at_frame()
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -448,6 +528,7 @@ class PoseSourceChosen(ServerMessage):
         doc="the judged frames, tracked again by the chosen source from the first", default=None
     )
     revision: int | None = info(doc="the trajectory revision with their new poses", default=None)
+    frame: int | None = at_frame()
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -467,6 +548,8 @@ class OdometrySlip(ServerMessage):
         default=None,
     )
     geometric_rms: list[float] | None = None
+    action: str | None = info(doc="what the session did about it", default=None)
+    frame: int | None = at_frame()
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -482,6 +565,10 @@ class DepthMisregistered(ServerMessage):
     shift_dx: int | None = None
     shift_dy: int | None = None
     message: str | None = None
+    agreement: float | None = info(
+        doc="mean normalised colour gradient on depth edges at the best shift", default=None
+    )
+    agreement_unshifted: float | None = info(doc="... at no shift", default=None)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -563,9 +650,17 @@ SERVER_MESSAGES: dict[str, type[ServerMessage]] = {
     FinishedMessage.TYPE: FinishedMessage,
     PongMessage.TYPE: PongMessage,
 }
+# The engine's events by what they tell: the pose source's state, ...
+TRACKING_EVENTS: tuple[type[ServerMessage], ...] = (TrackingLost, Relocalized, Initialized, Initializing, NewMap,
+                                                     RotationOnly)
+# ... notices about the input (tracking goes on), ...
+INPUT_EVENTS: tuple[type[ServerMessage], ...] = (DevicePoseJump, OdometrySlip, DepthMisregistered, PoseSourceChosen)
+# ... and corrections of the map's past, each with the trajectory revision it made (a loop closure aside)
+MAP_EVENTS: tuple[type[ServerMessage], ...] = (MapsMerged, DriftCorrected, PosesRefined)
 
 
 def parse_server_message(data: dict[str, Any]) -> ServerMessage | None:
-    """The typed message for a decoded server message; None for a type this version does not know."""
+    """The typed message for a decoded server message; None for a type this version does not know, ValueError for
+    one without a field its type requires."""
     kind = SERVER_MESSAGES.get(data.get("type"))  # type: ignore[arg-type]
     return kind.from_dict(data) if kind is not None else None  # type: ignore[return-value]

@@ -39,6 +39,8 @@ def test_server_messages_parse_back_and_unknown_types_are_none():
     lost = parse_server_message({"type": "tracking_lost", "seq": 4, "reason": "blur", "engine_detail": 1})
     assert lost == TrackingLost(seq=4, reason="blur")  # fields the engine adds pass by, undeclared
     assert parse_server_message({"type": "from_the_future"}) is None
+    with pytest.raises(ValueError, match="a pose message without timestamp, pose"):
+        parse_server_message({"type": "pose", "seq": 1, "scale": 1.0, "is_keyframe": False, "revision": 0})
 
 
 def test_frame_message_encodes_as_msgpack():
