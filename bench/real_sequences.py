@@ -77,7 +77,7 @@ def frame_events() -> Iterator[list[tuple[int, str]]]:
     def recording_push(self, frame):
         result = push(self, frame)
         at = next(position)
-        seen.extend((at, kind) for kind in dict.fromkeys(event.get("type") for event in result.events))
+        seen.extend((at, kind) for kind in dict.fromkeys(event.TYPE for event in result.events))
         return result
 
     SlamSystem.push = recording_push
@@ -125,6 +125,7 @@ def run_visual_odometry(frames: list) -> dict:
     """The visual odometry alone over the frames (as bench/visual_odometry.py's run_vo; the ATE over the frames that
     have a ground-truth pose): trajectory ATE, frames tracked, (frame, event) list, frames/s."""
     from worker.eval import absolute_trajectory_error
+    from worker.events import Initialized
     from worker.tracking.visual_odometry import VisualOdometry
 
     vo = VisualOdometry()
@@ -136,10 +137,10 @@ def run_visual_odometry(frames: list) -> dict:
         poses.append(result.pose)
         tracked += bool(result.tracked)
         for event in result.events:
-            if event["type"] == "initialized":  # the initialisation rewrites the poses of the frames before it
-                for index, pose in event["frames"]:
+            if isinstance(event, Initialized):  # the initialisation rewrites the poses of the frames before it
+                for index, pose in event.frames or []:
                     poses[index] = np.asarray(pose)
-            events.append((frame.index, event["type"]))
+            events.append((frame.index, event.TYPE))
     have = [i for i, f in enumerate(frames) if f.gt_pose is not None]
     ate = absolute_trajectory_error(np.stack([poses[i] for i in have]),
                                     np.stack([frames[i].gt_pose for i in have]), "sim3")

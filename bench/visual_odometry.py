@@ -35,6 +35,7 @@ import numpy as np
 from worker.data import open_source
 from worker.data.frame import Frame
 from worker.eval import absolute_trajectory_error
+from worker.events import Initialized, MapsMerged
 from worker.tracking.map_join import moved_pose
 from worker.tracking.visual_odometry import VisualOdometry
 from worker.tracking.vo_config import VisualOdometryConfig
@@ -111,13 +112,13 @@ def run_vo(frames: list, calibrated: bool = True, config: dict | None = None) ->
         tracked += bool(result.tracked)
         flags.append(bool(result.tracked))
         for event in result.events:
-            if event["type"] == "initialized":
-                for index, pose in event["frames"]:
+            if isinstance(event, Initialized):
+                for index, pose in event.frames or []:
                     poses[index] = np.asarray(pose)
-            if event["type"] == "maps_merged":
-                joins.insert(0, (int(event["since"]), np.asarray(event["correction"])))
-            events.append((frame.index, event["type"] if "method" not in event else
-                           f"{event['type']} ({event['method']})"))
+            if isinstance(event, MapsMerged):
+                joins.insert(0, (int(event.since), np.asarray(event.correction)))
+            method = getattr(event, "method", None)
+            events.append((frame.index, event.TYPE if method is None else f"{event.TYPE} ({method})"))
     for since, correction in joins:
         poses[since:] = [moved_pose(correction, pose) for pose in poses[since:]]
     gt = np.stack([f.gt_pose for f in frames])

@@ -3,7 +3,8 @@ back (`ServerMessage`: results, acks, errors and the engine's events), with the 
 
 openapi.yaml's `x-websocket` is generated from these classes (`protocol.schema`, `service.websocket_doc`): a field,
 its type and its description are written once, here. `to_dict()`/`to_json()` give the wire form, `type` first
-(the gateway recognises `{"type": "finished"` by its prefix). Each class of the engine's events declares every
+(the gateway recognises `{"type": "finished"` by its prefix). The engine's events are sent through their classes
+here (the worker's own, `worker.events`, subclass them with what only the engine keeps): each class declares every
 field the engine sends, scalars only; `OPEN`, a newer server may add more, which `from_dict` drops.
 """
 
@@ -299,7 +300,9 @@ class Relocalized(ServerMessage):
     DOC: ClassVar[str] = (
         "tracking is back at frame `seq`, placed against an earlier keyframe (`method`: "
         "how; device_pose: a seeded session's odometry restarted where the device's pose "
-        "says the camera is)"
+        "says the camera is); or, a session created in a saved map, found in that map "
+        "(`map_id`, its `keyframe`): the session's world moved into the map's, its earlier "
+        "poses too (`revision`)"
     )
     OPEN: ClassVar[bool] = True
     seq: int
@@ -323,7 +326,17 @@ class Relocalized(ServerMessage):
     inliers: int | None = info(
         doc="correspondences that placed the camera (PnP inliers; reinitialized: the two-view points)", default=None
     )
-    reprojection_px: float | None = info(doc="median reprojection error of the inliers, pixels", default=None)
+    reprojection_px: float | None = info(doc="the inliers' reprojection error (RMS), pixels", default=None)
+    matches: int | None = info(doc="a saved map: the matches the inliers were found among", default=None)
+    depth_agreement: float | None = info(
+        doc="a saved map, frames with depth: the share of the inliers whose depth agrees with the map's",
+        default=None,
+    )
+    revision: int | None = info(
+        doc="a saved map: the session moved into the map's world, its earlier poses too: GET the trajectory for "
+        "revision `revision`",
+        default=None,
+    )
     lost_frames: int | None = info(doc="frames tracking was lost for", default=None)
     model: str | None = info(doc="reinitialized: the two-view model (homography or essential)", default=None)
     scale_from: str | None = info(
@@ -455,12 +468,17 @@ class DriftCorrected(ServerMessage):
         "seeded): the pose graph was solved with the device's keyframe poses as priors, "
         "correcting the odometry's drift (its scale above all) between loop closures; past "
         "keyframes and their part of the map moved: GET the trajectory for revision "
-        "`revision`"
+        "`revision`. Sessions in a saved map: the same with the keyframes' fixes in the map "
+        "as priors (`source` map)"
     )
     OPEN: ClassVar[bool] = True
     seq: int
     revision: int | None = None
     keyframe: int | None = info(doc="the newest keyframe whose device pose was used", default=None)
+    source: str | None = info(
+        doc="map: the priors are the keyframes' fixes in the saved map the session runs in (absent: device poses)",
+        default=None,
+    )
     pgo_error_before: float | None = solve_error("before")
     pgo_error_after: float | None = solve_error("after")
 
@@ -572,6 +590,30 @@ class DepthMisregistered(ServerMessage):
 
 
 @dataclass(frozen=True, kw_only=True)
+class ExtendOutcome(ServerMessage):
+    """What came of a session created in a saved map with map_mode extend, told at its finish."""
+
+    OPEN: ClassVar[bool] = True
+    seq: int = info(doc="the last frame")
+    map_id: str
+
+
+@dataclass(frozen=True, kw_only=True)
+class MapExtended(ExtendOutcome):
+    TYPE: ClassVar[str] = "map_extended"
+    DOC: ClassVar[str] = "extend sessions: the session's map was joined to the saved map's newest version as `version`"
+    version: int
+    keyframes: int | None = info(doc="keyframes of the new version", default=None)
+
+
+@dataclass(frozen=True, kw_only=True)
+class MapNotExtended(ExtendOutcome):
+    TYPE: ClassVar[str] = "map_not_extended"
+    DOC: ClassVar[str] = "extend sessions: the session's map was not added to the saved map, which stays as it was"
+    reason: str = info(doc="why: never relocalized in the map, the map deleted, ...")
+
+
+@dataclass(frozen=True, kw_only=True)
 class ErrorMessage(ServerMessage):
     TYPE: ClassVar[str] = "error"
     DOC: ClassVar[str] = (
@@ -645,6 +687,8 @@ SERVER_MESSAGES: dict[str, type[ServerMessage]] = {
     PoseSourceChosen.TYPE: PoseSourceChosen,
     OdometrySlip.TYPE: OdometrySlip,
     DepthMisregistered.TYPE: DepthMisregistered,
+    MapExtended.TYPE: MapExtended,
+    MapNotExtended.TYPE: MapNotExtended,
     ErrorMessage.TYPE: ErrorMessage,
     FinishingMessage.TYPE: FinishingMessage,
     FinishedMessage.TYPE: FinishedMessage,

@@ -20,6 +20,7 @@ import numpy as np
 
 from worker.config import SlamConfig
 from worker.data.frame import Frame
+from worker.events import Initialized
 from worker.geometry import se3_part
 from worker.pipeline.drift import PoseDrift
 
@@ -144,8 +145,8 @@ def run_sequence(
             "runtime_breakdown": system.timings.breakdown(len(frames)),
             "eval_frames_held_every": hold_every,
         }
-        registered = {int(i) for r in results for e in r.events if e.get("type") == "initialized"
-                      for i in e.get("registered_frames", [])}  # lost frames a new map posed later
+        registered = {int(i) for r in results for e in r.events if isinstance(e, Initialized)
+                      for i in e.registered_frames or []}  # lost frames a new map posed later
         metrics["frames_registered"] = int(sum(r.tracked or r.index in registered for r in results))
         metrics.update(_trajectory_metrics(frames, all_poses, drift, [r.tracked for r in results],
                                            [r.tracked or r.index in registered for r in results]))
@@ -202,8 +203,7 @@ def _event_counts(results: list) -> dict[str, int]:
     counts: dict[str, int] = {}
     for result in results:
         for event in result.events:
-            kind = str(event.get("type", "?"))
-            counts[kind] = counts.get(kind, 0) + 1
+            counts[event.TYPE] = counts.get(event.TYPE, 0) + 1
     return dict(sorted(counts.items()))
 
 

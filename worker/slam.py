@@ -27,6 +27,7 @@ import torch
 from protocol.limits import MAX_RENDER_SIDE
 from worker.config import SlamConfig
 from worker.data.frame import Frame, FrameResult
+from worker.events import EngineEvent
 from worker.geometry import Intrinsics
 from worker.maps.session_in_map import SessionInMap
 from worker.pipeline import snapshot
@@ -76,7 +77,7 @@ class SlamSystem:
         self.finished = False
         self.started: float | None = None
         self.wall_offset = 0.0  # wall time of the run before a restore
-        self.finish_events: list[dict[str, Any]] = []  # events of finish() (no frame result carries them)
+        self.finish_events: list[EngineEvent] = []  # events of finish() (no frame result carries them)
         self.finish_status = FinishStatus()  # finish()'s phase and progress, for progress bars and messages
         self.depth_registration = DepthRegistration(self.config.input.depth_camera,
                                                     self.config.input.detect_misregistration_frames)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 from test_pose_graph_map_join import NEW_SCALE, RESTART, _scaled, _stage, _tracked, _truth
 
+from worker.events import MapsMerged
 from worker.loop.correction_check import implausible_correction
 from worker.loop.pose_graph import PoseGraphResult
 from worker.pipeline.loop_stage import MapJoin
@@ -45,13 +46,13 @@ def test_a_diverged_solve_moves_nothing_and_the_graph_stays_as_it_was():
 
     stage.pose_graph.optimize = diverged
     relative = np.linalg.inv(truth[3]) @ _scaled(truth[19], 1 / NEW_SCALE)
-    stage.submit(MapJoin(3, 19, relative, {"type": "maps_merged"}))
+    stage.submit(MapJoin(3, 19, relative, MapsMerged()))
     assert stage.take_corrections() == [] and stage.solves_given_up == 1
     assert len(stage.pose_graph.edges) == edges_before  # the join's edge went with it
     for key, pose in nodes_before.items():
         np.testing.assert_allclose(stage.pose_graph.nodes[key], pose)
     stage.pose_graph.optimize = solve  # the same join again, with a solve that works, is applied
-    stage.submit(MapJoin(3, 19, relative, {"type": "maps_merged"}))
+    stage.submit(MapJoin(3, 19, relative, MapsMerged()))
     [correction] = stage.take_corrections()
     assert np.linalg.norm(correction.poses[19][:3, 3] - truth[19][:3, 3]) < 0.02
     assert len(stage.pose_graph.edges) == edges_before + 1 and RESTART < 19

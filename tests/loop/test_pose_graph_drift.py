@@ -57,8 +57,8 @@ def test_the_graph_solved_with_device_priors_brings_a_drifting_odometry_to_the_d
     truth, tracked = _truth(), _tracked(_truth())
     _, corrections = _run(solve_every=4)
     assert len(corrections) == KEYFRAMES // 4
-    assert all(c.event["type"] == "drift_corrected" for c in corrections)
-    assert [c.event["keyframe"] for c in corrections] == list(range(3, KEYFRAMES, 4))
+    assert all(c.event.TYPE == "drift_corrected" for c in corrections)
+    assert [c.event.keyframe for c in corrections] == list(range(3, KEYFRAMES, 4))
     final = corrections[-1].poses
     before = max(np.linalg.norm(tracked[k][:3, 3] - truth[k][:3, 3]) for k in range(KEYFRAMES))
     after = max(np.linalg.norm(final[k][:3, 3] - truth[k][:3, 3]) for k in range(KEYFRAMES))

@@ -7,6 +7,7 @@ import cv2
 import numpy as np
 
 from worker.config import LoopConfig
+from worker.events import MapsMerged
 from worker.loop.pose_graph import Sim3PoseGraph
 from worker.pipeline.loop_stage import GraphKeyframe, LoopClosingStage, MapJoin
 
@@ -58,10 +59,10 @@ def test_a_sim3_edge_brings_the_restarted_map_into_the_old_frame_and_scale():
     stage = _stage(tracked)
     # Keyframe 19 recognised keyframe 3 of the old map: their relative pose, keyframe 19 in its own units.
     relative = np.linalg.inv(truth[3]) @ _scaled(truth[19], 1 / NEW_SCALE)
-    stage.submit(MapJoin(3, 19, relative, {"type": "maps_merged", "place": 3}))
+    stage.submit(MapJoin(3, 19, relative, MapsMerged(place=3)))
     corrections = stage.take_corrections()
-    assert len(corrections) == 1 and corrections[0].event["type"] == "maps_merged"
-    assert corrections[0].event["to_keyframe"] == 3 and corrections[0].event["from_keyframe"] == 19
+    assert len(corrections) == 1 and corrections[0].event.TYPE == "maps_merged"
+    assert corrections[0].event.to_keyframe == 3 and corrections[0].event.from_keyframe == 19
     poses = corrections[0].poses
     before = max(np.linalg.norm(tracked[k][:3, 3] - truth[k][:3, 3]) for k in range(RESTART, 20))
     after = max(np.linalg.norm(poses[k][:3, 3] - truth[k][:3, 3]) for k in range(20))
@@ -77,5 +78,5 @@ def test_a_sim3_edge_brings_the_restarted_map_into_the_old_frame_and_scale():
 def test_a_join_between_unknown_keyframes_is_ignored():
     tracked = _tracked(_truth())
     stage = _stage(tracked)
-    stage.submit(MapJoin(3, 25, np.eye(4), {"type": "maps_merged"}))
+    stage.submit(MapJoin(3, 25, np.eye(4), MapsMerged()))
     assert stage.take_corrections() == [] and all(e.kind != "map_join" for e in stage.pose_graph.edges)

@@ -22,8 +22,8 @@ def _session(frames: list[Frame], views: list) -> tuple[SlamSystem, SessionInMap
     return SlamSystem(_config(), intrinsics=frames[0].intrinsics, in_map=in_map), in_map
 
 
-def _events(results, kind: str) -> list[dict]:
-    return [e for r in results for e in r.events if e.get("type") == kind]
+def _events(results, kind: str) -> list:
+    return [e for r in results for e in r.events if e.TYPE == kind]
 
 
 def test_a_session_in_a_map_publishes_its_poses_in_the_maps_world(icl_frames) -> None:
@@ -31,8 +31,8 @@ def test_a_session_in_a_map_publishes_its_poses_in_the_maps_world(icl_frames) ->
     system, in_map = _session(frames, views_of(icl_frames[::4]))
     results = [system.push(f) for f in frames]
     relocalized = _events(results, "relocalized")
-    assert len(relocalized) == 1 and relocalized[0]["map_id"] == "map1"
-    first = next(r.index for r in results if any(e.get("type") == "relocalized" for e in r.events))
+    assert len(relocalized) == 1 and relocalized[0].map_id == "map1"
+    first = next(r.index for r in results if any(e.TYPE == "relocalized" for e in r.events))
     assert first <= 5  # anchored within the first frames
     assert results[first].revision > results[0].revision  # the earlier poses were revised with it
     errors = [np.linalg.norm(pose[:3, 3] - frames[i].gt_pose[:3, 3]) for i, _, pose in system.trajectory()]

@@ -79,8 +79,8 @@ def _events(frames: list[Frame], depth_camera: dict | None = None) -> list[dict]
 
 def test_the_engine_reports_misregistered_depth_once(pair) -> None:
     events = _events(_frames(pair))
-    assert [e["type"] for e in events] == ["depth_misregistered"]
-    assert events[0]["shift_px"] != [0, 0] and "depth_camera" in events[0]["message"]
+    assert [e.TYPE for e in events] == ["depth_misregistered"]
+    assert events[0].shift_px != [0, 0] and "depth_camera" in events[0].message
     assert _events(_frames(pair, registered_depth=True)) == []
 
 
@@ -96,7 +96,7 @@ def test_the_engine_maps_registered_depth_with_the_given_depth_camera(pair) -> N
         system.finish()
         _, rendered = system.render_view(np.eye(4), colour.matrix().numpy(), colour.width, colour.height)
         wrong[name] = _wrong(rendered, true_depth)
-        assert not any(e["type"] == "depth_misregistered" for e in events) or declared is None
+        assert not any(e.TYPE == "depth_misregistered" for e in events) or declared is None
         system.close()
     # (rendered surfels blend across depth edges, so neither is 0; misregistered depth puts a third more pixels off)
     assert wrong["declared"] < 0.8 * wrong["not declared"], wrong

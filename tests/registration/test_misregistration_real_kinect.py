@@ -45,4 +45,4 @@ def test_registered_real_kinect_frames_are_not_flagged(frames) -> None:
     registration = DepthRegistration(None, config.input.detect_misregistration_frames)
     events = [event for f in frames for event in registration.apply(f, f.intrinsics)[1]]
     assert registration.checked
-    assert not [e for e in events if e["type"] == "depth_misregistered"], events
+    assert not [e for e in events if e.TYPE == "depth_misregistered"], events

@@ -36,9 +36,9 @@ def _finished(frames: list[Frame], pose_mode: str, refine_poses: bool) -> SlamSy
 
 def test_the_keyframes_cameras_are_refined_and_every_frame_follows(frames) -> None:
     plain, refined = _finished(frames, "prior", False), _finished(frames, "prior", True)
-    events = [e for e in refined.finish_events if e["type"] == "poses_refined"]
-    assert len(events) == 1 and events[0]["keyframes"] == 2 and events[0]["revision"] == refined.revision
-    assert not [e for e in plain.finish_events if e["type"] == "poses_refined"]
+    events = [e for e in refined.finish_events if e.TYPE == "poses_refined"]
+    assert len(events) == 1 and events[0].keyframes == 2 and events[0].revision == refined.revision
+    assert not [e for e in plain.finish_events if e.TYPE == "poses_refined"]
     before = {i: pose for i, _, pose in plain.trajectory("all")}
     after = {i: pose for i, _, pose in refined.trajectory("all")}
     assert sorted(before) == sorted(after) == list(range(len(frames)))
@@ -55,6 +55,6 @@ def test_the_keyframes_cameras_are_refined_and_every_frame_follows(frames) -> No
 
 def test_fixed_device_poses_are_never_refined(frames) -> None:
     system = _finished(frames, "fixed", True)
-    assert not [e for e in system.finish_events if e["type"] == "poses_refined"]
+    assert not [e for e in system.finish_events if e.TYPE == "poses_refined"]
     for (_, _, pose), frame in zip(system.trajectory("all"), frames):
         np.testing.assert_allclose(pose, frame.pose, atol=1e-9)

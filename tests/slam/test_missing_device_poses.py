@@ -26,7 +26,7 @@ def frames() -> list[Frame]:
 
 
 def _events(results, kind: str) -> list[int]:
-    return [r.index for r in results for e in r.events if e["type"] == kind]
+    return [r.index for r in results for e in r.events if e.TYPE == kind]
 
 
 def test_fixed_poses_hold_and_report_a_gap(frames) -> None:

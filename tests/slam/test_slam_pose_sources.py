@@ -68,10 +68,10 @@ def test_lost_frames_pass_their_event_and_keep_the_pose(rgbd_frames) -> None:
     black = Frame(frames[4].index, frames[4].timestamp, np.zeros_like(frames[4].image), intr,
                   np.zeros_like(frames[4].depth))
     lost = system.push(black)
-    assert [e["type"] for e in lost.events] == ["tracking_lost"] and not lost.is_keyframe
+    assert [e.TYPE for e in lost.events] == ["tracking_lost"] and not lost.is_keyframe
     np.testing.assert_allclose(lost.pose, before.pose)
     back = system.push(frames[5])
-    assert [e["type"] for e in back.events] == ["relocalized"] and np.all(np.isfinite(back.pose))
+    assert [e.TYPE for e in back.events] == ["relocalized"] and np.all(np.isfinite(back.pose))
 
 
 def test_snapshot_restores_the_odometry(rgbd_frames) -> None:

@@ -90,7 +90,7 @@ def test_bad_input_is_rejected(frames) -> None:
         system.push("not a frame")
     first = system.push(frames[0])
     without_pose = system.push(Frame(1, 0.1, frames[1].image, frames[1].intrinsics, frames[1].depth))
-    assert not without_pose.tracked and [e["type"] for e in without_pose.events] == ["tracking_lost"]
+    assert not without_pose.tracked and [e.TYPE for e in without_pose.events] == ["tracking_lost"]
     np.testing.assert_allclose(without_pose.pose, first.pose)  # held: no error, the session goes on
     with pytest.raises(ValueError, match="80x60"):
         system.push(Frame(2, 0.2, np.zeros((30, 40, 3), np.uint8), pose=np.eye(4)))

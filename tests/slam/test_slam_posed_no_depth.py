@@ -87,8 +87,8 @@ def test_a_frame_without_pose_in_posed_mode_is_lost_not_an_error(frames) -> None
     system = SlamSystem(SlamConfig.preset("test", mapping={"enabled": False}))
     first = system.push(frames[0])
     gap = system.push(Frame(1, 0.1, frames[1].image, frames[1].intrinsics))
-    assert not gap.tracked and gap.events[0]["reason"] == "the frame has no device pose"
+    assert not gap.tracked and gap.events[0].reason == "the frame has no device pose"
     np.testing.assert_allclose(gap.pose, first.pose)
     back = system.push(frames[2])
-    assert back.tracked and [e["type"] for e in back.events] == ["relocalized"]
+    assert back.tracked and [e.TYPE for e in back.events] == ["relocalized"]
     system.close()

@@ -87,7 +87,7 @@ def test_visual_odometry_follows_a_fast_turn_over_striped_walls():
     vo = VisualOdometry()
     results = [vo.track(frame, frame.intrinsics) for frame in frames]
     assert all(r.tracked and np.all(np.isfinite(r.pose)) for r in results)
-    aligned = [n for n, r in enumerate(results) if any(e["type"] == "rotation_only" and e.get("method") ==
+    aligned = [n for n, r in enumerate(results) if any(e.TYPE == "rotation_only" and e.method ==
                                                        "photometric" for e in r.events)]
     assert aligned and min(aligned) <= 43
     for n in range(aligned[0], 50):
@@ -98,5 +98,5 @@ def test_visual_odometry_follows_a_fast_turn_over_striped_walls():
     blank = frames[49].__class__(50, 50 / 30.0, np.full_like(frames[49].image, 128), frames[49].intrinsics)
     last = vo.pose.copy()
     result = vo.track(blank, blank.intrinsics)
-    assert not result.tracked and any(e["type"] == "tracking_lost" for e in result.events)
+    assert not result.tracked and any(e.TYPE == "tracking_lost" for e in result.events)
     assert np.array_equal(result.pose, last)

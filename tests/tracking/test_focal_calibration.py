@@ -49,13 +49,13 @@ def test_odometry_calibrates_then_reports_the_frames_again(frames) -> None:
     odometry = RgbdOdometry(RgbdOdometryConfig(focal_guess=1.2))  # 384 px: 46 % too long
     results = [odometry.track(f, None) for f in frames]
     events = [(k, e) for k, r in enumerate(results) for e in r.events]
-    assert [e["type"] for _, e in events] == ["initialized"]
+    assert [e.TYPE for _, e in events] == ["initialized"]
     at, event = events[0]
     assert 4 <= at < 24 and not odometry.calibrating
-    assert abs(event["intrinsics"]["fx"] / TRUE_FOCAL - 1) < 0.03 and event["focal_trusted"]
-    assert [i for i, _ in event["frames"]] == [f.index for f in frames[:at]]
+    assert abs(event.intrinsics["fx"] / TRUE_FOCAL - 1) < 0.03 and event.focal_trusted
+    assert [i for i, _ in event.frames] == [f.index for f in frames[:at]]
     assert all(not r.keyframe_hint for r in results[1:at])  # no keyframes on the guessed camera
-    poses = [np.asarray(p) for _, p in event["frames"]] + [r.pose for r in results[at:]]
+    poses = [np.asarray(p) for _, p in event.frames] + [r.pose for r in results[at:]]
     gt = np.stack([f.gt_pose for f in frames])
     assert absolute_trajectory_error(np.stack(poses), gt, "se3").rmse < 0.03
 
@@ -68,7 +68,7 @@ def test_calibration_survives_a_snapshot(frames) -> None:
     restored = RgbdOdometry()
     restored.load_state_dict(unpack(pack(odometry.state_dict())))
     events = [e for f in frames[3:] for e in restored.track(f, None).events]
-    assert [e["type"] for e in events] == ["initialized"] and len(events[0]["frames"]) >= 3
+    assert [e.TYPE for e in events] == ["initialized"] and len(events[0].frames) >= 3
 
 
 def test_the_engine_maps_with_the_estimated_camera(frames) -> None:

@@ -65,13 +65,13 @@ def _session(frames, poses, pose_mode: str = "auto"):
 
 
 def _chosen(results) -> list[tuple[int, dict]]:
-    return [(r.index, e) for r in results for e in r.events if e["type"] == "pose_source_chosen"]
+    return [(r.index, e) for r in results for e in r.events if e.TYPE == "pose_source_chosen"]
 
 
 def test_exact_poses_stay_the_odometry(frames) -> None:
     system, results = _session(frames, [f.pose for f in frames])
     [(at, event)] = _chosen(results)
-    assert event["pose_source"] == "prior" and event["ratio"] <= event["max_ratio"] and at <= 20
+    assert event.pose_source == "prior" and event.ratio <= event.max_ratio and at <= 20
     assert system.pose_source_choice()["pose_source"] == "prior"
     for result, frame in zip(results, frames):
         np.testing.assert_allclose(result.pose, frame.pose, atol=1e-9)
@@ -83,8 +83,8 @@ def test_exact_poses_stay_the_odometry(frames) -> None:
 def test_noisy_poses_hand_tracking_to_seeded_visual_odometry_without_a_jump(frames, noisy) -> None:
     system, results = _session(frames, noisy)
     [(at, event)] = _chosen(results)
-    assert event["pose_source"] == "seeded" and event["ratio"] > event["max_ratio"] and at <= 20
-    assert "disagree" in event["reason"] and f"{event['max_ratio']:g}" in event["reason"]
+    assert event.pose_source == "seeded" and event.ratio > event.max_ratio and at <= 20
+    assert "disagree" in event.reason and f"{event.max_ratio:g}" in event.reason
     summary = system.pose_source_choice()
     assert summary["pose_source"] == "seeded" and summary["pose_agreement"]["judged"]
     # While judging, frames get the device's poses (provisional) and no keyframe; at the verdict the seeded
@@ -92,7 +92,7 @@ def test_noisy_poses_hand_tracking_to_seeded_visual_odometry_without_a_jump(fram
     for result, pose in zip(results[:at], noisy):
         np.testing.assert_allclose(result.pose, pose, atol=1e-9)
         assert not result.is_keyframe and result.revision == 0
-    assert event["frames_replayed"] == at + 1 and event["revision"] == results[at].revision > 0
+    assert event.frames_replayed == at + 1 and event.revision == results[at].revision > 0
     trajectory = system.trajectory("all")
     assert [index for index, _, _ in trajectory] == [f.index for f in frames]
     assert trajectory[0][0] in {index for index, _, _ in system.trajectory("keyframes")}
@@ -130,7 +130,7 @@ def test_without_parallax_the_device_poses_are_kept(frames, noisy) -> None:
     still = [replace(frames[0], index=k, timestamp=k / 30) for k in range(31)]  # a camera that does not move
     system, results = _session(still, noisy[:31])
     [(at, event)] = _chosen(results)
-    assert at == 29 and event["pose_source"] == "prior" and "parallax" in event["reason"]
+    assert at == 29 and event.pose_source == "prior" and "parallax" in event.reason
     assert system.pose_source_choice()["pose_agreement"]["judged"]
 
 
@@ -153,8 +153,8 @@ def test_too_few_triples_keep_the_device_poses_without_saying_they_disagree(fram
     system = SlamSystem(config, intrinsics=frames[0].intrinsics)
     results = [system.push(replace(f, pose=p.copy())) for f, p in zip(frames, noisy)]
     [(_, event)] = _chosen(results)
-    assert event["pose_source"] == "prior" and "too few" in event["reason"]
-    assert event["triples"] < 50 and event["agree"] is None and event["ratio"] > event["max_ratio"]
+    assert event.pose_source == "prior" and "too few" in event.reason
+    assert event.triples < 50 and event.agree is None and event.ratio > event.max_ratio
     assert system.pose_source_choice()["pose_agreement"]["agree"] is None
 
 
@@ -166,7 +166,7 @@ def test_a_snapshot_while_judging_keeps_the_judged_frames_for_the_verdict(frames
     restored = SlamSystem.restore(system.snapshot())
     rest = [restored.push(replace(f, pose=p.copy())) for f, p in zip(frames[8:], noisy[8:])]
     [(at, event)] = _chosen(rest)  # (the triples measured before the snapshot count; their tracks start again)
-    assert event["frames_replayed"] == at + 1 and event["pose_source"] == "seeded"
+    assert event.frames_replayed == at + 1 and event.pose_source == "seeded"
     assert [index for index, _, _ in restored.trajectory("all")] == [f.index for f in frames]
     np.testing.assert_allclose(restored.trajectory("all")[0][2], noisy[0], atol=1e-9)
 
@@ -175,7 +175,7 @@ def test_a_stream_that_ends_while_judging_is_decided_and_mapped_at_finish(frames
     system, results = _session(frames[:10], noisy[:10])
     assert not _chosen(results) and system.trajectory("all") == []
     system.finish()
-    [event] = [e for e in system.finish_events if e["type"] == "pose_source_chosen"]
-    assert event["frames_replayed"] == 10 and event["pose_source"] in ("prior", "seeded")
+    [event] = [e for e in system.finish_events if e.TYPE == "pose_source_chosen"]
+    assert event.frames_replayed == 10 and event.pose_source in ("prior", "seeded")
     assert [index for index, _, _ in system.trajectory("all")] == [f.index for f in frames[:10]]
     assert system.trajectory("keyframes")[0][0] == frames[0].index

@@ -72,10 +72,10 @@ def test_bad_frames_are_reported_lost_and_tracking_recovers(sequence, damage) ->
               "nan_depth": {"depth": np.full_like(frames[5].depth, np.nan)}}[damage]
     lost = odometry.track(_copy(frames[5], **broken), intr)
     assert not lost.tracked and lost.keyframe_hint is False
-    assert [e["type"] for e in lost.events] == ["tracking_lost"] and lost.events[0]["reason"]
+    assert [e.TYPE for e in lost.events] == ["tracking_lost"] and lost.events[0].reason
     np.testing.assert_array_equal(lost.pose, last.pose)  # no jump while lost
     again = odometry.track(frames[6], intr)
-    assert again.tracked and [e["type"] for e in again.events] == ["relocalized"]
+    assert again.tracked and [e.TYPE for e in again.events] == ["relocalized"]
     error = np.linalg.inv(np.linalg.inv(frames[0].gt_pose) @ frames[6].gt_pose) @ again.pose
     assert np.linalg.norm(error[:3, 3]) < 0.03
 
@@ -91,7 +91,7 @@ def test_a_jump_to_another_view_is_never_a_silent_wrong_pose(sequence) -> None:
     if result.tracked:
         assert np.linalg.norm(result.pose[:3, 3] - truth[:3, 3]) < 0.05
     else:
-        assert result.events[0]["type"] == "tracking_lost"
+        assert result.events[0].TYPE == "tracking_lost"
     assert np.all(np.isfinite(result.pose))
 
 
@@ -120,5 +120,5 @@ def test_relocalization_after_a_jump_back_to_a_seen_view(sequence) -> None:
     back = odometry.track(frames[8], intr)  # back where it was at frame 8, 30 cm from the last pose
     truth = np.linalg.inv(frames[0].gt_pose) @ frames[8].gt_pose
     assert np.linalg.norm(lost.pose[:3, 3] - truth[:3, 3]) > 0.25
-    assert back.tracked and back.events[0]["type"] == "relocalized"
+    assert back.tracked and back.events[0].TYPE == "relocalized"
     assert np.linalg.norm(back.pose[:3, 3] - truth[:3, 3]) < 0.03

@@ -114,7 +114,7 @@ def test_a_fast_turn_in_place_is_tracked_by_its_rotation_and_said_so(turn_and_wa
     for frame in frames:
         results.append(bridged.track(frame, frame.intrinsics))
         assert np.all(np.isfinite(results[-1].pose))
-    events = [(n, e["type"]) for n, r in enumerate(results) for e in r.events]
+    events = [(n, e.TYPE) for n, r in enumerate(results) for e in r.events]
     assert not any(kind == "tracking_lost" for _, kind in events), events
     rotation_runs = [n for n, kind in events if kind == "rotation_only"]
     assert rotation_runs and rotation_runs[0] >= moves, events  # only once the map points left the view
@@ -128,7 +128,7 @@ def test_a_fast_turn_in_place_is_tracked_by_its_rotation_and_said_so(turn_and_wa
     assert np.linalg.norm(results[-1].pose[:3, 3] - results[start].pose[:3, 3]) < 0.1
     # Without the rotation bridge (and the photometric fallback behind it) the same frames are lost.
     plain = VisualOdometry(bridged.config.model_copy(update={"rotation_bridge": False, "direct_fallback": False}))
-    lost = [e for f in frames for e in plain.track(f, f.intrinsics).events if e["type"] == "tracking_lost"]
+    lost = [e for f in frames for e in plain.track(f, f.intrinsics).events if e.TYPE == "tracking_lost"]
     assert lost
 
 
@@ -140,4 +140,4 @@ def test_walking_on_after_the_turn_ends_the_rotation_only_run(turn_and_walk):
     walking = results[MOVES + TURNS:]
     held = [n for n, r in enumerate(walking) if r.tracked and r.quality is not None and 0.0 < r.quality <= 0.5]
     assert len(held) <= 4, held  # noticed within a few frames (2 cm each)
-    assert any(e["type"] == "tracking_lost" for r in walking for e in r.events)
+    assert any(e.TYPE == "tracking_lost" for r in walking for e in r.events)

@@ -59,8 +59,8 @@ def test_seeded_tracking_resumes_from_the_device_pose(resumed) -> None:
     lost = [r.index for r in results if not r.tracked]
     assert all(results[i + 1].tracked for i in lost if i + 1 < len(results))  # restarted a frame (0.67 s) later
     assert results[-1].tracked and len(lost) <= 2
-    restarts = [(r.index, e) for r in results for e in r.events if e["type"] == "relocalized"]
-    assert restarts and all(e["method"] == "device_pose" and e["reason"] for _, e in restarts)
+    restarts = [(r.index, e) for r in results for e in r.events if e.TYPE == "relocalized"]
+    assert restarts and all(e.method == "device_pose" and e.reason for _, e in restarts)
     for index, _ in restarts:  # each restart follows the odometry's loss, once it lasted `resume_after_s`
         assert index - 1 in lost and not results[index - 1].is_keyframe
     keyframes = [r.index for r in results if r.is_keyframe]
@@ -96,7 +96,7 @@ def test_no_restart_on_a_blurred_frame() -> None:
         results.append(system.push(frame))
     system.finish()
     assert not results[2].tracked and not results[3].tracked and not results[3].is_keyframe
-    assert not any(e["type"] == "relocalized" for e in results[3].events)
+    assert not any(e.TYPE == "relocalized" for e in results[3].events)
     assert np.linalg.norm(results[3].pose[:3, 3] - frames[3].gt_pose[:3, 3]) < 0.08  # the device's motion, no hold
-    assert [e["method"] for e in results[4].events if e["type"] == "relocalized"] == ["device_pose"]
+    assert [e.method for e in results[4].events if e.TYPE == "relocalized"] == ["device_pose"]
     assert all(r.tracked for r in results[4:])

@@ -79,11 +79,11 @@ def _position_errors(results: list[TrackingResult], frames: list[Frame]) -> np.n
 
 def test_an_odometry_slip_is_re_tracked_from_the_device_not_called_a_device_jump(frames) -> None:
     tracking, results = _run(frames, arbitrate=True)
-    events = [(i, e["type"]) for i, r in enumerate(results) for e in r.events]
+    events = [(i, e.TYPE) for i, r in enumerate(results) for e in r.events]
     assert (SLIP_AT, "odometry_slip") in events
     assert not any(kind == "device_pose_jump" for _, kind in events)
-    slip = next(e for e in results[SLIP_AT].events if e["type"] == "odometry_slip")
-    assert slip["photometric_rms"][1] < slip["photometric_rms"][0]  # the images chose the device's side
+    slip = next(e for e in results[SLIP_AT].events if e.TYPE == "odometry_slip")
+    assert slip.photometric_rms[1] < slip.photometric_rms[0]  # the images chose the device's side
     errors = _position_errors(results, frames)
     assert errors[SLIP_AT] < 0.015 and errors.max() < 0.02  # where the camera was (the odometry drifts ~1 cm)
     assert np.allclose(tracking.correction, np.eye(4))  # the device's world stays where it was
@@ -93,7 +93,7 @@ def test_an_odometry_slip_is_re_tracked_from_the_device_not_called_a_device_jump
 
 def test_without_arbitration_the_slip_and_its_return_become_device_jumps(frames) -> None:
     tracking, results = _run(frames, arbitrate=False)
-    jumps = [i for i, r in enumerate(results) for e in r.events if e["type"] == "device_pose_jump"]
+    jumps = [i for i, r in enumerate(results) for e in r.events if e.TYPE == "device_pose_jump"]
     # the slip and the odometry's return from it (the next frame aligns to the reference keyframe again) are
     # both taken for device jumps: the device's world re-anchored twice, two keyframe priors dropped
     assert jumps == [SLIP_AT, SLIP_AT + 1]

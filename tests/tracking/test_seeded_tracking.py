@@ -13,6 +13,7 @@ from worker.config import SlamConfig
 from worker.data import open_source
 from worker.data.frame import Frame
 from worker.eval import absolute_trajectory_error
+from worker.events import Initialized
 from worker.pipeline.drift import PoseDrift
 from worker.slam import SlamSystem
 from worker.tracking.base import TrackingResult
@@ -65,9 +66,9 @@ def seeded_run(frames, drifted):
 def test_a_device_jump_is_caught_reported_and_kept_out_of_the_trajectory(frames, drifted, seeded_run) -> None:
     system, results = seeded_run
     assert isinstance(system.pose_source, SeededTracking) and system.mode == "posed"
-    jumps = [(r.index, e) for r in results for e in r.events if e["type"] == "device_pose_jump"]
+    jumps = [(r.index, e) for r in results for e in r.events if e.TYPE == "device_pose_jump"]
     assert [i for i, _ in jumps] == [JUMP_AT]
-    assert jumps[0][1]["translation"] > 0.1 and jumps[0][1]["rotation_deg"] > 3.0
+    assert jumps[0][1].translation > 0.1 and jumps[0][1].rotation_deg > 3.0
     device_steps = [np.linalg.norm(b[:3, 3] - a[:3, 3]) for a, b in zip(drifted, drifted[1:])]
     tracked_steps = [np.linalg.norm(b.pose[:3, 3] - a.pose[:3, 3]) for a, b in zip(results, results[1:])]
     true_steps = [np.linalg.norm(b.gt_pose[:3, 3] - a.gt_pose[:3, 3]) for a, b in zip(frames, frames[1:])]
@@ -149,9 +150,9 @@ def test_without_depth_the_pose_graph_brings_the_keyframes_to_a_device_whose_sca
     config = _config(use_depth=False, device_poses={"drift_correction": "pose_graph", "graph_solve_keyframes": 2,
                                                     "prior_translation": 0.01, "prior_inflation": 0.0})
     system, results = _run(frames, device, config)
-    corrected = [e for r in results for e in r.events if e["type"] == "drift_corrected"] + [
-        e for e in system.finish_events if e["type"] == "drift_corrected"]
-    assert corrected and all("revision" in e for e in corrected)
+    corrected = [e for r in results for e in r.events if e.TYPE == "drift_corrected"] + [
+        e for e in system.finish_events if e.TYPE == "drift_corrected"]
+    assert corrected and all(e.revision is not None for e in corrected)
     assert system.counters["drift_corrections"] == len(corrected)
     trajectory = system.tracking_stage.trajectory
     keyframes = sorted(trajectory.keyframe_poses)
@@ -181,7 +182,7 @@ class _ScaleDriftingOdometry:
         if n > 0:
             self.position = self.position + 0.5 * 0.995 ** n * (self.truth[n][:3, 3] - self.truth[n - 1][:3, 3])
         pose[:3, 3] = self.position
-        events = [{"type": "initialized", "frames": [[0, np.eye(4).tolist()], [1, pose.tolist()]]}] if n == 2 else []
+        events = [Initialized(frames=[[0, np.eye(4).tolist()], [1, pose.tolist()]])] if n == 2 else []
         return TrackingResult(pose, tracked=True, events=events, quality=1.0)
 
     def keyframe_added(self, frame, pose) -> None:
@@ -255,7 +256,7 @@ def test_the_scale_settles_over_the_first_window_and_the_odometry_keeps_it(drift
     drift = 0.995 ** (70 - settled_at)  # the odometry's scale in the last frames over its scale when settled
     assert step(outputs) / step(truth) == pytest.approx(drift, rel=0.08)  # the drift goes through
     assert tracking.measured_scale / tracking.scale == pytest.approx(1 / drift, rel=0.08)
-    assert not any(e["type"] == "device_pose_jump" for r in results for e in r.events)
+    assert not any(e.TYPE == "device_pose_jump" for r in results for e in r.events)
     assert len(priors) == len(range(0, 80, 3))  # every keyframe
     free_scale = [p.sigmas.log_scale == DRIFT_PRIOR_LOG_SCALE_SIGMA for p in priors]
     assert all(free_scale) if drift_correction == "pose_graph" else not any(free_scale)
@@ -276,7 +277,7 @@ def test_a_device_jump_unsettles_the_scale_until_a_full_window_measures_it_again
     for n, pose in enumerate(device):
         frame = Frame(n, n / 30.0, np.zeros((4, 4, 3), np.uint8), pose=pose.copy())
         result = tracking.track(frame, None)
-        jumps += [n for e in result.events if e["type"] == "device_pose_jump"]
+        jumps += [n for e in result.events if e.TYPE == "device_pose_jump"]
         if n % 3 == 0:
             tracking.keyframe_added(frame, result.pose)
         settled.append(tracking.scale_settled)
@@ -298,7 +299,7 @@ def _scaled_steps(poses: list[np.ndarray], factor: float) -> list[np.ndarray]:
 def _jump_frames(frames, device_poses, jump_relative: float) -> list[int]:
     config = _config(device_poses={"jump_relative": jump_relative})
     _, results = _run(frames, device_poses, config)
-    return [r.index for r in results for e in r.events if e["type"] == "device_pose_jump"]
+    return [r.index for r in results for e in r.events if e.TYPE == "device_pose_jump"]
 
 
 def test_jump_thresholds_grow_with_the_motion_of_sparse_frames() -> None:
@@ -331,7 +332,7 @@ class _TurnHoldingOdometry:
         if measured:
             self.position = pose[:3, 3].copy()
         pose[:3, 3] = self.position
-        events = [{"type": "initialized", "frames": [[0, np.eye(4).tolist()], [1, self.truth[1].tolist()]]}] \
+        events = [Initialized(frames=[[0, np.eye(4).tolist()], [1, self.truth[1].tolist()]])] \
             if n == 2 else []
         return TrackingResult(pose, tracked=True, events=events, quality=1.0 if measured else 0.3,
                               translation_measured=measured)
@@ -354,7 +355,7 @@ def test_a_turn_followed_by_rotation_alone_takes_the_device_position_and_is_no_j
     tracking = SeededTracking(_TurnHoldingOdometry(truth, held), DevicePoseConfig(scale_keyframes=0), monocular=True)
     results = [tracking.track(Frame(n, n / 10.0, np.zeros((4, 4, 3), np.uint8), pose=pose.copy()), None)
                for n, pose in enumerate(truth)]
-    assert not [e for r in results for e in r.events if e["type"] == "device_pose_jump"]
+    assert not [e for r in results for e in r.events if e.TYPE == "device_pose_jump"]
     positions = np.stack([r.pose[:3, 3] for r in results])
     steps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
     true_steps = np.linalg.norm(np.diff(np.stack([p[:3, 3] for p in truth]), axis=0), axis=1)
@@ -391,7 +392,7 @@ class _RestartingOdometry:
         n = frame.index
         if n == self.LOST_AT:
             self.lost_pose = self._at(n - 1)
-        events = [{"type": "initialized", "frames": [[0, np.eye(4).tolist()], [1, self._at(1).tolist()]]}] \
+        events = [Initialized(frames=[[0, np.eye(4).tolist()], [1, self._at(1).tolist()]])] \
             if n == 2 else []
         if self.LOST_AT <= n < self.MAP_AT:
             self.status = "initializing"
@@ -402,7 +403,7 @@ class _RestartingOdometry:
             placeholder[:3, :3] = self.truth[self.REFERENCE - 1][:3, :3]
             frames = [[self.REFERENCE - 1, placeholder.tolist()]]
             frames += [[i, self._at(i).tolist()] for i in range(self.REFERENCE, n)]
-            events = [{"type": "initialized", "frames": frames}]
+            events = [Initialized(frames=frames)]
         return TrackingResult(self._at(n), tracked=True, events=events, quality=1.0)
 
     def keyframe_added(self, frame, pose) -> None:
@@ -426,7 +427,7 @@ def test_a_new_map_after_a_loss_takes_the_device_scale_again(drift_correction: s
     _, results = _track_seeded(odometry, truth, DevicePoseConfig(drift_correction=drift_correction),
                                lambda prior: None, look)
     assert window_at_new_map == [(False, 0)]
-    assert not [e for r in results for e in r.events if e["type"] == "device_pose_jump"]
+    assert not [e for r in results for e in r.events if e.TYPE == "device_pose_jump"]
     steps = np.linalg.norm(np.diff(np.stack([r.pose[:3, 3] for r in results]), axis=0), axis=1)
     true_steps = np.linalg.norm(np.diff(np.stack([p[:3, 3] for p in truth]), axis=0), axis=1)
     np.testing.assert_allclose(steps[odometry.MAP_AT:], true_steps[odometry.MAP_AT:], rtol=0.02)

@@ -39,13 +39,13 @@ def _with_image(frame: Frame, index: int, image: np.ndarray) -> Frame:
 
 
 def _events(results: list[TrackingResult], kind: str) -> list[dict]:
-    return [e for r in results for e in r.events if e["type"] == kind]
+    return [e for r in results for e in r.events if e.TYPE == kind]
 
 
 def _trajectory(results: list[TrackingResult]) -> np.ndarray:
     poses = np.stack([r.pose for r in results])
     for event in _events(results, "initialized"):
-        for index, pose in event["frames"]:
+        for index, pose in event.frames:
             poses[index] = np.asarray(pose)
     return poses
 
@@ -54,11 +54,11 @@ def test_tracks_real_frames_and_reports_initialisation(frames):
     vo = VisualOdometry()
     results = _run(vo, frames[:30])
     init = _events(results, "initialized")
-    assert len(init) == 1 and init[0]["points"] >= 60
-    first = init[0]["frame"]
+    assert len(init) == 1 and init[0].points >= 60
+    first = init[0].frame
     assert first <= 8, "initialisation should wait only a few frames"
     assert all(r.tracked for r in results) and not _events(results, "tracking_lost")
-    assert [i for i, _ in init[0]["frames"]] == list(range(first))
+    assert [i for i, _ in init[0].frames] == list(range(first))
     assert all(r.keyframe_hint is False for r in results[:first]) and results[first].keyframe_hint
     keyframes = [r for r in results if r.keyframe_hint]
     assert len(keyframes) >= 3
@@ -80,7 +80,7 @@ def test_bad_frames_lose_tracking_then_relocalise(frames):
            np.repeat(cv2.resize(cv2.resize(gray, (8, 6)), (w, h))[..., None], 3, axis=2)]  # a featureless blob
     lost = _run(vo, [_with_image(frames[16], 100 + n, image) for n, image in enumerate(bad)])
     assert not any(r.tracked for r in lost)
-    assert [e["type"] for e in lost[0].events] == ["tracking_lost"] and lost[0].events[0]["reason"]
+    assert [e.TYPE for e in lost[0].events] == ["tracking_lost"] and lost[0].events[0].reason
     assert all(not r.events for r in lost[1:]), "one loss, reported once"
     assert all(np.array_equal(r.pose, last_pose) and r.keyframe_hint is False for r in lost)
     after = _run(vo, frames[16:22])
@@ -103,9 +103,9 @@ def test_sudden_jump_is_reported_not_followed(frames):
     before = _run(vo, frames[:16])
     jump = _run(vo, [_with_image(frames[50], 200, frames[50].image)])[0]
     if jump.tracked:  # it may recognise the new place at once, but then it must say so
-        assert [e["type"] for e in jump.events] == ["relocalized"]
+        assert [e.TYPE for e in jump.events] == ["relocalized"]
     else:
-        assert [e["type"] for e in jump.events] == ["tracking_lost"]
+        assert [e.TYPE for e in jump.events] == ["tracking_lost"]
         assert np.array_equal(jump.pose, before[-1].pose)
 
 
@@ -120,8 +120,8 @@ def test_pure_rotation_away_from_the_map_and_back(frames):
         H = K @ cv2.Rodrigues(np.array([0.0, np.radians(degrees), 0.0]))[0] @ np.linalg.inv(K)
         views.append(_with_image(base, 300 + n, cv2.warpPerspective(base.image, H, (base.width, base.height))))
     results = _run(vo, views)
-    lost = [n for n, r in enumerate(results) if any(e["type"] == "tracking_lost" for e in r.events)]
-    found = [n for n, r in enumerate(results) if any(e["type"] == "relocalized" for e in r.events)]
+    lost = [n for n, r in enumerate(results) if any(e.TYPE == "tracking_lost" for e in r.events)]
+    found = [n for n, r in enumerate(results) if any(e.TYPE == "relocalized" for e in r.events)]
     assert lost and found and lost[0] < found[-1]
     assert results[-1].tracked
     # Back at the start view: the recovered pose is the base frame's pose again (rotation only, no drift away).

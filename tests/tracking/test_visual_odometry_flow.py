@@ -49,8 +49,8 @@ def _trajectory_ate(vo: VisualOdometry, frames: list[Frame]) -> tuple[float, int
         tracked += result.tracked
         events += result.events
         for event in result.events:
-            if event["type"] == "initialized":
-                for index, pose in event["frames"]:
+            if event.TYPE == "initialized":
+                for index, pose in event.frames:
                     poses[index - frames[0].index] = np.asarray(pose)
     ate = absolute_trajectory_error(np.stack(poses), np.stack([f.gt_pose for f in frames]), "sim3")
     return ate.rmse, tracked, events
@@ -149,7 +149,7 @@ def test_tracks_and_poses_stay_well_formed():
 
 def test_every_bundled_frame_is_tracked_accurately(frames):
     ate, tracked, events = _trajectory_ate(VisualOdometry(), frames)
-    assert tracked == len(frames) and [e["type"] for e in events if e["type"] != "initializing"] == ["initialized"]
+    assert tracked == len(frames) and [e.TYPE for e in events if e.TYPE != "initializing"] == ["initialized"]
     assert ate < 0.04  # ~3.7 m loop; the bench holds the 3 cm target on the 211-frame sequence
 
 
@@ -158,7 +158,7 @@ def test_a_revisited_place_is_recognised_with_its_old_pose(frames):
     poses = {f.index: vo.track(f, f.intrinsics).pose for f in frames[:20]}
     results = [vo.track(Frame(100 + n, 10.0 + n, frames[n].image, frames[n].intrinsics), frames[n].intrinsics)
                for n in (5, 6, 7)]
-    kinds = [e["type"] for r in results for e in r.events]
+    kinds = [e.TYPE for r in results for e in r.events]
     assert "relocalized" in kinds and results[-1].tracked
     back = next(n for n, r in zip((5, 6, 7), results, strict=True) if r.tracked)
     scale = np.linalg.norm(poses[19][:3, 3] - poses[0][:3, 3]) / np.linalg.norm(

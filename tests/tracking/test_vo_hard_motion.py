@@ -57,7 +57,7 @@ def test_a_start_that_only_turns_keeps_its_orientation_and_waits():
     frames = _turn_in_place_then_move(10003, turns, step, moves=12)
     results = _run(VisualOdometry(), frames)
     waiting = results[:turns]
-    states = [e["state"] for r in results for e in r.events if e["type"] == "initializing"]
+    states = [e.state for r in results for e in r.events if e.TYPE == "initializing"]
     assert "rotation_only" in states
     assert all(r.tracked and r.quality == 0.0 for r in waiting)  # placeholders, said so
     for frame, result in zip(frames[1:turns], waiting[1:], strict=True):
@@ -65,12 +65,12 @@ def test_a_start_that_only_turns_keeps_its_orientation_and_waits():
         estimate = _relative_rotation(results[0].pose, result.pose)
         assert _angle_deg(estimate @ truth.T) < 0.5  # orientation followed ...
         assert np.allclose(result.pose[:3, 3], results[0].pose[:3, 3])  # ... position held: no triangulation
-    initialised = [n for n, r in enumerate(results) if any(e["type"] == "initialized" for e in r.events)]
+    initialised = [n for n, r in enumerate(results) if any(e.TYPE == "initialized" for e in r.events)]
     assert initialised and initialised[0] > turns - 1  # only once the camera moves
     # Once moving: the orientation carries on from the turn, and the scale is sane (not collapsed).
     poses = np.stack([r.pose for r in results])
-    for event in (e for r in results for e in r.events if e["type"] == "initialized"):
-        for index, pose in event["frames"]:
+    for event in (e for r in results for e in r.events if e.TYPE == "initialized"):
+        for index, pose in event.frames:
             poses[index] = np.asarray(pose)
     for n in range(initialised[0], len(frames)):
         truth = _relative_rotation(frames[0].gt_pose, frames[n].gt_pose)
@@ -100,4 +100,4 @@ def test_frames_too_far_apart_are_lost_not_held():
             previous_gt, previous = frame.gt_pose, result.pose
         else:
             assert np.array_equal(result.pose, previous)  # held, and said so
-    assert any(e["type"] == "tracking_lost" for r in results for e in r.events)
+    assert any(e.TYPE == "tracking_lost" for r in results for e in r.events)

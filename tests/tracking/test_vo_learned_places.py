@@ -44,11 +44,11 @@ def test_a_jump_back_is_relocalised_by_xfeat_against_an_older_keyframe(mini):
     assert vo.learned.passes == 0  # smooth tracking never runs the network
     results += _run(vo, frames[40:41])
     jump = results[40]
-    events = {e["type"]: e for e in jump.events}
+    events = {e.TYPE: e for e in jump.events}
     assert "tracking_lost" in events  # the flow broke at the jump ...
     back = events["relocalized"]
-    assert back["method"] == "learned keyframe" and back["place"] <= 8  # ... a keyframe of the first views, not 39
-    assert back["inliers"] >= config.reloc_min_inliers and jump.tracked
+    assert back.method == "learned keyframe" and back.place <= 8  # ... a keyframe of the first views, not 39
+    assert back.inliers >= config.reloc_min_inliers and jump.tracked
     # The frame is frame 5's image: the relocalised pose is the pose frame 5 was tracked at.
     depth = vo.map_depth
     np.testing.assert_allclose(jump.pose[:3, :3], results[5].pose[:3, :3], atol=0.02)
@@ -71,14 +71,14 @@ def test_a_restarted_map_is_joined_by_xfeat_where_orb_finds_no_place(mini):
     vo = VisualOdometry(VisualOdometryConfig(max_hamming=1))
     results = _run(vo, frames)
     events = [(n, e) for n, r in enumerate(results) for e in r.events]
-    restart = next(n for n, e in events if e.get("method") == "reinitialized")
-    merged = [(n, e) for n, e in events if e["type"] == "maps_merged"]
+    restart = next(n for n, e in events if getattr(e, "method", None) == "reinitialized")
+    merged = [(n, e) for n, e in events if e.TYPE == "maps_merged"]
     assert restart == 40 and len(merged) == 1
     at, event = merged[0]
-    assert event["method"] == "learned" and event["since"] == restart and event["place"] <= 8
-    assert event["pairs"] >= 10 and 0.8 < event["scale"] < 1.25
+    assert event.method == "learned" and event.since == restart and event.place <= 8
+    assert event.pairs >= 10 and 0.8 < event.scale < 1.25
     assert vo.join is None and vo.map_id == 0
     # The joined frame shows frame 2 + (at - 40)'s image: in the old map's frame it lies where that frame was.
-    joined = moved_pose(np.asarray(event["correction"]), results[at].pose)
+    joined = moved_pose(np.asarray(event.correction), results[at].pose)
     seen = results[2 + at - 40].pose
     assert np.linalg.norm(joined[:3, 3] - seen[:3, 3]) < 0.05 * vo.map_depth

@@ -85,11 +85,11 @@ def test_a_restarted_map_is_joined_to_the_old_one_at_the_right_scale(gap_sequenc
             restored.load_state_dict(unpack(pack(vo.state_dict())))
             assert restored.join is not None and restored.map_id == vo.map_id == 1
     events = [(n, e) for n, r in enumerate(results) for e in r.events]
-    restart = next(n for n, e in events if e.get("method") == "reinitialized")
-    merged = [(n, e) for n, e in events if e["type"] == "maps_merged"]
+    restart = next(n for n, e in events if getattr(e, "method", None) == "reinitialized")
+    merged = [(n, e) for n, e in events if e.TYPE == "maps_merged"]
     assert restart == 30 and len(merged) == 1
     at, event = merged[0]
-    assert event["since"] == restart and event["place"] < restart < at  # linked to a keyframe of the old map
+    assert event.since == restart and event.place < restart < at  # linked to a keyframe of the old map
     assert vo.join is None and vo.map_id == 0  # the restarted map is part of the old one now
     poses = np.stack([r.pose for r in results])
     assert all(r.tracked for r in results[restart:])
@@ -99,16 +99,16 @@ def test_a_restarted_map_is_joined_to_the_old_one_at_the_right_scale(gap_sequenc
     truth = np.stack([f.gt_pose for f in gap_sequence])[:, :3, 3]
     old = _scale(poses[:restart, :3, 3], truth[:restart])
     seam = _scale(poses[restart:, :3, 3], truth[restart:]) / old
-    correction = np.asarray(event["correction"])
+    correction = np.asarray(event.correction)
     joined = np.stack([moved_pose(correction, p) for p in poses[restart:]])
     ratio = _scale(joined[:, :3, 3], truth[restart:]) / old
     assert abs(np.log(seam)) > np.log(1.5)  # the restart guessed the scale badly ...
     assert abs(np.log(ratio)) < np.log(1.15)  # ... the join brings it to the old map's
-    assert event["scale"] == pytest.approx(seam / ratio, rel=1e-6)
+    assert event.scale == pytest.approx(seam / ratio, rel=1e-6)
     # The edge for the pose graph: the joined frame in the place's frame, in the units each was handed out in (the
     # place's pose as bundle adjustment left it, a little off the pose handed out when it was tracked).
-    place = poses[event["place"]]
-    relative = np.asarray(event["relative"])
+    place = poses[event.place]
+    relative = np.asarray(event.relative)
     np.testing.assert_allclose(place @ relative, correction @ poses[at], atol=0.02)
 
 
@@ -120,8 +120,8 @@ def test_the_engine_joins_the_two_maps_in_its_pose_graph(gap_sequence):
     events = [e for frame in gap_sequence for e in system.push(frame).events]
     system.finish()
     events += system.finish_events
-    merged = [e for e in events if e["type"] == "maps_merged"]
-    assert len(merged) == 1 and merged[0]["revision"] >= 1 and merged[0]["to_keyframe"] < 30
+    merged = [e for e in events if e.TYPE == "maps_merged"]
+    assert len(merged) == 1 and merged[0].revision >= 1 and merged[0].to_keyframe < 30
     kinds = [e.kind for e in system.pose_graph.edges]
     assert kinds.count("restart") == 1 and kinds.count("map_join") == 1
     poses = np.stack([p for _, _, p in system.trajectory()])[:, :3, 3]

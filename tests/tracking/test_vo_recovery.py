@@ -38,8 +38,8 @@ def _run_with_gaps(frames: list[Frame], step: int, config: VisualOdometryConfig 
 
 def _ate_of_tracked(results: list[TrackingResult], sequence: list[Frame]) -> tuple[float, float]:
     poses = np.stack([r.pose for r in results])
-    for event in (e for r in results for e in r.events if e["type"] == "initialized"):
-        for index, pose in event["frames"]:
+    for event in (e for r in results for e in r.events if e.TYPE == "initialized"):
+        for index, pose in event.frames:
             poses[index] = np.asarray(pose)
     tracked = [n for n, r in enumerate(results) if r.tracked]
     gt = np.stack([sequence[n].gt_pose for n in tracked])
@@ -48,16 +48,16 @@ def _ate_of_tracked(results: list[TrackingResult], sequence: list[Frame]) -> tup
 
 
 def _methods(results: list[TrackingResult]) -> list[tuple[int, str]]:
-    return [(n, e.get("method", "")) for n, r in enumerate(results) for e in r.events if e["type"] == "relocalized"]
+    return [(n, e.method or "") for n, r in enumerate(results) for e in r.events if e.TYPE == "relocalized"]
 
 
 def test_a_gap_the_flow_cannot_bridge_restarts_the_map_at_the_old_scale(frames):
     results, sequence = _run_with_gaps(frames, 6)
     restarts = [n for n, method in _methods(results) if method == "reinitialized"]
-    lost = [n for n, r in enumerate(results) if any(e["type"] == "tracking_lost" for e in r.events)]
+    lost = [n for n, r in enumerate(results) if any(e.TYPE == "tracking_lost" for e in r.events)]
     assert lost and restarts and restarts[0] >= lost[0]
-    event = next(e for e in results[restarts[0]].events if e.get("method") == "reinitialized")
-    assert event["scale_from"] == "shared points" and event["shared_points"] >= 10
+    event = next(e for e in results[restarts[0]].events if getattr(e, "method", None) == "reinitialized")
+    assert event.scale_from == "shared points" and event.shared_points >= 10
     assert all(r.tracked for r in results)  # the restart frame itself is tracked on the new map
     ate, path = _ate_of_tracked(results, sequence)
     assert ate < 0.02 * path  # one Sim(3) fits both maps: same world, same scale
@@ -96,12 +96,12 @@ def test_a_view_no_matcher_finds_begins_a_new_map_that_tracks(frames):
     sequence = frames[:20] + frames[40:]
     vo = VisualOdometry(VisualOdometryConfig(learned_relocalisation=False, new_map_after_lost=2))
     results = [vo.track(Frame(n, n / 10.0, f.image, f.intrinsics), f.intrinsics) for n, f in enumerate(sequence)]
-    assert [e["type"] for e in results[20].events] == ["tracking_lost"]
-    begun = [n for n, r in enumerate(results) if any(e["type"] == "new_map" for e in r.events)]
+    assert [e.TYPE for e in results[20].events] == ["tracking_lost"]
+    begun = [n for n, r in enumerate(results) if any(e.TYPE == "new_map" for e in r.events)]
     assert begun == [22]
-    event = next(e for e in results[22].events if e["type"] == "new_map")
-    assert event["map"] == 2 and event["lost_frames"] == 2 and event["scene_depth"] > 0
-    made = next(n for n, r in enumerate(results) if n > 22 and any(e["type"] == "initialized" for e in r.events))
+    event = next(e for e in results[22].events if e.TYPE == "new_map")
+    assert event.map == 2 and event.lost_frames == 2 and event.scene_depth > 0
+    made = next(n for n, r in enumerate(results) if n > 22 and any(e.TYPE == "initialized" for e in r.events))
     assert all(not r.tracked and np.array_equal(r.pose, results[19].pose) for r in results[20:made])
     assert all(r.tracked and r.submap_id == 1 and r.quality > 0 for r in results[made:])
     assert all(r.submap_id == 0 for r in results[:20])
@@ -112,9 +112,9 @@ def test_a_view_no_matcher_finds_begins_a_new_map_that_tracks(frames):
     # the new map starts where the old one was lost (no jump in the reported trajectory)
     assert np.linalg.norm(results[made].pose[:3, 3] - results[19].pose[:3, 3]) < 0.5
     # The frames it waited for (reported lost) are posed by its initialisation, in its frame and as accurately.
-    initialized = next(e for e in results[made].events if e["type"] == "initialized")
-    assert initialized["map"] == 2
-    waited = {int(i): np.asarray(p) for i, p in initialized["frames"]}
+    initialized = next(e for e in results[made].events if e.TYPE == "initialized")
+    assert initialized.map == 2
+    waited = {int(i): np.asarray(p) for i, p in initialized.frames}
     assert set(waited) and set(waited) <= set(range(20, made)) and len(waited) >= made - 24
     posed = sorted(waited) + new
     poses = np.stack([waited[n] if n in waited else results[n].pose for n in posed])
@@ -139,9 +139,9 @@ def test_the_engine_registers_the_frames_a_new_map_waited_for(frames):
     results = [system.push(Frame(n, n / 10.0, f.image, f.intrinsics)) for n, f in enumerate(sequence)]
     system.finish()
     assert system.mode == "visual_odometry"
-    named = [e for r in results for e in r.events if e["type"] == "initialized" and e.get("registered_frames")]
-    assert len(named) == 1 and named[0]["frames_revised"] == len(named[0]["registered_frames"])
-    registered = named[0]["registered_frames"]
+    named = [e for r in results for e in r.events if e.TYPE == "initialized" and e.registered_frames]
+    assert len(named) == 1 and named[0].frames_revised == len(named[0].registered_frames)
+    registered = named[0].registered_frames
     assert all(not results[i].tracked for i in registered)  # reported lost live ...
     poses = {i: p for i, _, p in system.trajectory("all")}
     held = poses[19]

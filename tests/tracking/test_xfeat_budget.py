@@ -84,7 +84,7 @@ def test_a_jump_back_is_relocalised_within_the_smallest_budget(mini):
     config = VisualOdometryConfig(reinit_after_loss=False, learned_passes_per_frame=2, new_map_after_lost=0)
     vo = VisualOdometry(config)
     results = [vo.track(frame, frame.intrinsics) for frame in frames]
-    back = next(e for r in results[40:] for e in r.events if e["type"] == "relocalized")
-    assert back["method"] == "learned keyframe" and back["place"] <= 16 and back["frame"] <= 43
-    assert all(r.tracked for r in results[back["frame"]:])
+    back = next(e for r in results[40:] for e in r.events if e.TYPE == "relocalized")
+    assert back.method == "learned keyframe" and back.place <= 16 and back.frame <= 43
+    assert all(r.tracked for r in results[back.frame:])
     assert vo.learned.most_in_a_frame == 2

@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 
+from worker.events import EngineEvent
 from worker.geometry import Intrinsics
 
 
@@ -56,8 +57,8 @@ class FrameResult:
     """What the engine says about a frame once the frontend has tracked it.
 
     pose: camera-to-world 4x4 (Sim(3) in monocular mode) in the current map frame; revision: the trajectory
-    revision this pose belongs to (grows when a loop closure rewrites the past); events: dicts such as
-    {"type": "loop_closed", "revision": 3, "from_keyframe": 40, "to_keyframe": 2}.
+    revision this pose belongs to (grows when a loop closure rewrites the past); events: what happened at it
+    (worker.events), such as LoopClosed(revision=3, from_keyframe=40, to_keyframe=2).
     """
 
     index: int
@@ -66,12 +67,12 @@ class FrameResult:
     is_keyframe: bool
     submap_id: int
     revision: int
-    events: list[dict[str, Any]] = field(default_factory=list)
+    events: list[EngineEvent] = field(default_factory=list)
     tracked: bool = True  # False: tracking was lost at this frame and the pose is the last one held
 
     def to_dict(self) -> dict[str, Any]:
         return {
             "index": self.index, "timestamp": self.timestamp, "pose": np.asarray(self.pose, dtype=np.float64).tolist(),
             "is_keyframe": self.is_keyframe, "submap_id": self.submap_id, "revision": self.revision,
-            "events": self.events,
+            "events": [event.to_dict() for event in self.events],
         }

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from worker.events import DepthMisregistered
 from worker.geometry import Intrinsics
 
 
@@ -67,13 +68,13 @@ class Misregistration:
     edges: int
     misregistered: bool
 
-    def to_event(self) -> dict:
-        return {"type": "depth_misregistered", "shift_px": [int(self.shift[0]), int(self.shift[1])],
-                "shift_dx": int(self.shift[0]), "shift_dy": int(self.shift[1]),
-                "agreement": round(self.score, 4), "agreement_unshifted": round(self.score_at_zero, 4),
-                "message": f"depth edges fit the colour edges best {self.shift[0]:+d} px across and "
-                           f"{self.shift[1]:+d} px down: colour and depth are not registered; give the session "
-                           "depth_camera (depth intrinsics and the depth-to-colour extrinsic)"}
+    def to_event(self) -> DepthMisregistered:
+        return DepthMisregistered(
+            shift_px=[int(self.shift[0]), int(self.shift[1])], shift_dx=int(self.shift[0]), shift_dy=int(self.shift[1]),
+            agreement=round(self.score, 4), agreement_unshifted=round(self.score_at_zero, 4),
+            message=f"depth edges fit the colour edges best {self.shift[0]:+d} px across and {self.shift[1]:+d} px "
+                    "down: colour and depth are not registered; give the session depth_camera (depth intrinsics and "
+                    "the depth-to-colour extrinsic)")
 
 
 def _colour_gradient(image: np.ndarray) -> np.ndarray:

@@ -8,13 +8,13 @@ it, the first `input.detect_misregistration_frames` frames with depth are compar
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
 
 import numpy as np
 
 from worker.data.frame import Frame
 from worker.data.registration import MisregistrationDetector, register_depth
 from worker.data.registration_config import DepthCameraConfig
+from worker.events import EngineEvent
 from worker.geometry import Intrinsics
 
 # The misregistration search covers shifts up to this fraction of the image width (10 px at 320).
@@ -31,7 +31,7 @@ class DepthRegistration:
         self.checked = depth_camera is not None or detect_frames <= 0
         self.verdict = None
 
-    def apply(self, frame: Frame, colour: Intrinsics | None) -> tuple[Frame, list[dict[str, Any]]]:
+    def apply(self, frame: Frame, colour: Intrinsics | None) -> tuple[Frame, list[EngineEvent]]:
         """The frame with its depth in the colour camera, and the events to report (a misregistration, once)."""
         if frame.depth is None:
             return frame, []

@@ -9,10 +9,10 @@ map), `refining` (the final refinement of the whole map, within `final_refine_bu
 from __future__ import annotations
 
 import time
-from typing import Any
 
 import numpy as np
 
+from worker.events import PosesRefined
 from worker.pipeline.session_parts import SessionParts
 from worker.pipeline.session_stats import pose_source_choice
 
@@ -56,7 +56,7 @@ def _refines_keyframe_poses(system: SessionParts) -> bool:
     return system.config.mapping.final_refine_poses and pose_source_choice(system)["pose_source"] != "fixed"
 
 
-def _follow_refined_keyframes(system: SessionParts, motions: dict[int, np.ndarray]) -> dict[str, Any]:
+def _follow_refined_keyframes(system: SessionParts, motions: dict[int, np.ndarray]) -> PosesRefined:
     """Move the trajectory's keyframes by the final refinement's world-frame motions (keyframes the map did not
     hold follow the newest refined one before them) and each frame with the keyframes before and after it.
     Returns the event."""
@@ -65,4 +65,4 @@ def _follow_refined_keyframes(system: SessionParts, motions: dict[int, np.ndarra
     old = {k: pose.copy() for k, pose in trajectory.keyframe_poses.items()}
     _, changed = stage.apply_correction({k: motion @ old[k] for k, motion in motions.items() if k in old})
     revision = trajectory.spread_keyframe_moves(old)
-    return {"type": "poses_refined", "keyframes": len(changed), "revision": revision}
+    return PosesRefined(keyframes=len(changed), revision=revision)

@@ -8,11 +8,13 @@ visual odometry's poses). The verdict frame's result carries the replayed frames
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
 from worker.data.frame import Frame, FrameResult
+from worker.events import EngineEvent, PoseSourceChosen
 from worker.geometry import Intrinsics
 from worker.pipeline.tracking_stage import TrackingStage
 
@@ -37,17 +39,17 @@ class JudgedStart:
         self.frames.append(frame)
         if self.judging:
             return FrameResult(frame.index, frame.timestamp, pose, False, tracking.submap_id, stage.revision,
-                               [dict(e) for e in tracking.events], tracked=tracking.tracked)
+                               list(tracking.events), tracked=tracking.tracked)
         return self.replay(tracking.events)
 
-    def conclude(self) -> list[dict[str, Any]]:
+    def conclude(self) -> list[EngineEvent]:
         """The stream ended while judging: decide on what was measured and replay; returns the events."""
         if not self.frames:
             return []
         decision = self.stage.pose_source.conclude(self.frames[-1].index)
         return self.replay(decision).events
 
-    def replay(self, decision: list[dict[str, Any]]) -> FrameResult:
+    def replay(self, decision: list[EngineEvent]) -> FrameResult:
         """The kept frames through the chosen source, from the first; the last one's result, carrying the
         decision's `pose_source_chosen` event (with the frames replayed and the new revision) and the replayed
         frames' events."""
@@ -55,14 +57,14 @@ class JudgedStart:
         self.frames = []
         # No keyframe has a multi-view depth yet to measure motion against: the judging's triangulated points do
         stage.selector.set_scene_depth(getattr(stage.pose_source, "scene_depth", None))
-        events: list[dict[str, Any]] = []
+        events: list[EngineEvent] = []
         for kept in judged:
             result = stage.process(kept)
             events += result.events
         revision = stage.trajectory.revise_frames({})  # the provisional poses of the judged frames are replaced
-        chosen = [{**e, "frames_replayed": len(judged), "revision": revision}
-                  for e in decision if e.get("type") == "pose_source_chosen"]
-        result.events = chosen + [dict(e) for e in decision if e.get("type") != "pose_source_chosen"] + events
+        chosen = [replace(e, frames_replayed=len(judged), revision=revision)
+                  for e in decision if isinstance(e, PoseSourceChosen)]
+        result.events = chosen + [e for e in decision if not isinstance(e, PoseSourceChosen)] + events
         result.revision = revision
         return result
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 import logging
 import threading
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -22,6 +22,7 @@ import torch
 
 from protocol.codec import pack
 from worker.config import LoopConfig
+from worker.events import DriftCorrected, EngineEvent, LoopClosed, MapsMerged, Relocalized, event_from_dict
 from worker.geometry import Intrinsics, se3_part
 from worker.loop.correction_check import implausible_correction
 from worker.loop.pose_graph import PosePrior, Sim3PoseGraph
@@ -66,7 +67,7 @@ class MapJoin:
     i: int
     j: int
     relative: np.ndarray
-    event: dict[str, Any]
+    event: MapsMerged
 
 
 @dataclass
@@ -82,7 +83,7 @@ class LoopCorrection:
     trajectory gives when the correction is applied)."""
 
     poses: dict[int, np.ndarray]
-    event: dict[str, Any]
+    event: EngineEvent
 
 
 # What the stage takes, in order
@@ -199,19 +200,17 @@ class LoopClosingStage(QueuedStage):
         if not kept:
             return
         best = kept[0]
-        event: dict[str, Any] = {"type": "loop_closed", "from_keyframe": int(best.j), "to_keyframe": int(best.i),
-                                 "source": best.source, "scale": float(best.scale)}
-        if len(kept) > 1:
-            event["also_to_keyframes"] = [int(c.i) for c in kept[1:]]
+        event = LoopClosed(from_keyframe=int(best.j), to_keyframe=int(best.i), source=best.source,
+                           scale=float(best.scale), also_to_keyframes=[int(c.i) for c in kept[1:]] or None)
         if self._solve(event, before):
             self.loops += 1
 
     def _correct_drift(self, key: int) -> None:
         """Solve the graph with the device priors so far and hand the moved keyframes back (`drift_corrected`)."""
         self.priors_unsolved = 0
-        self._solve({"type": "drift_corrected", "keyframe": int(key)}, self.pose_graph.state_dict())
+        self._solve(DriftCorrected(keyframe=int(key)), self.pose_graph.state_dict())
 
-    def _solve(self, event: dict[str, Any], before: dict[str, Any]) -> bool:
+    def _solve(self, event: EngineEvent, before: dict[str, Any]) -> bool:
         """Optimise the graph and hand the optimised keyframe poses back with `event` (and the solve's costs). A
         solve that fails or ends implausibly (worker.loop.correction_check) moves nothing: the graph goes back to
         `before` (its state before this item's edges) and the loop is given up. Returns whether it was applied."""
@@ -224,11 +223,11 @@ class LoopClosingStage(QueuedStage):
         old = dict(zip(np.asarray(before["keys"]).tolist(), np.asarray(before["poses"])))
         problem = implausible_correction(old, result.poses, self.metric)
         if problem is not None:
-            log.warning("loop-closing stage: %s: the %s is given up", problem, event["type"])
+            log.warning("loop-closing stage: %s: the %s is given up", problem, event.TYPE)
             self.pose_graph.load_state_dict(before)
             self.solves_given_up += 1
             return False
-        event = {**event, "pgo_error_before": result.initial_error, "pgo_error_after": result.final_error}
+        event = replace(event, pgo_error_before=result.initial_error, pgo_error_after=result.final_error)
         self._hand_back(LoopCorrection(dict(result.poses), event))
         return True
 
@@ -257,8 +256,7 @@ class LoopClosingStage(QueuedStage):
             transform = in_map.anchoring.propose(query.frame, own, fix, scene_depth)
             if transform is not None:
                 in_map.relocalized_at = query.frame
-                self._move_world(transform, {"type": "relocalized", "map_id": in_map.map_id, "frame": query.frame,
-                                             **fix.quality()})
+                self._move_world(transform, Relocalized(map_id=in_map.map_id, frame=query.frame, **fix.quality()))
             return
         node = self.pose_graph.nodes[query.frame]
         self.pose_graph.add_prior(query.frame, prior_pose(fix.pose, node), in_map.prior_sigmas(scene_depth))
@@ -266,14 +264,14 @@ class LoopClosingStage(QueuedStage):
         self.map_priors_unsolved += 1
         if self.map_priors_unsolved >= MAP_PRIORS_PER_SOLVE:
             self.map_priors_unsolved = 0
-            self._solve({"type": "drift_corrected", "keyframe": int(query.frame), "source": "map"},
+            self._solve(DriftCorrected(keyframe=int(query.frame), source="map"),
                         self.pose_graph.state_dict())
 
     def _newer_map_query_waiting(self, query: MapQuery) -> bool:
         with self._unfinished_lock:
             return any(isinstance(item, MapQuery) and item.frame > query.frame for _, item in self._unfinished)
 
-    def _move_world(self, transform: np.ndarray, event: dict[str, Any]) -> None:
+    def _move_world(self, transform: np.ndarray, event: EngineEvent) -> None:
         """Express the session in another world (the stored map's): every node moves by `transform`; tracking
         takes the moved keyframes as a correction, and nodes or queries it made before taking it are moved here
         as they come (`_in_current_world`)."""
@@ -302,8 +300,8 @@ class LoopClosingStage(QueuedStage):
             return
         before = self.pose_graph.state_dict()
         self.pose_graph.add_edge(join.i, join.j, join.relative, kind="map_join")
-        self._solve({**{k: v for k, v in join.event.items() if k not in ("relative", "correction")},
-                     "type": "maps_merged", "from_keyframe": int(join.j), "to_keyframe": int(join.i)}, before)
+        self._solve(replace(join.event, relative=None, correction=None, from_keyframe=int(join.j),
+                            to_keyframe=int(join.i)), before)
 
     def _align_depth(self, i: int, j: int, relative: np.ndarray, intrinsics: Intrinsics | None) -> np.ndarray | None:
         """A metric loop edge refined by ICP on the two keyframes' depth (half resolution), or None when the depth
@@ -332,7 +330,7 @@ class LoopClosingStage(QueuedStage):
         tracking has not taken yet, as data; a restored stage works through them (`load_state_dict`)."""
         def pack_state(items: list[Any]) -> bytes:
             with self._corrections_lock:
-                corrections = [{"poses": [[k, v] for k, v in c.poses.items()], "event": c.event}
+                corrections = [{"poses": [[k, v] for k, v in c.poses.items()], "event": c.event.to_dict()}
                                for c in self._corrections]
             return pack({**self.state_dict(), "queued": [item_state(item) for item in items],
                          "corrections": corrections}, external=external)
@@ -365,7 +363,7 @@ class LoopClosingStage(QueuedStage):
             self.in_map.load_state_dict(state["in_map"])
         with self._corrections_lock:
             self._corrections = [LoopCorrection({int(k): np.asarray(v, np.float64) for k, v in c["poses"]},
-                                                dict(c["event"])) for c in state.get("corrections") or []]
+                                                event_from_dict(c["event"])) for c in state.get("corrections") or []]
         for item in state.get("queued") or []:  # submitted before the snapshot, not done in it: done now
             self.submit(item_from_state(item))
 
@@ -382,7 +380,7 @@ def item_state(item: LoopItem) -> dict[str, Any]:
         return {"kind": "query", "kf_id": item.kf_id, "image": item.image, "depth": item.depth, "K": item.K,
                 "intrinsics": None if item.intrinsics is None else item.intrinsics.to_dict()}
     if isinstance(item, MapJoin):
-        return {"kind": "join", "i": item.i, "j": item.j, "relative": item.relative, "event": item.event}
+        return {"kind": "join", "i": item.i, "j": item.j, "relative": item.relative, "event": item.event.to_dict()}
     if isinstance(item, CameraUpdate):
         return {"kind": "camera", "K": item.K}
     return {"kind": "prior", **item.to_dict()}
@@ -407,7 +405,7 @@ def item_from_state(state: dict[str, Any]) -> LoopItem:
         return LoopQuery(int(state["kf_id"]), tensor(state["image"]), intrinsics, tensor(state["depth"]),
                          tensor(state["K"]))
     if kind == "join":
-        return MapJoin(int(state["i"]), int(state["j"]), array(state["relative"]), dict(state["event"]))
+        return MapJoin(int(state["i"]), int(state["j"]), array(state["relative"]), event_from_dict(state["event"]))
     if kind == "camera":
         return CameraUpdate(tensor(state["K"]))
     return PosePrior.from_dict(state)

@@ -6,6 +6,7 @@ from __future__ import annotations
 from typing import Any, Protocol
 
 from worker.config import SlamConfig
+from worker.events import EngineEvent
 from worker.geometry import Intrinsics
 from worker.pipeline.finish_status import FinishStatus
 from worker.pipeline.judged_start import JudgedStart
@@ -36,7 +37,7 @@ class SessionParts(Protocol):
     loop_closer: LoopCloser | None
     with_depth: bool
     wall_offset: float
-    finish_events: list[dict[str, Any]]
+    finish_events: list[EngineEvent]
     finish_status: FinishStatus
 
     @property

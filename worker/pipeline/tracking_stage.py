@@ -15,6 +15,7 @@ the full frame.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 import cv2
@@ -22,6 +23,7 @@ import numpy as np
 import torch
 
 from worker.data.frame import Frame, FrameResult
+from worker.events import DriftCorrected, EngineEvent, MapsMerged, Relocalized
 from worker.geometry import Intrinsics, sim3_inverse
 from worker.maps.session_in_map import MapQuery, SessionInMap
 from worker.pipeline.depth_sources.base import DepthSource
@@ -36,8 +38,8 @@ from worker.pipeline.trajectory import Trajectory
 from worker.tracking.base import TrackingResult
 
 # The counter each kind of correction counts in.
-CORRECTION_COUNTERS = {"maps_merged": "maps_merged", "drift_corrected": "drift_corrections",
-                       "relocalized": "map_relocalizations"}
+CORRECTION_COUNTERS = {MapsMerged: "maps_merged", DriftCorrected: "drift_corrections",
+                       Relocalized: "map_relocalizations"}
 
 
 class TrackingStage:
@@ -96,8 +98,8 @@ class TrackingStage:
                 if not self.depth_source.needs_later_frames:  # in the map before a loop closure can move it
                     self.hand_to_mapping()
             events += self._query_loops(frame, prediction)
-        self.events.after_keyframe_decision(tracking.events, frame.index if is_kf else None, tracking.submap_id,
-                                            pose, self.last_keyframe)
+        events += self.events.after_keyframe_decision(tracking.events, frame.index if is_kf else None,
+                                                      tracking.submap_id, pose, self.last_keyframe)
         world = self.add_frame(frame, pose, is_kf, tracking.submap_id)
         if tracking.tracked:
             self._query_map(frame, is_kf, world)
@@ -116,7 +118,7 @@ class TrackingStage:
         camera = self.camera.of_frame(frame) or self.source_intrinsics(frame.width, frame.height)
         return depth, camera
 
-    def _query_loops(self, frame: Frame, prediction) -> list[dict[str, Any]]:
+    def _query_loops(self, frame: Frame, prediction) -> list[EngineEvent]:
         """Queue loop closure for a new keyframe: against its sensor depth (ORB + PnP + ICP) or the model's hidden
         states; with multi-view depth the mapping stage queues it once it has built the keyframe's depth. Returns
         the events of corrections an inline stage has made already."""
@@ -165,7 +167,7 @@ class TrackingStage:
         if tracked and self.depth_source.add_last_frame(frame, self.trajectory.pose_at(frame.index)):
             self.last_frame_mapped = frame.index
 
-    def apply_loop_corrections(self) -> list[dict[str, Any]]:
+    def apply_loop_corrections(self) -> list[EngineEvent]:
         """Apply the loop-closing stage's new corrections (in order): the trajectory, the jobs not in the map yet
         and the map move to the optimised keyframe poses. Returns their events."""
         events = []
@@ -176,9 +178,9 @@ class TrackingStage:
                 self.depth_source.move(changed)
                 if changed:
                     self.mapping.submit(PoseUpdateJob(changed))
-            counter = CORRECTION_COUNTERS.get(correction.event.get("type"), "loops")
+            counter = CORRECTION_COUNTERS.get(type(correction.event), "loops")
             self.counters[counter] = self.counters.get(counter, 0) + 1
-            events.append({**correction.event, "revision": revision})
+            events.append(replace(correction.event, revision=revision))
         return events
 
     # -- the steps -----------------------------------------------------------------------------------------------

@@ -1,12 +1,11 @@
 """Progress while a session finishes: the engine's final refinement can take a minute, so the runner posts
-{"type": "finishing", "elapsed_s", "phase", "done", "total", "eta_s"} to the session's outbox when `finish` starts
-and every `every_s` seconds until it ends (the phase and its progress where the engine reports them:
-`worker.pipeline.finish_status`). Clients see the server is working (and their idle timeouts restart) and how long
-it will take, instead of a silent stream."""
+`finishing` messages (protocol.messages.FinishingMessage: elapsed_s, phase, done, total, eta_s) to the session's
+outbox when `finish` starts and every `every_s` seconds until it ends (the phase and its progress where the engine
+reports them: `worker.pipeline.finish_status`). Clients see the server is working (and their idle timeouts
+restart) and how long it will take, instead of a silent stream."""
 
 from __future__ import annotations
 
-import json
 import logging
 import threading
 import time
@@ -16,6 +15,7 @@ from typing import Any
 import redis
 
 from protocol import keys
+from protocol.messages import FinishingMessage
 
 log = logging.getLogger(__name__)
 
@@ -55,9 +55,9 @@ class FinishProgress:
                 body = {k: v for k, v in self.status().items() if k != "elapsed_s" and v is not None}
             except Exception:  # a progress report must never fail the finish
                 log.exception("finish status of session %s unreadable", self.session_id)
-        message = json.dumps({"type": "finishing", "elapsed_s": round(time.monotonic() - self._start, 1), **body})
+        message = FinishingMessage(elapsed_s=round(time.monotonic() - self._start, 1), **body)
         try:
-            self.client.xadd(keys.outbox(self.session_id), {"msg": message.encode()}, maxlen=self.outbox_maxlen,
-                             approximate=True)
+            self.client.xadd(keys.outbox(self.session_id), {"msg": message.to_json().encode()},
+                             maxlen=self.outbox_maxlen, approximate=True)
         except redis.RedisError as err:  # progress is best effort: the finish itself must not fail for it
             log.warning("could not post finish progress of session %s: %s", self.session_id, err)

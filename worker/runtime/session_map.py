@@ -10,6 +10,7 @@ import redis
 
 from protocol.map_package import MapPackageError, decode_package, encode_package
 from protocol.map_store import MapNotFound
+from worker.events import MapExtended, MapNotExtended
 
 if TYPE_CHECKING:  # worker.maps imports torch: only a session in a map loads it
     from worker.maps.session_in_map import SessionInMap
@@ -45,7 +46,7 @@ def session_in_map(client: redis.Redis, record: dict[str, str], restoring: bool 
     return SessionInMap.from_package(map_id, version or 0, mode, package)
 
 
-def extend_stored_map(client: redis.Redis, engine: Any, session_id: str) -> dict[str, Any] | None:
+def extend_stored_map(client: redis.Redis, engine: Any, session_id: str) -> MapExtended | MapNotExtended | None:
     """At the finish of an `extend` session: its map joined to the map's newest version as a new version. The
     event to publish (`map_extended`, or `map_not_extended` with the reason), None for any other session."""
     in_map: SessionInMap | None = getattr(engine, "in_map", None)
@@ -56,22 +57,21 @@ def extend_stored_map(client: redis.Redis, engine: Any, session_id: str) -> dict
     from worker.maps.store import VersionConflict, add_version, latest_version, read_package
 
     if not in_map.anchored:
-        return {"type": "map_not_extended", "map_id": in_map.map_id,
-                "reason": "the session was never relocalized in the map: its frames did not match the map's"}
+        return MapNotExtended(map_id=in_map.map_id,
+                              reason="the session was never relocalized in the map: its frames did not match the map's")
     try:
         own = decode_package(build_package(engine, f"session {session_id}", [session_id]))
     except ValueError as err:
-        return {"type": "map_not_extended", "map_id": in_map.map_id, "reason": str(err)}
+        return MapNotExtended(map_id=in_map.map_id, reason=str(err))
     for _ in range(MERGE_ATTEMPTS):
         try:
             parent = latest_version(client, in_map.map_id)
             merged = merge_packages(decode_package(read_package(client, in_map.map_id, parent)), own, session_id)
             version = add_version(client, in_map.map_id, encode_package(merged), session_id, parent=parent)
         except MapNotFound:
-            return {"type": "map_not_extended", "map_id": in_map.map_id, "reason": "the map was deleted"}
+            return MapNotExtended(map_id=in_map.map_id, reason="the map was deleted")
         except VersionConflict:
             continue
-        return {"type": "map_extended", "map_id": in_map.map_id, "version": version,
-                "keyframes": len(merged.keyframes)}
-    return {"type": "map_not_extended", "map_id": in_map.map_id,
-            "reason": f"other sessions kept adding versions ({MERGE_ATTEMPTS} attempts)"}
+        return MapExtended(map_id=in_map.map_id, version=version, keyframes=len(merged.keyframes))
+    return MapNotExtended(map_id=in_map.map_id,
+                          reason=f"other sessions kept adding versions ({MERGE_ATTEMPTS} attempts)")

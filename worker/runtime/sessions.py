@@ -21,8 +21,25 @@ import redis
 
 from protocol import keys
 from protocol.codec import pack, unpack
-from protocol.messages import ErrorCode, ErrorMessage, FinishedMessage, PoseMessage, SkippedMessage
+from protocol.messages import (
+    INPUT_EVENTS,
+    MAP_EVENTS,
+    TRACKING_EVENTS,
+    DepthMisregistered,
+    ErrorCode,
+    ErrorMessage,
+    FinishedMessage,
+    Initializing,
+    LoopClosed,
+    NewMap,
+    PoseMessage,
+    PoseSourceChosen,
+    ServerMessage,
+    SkippedMessage,
+    TrackingLost,
+)
 from protocol.poses import similarity_scale
+from worker import events as engine_events
 from worker.data.frame import Frame
 from worker.geometry import Intrinsics
 from worker.pipeline.snapshot_chunks import ChunkWrite
@@ -42,13 +59,10 @@ from worker.runtime.settings import RuntimeConfig
 from worker.runtime.snapshots import SnapshotWriter, read_snapshot
 from worker.runtime.stats import StageStats
 
-# Pose-source events forwarded to the clients as their own messages.
-TRACKING_EVENTS = ("tracking_lost", "relocalized", "initialized", "initializing", "new_map", "rotation_only")
-# Notices about the input, forwarded as their own messages (tracking goes on); a misregistration, and device poses
-# that disagree with the images, are also kept in the session record's `warnings`.
-INPUT_EVENTS = ("device_pose_jump", "odometry_slip", "depth_misregistered", "pose_source_chosen")
-# published with the revision they made; the tracking state stays as it is
-MAP_EVENTS = ("maps_merged", "drift_corrected", "poses_refined")
+# The engine's events (worker.events), by their protocol message: TRACKING_EVENTS are forwarded to the clients as
+# their own messages and each sets the session's tracking state; INPUT_EVENTS are forwarded (tracking goes on), and
+# a misregistration, and device poses that disagree with the images, are also kept in the session record's
+# `warnings`; MAP_EVENTS are published with the revision they made, the tracking state staying as it is.
 # Events sent as their own messages: one that carries a revision (a pose source's verdict replaying the judged
 # frames, a new map's re-estimated frames) tells the clients about it; no loop closure is announced for it.
 PUBLISHED_EVENTS = TRACKING_EVENTS + INPUT_EVENTS + MAP_EVENTS
@@ -115,6 +129,13 @@ def _newest_frame_id(entries: list[tuple[bytes, dict[bytes, bytes]]]) -> bytes |
         if fields.get(b"kind", b"frame") == b"frame":
             return entry_id
     return None
+
+
+def tracking_state(event: ServerMessage) -> str:
+    """The session's tracking state after a pose-source event."""
+    if isinstance(event, TrackingLost):
+        return "lost"
+    return "initializing" if isinstance(event, (Initializing, NewMap)) else "tracking"
 
 
 def pose_message(seq: int, timestamp: float, pose: np.ndarray, is_keyframe: bool, revision: int) -> bytes:
@@ -491,23 +512,21 @@ class SessionRunner(threading.Thread):
         self.stats.add("dispatch", (t1 - t0) + (t3 - t2))
         # CPU time of this thread alone: the overhead itself, without the waits for a core or the GIL under load
         self.stats.add("dispatch_cpu", (c1 - c0) + (c3 - c2))
-        if result.revision != self._revision or any(e.get("type") == "loop_closed" for e in result.events):
+        if result.revision != self._revision or any(isinstance(e, LoopClosed) for e in result.events):
             self._publish_revision(result.revision, result.events)
         for event in result.events:
-            if event.get("type") in TRACKING_EVENTS:
-                self._publish_tracking_event(seq, event)
-                self._tracking_state = {"tracking_lost": "lost", "initializing": "initializing",
-                                        "new_map": "initializing"}.get(
-                    event["type"], "tracking")
-            elif event.get("type") in INPUT_EVENTS + MAP_EVENTS:
-                self._publish_tracking_event(seq, event)
-                if event["type"] == "depth_misregistered":
-                    self._add_warning(str(event.get("message", "depth is not registered to the colour image")))
-                if event["type"] == "pose_source_chosen" and event.get("pose_source") == "seeded":
-                    self._add_warning(str(event.get("reason", "device poses disagree with the images")))
+            if isinstance(event, TRACKING_EVENTS):
+                self._publish_event(seq, event)
+                self._tracking_state = tracking_state(event)
+            elif isinstance(event, INPUT_EVENTS + MAP_EVENTS):
+                self._publish_event(seq, event)
+                if isinstance(event, DepthMisregistered):
+                    self._add_warning(event.message or "depth is not registered to the colour image")
+                if isinstance(event, PoseSourceChosen) and event.pose_source == "seeded":
+                    self._add_warning(event.reason or "device poses disagree with the images")
         self._tracking_state = self._tracking_state or "tracking"
         if not self._session.get("estimated_intrinsics") or any(
-                e.get("type") == "initialized" and e.get("intrinsics") for e in result.events):  # (re-)estimated
+                isinstance(e, engine_events.Initialized) and e.intrinsics for e in result.events):  # (re-)estimated
             self._publish_estimated_intrinsics()
         if result.is_keyframe:
             self._keyframes_since_snapshot += 1
@@ -575,26 +594,27 @@ class SessionRunner(threading.Thread):
             self._lease_lost.set()
             raise LeaseLost
 
-    def _publish_tracking_event(self, seq: int, event: dict[str, Any]) -> None:
-        """Tell the clients that tracking was lost, came back or initialised at frame `seq` (never a silent jump)."""
-        message = {**{k: v for k, v in event.items() if isinstance(v, (int, float, str, bool))}, "seq": seq}
-        self.client.xadd(keys.outbox(self.session_id), {"msg": json.dumps(message).encode()},
+    def _publish_event(self, seq: int, event: engine_events.EngineEvent) -> None:
+        """Tell the clients what the engine found at frame `seq`: tracking lost, back or initialised (never a silent
+        jump), a notice about the input, a map's correction."""
+        self._publish(event.to_message(seq=seq))
+
+    def _publish(self, message: ServerMessage) -> None:
+        self.client.xadd(keys.outbox(self.session_id), {"msg": message.to_json().encode()},
                          maxlen=self.config.outbox_maxlen, approximate=True)
 
-    def _publish_revision(self, revision: int, events: list[dict[str, Any]]) -> None:
+    def _publish_revision(self, revision: int, events: list[engine_events.EngineEvent]) -> None:
         """A loop closure (or a pose source's re-estimate of past frames) rewrote the past: store the whole new
         trajectory and tell the clients (an event sent as its own message that rewrote it, such as `initialized`
         or `pose_source_chosen`, carries the revision itself: no `loop_closed` is made up for it)."""
         self._revision = revision
         self._store_trajectory()
-        loops = [e for e in events if e.get("type") == "loop_closed"]
-        if not loops and not any(e.get("type") in PUBLISHED_EVENTS and "revision" in e for e in events):
-            loops = [{"type": "loop_closed"}]
+        loops = [e for e in events if isinstance(e, LoopClosed)]
+        if not loops and not any(isinstance(e, PUBLISHED_EVENTS) and getattr(e, "revision", None) is not None
+                                 for e in events):
+            loops = [engine_events.LoopClosed()]
         for event in loops:
-            message = {**{k: v for k, v in event.items() if isinstance(v, (int, float, str, bool))},
-                       "type": "loop_closed", "revision": revision}
-            self.client.xadd(keys.outbox(self.session_id), {"msg": json.dumps(message).encode()},
-                             maxlen=self.config.outbox_maxlen, approximate=True)
+            self._publish(event.to_message(revision=revision))
 
     def _store_trajectory(self) -> None:
         keyframes = {int(i) for i, _, _ in self.engine.trajectory("keyframes")}
@@ -654,12 +674,12 @@ class SessionRunner(threading.Thread):
         finish_events = list(getattr(self.engine, "finish_events", []))
         extended = extend_stored_map(self.client, self.engine, self.session_id)  # an `extend` session's map
         if extended is not None:
-            self._publish_tracking_event(last_seq, extended)
+            self._publish_event(last_seq, extended)
         if finish_events:
             self._publish_revision(revision, finish_events)
             for event in finish_events:  # a relocalization in a stored map may come this late too
-                if event.get("type") in PUBLISHED_EVENTS:
-                    self._publish_tracking_event(last_seq, event)
+                if isinstance(event, PUBLISHED_EVENTS):
+                    self._publish_event(last_seq, event)
         else:
             self._revision = revision
             self._store_trajectory()

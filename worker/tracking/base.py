@@ -13,6 +13,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from worker.data.frame import Frame
+from worker.events import EngineEvent
 from worker.geometry import Intrinsics
 
 
@@ -24,7 +25,7 @@ class TrackingResult:
     moved by the motion model, never a jump). keyframe_hint: the source asks for a keyframe here (None: let the
     motion-based selector decide; False: the source vetoes one, e.g. while lost). depth: per-pixel z-depth
     [H, W] float32 at the frame's resolution in the pose's units (0 = unknown), when the source has it.
-    tracked: False while tracking is lost. events: dicts such as {"type": "tracking_lost", "reason": ...}.
+    tracked: False while tracking is lost. events: what happened (worker.events), such as TrackingLost(reason=...).
     submap_id: the model's submap (0 for other sources). prediction: the learned model's per-pixel output for this
     frame (its preprocessed image and surfels) when the model ran. quality: how well the pose is supported, 0 to 1
     (visual odometry: the pose's inliers as a share of the last keyframe's tracked points; 0 for a placeholder),
@@ -36,7 +37,7 @@ class TrackingResult:
     tracked: bool = True
     keyframe_hint: bool | None = None
     depth: np.ndarray | None = None
-    events: list[dict[str, Any]] = field(default_factory=list)
+    events: list[EngineEvent] = field(default_factory=list)
     submap_id: int = 0
     prediction: Any = None
     quality: float | None = None

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from worker.data.frame import Frame
+from worker.events import EngineEvent, PoseSourceChosen
 from worker.geometry import Intrinsics
 from worker.tracking.base import TrackingResult
 from worker.tracking.pose_agreement import AgreementVerdict, PoseAgreement
@@ -86,7 +87,7 @@ class ChosenDevicePoses:
             return result
         return self._judge(frame.index, result)
 
-    def conclude(self, index: int) -> list[dict[str, Any]]:
+    def conclude(self, index: int) -> list[EngineEvent]:
         """The stream ended while judging: decide on the triples measured so far (the device's poses when too few);
         returns the `pose_source_chosen` event (none when already decided)."""
         if self.choice is not None:
@@ -120,8 +121,7 @@ class ChosenDevicePoses:
         self.choice, self.reason = choice, reason
         self.agreement.forget_frames()  # judging is over: its tracked frames' images are not needed any more
         log.info("frame %d: pose source %s (%s)", index, choice, reason)
-        event = {"type": "pose_source_chosen", "frame": int(index), "pose_source": choice, "reason": reason,
-                 **self._figures()}
+        event = PoseSourceChosen(frame=int(index), pose_source=choice, reason=reason, **self._figures())
         result.events = [event, *result.events]
         return result
 

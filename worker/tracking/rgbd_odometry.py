@@ -31,6 +31,7 @@ import numpy as np
 
 from worker.data.frame import Frame
 from worker.data.sharpness import sharpness
+from worker.events import Initialized, Relocalized, TrackingLost
 from worker.geometry import Intrinsics
 from worker.tracking.base import TrackingResult
 from worker.tracking.dense_alignment import (
@@ -245,7 +246,7 @@ class RgbdOdometry:
         self.last_overlap = 1.0
         log.info("frame %d: RGB-D odometry restarted at the device's pose (%s)", frame.index, reason)
         return TrackingResult(pose.copy(), depth=depth,
-                              events=[{"type": "relocalized", "method": "device_pose", "reason": reason}])
+                              events=[Relocalized(method="device_pose", reason=reason)])
 
     def _inputs(self, frame: Frame, intrinsics: Intrinsics | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """K, grey image and cleaned depth (no NaN, no negative) of a frame."""
@@ -270,7 +271,7 @@ class RgbdOdometry:
             self.lost = True
             log.warning("frame %d: RGB-D tracking lost (%s)", index, reason)
             return TrackingResult(self.last_pose.copy(), tracked=False, keyframe_hint=False,
-                                  events=[{"type": "tracking_lost", "reason": reason}])
+                                  events=[TrackingLost(reason=reason)])
         self._advance(pose)
         self._maybe_new_reference(index, grey, depth, pose, current, K)
         return TrackingResult(pose, depth=depth, keyframe_hint=self._covered_hint())
@@ -310,8 +311,8 @@ class RgbdOdometry:
         poses = [[frames[0][0], self._first(*frames[0]).pose]]
         for index, g, d in frames[1:]:
             poses.append([index, self._track(index, g, d, K).pose])
-        event = {"type": "initialized", "frames": [[i, p.tolist()] for i, p in poses[:-1]],
-                 "intrinsics": self.estimated_intrinsics.to_dict(), "focal_trusted": estimate.trusted}
+        event = Initialized(frames=[[i, p.tolist()] for i, p in poses[:-1]],
+                            intrinsics=self.estimated_intrinsics.to_dict(), focal_trusted=estimate.trusted)
         return TrackingResult(poses[-1][1], tracked=not self.lost, depth=depth, events=[event])
 
     def _guess_intrinsics(self, frame: Frame) -> Intrinsics:
@@ -340,7 +341,7 @@ class RgbdOdometry:
         if not np.any(depth > 0):
             # Nothing to anchor the map to yet: wait at the origin for a frame with depth.
             return TrackingResult(pose, tracked=False, keyframe_hint=False,
-                                  events=[{"type": "tracking_lost", "reason": "no depth in the first frame"}])
+                                  events=[TrackingLost(reason="no depth in the first frame")])
         self.references.append(_Reference(index, pose, grey, depth))
         self._advance(pose)
         return TrackingResult(pose, depth=depth)
@@ -400,7 +401,7 @@ class RgbdOdometry:
                 log.info("frame %d: RGB-D tracking relocalized against keyframe %d", index, ref.index)
                 self._maybe_new_reference(index, grey, depth, pose)
                 return TrackingResult(pose, depth=depth,
-                                      events=[{"type": "relocalized", "keyframe": int(ref.index)}])
+                                      events=[Relocalized(keyframe=int(ref.index))])
         return TrackingResult(self.last_pose.copy(), tracked=False, keyframe_hint=False)
 
     def _advance(self, pose: np.ndarray) -> None:

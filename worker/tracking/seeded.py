@@ -42,11 +42,13 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
 from worker.data.frame import Frame
+from worker.events import DevicePoseJump, EngineEvent, Initialized, MapsMerged, OdometrySlip, Relocalized
 from worker.geometry import Intrinsics
 from worker.loop.pose_graph import EdgeSigmas, PosePrior
 from worker.tracking.base import TrackingResult
@@ -143,8 +145,8 @@ class SeededTracking:
             if result.tracked:
                 self.lost_since = None
         # A monocular join (maps_merged) measures in odometry units; the device's poses place this world instead.
-        events = [e for e in result.events if e.get("type") not in ("initialized", "maps_merged")]
-        initialized = [e for e in result.events if e.get("type") == "initialized"]
+        events = [e for e in result.events if not isinstance(e, (Initialized, MapsMerged))]
+        initialized = [e for e in result.events if isinstance(e, Initialized)]
         if initialized and self.monocular:
             self._align_monocular(initialized[-1], device, result.pose)
         elif self.alignment is None and result.tracked and not self.monocular:
@@ -184,7 +186,7 @@ class SeededTracking:
             self.last_tracked = False
             return TrackingResult(held.copy(), tracked=False, keyframe_hint=False)
         result = self.odometry.track(frame, intrinsics)
-        events = [e for e in result.events if e.get("type") != "initialized"]
+        events = [e for e in result.events if not isinstance(e, Initialized)]
         self.last_tracked = result.tracked
         if not result.tracked:
             return TrackingResult(held.copy(), tracked=False, keyframe_hint=False, events=events)
@@ -210,7 +212,7 @@ class SeededTracking:
         restart = frame.timestamp - self.lost_since >= self.config.resume_after_s
         result = self.odometry.resume_from(frame, intrinsics, self.to_odometry(self.last_pose @ device_motion),
                                            min_sharpness_ratio=self.config.resume_sharpness, restart=restart)
-        restarted = any(e.get("type") == "relocalized" for e in result.events)
+        restarted = any(isinstance(e, Relocalized) for e in result.events)
         if result.tracked and not restarted:
             return result
         return TrackingResult(result.pose, tracked=result.tracked, depth=result.depth,
@@ -254,16 +256,17 @@ class SeededTracking:
             log.info("frame %d: the odometry slipped (intensity residual %.4f -> %.4f from the device's motion): "
                      "re-tracked from the device", frame.index, odometry_fit.photometric_rms,
                      device_fit.photometric_rms)
-            event = {"type": "odometry_slip", "frame": int(frame.index),
-                     "photometric_rms": [round(odometry_fit.photometric_rms, 5), round(device_fit.photometric_rms, 5)],
-                     "geometric_rms": [round(odometry_fit.geometric_rms, 5), round(device_fit.geometric_rms, 5)],
-                     "action": "re-tracked from the device's motion"}
+            event = OdometrySlip(
+                frame=int(frame.index),
+                photometric_rms=[round(odometry_fit.photometric_rms, 5), round(device_fit.photometric_rms, 5)],
+                geometric_rms=[round(odometry_fit.geometric_rms, 5), round(device_fit.geometric_rms, 5)],
+                action="re-tracked from the device's motion")
             return TrackingResult(again.pose, tracked=True, depth=again.depth, events=[*again.events, event],
                                   keyframe_hint=again.keyframe_hint, quality=again.quality)
         self.odometry.restore(after)
         return result
 
-    def _waiting_for_world(self, initialized: list[dict[str, Any]]) -> bool:
+    def _waiting_for_world(self, initialized: list[Initialized]) -> bool:
         """A monocular odometry still initialising (its poses are placeholders)."""
         return self.monocular and not initialized and getattr(self.odometry, "status", "tracking") == "initializing"
 
@@ -285,7 +288,7 @@ class SeededTracking:
         return _scaled(device_motion, 1.0 / self.measured_scale)
 
     def _check_jump(self, index: int, device: np.ndarray, device_motion: np.ndarray, tracked_motion: np.ndarray
-                    ) -> list[dict[str, Any]]:
+                    ) -> list[EngineEvent]:
         """A `device_pose_jump` event when the device's motion disagrees with the tracked one; the device world
         is then re-anchored so that this frame's device pose continues the tracked motion."""
         gap = self._jump_gap(self._in_output_units(device_motion), tracked_motion)
@@ -299,17 +302,17 @@ class SeededTracking:
         self.jumps += 1
         log.warning("frame %d: the device pose jumped (%.3f, %.1f deg from the tracked motion): re-anchored, its "
                     "keyframe prior dropped", index, gap.translation, gap.rotation_deg)
-        return [{"type": "device_pose_jump", "frame": int(index), "translation": round(gap.translation, 4),
-                 "rotation_deg": round(gap.rotation_deg, 3), "action": "prior dropped, device re-anchored"}]
+        return [DevicePoseJump(frame=int(index), translation=round(gap.translation, 4),
+                               rotation_deg=round(gap.rotation_deg, 3), action="prior dropped, device re-anchored")]
 
-    def _align_monocular(self, event: dict[str, Any], device: np.ndarray, odometry_pose: np.ndarray) -> None:
+    def _align_monocular(self, event: Initialized, device: np.ndarray, odometry_pose: np.ndarray) -> None:
         """Visual odometry made its map: the first one's world is the reference frame's camera (identity pose) at
         an arbitrary scale, aligned to the reference frame's output so far and scaled by the device's baseline
         since it. A new map after a loss may continue the odometry's old world, its first frames holding a
         placeholder pose: it is scaled by the median of the device's over the odometry's steps between the frames
         it re-estimated and aligned at the last of them. Either way the scale's window starts again (a new map's
         scale is a new two-view guess)."""
-        frames = {int(i): np.asarray(p, np.float64) for i, p in event.get("frames", [])}
+        frames = {int(i): np.asarray(p, np.float64) for i, p in event.frames or []}
         reference = next((i for i, p in frames.items() if np.allclose(p, np.eye(4), atol=1e-9)), None)
         shared = sorted(i for i in frames if i in self.waiting)
         if reference in self.waiting or not shared:
@@ -340,12 +343,12 @@ class SeededTracking:
         log.info("seeded visual odometry: world aligned at frame %s, %.4f units per odometry unit", reference,
                  self.scale)
 
-    def _in_session(self, event: dict[str, Any]) -> dict[str, Any]:
+    def _in_session(self, event: Initialized) -> Initialized:
         """An `initialized` event with its re-estimated frames in the session's world."""
-        if not event.get("frames") or self.alignment is None:
-            return dict(event)
-        frames = [[int(i), self.to_session(np.asarray(p, np.float64)).tolist()] for i, p in event["frames"]]
-        return {**event, "frames": frames}
+        if not event.frames or self.alignment is None:
+            return event
+        return replace(event, frames=[[int(i), self.to_session(np.asarray(p, np.float64)).tolist()]
+                                      for i, p in event.frames])
 
     def _corrects_in_graph(self) -> bool:
         """Whether the pose graph, not a re-anchored world, corrects the monocular odometry's scale drift."""

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from worker.data.frame import Frame
+from worker.events import Relocalized, TrackingLost
 from worker.geometry import Intrinsics
 from worker.tracking.base import TrackingResult
 
@@ -56,15 +57,14 @@ class DevicePoses:
 
     def track(self, frame: Frame, intrinsics: Intrinsics | None) -> TrackingResult:
         if frame.pose is None:
-            events = [] if self.lost else [{"type": "tracking_lost", "frame": frame.index,
-                                            "reason": "the frame has no device pose"}]
+            events = [] if self.lost else [TrackingLost(frame=frame.index, reason="the frame has no device pose")]
             self.lost = True
             held = np.eye(4) if self.last_pose is None else self.last_pose
             return TrackingResult(held.copy(), tracked=False, keyframe_hint=False, events=events)
         pose = np.asarray(frame.pose, np.float64)
         if not np.all(np.isfinite(pose)):
             raise ValueError(f"frame {frame.index}: the pose is not finite")
-        events = [{"type": "relocalized", "frame": frame.index, "method": "device"}] if self.lost else []
+        events = [Relocalized(frame=frame.index, method="device")] if self.lost else []
         self.last_pose, self.lost = pose.copy(), False
         return TrackingResult(pose.copy(), events=events)
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from worker.events import RotationOnly
 from worker.geometry import Intrinsics
 
 from .base import TrackingResult
@@ -161,8 +162,7 @@ def follow_rotation(s: VoState, parts: VoParts, index: int, gray: np.ndarray, K:
     events = []
     if s.rotation_since is None:
         s.rotation_since = index
-        events.append({"type": "rotation_only", "frame": index, "tracks": int(agree.sum()),
-                       "map_points": measured})
+        events.append(RotationOnly(frame=index, tracks=int(agree.sum()), map_points=measured))
     return TrackingResult(pose, tracked=True, keyframe_hint=False, events=events,
                           quality=0.5 * float(agree.mean()), translation_measured=measured > 0)
 
@@ -217,9 +217,8 @@ def follow_direct(s: VoState, parts: VoParts, index: int, gray: np.ndarray, K: n
     events = []
     if s.direct_since is None:
         s.direct_since = index
-        events.append({"type": "rotation_only", "frame": index, "method": "photometric", "tracks": 0,
-                       "map_points": 0, "correlation": round(fit.correlation, 3),
-                       "measured_axes": fit.measured_axes})
+        events.append(RotationOnly(frame=index, method="photometric", tracks=0, map_points=0,
+                                   correlation=round(fit.correlation, 3), measured_axes=fit.measured_axes))
     return TrackingResult(pose, tracked=True, keyframe_hint=False, events=events,
                           quality=(0.4 if held else 0.2) * max(fit.correlation, 0.0), translation_measured=False)
 

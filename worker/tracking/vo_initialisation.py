@@ -7,6 +7,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from worker.events import Initialized, Initializing
 from worker.geometry import Intrinsics
 
 from .base import TrackingResult
@@ -78,8 +79,8 @@ def waiting(s: VoState, index: int, orientation: np.ndarray, state: str, reason:
     events = []
     if state != s.init_state:
         s.init_state = state
-        events.append({"type": "initializing", "frame": index, "state": state, "reason": reason,
-                       "model": model, "score_ratio": round(float(score_ratio), 3)})
+        events.append(Initializing(frame=index, state=state, reason=reason, model=model,
+                                   score_ratio=round(float(score_ratio), 3)))
     if s.maps_started > 1:  # after a loss the frame has no pose: the last one is held, and said so
         return TrackingResult(s.pose.copy(), tracked=False, keyframe_hint=False, events=events, quality=0.0)
     # before the first map the pose is a placeholder the world starts from (the `initialized` event revises it)
@@ -112,12 +113,10 @@ def start_map(s: VoState, parts: VoParts, index: int, gray: np.ndarray, attempt:
     s.status = "tracking"
     # After a loss the waiting frames were reported lost; the new map poses them now (`map` > 1: the engine
     # ties them to this map's first keyframe, so that they move with it when the maps are joined).
-    event = {"type": "initialized", "frame": index, "frames": between, "map": s.maps_started,
-             "points": len(s.map),
-             "parallax_deg": round(two.parallax_deg, 3), "model": attempt.model,
-             "score_ratio": round(attempt.score_ratio, 3)}
-    if uncalibrated:
-        event["intrinsics"] = camera.to_dict()
+    event = Initialized(frame=index, frames=between, map=s.maps_started, points=len(s.map),
+                        parallax_deg=round(two.parallax_deg, 3), model=attempt.model,
+                        score_ratio=round(attempt.score_ratio, 3),
+                        intrinsics=camera.to_dict() if uncalibrated else None)
     return TrackingResult(pose, tracked=True, keyframe_hint=True, depth=sparse_depth(s, kf_b, camera),
                           events=[event], quality=1.0)
 

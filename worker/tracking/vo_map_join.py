@@ -4,9 +4,11 @@ inverse move (the output similarity), so that they never jump."""
 
 from __future__ import annotations
 
-from typing import Any
+from dataclasses import replace
 
 import numpy as np
+
+from worker.events import Initialized, MapsMerged
 
 from .base import TrackingResult
 from .local_map import Keyframe
@@ -26,7 +28,7 @@ from .vo_places import learned_candidates, place_rows, pose_distance
 from .vo_state import VoParts, VoState
 
 
-def join_maps(s: VoState, parts: VoParts, index: int, kf: Keyframe, K: np.ndarray) -> list[dict[str, Any]]:
+def join_maps(s: VoState, parts: VoParts, index: int, kf: Keyframe, K: np.ndarray) -> list[MapsMerged]:
     """Try to join the restarted map to an older one at keyframe `kf` (see `map_join`): on a link, the map
     (keyframes, points, its remembered places) moves into the older map's frame, scale included, and the
     output transform takes the inverse move, so that poses handed out do not jump; the `maps_merged` event
@@ -65,9 +67,9 @@ def join_maps(s: VoState, parts: VoParts, index: int, kf: Keyframe, K: np.ndarra
     s.output = before @ similarity_inverse(S)
     s.velocity[:3, 3] *= scale
     s.map_id, s.join = link.place.map_id, None
-    return [{"type": "maps_merged", "frame": index, "place": link.place.index, "since": join.since,
-             "scale": similarity_scale(correction), "pairs": link.pairs, "spread": round(link.spread, 4),
-             "method": method, "relative": relative.tolist(), "correction": correction.tolist()}]
+    return [MapsMerged(frame=index, place=link.place.index, since=join.since, scale=similarity_scale(correction),
+                       pairs=link.pairs, spread=round(link.spread, 4), method=method, relative=relative.tolist(),
+                       correction=correction.tolist())]
 
 
 def learned_link(s: VoState, parts: VoParts, index: int, kf: Keyframe, places: list[Place], K: np.ndarray
@@ -106,7 +108,6 @@ def to_output(s: VoState, result: TrackingResult) -> TrackingResult:
     result.pose = moved_pose(s.output, result.pose)
     if result.depth is not None:
         result.depth = result.depth * np.float32(similarity_scale(s.output))
-    for event in result.events:
-        if event.get("frames"):
-            event["frames"] = [[i, moved_pose(s.output, np.asarray(p)).tolist()] for i, p in event["frames"]]
+    result.events = [replace(e, frames=[[i, moved_pose(s.output, np.asarray(p)).tolist()] for i, p in e.frames])
+                     if isinstance(e, Initialized) and e.frames else e for e in result.events]
     return result

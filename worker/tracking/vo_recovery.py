@@ -9,6 +9,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from worker.events import NewMap, Relocalized, TrackingLost
 from worker.geometry import Intrinsics
 
 from .base import TrackingResult
@@ -59,7 +60,7 @@ def lose(s: VoState, parts: VoParts, index: int, reason: str) -> TrackingResult:
                           s.velocity.copy(), s.pose.copy(), s.previous_gray)
     s.velocity = np.eye(4)
     return TrackingResult(s.pose.copy(), tracked=False, keyframe_hint=False, quality=0.0,
-                          events=[{"type": "tracking_lost", "reason": reason, "frame": index}])
+                          events=[TrackingLost(reason=reason, frame=index)])
 
 
 def relocalise(s: VoState, parts: VoParts, index: int, gray: np.ndarray, camera: Intrinsics) -> TrackingResult:
@@ -73,9 +74,8 @@ def relocalise(s: VoState, parts: VoParts, index: int, gray: np.ndarray, camera:
     if found is not None and found[2] >= c.recover_share * max(s.mapped_at_loss, s.tracks.mapped.sum()):
         pose, s.tracks, inliers = found
         s.previous_gray = gray
-        event = {"type": "relocalized", "frame": index, "place": s.map.keyframes[-1].index,
-                 "inliers": inliers, "lost_frames": index - (s.lost_since if s.lost_since is not None
-                                                             else index)}
+        event = Relocalized(frame=index, place=s.map.keyframes[-1].index, inliers=inliers,
+                            lost_frames=index - (s.lost_since if s.lost_since is not None else index))
         s.status, s.lost_since, s.velocity, s.anchor = "tracking", None, np.eye(4), None
         return TrackingResult(pose, tracked=True, keyframe_hint=False, events=[event],
                               quality=min(1.0, inliers / max(s.tracked_at_keyframe, 1)))
@@ -133,8 +133,8 @@ def begin_new_map(s: VoState, parts: VoParts, index: int, gray: np.ndarray, came
         s.map_id, s.maps_made, s.join = s.maps_made, s.maps_made + 1, JoinState(index)
     s.status, s.lost_since = "initializing", None
     result = initialise(s, parts, index, gray, camera, uncalibrated=False)
-    result.events = [{"type": "new_map", "frame": index, "map": s.maps_started, "lost_frames": lost_for,
-                      "scene_depth": round(depth, 4)}] + list(result.events or [])
+    result.events = [NewMap(frame=index, map=s.maps_started, lost_frames=lost_for, scene_depth=round(depth, 4)),
+                     *result.events]
     return result
 
 
@@ -155,8 +155,8 @@ def restart_from(s: VoState, parts: VoParts, index: int, gray: np.ndarray, camer
     kf = new_keyframe(s, parts, index, pose, gray)
     s.tracked_at_keyframe = len(rows)
     s.previous_gray = gray
-    event = {"type": "relocalized", "frame": index, "place": place, "inliers": len(rows), "method": method,
-             "lost_frames": index - (s.lost_since if s.lost_since is not None else index)}
+    event = Relocalized(frame=index, place=place, inliers=len(rows), method=method,
+                        lost_frames=index - (s.lost_since if s.lost_since is not None else index))
     s.status, s.lost_since, s.velocity = "tracking", None, np.eye(4)
     return TrackingResult(pose, tracked=True, keyframe_hint=True, depth=sparse_depth(s, kf, camera),
                           events=[event], quality=1.0)
@@ -279,10 +279,10 @@ def reinitialise(s: VoState, parts: VoParts, index: int, gray: np.ndarray, camer
     s.velocity = np.eye(4)
     s.velocity[:3, :3] = cv2.Rodrigues(cv2.Rodrigues(relative[:3, :3])[0] / steps)[0]
     s.velocity[:3, 3] = relative[:3, 3] / steps
-    event = {"type": "relocalized", "frame": index, "method": "reinitialized", "place": anchor.index,
-             "inliers": len(two.points), "model": attempt.model, "scale_from": "shared points" if shared
-             else "scene depth", "shared_points": shared,
-             "lost_frames": index - (s.lost_since if s.lost_since is not None else index)}
+    event = Relocalized(frame=index, method="reinitialized", place=anchor.index, inliers=len(two.points),
+                        model=attempt.model, scale_from="shared points" if shared else "scene depth",
+                        shared_points=shared, lost_frames=index - (s.lost_since if s.lost_since is not None
+                                                                   else index))
     s.status, s.lost_since = "tracking", None
     joined = join_maps(s, parts, index, kf, K) if s.join is not None else []  # the old map's last places
     return TrackingResult(kf.pose, tracked=True, keyframe_hint=True, depth=sparse_depth(s, kf, camera),
