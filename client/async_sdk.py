@@ -37,8 +37,6 @@ from client.errors import (
 )
 from client.frames import FrameLike
 from client.models import (
-    INPUT_EVENT_TYPES,
-    TRACKING_EVENT_TYPES,
     InputEvent,
     LoopClosedEvent,
     MapInfo,
@@ -50,10 +48,11 @@ from client.models import (
     StreamSummary,
     TrackingEvent,
     Trajectory,
-    event_from_message,
+    stream_event,
 )
 from client.resume import ResumePoint, fetch_resume_point, reconcile
 from client.streaming import FlowControl, WireOptions, encode_frame_message, open_frames
+from protocol.messages import AckMessage, ErrorMessage, FinishedMessage, SkippedMessage, parse_server_message
 
 EventCallback = Callable[[StreamEvent], Any]
 # Error codes with which the gateway refuses a whole stream, and the HTTP status they stand for.
@@ -370,37 +369,38 @@ class AsyncFrameStream:
             message = unpack(raw) if isinstance(raw, bytes) else {}
         if not isinstance(message, dict):
             return
-        kind = message.get("type")
-        seq = message.get("seq")
-        if kind == "pose" and seq in self._result_seqs:
-            return  # already reported (a result caught up from the trajectory after a reconnect)
-        if kind == "pose":
-            self._result_seqs.add(int(seq))
-        if kind == "ack":
-            depth = message.get("queue_depth")
-            self.flow.on_ack(int(seq), depth)
+        parsed = parse_server_message(message)
+        if isinstance(parsed, AckMessage):
+            self.flow.on_ack(int(parsed.seq), parsed.queue_depth)
             self.summary.frames_acked += 1
-            self.summary.max_queue_depth = max(self.summary.max_queue_depth, int(depth or 0))
-        elif kind in ("pose", "loop_closed", *TRACKING_EVENT_TYPES, *INPUT_EVENT_TYPES):
-            event = event_from_message(message)
-            if isinstance(event, PoseEvent):
-                self.flow.on_result(event.seq)
-                self.summary.poses.append(event)
-            elif isinstance(event, LoopClosedEvent):
-                self.summary.loop_closures.append(event)
-            elif isinstance(event, TrackingEvent):
-                self.summary.tracking_events.append(event)
-            elif isinstance(event, InputEvent):
-                self.summary.input_events.append(event)
-            await self._publish(event)
-        elif kind == "skipped" and seq is not None:  # the tracker dropped it for a newer frame: its result
-            self.flow.on_result(int(seq))
-            self.summary.skipped.append(int(seq))
-        elif kind == "error":
+            self.summary.max_queue_depth = max(self.summary.max_queue_depth, int(parsed.queue_depth or 0))
+        elif isinstance(parsed, SkippedMessage):  # the tracker dropped it for a newer frame: its result
+            self.flow.on_result(int(parsed.seq))
+            self.summary.skipped.append(int(parsed.seq))
+        elif isinstance(parsed, ErrorMessage):
             self._handle_error(message)
-        elif kind == "finished":
-            self.summary.finished_frames = message.get("frames")
+        elif isinstance(parsed, FinishedMessage):
+            self.summary.finished_frames = parsed.frames
             self._finished.set()
+        else:
+            await self._on_event(stream_event(parsed, message))
+
+    async def _on_event(self, event: StreamEvent | None) -> None:
+        if isinstance(event, PoseEvent):
+            if event.seq in self._result_seqs:
+                return  # already reported (a result caught up from the trajectory after a reconnect)
+            self._result_seqs.add(event.seq)
+            self.flow.on_result(event.seq)
+            self.summary.poses.append(event)
+        elif isinstance(event, LoopClosedEvent):
+            self.summary.loop_closures.append(event)
+        elif isinstance(event, TrackingEvent):
+            self.summary.tracking_events.append(event)
+        elif isinstance(event, InputEvent):
+            self.summary.input_events.append(event)
+        else:
+            return
+        await self._publish(event)
 
     def _handle_error(self, message: dict[str, Any]) -> None:
         status = _REFUSAL_STATUS.get(str(message.get("code")))

@@ -1,4 +1,5 @@
-"""What the SDK returns: sessions, saved maps, trajectories and live stream events, parsed from the server's JSON."""
+"""What the SDK returns: sessions, saved maps, trajectories and live stream events, parsed from the server's JSON
+(stream messages by `protocol.messages`: each event carries its typed message as `message`)."""
 
 from __future__ import annotations
 
@@ -6,6 +7,16 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+
+from protocol.messages import (
+    INPUT_EVENTS,
+    MAP_EVENTS,
+    TRACKING_EVENTS,
+    LoopClosed,
+    PoseMessage,
+    ServerMessage,
+    parse_server_message,
+)
 
 
 def pose_from_list(values: Any) -> np.ndarray:
@@ -188,7 +199,7 @@ class Trajectory:
 
 @dataclass(frozen=True)
 class PoseEvent:
-    """A live pose for a streamed frame."""
+    """A live pose for a streamed frame (`message`: the server's message, typed)."""
 
     seq: int
     timestamp: float
@@ -196,14 +207,17 @@ class PoseEvent:
     is_keyframe: bool
     revision: int
     scale: float = 1.0  # s: pose[:3, :3] / scale is the rotation
+    message: PoseMessage | None = field(default=None, repr=False, compare=False)
 
 
 @dataclass(frozen=True)
 class LoopClosedEvent:
-    """The server closed a loop: trajectory revision `revision` rewrote past poses."""
+    """The server closed a loop: trajectory revision `revision` rewrote past poses. `data`: the message as it came
+    (fields this SDK does not know included); `message`: typed."""
 
     revision: int
     data: dict[str, Any] = field(default_factory=dict)
+    message: LoopClosed | None = field(default=None, repr=False, compare=False)
 
 
 @dataclass(frozen=True)
@@ -218,11 +232,13 @@ class TrackingEvent:
     "poses_refined" (at the end of a session: the final refinement moved the keyframes' cameras where the map's
     renders fit their photos, every frame following its keyframe, see `data["revision"]`) or "rotation_only"
     (RGB-only: a turn too fast for new points; poses follow the tracks' rotation, the position held or measured,
-    `quality` at most 0.5)."""
+    `quality` at most 0.5). `data`: the message as it came; `message`: typed (`TRACKING_MESSAGES`), its fields
+    documented in openapi.yaml."""
 
     kind: str
     seq: int
     data: dict[str, Any] = field(default_factory=dict)
+    message: ServerMessage | None = field(default=None, repr=False, compare=False)
 
 
 @dataclass(frozen=True)
@@ -231,33 +247,41 @@ class InputEvent:
     the device poses judged over the first frames are kept as `prior` or only seed visual odometry, `seeded`; the
     judged frames were tracked again, see `data["revision"]` and `data["frames_replayed"]`), "device_pose_jump"
     (a device pose left out as a jump), "odometry_slip" (the odometry slipped where the device did not) or
-    "depth_misregistered" (depth edges do not follow colour edges)."""
+    "depth_misregistered" (depth edges do not follow colour edges). `data`: the message as it came; `message`:
+    typed (`INPUT_MESSAGES`)."""
 
     kind: str
     seq: int
     data: dict[str, Any] = field(default_factory=dict)
+    message: ServerMessage | None = field(default=None, repr=False, compare=False)
 
 
-TRACKING_EVENT_TYPES = ("tracking_lost", "relocalized", "initialized", "initializing", "new_map", "maps_merged",
-                        "drift_corrected", "poses_refined", "rotation_only")
-INPUT_EVENT_TYPES = ("pose_source_chosen", "device_pose_jump", "odometry_slip", "depth_misregistered")
+# The server's messages each kind of SDK event stands for.
+TRACKING_MESSAGES = TRACKING_EVENTS + MAP_EVENTS
+INPUT_MESSAGES = INPUT_EVENTS
+TRACKING_EVENT_TYPES = tuple(kind.TYPE for kind in TRACKING_MESSAGES)
+INPUT_EVENT_TYPES = tuple(kind.TYPE for kind in INPUT_MESSAGES)
 StreamEvent = PoseEvent | LoopClosedEvent | TrackingEvent | InputEvent
 
 
 def event_from_message(message: dict[str, Any]) -> StreamEvent | None:
     """The SDK event for a server message of type "pose", "loop_closed", a tracking event or an input notice (None
-    for others)."""
-    kind = message.get("type")
-    if kind == "pose":
-        return PoseEvent(seq=int(message["seq"]), timestamp=float(message.get("timestamp", 0.0)),
-                         pose=pose_from_list(message["pose"]), is_keyframe=bool(message.get("is_keyframe", False)),
-                         revision=int(message.get("revision") or 0), scale=float(message.get("scale", 1.0)))
-    if kind == "loop_closed":
-        return LoopClosedEvent(revision=int(message.get("revision") or 0), data=dict(message))
-    if kind in TRACKING_EVENT_TYPES:
-        return TrackingEvent(kind=str(kind), seq=int(message.get("seq", -1)), data=dict(message))
-    if kind in INPUT_EVENT_TYPES:
-        return InputEvent(kind=str(kind), seq=int(message.get("seq", -1)), data=dict(message))
+    for others); ValueError when one of those lacks a field the protocol requires."""
+    return stream_event(parse_server_message(message), message)
+
+
+def stream_event(parsed: ServerMessage | None, message: dict[str, Any]) -> StreamEvent | None:
+    """The SDK event for `parsed`, the typed form of the server message `message` (None: not an event)."""
+    if isinstance(parsed, PoseMessage):
+        return PoseEvent(seq=int(parsed.seq), timestamp=float(parsed.timestamp), pose=pose_from_list(parsed.pose),
+                         is_keyframe=bool(parsed.is_keyframe), revision=int(parsed.revision),
+                         scale=float(parsed.scale), message=parsed)
+    if isinstance(parsed, LoopClosed):
+        return LoopClosedEvent(revision=int(parsed.revision), data=dict(message), message=parsed)
+    if isinstance(parsed, TRACKING_MESSAGES):
+        return TrackingEvent(kind=parsed.TYPE, seq=int(parsed.seq), data=dict(message), message=parsed)
+    if isinstance(parsed, INPUT_MESSAGES):
+        return InputEvent(kind=parsed.TYPE, seq=int(parsed.seq), data=dict(message), message=parsed)
     return None
 
 
