@@ -19,6 +19,7 @@ from protocol.map_package import CONTENT_TYPE, decode_package
 from protocol.splats.ply_records import read_vertex_records
 from service.launcher import LocalStack
 from worker.maps import add_version, read_package
+from worker.tracking.vo_config import VisualOdometryConfig
 
 STREAM, OTHER, READ, ADMIN = "m-stream", "m-stream-2", "m-read", "m-admin"
 API_KEYS = f"{STREAM}=stream;{OTHER}=stream;{READ}=read;{ADMIN}=admin"
@@ -243,8 +244,10 @@ def test_the_listing_pages_and_skips_a_map_deleted_while_listed(stack, saved):
 
 def test_the_package_size_of_the_test_session(saved):
     """What a map of 10 RGB-D frames at 160x120 weighs: its surfels (72 bytes each: 17 floats and the keyframe id)
-    and, per keyframe, a JPEG and the float16 depth at half resolution (80 x 60 x 2 bytes)."""
+    and, per keyframe, a JPEG, the float16 depth at half resolution (80 x 60 x 2 bytes) and its places (each ORB
+    corner with a depth: 64 bytes of keypoint, descriptor and world point; a bag of 1,000 float32 words)."""
     meta = saved["meta"]
     surfels = meta["surfels"] * 72
-    assert surfels < saved["size_bytes"] < surfels + meta["keyframes"] * (80 * 60 * 2 + 30_000)
+    places = VisualOdometryConfig().n_features * 64 + 4_000
+    assert surfels < saved["size_bytes"] < surfels + meta["keyframes"] * (80 * 60 * 2 + 30_000 + places)
     print(f"package {saved['size_bytes']} bytes: {meta['surfels']} surfels, {meta['keyframes']} keyframes")

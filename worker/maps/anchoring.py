@@ -1,12 +1,13 @@
 """The transform that takes a session's own world into a stored map's world, from frames located in the map.
 
 A session in a map tracks in its own world from its first frame. Each verified fix (`MapFix`: the frame's pose in
-the map) beside the frame's own pose measures that transform; one fix alone is never trusted: the session anchors
-once `agreeing` fixes of different frames give the same transform (within `position_tolerance` of the scene's
-depth and `angle_tolerance_deg`), or one fix alone when the frame's own depth confirms it (`confirmed`: many
-inliers, nearly all where the depth sees them; such a match does not happen by chance). A metric session (sensor depth or device poses) measures a rigid transform from
-each fix; an up-to-scale one (RGB only) needs fixes apart from each other to measure the scale, and fits one
-similarity to all of them (rotation averaged, then scale and translation by least squares on camera centres).
+the map) beside the frame's own pose measures that transform. A fix alone anchors the session only when the
+frame's own depth confirms it (`confirmed`: many inliers, nearly all where the depth sees them; such a match does
+not happen by chance); otherwise the session anchors once `agreeing` fixes of different frames give the same
+transform (within `position_tolerance` of the scene's depth and `angle_tolerance_deg`). A metric session (sensor
+depth or device poses) measures a rigid transform from each fix; an up-to-scale one (RGB only) needs fixes apart
+from each other to measure the scale, and fits one similarity to all of them (rotation averaged, then scale and
+translation by least squares on camera centres).
 """
 
 from __future__ import annotations
