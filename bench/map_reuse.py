@@ -11,7 +11,8 @@ For each session in the map: frames posed, pose latency p50/p95, the time from t
 revised into the map's world with it), and the ATE in the map's world: the build session's trajectory aligned to the
 ground truth (SE(3); Sim(3) for RGB only) and that one alignment applied to the session in the map, no alignment of
 its own. Also the map's size and, offline, its load time and memory. One JSON file per case under
-`bench/results/map_reuse/` (a case already written is skipped; `--force` runs it again).
+`bench/results/map_reuse/` per session in the map (`run`: second_half, again), the whole case beside (`detail`);
+a case already written is skipped, `--force` runs it again.
 
 `python -m bench map_reuse [--sequences icl tum] [--modes rgbd posed-rgb rgb] [--force]`
 """
@@ -20,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import json
 import resource
 import time
 from pathlib import Path
@@ -30,10 +30,9 @@ import numpy as np
 
 from bench.live import encode, load_frames, mode_inputs, stream_case
 from bench.out_of_box import SEQUENCES, ServeProcess, case_args
-from bench.record import commit, loadavg, machine
+from bench.record import Recorder, case_slug
 
 ROOT = Path(__file__).resolve().parent.parent
-OUT = ROOT / "bench" / "results" / "map_reuse"
 SIZE = "320x240"
 UNRELATED = {"icl": "tum", "tum": "icl"}  # another room for each map
 
@@ -168,30 +167,44 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--modes", nargs="+", choices=["rgbd", "posed-rgbd", "posed-rgb", "rgb"],
                         default=["rgbd", "posed-rgb", "rgb"])
     parser.add_argument("--force", action="store_true", help="run cases whose results exist again")
-    parser.add_argument("--out", type=Path, default=OUT)
     args = parser.parse_args(argv)
-    args.out.mkdir(parents=True, exist_ok=True)
-    cases = [(n, m) for n in args.sequences for m in args.modes if _source(n) is not None]
-    todo = [(n, m) for n, m in cases if args.force or not (args.out / f"{n}_{m}.json").exists()]
+    recorder = Recorder("map_reuse", argv)
+    cases = [(n, _source(n), m) for n in args.sequences for m in args.modes if _source(n) is not None]
+    todo = [c for c in cases if args.force or not (recorder.folder / f"{case_slug(_case(c, 'again'))}.json").exists()]
     print(f"{len(cases)} cases, {len(todo)} to run", flush=True)
     if not todo:
         return 0
     with ServeProcess() as stack:
-        for name, mode in todo:
-            started, load_start = time.monotonic(), loadavg()
-            figures = run_case(stack, name, _source(name), _source(UNRELATED[name]), mode)
-            record = {"benchmark": "map_reuse", "sequence": name, "mode": mode, "size": SIZE, "fps": 30.0,
-                      "commit": commit(), "machine": machine(), "command": "python -m bench map_reuse "
-                      + " ".join(argv), "date": time.strftime("%F %T"), "load": [load_start, loadavg()],
-                      **figures, "wall_s": round(time.monotonic() - started, 1)}
-            (args.out / f"{name}_{mode}.json").write_text(json.dumps(record, indent=1, default=str) + "\n")
+        for name, source, mode in todo:
+            started = time.monotonic()
+            figures = run_case(stack, name, source, _source(UNRELATED[name]), mode)
+            figures["wall_s"] = round(time.monotonic() - started, 1)
+            for run in ("second_half", "again"):
+                recorder.write(_case((name, source, mode), run), _values(figures, run), detail=figures)
             again, second = figures["again"], figures["second_half"]
-            print(f"{name} {mode}: peer ATE {100 * (figures['peer_ate_m'] or float('nan')):.2f} cm | in map: "
-                  f"second half ATE {_cm(second['ate_in_map_m'])}, first pose in map {_s(second)}, "
-                  f"live in map {second['live_in_map_share']:.1%}, p95 {second['latency_p95_ms']:.0f} ms | again "
-                  f"ATE {_cm(again['ate_in_map_m'])}, {_s(again)}, {again['live_in_map_share']:.1%} | unrelated "
+            print(f"{name} {mode}: peer ATE {_cm(figures['peer_ate_m'])} | in map: second half ATE "
+                  f"{_cm(second['ate_in_map_m'])}, first pose in map {_s(second)}, live in map "
+                  f"{second['live_in_map_share']:.1%}, p95 {second['latency_p95_ms']:.0f} ms | again ATE "
+                  f"{_cm(again['ate_in_map_m'])}, {_s(again)}, {again['live_in_map_share']:.1%} | unrelated "
                   f"{figures.get('unrelated', {}).get('relocalizations')} relocalized", flush=True)
     return 0
+
+
+def _case(case: tuple[str, Path, str], run: str) -> dict[str, str]:
+    _, source, mode = case
+    return {"sequence": source.name, "mode": mode, "size": SIZE, "run": run, "area": "map_reuse"}
+
+
+def _values(figures: dict[str, Any], run: str) -> dict[str, Any]:
+    """A session in the map's figures, with the peer's ATE, the other room's false relocalizations and the map's
+    size beside them."""
+    own = figures[run]
+    unrelated = figures.get("unrelated") or {}
+    return {"live_in_map_share": own["live_in_map_share"], "first_pose_in_map_s": own["first_pose_in_map_s"],
+            "ate_in_map_m": own["ate_in_map_m"], "peer_ate_m": figures["peer_ate_m"],
+            "latency_p95_ms": own["latency_p95_ms"], "posed_share": own["posed_share"],
+            "false_per_1000_frames": unrelated.get("false_per_1000_frames"),
+            "map_bytes": figures["map"]["size_bytes"]}
 
 
 def _cm(value: float | None) -> str:

@@ -99,6 +99,21 @@ AREAS: tuple[Area, ...] = (
          (Column("gap_max_s", "worst gap", "s", "<= 3"), Column("acked_lost", "acked lost", "", "0"),
           Column("kills", "kills", "")),
          ("sequence", "mode", "size")),
+    Area("map_reuse", "Sessions in a saved map",
+         "`python -m bench map_reuse`: in one `flashmono serve`, a session over a sequence's first half (as "
+         "openapi.yaml documents it, 30 frames/s) saved with `POST /v1/maps`; then `localize` sessions in that map "
+         "over the second half and over the whole sequence again (`run`). In map: the share of frames whose pose "
+         "came after the `relocalized` message (live in the map's world; earlier ones are revised with it); first "
+         "pose: from the first frame's capture to that message; ATE in the map's world: the saving session aligned "
+         "to the ground truth once (SE(3), Sim(3) for RGB only) and that alignment applied, against the peer: one "
+         "session over the whole sequence (aligned on its own); false: relocalizations of another room's frames "
+         "in the map per 1,000 frames.",
+         (Column("live_in_map_share", "in map", "%", ">= 95 %"),
+          Column("first_pose_in_map_s", "first pose", "s", "<= 1"),
+          Column("ate_in_map_m", "ATE in map", "cm", "<= peer"), Column("peer_ate_m", "peer ATE", "cm"),
+          Column("latency_p95_ms", "p95", "ms", "<= 100"), Column("false_per_1000_frames", "false / 1,000", "", "0"),
+          Column("map_bytes", "map", "B")),
+         ("sequence", "mode", "run")),
     Area("map_formats", "Map formats web clients read",
          "`python -m bench web_viewer`: a real ICL map written in each format; bytes per surfel over the wire.",
          (Column("bytes_per_surfel", "bytes / surfel", "B"),)),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from worker.maps.localizer import MapLocalizer
@@ -34,3 +35,19 @@ def test_views_without_depth_are_no_places(icl_frames) -> None:
     views = views_of(icl_frames[:3])
     views[1].depth = None
     assert len(MapLocalizer(views)) == 2
+
+
+def test_a_camera_of_another_resolution_is_found_in_the_map(icl_frames) -> None:
+    """The map's places are world points: a frame of half the size (its own camera matrix) matches them too."""
+    localizer = MapLocalizer(views_of(icl_frames[::4]))
+    found = 0
+    for frame in [f for f in icl_frames if f.index % 4 == 2][:8]:
+        small = cv2.resize(gray(frame), (frame.width // 2, frame.height // 2), interpolation=cv2.INTER_AREA)
+        depth = cv2.resize(frame.depth, (frame.width // 2, frame.height // 2), interpolation=cv2.INTER_NEAREST)
+        K = camera_matrix(frame).copy()
+        K[:2] *= 0.5
+        fix = localizer.locate(small, K, depth)
+        if fix is not None:
+            found += 1
+            assert np.linalg.norm(fix.pose[:3, 3] - frame.gt_pose[:3, 3]) < 0.05
+    assert found >= 4

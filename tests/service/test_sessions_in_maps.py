@@ -1,20 +1,25 @@
 """Sessions in a saved map over the real stack (embedded Redis, the gateway under uvicorn, one worker with the real
 SLAM engine): a `localize` session relocalizes in the map and publishes its poses in the map's world, an `extend`
 session makes a new version of the map, another scene stays "not relocalized", a map deleted before a session's
-first frame fails that session with a message, and every other session goes on."""
+first frame fails that session with a message, and every other session goes on; a worker killed under a session in a
+map hands it to another, which goes on in the map's world."""
 
 from __future__ import annotations
 
 import json
+import signal
+import time
 from pathlib import Path
 
 import cv2
 import httpx
 import numpy as np
 import pytest
+import redis
 from service_helpers import ICL_INTRINSICS, frame_message, icl_frames, of_type, receive_until
 from websockets.sync.client import connect
 
+from protocol import keys
 from service.launcher import LocalStack
 
 FRAMES = 16
@@ -24,9 +29,16 @@ TUM_DIR = Path(__file__).resolve().parent.parent / "data" / "tum_fr1_rpy_mini"
 @pytest.fixture(scope="module")
 def stack():
     env = {"FLASHMONO_ENGINE": "slam", "FLASHMONO_LEASE_TTL_MS": "10000", "FLASHMONO_TORCH_THREADS": "2",
-           "FLASHMONO_LOG_LEVEL": "WARNING"}
+           "FLASHMONO_LOG_LEVEL": "WARNING", "FLASHMONO_SNAPSHOT_EVERY": "1"}
     with LocalStack(workers=1, worker_env=env, gateway_env={"FLASHMONO_REQUEST_TIMEOUT_S": "120"}) as local:
         yield local
+
+
+def wait_for(condition, timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.1)
 
 
 def api(stack: LocalStack) -> httpx.Client:
@@ -140,3 +152,41 @@ def test_a_session_whose_map_was_deleted_fails_and_says_why(stack, saved_map) ->
     with api(stack) as http:
         assert http.get(f"/v1/sessions/{sid}").json()["status"] == "failed"
         assert http.get(f"/v1/sessions/{builder}").json()["status"] == "finished"
+
+
+def test_a_session_in_a_map_survives_its_worker_killed(stack, saved_map) -> None:
+    """Last in this module: it kills the module's first worker (a second one takes the session over)."""
+    map_id, builder = saved_map
+    r = redis.Redis.from_url(stack.redis_url)
+    frames = icl_frames(3 * FRAMES)  # the map's frames first, then further on
+    with api(stack) as http:
+        sid = http.post("/v1/sessions", json={"intrinsics": ICL_INTRINSICS, "preset": "rgbd",
+                                              "map_id": map_id}).json()["id"]
+    with connect(f"{stack.ws_url}/v1/sessions/{sid}/stream", open_timeout=30) as ws:
+        messages: list[dict] = []
+        seq = 0
+
+        def anchored_in_a_snapshot() -> bool:
+            found = [m for m in of_type(messages, "relocalized") if m.get("map_id") == map_id]
+            return bool(found) and int(r.hget(keys.snapshot(sid), "seq") or -1) >= found[0]["seq"]
+
+        while not anchored_in_a_snapshot():  # frame by frame until a snapshot holds the anchoring
+            assert seq < len(frames) - 3, "no snapshot of the session anchored in the map"
+            ws.send(frame_message(seq, frames[seq], with_depth=True))
+            messages += receive_until(ws, lambda m, s=seq: m["type"] == "pose" and m["seq"] == s, timeout_s=60)
+            time.sleep(0.1)  # a phone's pace: the snapshot in flight gets its turn
+            seq += 1
+        first = stack.workers[0]
+        stack.add_worker(worker_id="maps-b")
+        first.send_signal(signal.SIGKILL)
+        first.wait()
+        for rest, frame in enumerate(frames[seq:], start=seq):
+            ws.send(frame_message(rest, frame, with_depth=True))
+        ws.send(json.dumps({"type": "finish"}))
+        messages += receive_until(ws, lambda m: m["type"] == "finished", timeout_s=300)
+    assert len([m for m in of_type(messages, "relocalized") if m.get("map_id") == map_id]) == 1
+    with api(stack) as http:
+        assert http.get(f"/v1/sessions/{sid}").json()["worker"] == "maps-b"
+    built, here = trajectory(stack, builder), trajectory(stack, sid)
+    assert sorted(here) == list(range(len(frames)))
+    assert max(np.linalg.norm(here[s][:3, 3] - built[s][:3, 3]) for s in built) < 0.05  # still the map's world
