@@ -24,6 +24,9 @@ scripts that write them are protocol.map_store's):
                                  map is deleted
   fm:{map.<id>}:sessions  hash   session id -> JSON {role: built|used, map_mode, at}: the sessions that built the map
                                  and those created in it
+  fm:{map.<id>}:live      stream the places (keyframes found in the map's world) the sessions running in the map add
+                                 while they run, msgpack {session, keyframe, pose, places}; each of them reads the
+                                 others' (worker.runtime.map_exchange)
 Global: the work queues are split into `PARTITIONS` streams, each its own hash tag, so that on a cluster they
 spread over the shards; a session's job and requests always go to the partition of its id, and workers read the
 partitions in turn:
@@ -180,9 +183,13 @@ def map_sessions(map_id: str) -> str:
     return _map_tagged(map_id, "sessions")
 
 
+def map_live(map_id: str) -> str:
+    return _map_tagged(map_id, "live")
+
+
 def all_map_keys(map_id: str) -> list[str]:
     """Every key of one map, every version included (deleted together; one hash slot)."""
-    return [map_record(map_id), map_packages(map_id), map_sessions(map_id)]
+    return [map_record(map_id), map_packages(map_id), map_sessions(map_id), map_live(map_id)]
 
 
 # --- the layout before hash tags (read by worker.runtime.migrate only) -----------------------------------------

@@ -102,6 +102,12 @@ class MapLocalizer:
     def __len__(self) -> int:
         return len(self.places)
 
+    def add_place(self, place: Place) -> None:
+        """Look frames up among `place` too (a place another session shared; no image to refine against)."""
+        if place.bag is None:
+            place.bag = self.recognizer.vocabulary.bag_of_words(place.descriptors)
+        self.places = [*self.places, place]  # a new list: a lookup in another thread keeps the one it has
+
     def locate(self, gray: np.ndarray, K: np.ndarray, depth: np.ndarray | None = None) -> MapFix | None:
         """The frame's verified pose in the map, or None (see `LocalizerSettings` for what verified means).
         `gray` uint8 [H, W], `K` its camera matrix, `depth` the frame's own depth at its resolution (optional)."""

@@ -8,6 +8,7 @@ the map's world then; later fixes of keyframes become pose-graph priors that hol
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections.abc import Callable
@@ -21,7 +22,15 @@ from protocol.map_store import MAP_MODES, MapMode
 from worker.loop.pose_graph import EdgeSigmas
 
 from .anchoring import MapAnchoring
-from .localizer import LocalizerSettings, MapFix, MapLocalizer, MapView
+from .localizer import (
+    LocalizerSettings,
+    MapFix,
+    MapLocalizer,
+    MapView,
+    describe_view,
+    place_arrays,
+    place_from_arrays,
+)
 from .stored_map import StoredMapRenderer
 from .views import views_of_package
 
@@ -30,6 +39,9 @@ from .views import views_of_package
 PRIOR_ROTATION = 0.01
 PRIOR_TRANSLATION = 0.01
 PRIOR_LOG_SCALE = 1e3
+log = logging.getLogger(__name__)
+# Ids of the places other sessions share (apart from the map's keyframe ids)
+SHARED_PLACE_IDS = 1 << 50
 
 
 @dataclass
@@ -77,6 +89,10 @@ class SessionInMap:
         self.relocalized_at: int | None = None  # the frame whose fix anchored the session
         self.package: MapPackage | None = None  # the stored map itself (`from_package`), for renders and merges
         self._renderer: StoredMapRenderer | None = None
+        # Places shared live with the other sessions in the map (worker.runtime.map_exchange): this session's
+        # keyframes once anchored (an `extend` session's), to publish; and how many the others' added here
+        self._outgoing: list[dict[str, Any]] = []
+        self.shared_received = 0
         self._views = views
         self._settings = settings
         self._localizer: MapLocalizer | None = None
@@ -139,6 +155,41 @@ class SessionInMap:
             self.fixes += 1
         return fix
 
+    @property
+    def shares_places(self) -> bool:
+        """Whether this session's keyframes join the map live (an `extend` session's, once anchored)."""
+        return self.mode == "extend" and self.anchored
+
+    def share_keyframe(self, view: MapView) -> None:
+        """Offer keyframe `view` (its pose in the map's world) to the other sessions in the map."""
+        place = describe_view(view, self.localizer.extractor, self.localizer.recognizer.vocabulary,
+                              self.localizer.settings.min_inliers)
+        if place is not None:
+            with self._lock:
+                self._outgoing.append({"keyframe": int(view.id), "pose": place.pose, "places": place_arrays(place)})
+
+    def take_outgoing(self) -> list[dict[str, Any]]:
+        """The places offered since the last call."""
+        with self._lock:
+            out, self._outgoing = self._outgoing, []
+        return out
+
+    def add_shared(self, entries: list[dict[str, Any]]) -> None:
+        """Places other sessions in the map offered (`share_keyframe`'s entries): frames are looked up among them
+        too from now on."""
+        localizer = self.localizer
+        for entry in entries:
+            try:
+                place = place_from_arrays(SHARED_PLACE_IDS + self.shared_received + 1, entry["pose"],
+                                          entry["places"])
+                if place.points.shape != (len(place.keypoints), 3) or place.pose.shape != (4, 4):
+                    raise ValueError("inconsistent shapes")
+            except (KeyError, TypeError, ValueError) as err:  # a malformed entry is skipped, never fatal
+                log.warning("map %s: a shared place was skipped (%s)", self.map_id, err)
+                continue
+            self.shared_received += 1
+            localizer.add_place(place)
+
     def prior_sigmas(self, scene_depth: float) -> EdgeSigmas:
         """How firmly a keyframe's fix holds it (translation in pose units: a share of the scene's depth)."""
         return EdgeSigmas(PRIOR_ROTATION, PRIOR_TRANSLATION * scene_depth, PRIOR_LOG_SCALE)
@@ -146,6 +197,7 @@ class SessionInMap:
     def stats(self) -> dict[str, Any]:
         return {"map_id": self.map_id, "map_version": self.version, "map_mode": self.mode,
                 "map_relocalized": self.anchored, "map_fixes": self.fixes, "map_misses": self.misses,
+                "map_shared_places": self.shared_received,
                 "map_load_seconds": self.load_seconds}
 
     def state_dict(self) -> dict[str, Any]:

@@ -26,6 +26,7 @@ from worker.events import DriftCorrected, EngineEvent, LoopClosed, MapsMerged, R
 from worker.geometry import Intrinsics, se3_part
 from worker.loop.correction_check import implausible_correction
 from worker.loop.pose_graph import PosePrior, Sim3PoseGraph
+from worker.maps.localizer import MapView
 from worker.maps.session_in_map import MapQuery, SessionInMap, prior_pose
 from worker.pipeline.loop_closer import DepthKeyframePoints, LoopCloser
 from worker.pipeline.stage_thread import QueuedStage, StageThread
@@ -248,6 +249,9 @@ class LoopClosingStage(QueuedStage):
             return
         with self.timings.measure("map_relocalization"):
             fix = in_map.locate(query)
+        if in_map.shares_places and query.keyframe and query.depth is not None:
+            pose = self.pose_graph.nodes[query.frame]  # in the map's world now
+            in_map.share_keyframe(MapView(query.frame, pose, query.K, query.gray, query.depth))
         if fix is None:
             return
         scene_depth = self.pose_graph.length_unit or 1.0

@@ -48,6 +48,7 @@ from worker.runtime.failpoints import failpoint
 from worker.runtime.finish_requests import RequestsWhileFinishing
 from worker.runtime.frames import FrameError, decode_frame
 from worker.runtime.leases import Leases
+from worker.runtime.map_exchange import MapExchange
 from worker.runtime.outage import REDIS_DOWN
 from worker.runtime.progress import FinishProgress
 from worker.runtime.quarantine import FrameAttempts
@@ -166,6 +167,7 @@ class SessionRunner(threading.Thread):
         self._rejected: set[int] = set()
         self._cursor = (0, 0)
         self._keyframes_since_snapshot = 0
+        self._map_exchange: MapExchange | None = None
         self._revision = 0
         self._last_id: bytes = b"0-0"
         self._session: dict[str, Any] = {}
@@ -528,12 +530,23 @@ class SessionRunner(threading.Thread):
         if not self._session.get("estimated_intrinsics") or any(
                 isinstance(e, engine_events.Initialized) and e.intrinsics for e in result.events):  # (re-)estimated
             self._publish_estimated_intrinsics()
+        self._exchange_places(result.is_keyframe)
         if result.is_keyframe:
             self._keyframes_since_snapshot += 1
         every_s = self.config.snapshot_every_s
         if (self._keyframes_since_snapshot >= self.config.snapshot_every
                 or (every_s > 0 and time.monotonic() - self._snapshot_begun_at >= every_s)):
             self._write_snapshot(seq, entry_id)
+
+    def _exchange_places(self, keyframe: bool) -> None:
+        """A session in a map: its new places out to the map's live stream, the other sessions' in
+        (worker.runtime.map_exchange)."""
+        in_map = getattr(self.engine, "in_map", None)
+        if in_map is None:
+            return
+        if self._map_exchange is None or self._map_exchange.in_map is not in_map:
+            self._map_exchange = MapExchange(self.client, self.session_id, in_map)
+        self._map_exchange.exchange(keyframe)
 
     def _publish_timeline(self, seq: int) -> None:
         """The first pose since this worker took the session: its phases (wall times: claimed, started, restored,
