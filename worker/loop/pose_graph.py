@@ -206,6 +206,7 @@ class Sim3PoseGraph:
         self.robust_k = robust_k
         self.robust_kinds = frozenset(robust_kinds)
         self.prior_sigma = prior_sigma
+        self.gauge_sigma: float | None = None  # set: the first node is held only this loosely (`loosen_gauge`)
         self.incremental = incremental
         self.relinearize_threshold = relinearize_threshold
         self.length_unit = valid_unit(length_unit)  # pose units per scene length unit; None: not known yet (1)
@@ -288,6 +289,14 @@ class Sim3PoseGraph:
             self.priors.append(prior)
             return prior
 
+    def loosen_gauge(self, sigma: float) -> None:
+        """Hold the first node only loosely (`sigma` in its tangent space) from now on: for a graph whose world its
+        absolute priors fix (a session anchored in a stored map), so that they may move the first node too. The next
+        solve is a batch one."""
+        with self._lock:
+            self.gauge_sigma = float(sigma)
+            self._drop_solver()
+
     def move_world(self, transform: np.ndarray) -> None:
         """Express the whole graph in another world: every node and prior pose left-multiplied by the similarity
         `transform` (edges, being relative, stay; the length unit follows its scale). The next solve is a batch."""
@@ -355,7 +364,7 @@ class Sim3PoseGraph:
         graph = gtsam.NonlinearFactorGraph()
         isolated = self._isolated(anchor)
         values = self._values([k for k in self.nodes if k not in isolated])
-        prior = gtsam.noiseModel.Isotropic.Sigma(7, self.prior_sigma)
+        prior = gtsam.noiseModel.Isotropic.Sigma(7, self.gauge_sigma or self.prior_sigma)
         graph.add(gtsam.PriorFactorSimilarity3(anchor, values.atSimilarity3(anchor), prior))
         self._add_edge_factors(graph, self.edges)
         self._add_prior_factors(graph, self.priors)
@@ -502,7 +511,7 @@ class Sim3PoseGraph:
             return {"keys": np.asarray(keys, np.int64),
                     "poses": np.stack([self.nodes[k] for k in keys]) if keys else np.zeros((0, 4, 4)),
                     "edges": [e.to_dict() for e in self.edges], "priors": [p.to_dict() for p in self.priors],
-                    "length_unit": self.length_unit}
+                    "length_unit": self.length_unit, "gauge_sigma": self.gauge_sigma}
 
     def load_state_dict(self, state: Mapping) -> None:
         """Restore nodes and edges. iSAM2 is rebuilt by the next `optimize`, a batch solve that seeds it."""
@@ -513,6 +522,7 @@ class Sim3PoseGraph:
             self.edges = [PoseGraphEdge.from_dict(d) for d in state["edges"]]
             self.priors = [PosePrior.from_dict(d) for d in state.get("priors", [])]
             self.length_unit = valid_unit(state.get("length_unit"))
+            self.gauge_sigma = state.get("gauge_sigma")
             self._noises = {kind: self._noise_model(kind) for kind in EDGE_KINDS}
             self._drop_solver()
 

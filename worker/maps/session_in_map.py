@@ -40,6 +40,11 @@ PRIOR_ROTATION = 0.01
 PRIOR_TRANSLATION = 0.01
 PRIOR_LOG_SCALE = 1e3
 log = logging.getLogger(__name__)
+# A device-posed session's world transform is refined from this many keyframe fixes at a time, when they move it
+# by more than this share of the scene's depth or this angle.
+WORLD_REFINE_FIXES = 5
+WORLD_REFINE_MIN = 0.003
+WORLD_REFINE_MIN_DEG = 0.2
 # Ids of the places other sessions share (apart from the map's keyframe ids)
 SHARED_PLACE_IDS = 1 << 50
 
@@ -119,10 +124,14 @@ class SessionInMap:
             self._renderer = StoredMapRenderer(self.package)
         return self._renderer
 
-    def attach(self, session_metric: bool) -> None:
-        """Set how the session's world meets the map's, once the session knows its input (its first frame)."""
+    def attach(self, session_metric: bool, device_poses: bool = False) -> None:
+        """Set how the session's world meets the map's, once the session knows its input (its first frame);
+        `device_poses`: its poses are a device's, rigidly tied to the map's world once anchored (so later fixes
+        refine that one transform, `world_refinement`, rather than bend the trajectory)."""
         self.metric = bool(session_metric and self.map_metric)
         self.anchoring = MapAnchoring(metric=self.metric, agreeing=2 if self.metric else 3)
+        self.device_poses = bool(device_poses)
+        self._offsets: list[np.ndarray] = []
 
     def start_loading(self) -> None:
         """Build the map's places in a thread of their own now, so the first query finds them ready."""
@@ -189,6 +198,25 @@ class SessionInMap:
                 continue
             self.shared_received += 1
             localizer.add_place(place)
+
+    def world_refinement(self, fix: MapFix, node: np.ndarray, scene_depth: float) -> np.ndarray | None:
+        """A device-posed session: the correction of its world transform that its keyframes' fixes agree on, once
+        WORLD_REFINE_FIXES of them are in (rotations averaged, the median translation); None until then, or when
+        it is too small to matter (below WORLD_REFINE_MIN of the scene's depth and WORLD_REFINE_MIN_DEG)."""
+        rigid = np.asarray(node, np.float64).copy()
+        rigid[:3, :3] /= np.cbrt(np.linalg.det(rigid[:3, :3]))
+        self._offsets.append(fix.pose @ np.linalg.inv(rigid))
+        if len(self._offsets) < WORLD_REFINE_FIXES:
+            return None
+        offsets, self._offsets = np.stack(self._offsets), []
+        U, _, Vt = np.linalg.svd(offsets[:, :3, :3].sum(axis=0))
+        rotation = U @ np.diag([1.0, 1.0, float(np.sign(np.linalg.det(U @ Vt)))]) @ Vt
+        correction = np.eye(4)
+        correction[:3, :3], correction[:3, 3] = rotation, np.median(offsets[:, :3, 3], axis=0)
+        angle = float(np.degrees(np.arccos(np.clip((np.trace(rotation) - 1.0) / 2.0, -1.0, 1.0))))
+        if np.linalg.norm(correction[:3, 3]) < WORLD_REFINE_MIN * scene_depth and angle < WORLD_REFINE_MIN_DEG:
+            return None
+        return correction
 
     def prior_sigmas(self, scene_depth: float) -> EdgeSigmas:
         """How firmly a keyframe's fix holds it (translation in pose units: a share of the scene's depth)."""

@@ -97,7 +97,7 @@ def assemble(config: SlamConfig, tracking: str, with_depth: bool, stage: Trackin
     if mapping is not None:
         mapping.loop_closing = stage.loop_closing_submit
     if in_map is not None:
-        in_map.attach(session_metric=with_depth or tracking == "device")
+        in_map.attach(session_metric=with_depth or tracking == "device", device_poses=tracking == "device")
         stage.in_map = loop_stage.in_map = in_map
         in_map.start_loading()
     log.info("session tracking: %s (mode %s), surfels from %s", tracking, MODE_OF_TRACKING[tracking], source_name)

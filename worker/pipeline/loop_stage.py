@@ -91,6 +91,8 @@ class LoopCorrection:
 LoopItem = GraphKeyframe | LoopQuery | CameraUpdate | PosePrior | MapJoin | MapQuery
 # A session in a stored map solves its graph after this many keyframes were fixed in the map.
 MAP_PRIORS_PER_SOLVE = 1
+# ... and holds its first keyframe only this loosely (tangent space): the first fix's error is not kept forever
+MAP_GAUGE_SIGMA = 1.0
 # ICP of two keyframes' depth for metric loops: relative pose refined, or None when they do not fit.
 # It pairs points closer than this many scene length units (worker.geometry.scene_units; ICL, 1.85 m: 4.6 cm).
 ICP_REACH = 0.025
@@ -263,6 +265,11 @@ class LoopClosingStage(QueuedStage):
                 self._move_world(transform, Relocalized(map_id=in_map.map_id, frame=query.frame, **fix.quality()))
             return
         node = self.pose_graph.nodes[query.frame]
+        if in_map.device_poses:  # the device's world is tied rigidly to the map's: refine that one transform
+            correction = in_map.world_refinement(fix, node, scene_depth)
+            if correction is not None:
+                self._move_world(correction, DriftCorrected(keyframe=int(query.frame), source="map"))
+            return
         self.pose_graph.add_prior(query.frame, prior_pose(fix.pose, node), in_map.prior_sigmas(scene_depth))
         self.pose_graph.flush()
         self.map_priors_unsolved += 1
@@ -280,6 +287,7 @@ class LoopClosingStage(QueuedStage):
         takes the moved keyframes as a correction, and nodes or queries it made before taking it are moved here
         as they come (`_in_current_world`)."""
         self.pose_graph.move_world(transform)
+        self.pose_graph.loosen_gauge(MAP_GAUGE_SIGMA)  # the map's priors hold the graph: its first node too
         self._hand_back(LoopCorrection(dict(self.pose_graph.nodes), event))
         self.world_moves.append((self.corrections_made, np.asarray(transform, np.float64)))
 
