@@ -19,7 +19,7 @@ import numpy as np
 from worker.loop.descriptors import default_vocabulary
 from worker.loop.vocabulary import Vocabulary
 from worker.tracking.dense_alignment import PyramidLevel, align, build_pyramid
-from worker.tracking.features import Features, OrbExtractor
+from worker.tracking.features import OrbExtractor
 from worker.tracking.relocalization import Place, PlaceRecognizer
 from worker.tracking.vo_config import VisualOdometryConfig
 
@@ -123,10 +123,9 @@ class MapLocalizer:
             return None
         uv = features.keypoints[found.keypoints].astype(np.float64)
         error = _reprojection_rms(found.pose, found.points, uv, K)
-        matches = self._matches_tried(features, found.place)
         agreement = None if depth is None else _depth_agreement(found.pose, found.points, uv, depth,
                                                                  self.settings.depth_tolerance)
-        fix = MapFix(found.pose, found.place, len(found.keypoints), matches, error, agreement)
+        fix = MapFix(found.pose, found.place, len(found.keypoints), found.matches, error, agreement)
         if not self._verified(fix):
             return None
         if depth is not None and self.settings.refine_with_depth:
@@ -152,13 +151,6 @@ class MapLocalizer:
         if np.linalg.norm(refined[:3, 3] - fix.pose[:3, 3]) > self.settings.max_refinement_move * scene:
             return fix.pose
         return refined
-
-    def _matches_tried(self, features: Features, place_id: int) -> int:
-        from worker.tracking.matching import ratio_matches
-
-        place = next(p for p in self.places if p.index == place_id)
-        ia, _ = ratio_matches(features.descriptors, place.descriptors, 0.9, self.vo_config.max_hamming)
-        return len(ia)
 
     def _verified(self, fix: MapFix) -> bool:
         s = self.settings

@@ -55,13 +55,14 @@ def _image(value: object) -> np.ndarray | None:
 
 @dataclass
 class Relocalisation:
-    """A recovered camera-to-world pose, the place it was found from and the PnP inliers (keypoint indices in the
-    lost frame and their world points)."""
+    """A recovered camera-to-world pose, the place it was found from, the PnP inliers (keypoint indices in the
+    lost frame and their world points) and how many descriptor matches PnP was given (0: not counted)."""
 
     pose: np.ndarray
     place: int
     keypoints: np.ndarray
     points: np.ndarray
+    matches: int = 0
 
 
 class PlaceRecognizer:
@@ -105,4 +106,4 @@ class PlaceRecognizer:
         if found is None:
             return None
         pose, inlier = found
-        return Relocalisation(pose, place.index, ia[inlier], X[inlier])
+        return Relocalisation(pose, place.index, ia[inlier], X[inlier], matches=len(ia))
