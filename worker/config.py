@@ -117,6 +117,9 @@ class MappingConfig(_Section):
     """The 2DGS backend (paper 4.3)."""
 
     enabled: bool = True
+    process: bool = Field(
+        False, description="map in a process of its own beside tracking (worker.pipeline.mapping_process): "
+        "tracking keeps an interpreter to itself; threaded sessions only, not with the model's hole filling")
     voxel_block: Literal[1, 2] = Field(2, description="2 = merge 2x2 blocks (eq. 15-16); 1 = keep every pixel")
     merged_scale_factor: float = Field(
         2.0, gt=0, description="scale multiplier of a merged block's surfel: a 2x2 block covers twice the width")

@@ -31,14 +31,13 @@ from worker.events import EngineEvent
 from worker.geometry import Intrinsics
 from worker.maps.session_in_map import SessionInMap
 from worker.pipeline import snapshot
-from worker.pipeline.assembly import Assembly, assemble, idle_loop_stage
+from worker.pipeline.assembly import Assembly, assemble, idle_loop_stage, mapping_stage
 from worker.pipeline.depth_registration import DepthRegistration
 from worker.pipeline.finish import finish_session
 from worker.pipeline.finish_status import FinishStatus
 from worker.pipeline.judged_start import JudgedStart
 from worker.pipeline.keyframes import MotionKeyframeSelector
 from worker.pipeline.learned_model import custom_model
-from worker.pipeline.mapping_stage import MappingStage
 from worker.pipeline.session_camera import SessionCamera
 from worker.pipeline.session_stats import live_stats, pose_source_choice, session_stats
 from worker.pipeline.snapshot_future import SnapshotFuture
@@ -66,8 +65,7 @@ class SlamSystem:
         self.tracking_stage = TrackingStage(MotionKeyframeSelector.from_config(self.config.frontend), self.camera,
                                             self.counters, self.timings, max_side=self.config.tracking.max_side)
         self.tracking_stage.loop_closing = idle_loop_stage(self.config, self.timings)
-        self.mapping_stage = (MappingStage(self.config.mapping, self.config.threaded, self.config.queue_size,
-                                           self.config.device, self.timings) if self.config.mapping.enabled else None)
+        self.mapping_stage = mapping_stage(self.config, self.timings)  # a thread, or a process of its own
         self.judged_start = JudgedStart(self.tracking_stage)
         # Decided by the first frame (worker.pipeline.assembly): None before it
         self.parts: Assembly | None = None

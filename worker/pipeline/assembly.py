@@ -13,8 +13,6 @@ from dataclasses import dataclass
 from typing import Any
 
 from worker.config import SlamConfig
-from worker.depth.border_planes import BorderSettings
-from worker.depth.world_planes import PlaneSettings
 from worker.loop.pose_graph import DEFAULT_SIGMAS, EdgeSigmas, Sim3PoseGraph
 from worker.maps.session_in_map import SessionInMap
 from worker.pipeline.depth_sources import (
@@ -22,12 +20,13 @@ from worker.pipeline.depth_sources import (
     ModelSurfels,
     MultiViewDepth,
     SensorDepth,
-    StereoBuilder,
     choose_depth_source,
+    stereo_builder,
 )
 from worker.pipeline.learned_model import LearnedModel, load_model
 from worker.pipeline.loop_closer import DepthKeyframePoints, LoopCloser
 from worker.pipeline.loop_stage import LoopClosingStage
+from worker.pipeline.mapping_process import MappingProcess
 from worker.pipeline.mapping_stage import MappingStage
 from worker.pipeline.stage_times import StageTimes
 from worker.pipeline.tracking_stage import TrackingStage
@@ -62,7 +61,8 @@ class Assembly:
 
 
 def assemble(config: SlamConfig, tracking: str, with_depth: bool, stage: TrackingStage,
-             mapping: MappingStage | None, timings: StageTimes, in_map: SessionInMap | None = None) -> Assembly:
+             mapping: MappingStage | MappingProcess | None, timings: StageTimes,
+             in_map: SessionInMap | None = None) -> Assembly:
     """Build the session's parts for pose source `tracking` and wire them into `stage` and `mapping`; a session
     in a stored map (`in_map`) has tracking query it and loop closing find the queries in it."""
     source_name = choose_depth_source(config.input.depth_source, tracking, with_depth)
@@ -104,17 +104,22 @@ def assemble(config: SlamConfig, tracking: str, with_depth: bool, stage: Trackin
     return Assembly(tracking, source_name, learned, model, model_id, closer, depth_points, loop_stage)
 
 
-def _multiview(config: SlamConfig, stage: TrackingStage, mapping: MappingStage, model: Any) -> MultiViewDepth:
-    """Multi-view stereo: the frame ring in tracking, the builder in mapping."""
-    from worker.pipeline.model_depth import ModelDepth
+def mapping_stage(config: SlamConfig, timings: StageTimes) -> MappingStage | MappingProcess | None:
+    """The session's mapping stage: in a process of its own where `mapping.process` asks for it (and the session
+    is threaded, and no model fills its depth), else a thread; None with mapping disabled."""
+    if not config.mapping.enabled:
+        return None
+    if config.mapping.process and config.threaded and config.input.mvs_fill != "model":
+        return MappingProcess(config, timings)
+    return MappingStage(config.mapping, config.threaded, config.queue_size, config.device, timings)
 
-    cfg = config.input
-    fill = ModelDepth(model, config.frontend.long_side).depth if cfg.mvs_fill == "model" else None
-    builder = StereoBuilder(config.depth, fill, propagate=cfg.mvs_fill == "propagate",
-                            planes=PlaneSettings() if cfg.mvs_planes else None,
-                            borders=BorderSettings() if cfg.mvs_border_planes else None)
+
+def _multiview(config: SlamConfig, stage: TrackingStage, mapping: MappingStage | MappingProcess,
+               model: Any) -> MultiViewDepth:
+    """Multi-view stereo: the frame ring in tracking, the builder in mapping."""
+    builder = stereo_builder(config, model)
     mapping.use_multiview_depth(builder)
-    return MultiViewDepth(stage.camera, cfg.mvs_buffer_frames, cfg.mvs_frames_after, builder)
+    return MultiViewDepth(stage.camera, config.input.mvs_buffer_frames, config.input.mvs_frames_after, builder)
 
 
 def _single_view(config: SlamConfig, tracking: str, with_depth: bool, stage: TrackingStage,

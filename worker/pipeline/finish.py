@@ -41,7 +41,7 @@ def finish_session(system: SessionParts) -> None:
         budget = cfg.final_refine_budget_s  # from the start of finish() (the drain too) where the config says so
         since = started if cfg.final_refine_budget_counts_drain else time.perf_counter()
         left = None if not budget else max(0.0, budget - (time.perf_counter() - since))
-        status.begin("refining", cfg.final_refine_passes * mapping.map.held_images,
+        status.begin("refining", cfg.final_refine_passes * mapping.held_images,
                      deadline=None if left is None else time.perf_counter() + left)
         moved = mapping.refine_all(cfg.final_refine_passes, budget_s=left, seed=cfg.final_refine_seed,
                                    train_poses=_refines_keyframe_poses(system), on_step=status.step)

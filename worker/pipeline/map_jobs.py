@@ -88,6 +88,20 @@ class PoseUpdateJob:
     poses: dict[int, np.ndarray]
 
 
+def job_state(job: KeyframeJob | PoseUpdateJob) -> dict[str, Any]:
+    """A mapping job as plain data (snapshots, the mapping process's wire): `job_from_state` reads it."""
+    if isinstance(job, KeyframeJob):
+        return {"keyframe": job.state_dict()}
+    return {"poses": [[k, v] for k, v in job.poses.items()]}
+
+
+def job_from_state(item: dict[str, Any]) -> KeyframeJob | PoseUpdateJob:
+    """The job `job_state` made `item` from."""
+    if "keyframe" in item:
+        return KeyframeJob.from_state(item["keyframe"])
+    return PoseUpdateJob({int(k): np.asarray(v, np.float64) for k, v in item["poses"]})
+
+
 def fusion_thresholds(cfg: MappingConfig, prune: bool):
     """The map's fusion thresholds: `cfg`'s pruning errors when `prune`, else none that prunes."""
     from worker.mapping.fusion import FusionThresholds

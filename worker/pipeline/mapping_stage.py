@@ -39,6 +39,8 @@ from worker.pipeline.map_jobs import (
     PoseUpdateJob,
     build_gaussian_map,
     fusion_thresholds,
+    job_from_state,
+    job_state,
     unmerged_surfels,
 )
 from worker.pipeline.stage_thread import QueuedStage, StageThread
@@ -74,6 +76,9 @@ class MappingStage(QueuedStage):
         self._waiting_lock = threading.Lock()
         self._owed: dict[int, int] = {}  # keyframe -> refinement iterations shed, oldest first
         self.caught_up = 0
+        # Called in the stage's thread after each job done (with it) and each idle step (with None): a mapping
+        # process reports its state to the session (worker.pipeline.mapping_process)
+        self.on_progress: Callable[[KeyframeJob | PoseUpdateJob | None], None] | None = None
         self._stage = StageThread("mapping", self._handle_numbered, threaded,
                                   idle=self._catch_up if cfg.idle_refine else None)
 
@@ -125,6 +130,8 @@ class MappingStage(QueuedStage):
                 self.map.apply_pose_updates({k: torch.as_tensor(v) for k, v in job.poses.items() if k in known})
                 self._done(job)
         self.busy_seconds += time.perf_counter() - start
+        if self.on_progress is not None:
+            self.on_progress(job)
 
     def _backlog_behind(self) -> int:
         """Keyframe jobs waiting behind the one being processed."""
@@ -197,6 +204,8 @@ class MappingStage(QueuedStage):
                 self.map.refine_around(kf_id, self._owed.pop(kf_id))
         self.caught_up += 1
         self.busy_seconds += time.perf_counter() - start
+        if self.on_progress is not None:
+            self.on_progress(None)
         return True
 
     def refine_all(self, passes: int, budget_s: float | None = None, seed: int = 0,
@@ -268,6 +277,11 @@ class MappingStage(QueuedStage):
         with self._reading():
             return int(self.map.num_gaussians)
 
+    @property
+    def held_images(self) -> int:
+        """Keyframe images the map holds (what the final refinement's passes go over)."""
+        return int(self.map.held_images)
+
     def to_ply_bytes(self) -> bytes:
         with self._reading():
             return self.map.to_ply_bytes()
@@ -278,9 +292,7 @@ class MappingStage(QueuedStage):
         the queue (QueuedStage.snapshot_now): the map between two steps and, as data, the jobs submitted so far and
         not in it yet, which a restored stage maps again (`load_state_dict`)."""
         def pack_state(jobs: list[KeyframeJob | PoseUpdateJob]) -> bytes:
-            queued = [{"keyframe": job.state_dict()} if isinstance(job, KeyframeJob)
-                      else {"poses": [[k, v] for k, v in job.poses.items()]} for job in jobs]
-            return pack({**self.state_dict(), "queued": queued}, external=external)
+            return pack({**self.state_dict(), "queued": [job_state(job) for job in jobs]}, external=external)
 
         super().snapshot_now(deliver, pack_state)
 
@@ -299,5 +311,4 @@ class MappingStage(QueuedStage):
             if self.stereo is not None and d.get("stereo") is not None:
                 self.stereo.load_state_dict(d["stereo"])
         for item in d.get("queued") or []:  # submitted before the snapshot, not in its map: mapped now
-            self.submit(KeyframeJob.from_state(item["keyframe"]) if "keyframe" in item else
-                        PoseUpdateJob({int(k): np.asarray(v, np.float64) for k, v in item["poses"]}))
+            self.submit(job_from_state(item))

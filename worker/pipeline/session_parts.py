@@ -13,6 +13,7 @@ from worker.pipeline.judged_start import JudgedStart
 from worker.pipeline.learned_model import LearnedModel
 from worker.pipeline.loop_closer import LoopCloser
 from worker.pipeline.loop_stage import LoopClosingStage
+from worker.pipeline.mapping_process import MappingProcess
 from worker.pipeline.mapping_stage import MappingStage
 from worker.pipeline.session_camera import SessionCamera
 from worker.pipeline.stage_times import StageTimes
@@ -26,7 +27,7 @@ class SessionParts(Protocol):
     intrinsics: Intrinsics | None
     camera: SessionCamera
     tracking_stage: TrackingStage
-    mapping_stage: MappingStage | None
+    mapping_stage: MappingStage | MappingProcess | None
     judged_start: JudgedStart
     timings: StageTimes
     counters: dict[str, float]

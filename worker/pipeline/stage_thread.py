@@ -48,6 +48,7 @@ class StageThread:
         self._thread: threading.Thread | None = None
         self._items = 0  # work items queued or running (markers not counted)
         self._count_lock = threading.Lock()
+        self.on_failure: Callable[[BaseException], None] | None = None  # told, in the stage's thread, of a failure
         if threaded:
             self._queue = queue.Queue()
             self._thread = threading.Thread(target=self._run, name=name, daemon=True)
@@ -110,7 +111,7 @@ class StageThread:
                     self._handle(item)
             except BaseException as err:  # noqa: BLE001 - reported to the producer on its next call
                 log.exception("%s stage: a work item failed", self.name)
-                self._error = err
+                self._failed(err)
             finally:
                 if item is not _STOP and not isinstance(item, _Marker):
                     with self._count_lock:
@@ -130,8 +131,13 @@ class StageThread:
                     break
             except BaseException as err:  # noqa: BLE001 - reported to the producer on its next call
                 log.exception("%s stage: idle work failed", self.name)
-                self._error = err
+                self._failed(err)
         return self._queue.get()
+
+    def _failed(self, err: BaseException) -> None:
+        self._error = err
+        if self.on_failure is not None:
+            self.on_failure(err)
 
 
 class QueuedStage:
@@ -228,6 +234,10 @@ class QueuedStage:
 
     def raise_if_failed(self) -> None:
         self._stage.raise_if_failed()
+
+    def on_failure(self, callback: Callable[[BaseException], None]) -> None:
+        """Call `callback(error)` in the stage's thread when a work item or idle step fails."""
+        self._stage.on_failure = callback
 
     @property
     def pending(self) -> int:

@@ -43,6 +43,13 @@ class StageTimes:
             self.seconds[stage] += seconds
             self.counts[stage] += 1
 
+    def set_total(self, stage: str, seconds: float, count: int) -> None:
+        """Set `stage`'s totals (a stage timed in another process reports them)."""
+        if stage not in STAGES:
+            raise ValueError(f"unknown stage {stage!r}; known: {', '.join(STAGES)}")
+        with self._lock:
+            self.seconds[stage], self.counts[stage] = float(seconds), int(count)
+
     @contextmanager
     def measure(self, stage: str) -> Iterator[None]:
         """Time the body of a `with` block as one event of `stage`."""

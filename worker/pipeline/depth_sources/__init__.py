@@ -12,10 +12,11 @@ from __future__ import annotations
 
 from worker.pipeline.depth_sources.base import DepthSource
 from worker.pipeline.depth_sources.model import ModelSurfels
-from worker.pipeline.depth_sources.multiview import MultiViewDepth, StereoBuilder
+from worker.pipeline.depth_sources.multiview import MultiViewDepth, StereoBuilder, stereo_builder
 from worker.pipeline.depth_sources.sensor import SensorDepth
 
-__all__ = ["DepthSource", "ModelSurfels", "MultiViewDepth", "SensorDepth", "StereoBuilder", "choose_depth_source"]
+__all__ = ["DepthSource", "ModelSurfels", "MultiViewDepth", "SensorDepth", "StereoBuilder", "choose_depth_source",
+           "stereo_builder"]
 
 
 def choose_depth_source(requested: str, tracking: str, with_depth: bool) -> str:

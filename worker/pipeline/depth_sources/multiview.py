@@ -254,3 +254,17 @@ class StereoBuilder:
             self.plane_memory.load_state_dict(state["planes"])
         hint_range, hint_depth = state.get("recent_hint") or (None, None)
         self.recent_hint = (None if hint_range is None else tuple(hint_range), hint_depth)
+
+
+def stereo_builder(config: Any, model: Any = None) -> StereoBuilder:
+    """The mapping stage's half of multi-view depth with a session's settings (`config`: its SlamConfig; `model`
+    fills holes with its depth where `input.mvs_fill` asks for it)."""
+    cfg = config.input
+    fill = None
+    if cfg.mvs_fill == "model":
+        from worker.pipeline.model_depth import ModelDepth
+
+        fill = ModelDepth(model, config.frontend.long_side).depth
+    return StereoBuilder(config.depth, fill, propagate=cfg.mvs_fill == "propagate",
+                         planes=PlaneSettings() if cfg.mvs_planes else None,
+                         borders=BorderSettings() if cfg.mvs_border_planes else None)
