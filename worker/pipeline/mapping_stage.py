@@ -56,6 +56,8 @@ READERS_WAIT_S = 1.0
 class MappingStage(QueuedStage):
     """Map jobs in its own thread (or inline), with load shedding; serves renders and exports under a lock."""
 
+    restarts = 0  # a thread is never replaced (a mapping process is: worker.pipeline.mapping_process)
+
     def __init__(self, cfg: MappingConfig, threaded: bool, max_backlog: int, device: str = "cpu",
                  timings: StageTimes | None = None) -> None:
         self.cfg = cfg

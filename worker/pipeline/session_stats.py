@@ -22,6 +22,8 @@ def session_stats(system: SessionParts) -> dict[str, Any]:
             "num_gaussians": system.num_gaussians, "fps": frames / wall if wall > 0 else 0.0,
             "backend_pending": 0 if mapping is None else mapping.pending,
             "backend_seconds": 0.0 if mapping is None else mapping.busy_seconds,
+            "keyframes_mapped": 0 if mapping is None else mapping.keyframes_mapped,
+            "mapping_process_restarts": 0 if mapping is None else mapping.restarts,
             **live_stats(system), "pose_source": pose_source_choice(system)["pose_source"],
             "runtime_breakdown": system.timings.breakdown(int(frames))}
 

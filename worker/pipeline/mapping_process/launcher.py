@@ -34,6 +34,6 @@ def start_mapping_process(config: SlamConfig) -> tuple[BaseProcess, Channel]:
     process = context.Process(target=child.serve, args=(theirs,), name="flashmono-mapping", daemon=True)
     process.start()
     theirs.close()  # the process holds its end: when it dies, our end reads EOF
-    channel = Channel(ours)
+    channel = Channel(ours, outbox=True)
     channel.send({"op": "init", "config": config.model_dump(mode="json")})
     return process, channel

@@ -142,6 +142,11 @@ class MappingProcess:
             return int(self._report["stats"]["keyframes_mapped"])
 
     @property
+    def busy_seconds(self) -> float:
+        with self._state:
+            return float(self._report["stats"]["mapping_busy_s"])
+
+    @property
     def held_images(self) -> int:
         with self._state:
             return int(self._report["held_images"])
@@ -409,7 +414,7 @@ class MappingProcess:
             self.restarts += 1
             self._timing_base = {stage: (self.timings.seconds[stage], self.timings.counts[stage])
                                  for stage in self.timings.seconds if stage.startswith("map_")}
-            self._channel.close()
+            self._channel.close(drain_s=0.0)
             self._process, self._channel = start_mapping_process(self.config)
             with self._state:
                 self._sent = 0
