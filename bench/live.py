@@ -218,8 +218,11 @@ class Sampler:
 
 
 def _rss(pids: list[int]) -> float:
-    """Summed resident set size of `pids` in MiB (psutil when installed, else /proc)."""
-    total = 0
+    """Summed resident set size of `pids` in MiB (psutil when installed, else /proc), with the proportional set
+    size of every process they started (sessions' mapping processes, through a fork server)."""
+    from worker.runtime.memory import descendants, proportional_mb
+
+    total = sum(proportional_mb(child) for pid in pids for child in descendants(pid)) * 2**20
     for pid in pids:
         try:
             import psutil

@@ -22,6 +22,10 @@ The rule, in order:
    depth (visual odometry on features) frames are tracked at their size (ICL RGB only at 640: ATE 1.11 cm, 1.76 at
    320).
 
+5. On a CPU with at least `MAPPING_PROCESS_CORES` cores, mapping (multi-view depth, fusion, refinement) runs in a
+   process of its own beside tracking (`mapping.process`, worker.pipeline.mapping_process), so that tracking's Python
+   never waits for mapping's.
+
 This module is torch-free: the gateway imports it to say what its workers would choose (GET /v1/presets).
 """
 
@@ -38,6 +42,9 @@ from protocol.presets import AUTO
 LIVE_TRACKING_SIDE = 320
 # Long side live frames are worked on (tracked and mapped) at when the map is built on a CPU.
 LIVE_WORKING_SIDE = 320
+# Cores from which a CPU session maps in a process of its own (worker.pipeline.mapping_process): with one core the
+# two processes would only take turns.
+MAPPING_PROCESS_CORES = 2
 SHIPPED_CHECKPOINT = Path(__file__).parent / "frontend" / "weights" / "tiny.safetensors"
 
 
@@ -135,6 +142,10 @@ def choose_settings(received: SessionInput, machine: Machine) -> SettingsChoice:
         if machine.cuda:
             choice.overrides["device"] = "cuda"
             choice.reasons.append("mapping on the GPU")
+        elif machine.cpu_cores >= MAPPING_PROCESS_CORES:
+            choice.overrides["mapping"] = {"process": True}
+            choice.reasons.append(f"{machine.cpu_cores} CPU cores: mapping in a process of its own beside tracking "
+                                  "(tracking keeps an interpreter to itself)")
     long_side = max(received.width or 0, received.height or 0)
     rate = f" at {received.frame_rate:g} frames/s" if received.frame_rate else ""
     if received.live and long_side > LIVE_WORKING_SIDE and not machine.cuda:

@@ -154,3 +154,16 @@ def test_multiview_depth_in_the_process_sends_loop_queries_and_depth_hints_back(
     assert stage.stereo is not None and stage.stereo.recent_hint[1] is not None  # the process's hint came back
     assert stage.keyframes_mapped >= 4 and system.num_gaussians > 0
     assert system.loop_closer is not None and stage._queried  # keyframe loop queries came back after their depth
+
+
+def test_the_worker_memory_figure_counts_its_mapping_processes() -> None:
+    from worker.runtime.memory import descendants, proportional_mb, resident_mb
+
+    process = MappingProcess(process_config())
+    try:
+        assert process.pid in descendants(os.getpid())  # a child of the fork server, which is ours
+        own = resident_mb() - sum(proportional_mb(pid) for pid in descendants(os.getpid()))
+        assert proportional_mb(process.pid) > 1
+        assert resident_mb() >= own + proportional_mb(process.pid)  # its pages count (shared ones once)
+    finally:
+        process.close()

@@ -48,8 +48,9 @@ class RuntimeConfig(BaseModel):
                                              "the paper's settings")
     max_frame_attempts: int = Field(2, ge=1, description="workers that may die processing one frame before it is "
                                                           "quarantined (its session failed)")
-    memory_budget_mb: int = Field(0, ge=0, description="take no new session while this process's resident memory "
-                                                        "is above it (0: no limit)")
+    memory_budget_mb: int = Field(0, ge=0, description="take no new session while this process's resident memory, "
+                                                        "its sessions' mapping processes included, is above it (0: no "
+                                                        "limit)")
     idle_timeout_s: float = Field(600.0, ge=0, description="a session without frames this long is abandoned and "
                                                             "its slot freed (0: never)")
     transient_ttl_s: float = Field(3600.0, ge=1, description="an ended session's frames, messages and requests "

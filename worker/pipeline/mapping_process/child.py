@@ -75,6 +75,8 @@ class MappingServer:
                 self._load(message["data"], message["arrays"], set(message.get("queried") or []))
             elif op == "multiview":
                 self.stage.use_multiview_depth(stereo_builder(self.config))
+            elif op == "call" and message["name"] == "snapshot":  # cut now: it holds exactly the jobs received
+                self._snapshot(message["id"], message["args"]["known"])
             elif op == "call":
                 threading.Thread(target=self._call, args=(message,), name=f"mapping-{message['name']}",
                                  daemon=True).start()
@@ -137,19 +139,25 @@ class MappingServer:
         self._report(None)
         return [[k, v] for k, v in moved.items()]
 
-    def _snapshot(self, call_id: int, known: list[str]) -> dict[str, Any]:
+    def _snapshot(self, call_id: int, known: list[str]) -> None:
+        """Cut the stage now (QueuedStage.snapshot_now: it is made between two work steps, by whichever of the stage's
+        thread and a thread of its own comes first) and reply with it: the packed state, the digests of the arrays
+        it refers to and those of them the session does not hold yet (`known`: those it holds)."""
         arrays: dict[str, bytes] = {}
-        made: list[bytes] = []
-        ready = threading.Event()
+        seen = set(known)
 
         def deliver(make: Any) -> None:
-            made.append(make())
-            ready.set()
+            try:
+                data = make()
+                reply = {"op": "reply", "id": call_id, "value": {
+                    "bytes": data, "digests": list(arrays),
+                    "arrays": {d: a for d, a in arrays.items() if d not in seen}}}
+            except Exception as err:  # noqa: BLE001 - the session's side raises it
+                log.exception("mapping process: a snapshot failed")
+                reply = {"op": "reply", "id": call_id, "error": f"{type(err).__name__}: {err}"}
+            self._send(reply)
 
         self.stage.snapshot_now(deliver, external=arrays)
-        ready.wait()
-        seen = set(known)
-        return {"bytes": made[0], "digests": list(arrays), "arrays": {d: a for d, a in arrays.items() if d not in seen}}
 
     def _state(self, call_id: int) -> dict[str, Any]:
         return self.stage.state_dict()

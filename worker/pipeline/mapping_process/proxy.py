@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from protocol.codec import pack
+from protocol.codec import pack, unpack
 from worker.config import SlamConfig
 from worker.geometry import Intrinsics
 from worker.mapping.rasterize import RenderResult
@@ -86,7 +86,8 @@ class MappingProcess:
         self._calls: dict[int, _Call] = {}
         self._next_call = 0
         self._checkpoint = _Checkpoint()
-        self._checkpoint_lock = threading.Lock()  # one snapshot of the process at a time
+        self._arrays: dict[str, bytes] = {}  # large arrays of the checkpoint and of the cuts asked for, by digest
+        self._pinned: dict[int, set[str]] = {}  # per cut asked for: the arrays it was told are held here
         self._mapped_since_checkpoint = 0
         self._timing_base: dict[str, tuple[float, int]] = {}  # the stage timings of processes that died
         self._failure: str | None = None
@@ -198,25 +199,27 @@ class MappingProcess:
 
     def snapshot_now(self, deliver: Callable[[Callable[[], bytes]], None],
                      external: dict[str, bytes] | None = None) -> None:
-        """The stage's state as of now (the process cuts it between two work steps, with the jobs not done yet as
-        data), handed to `deliver(make_part)` from a thread of its own; it is the checkpoint a restart loads too."""
-        def take() -> None:
-            checkpoint = self._take_checkpoint()
+        """The stage's state as of now: the process cuts it after the jobs submitted so far, between two work
+        steps, with those not done yet as data; `deliver(make_part)` gets it from a thread of its own. It is the
+        checkpoint a restart loads too. Once closed, the map here is cut as a thread's is."""
+        if self._local is not None:
+            self._local.snapshot_now(deliver, external=external)
+            return
+        call, covers = self._request_checkpoint()
+
+        def make() -> bytes:
+            checkpoint = self._complete_checkpoint(call, covers)
             if external is not None:
                 external.update(checkpoint.arrays)
-                data = checkpoint.data
-            else:  # the arrays inside the bytes
-                from protocol.codec import unpack
+                return checkpoint.data
+            return pack(unpack(checkpoint.data, external=checkpoint.arrays))  # the arrays inside the bytes
 
-                data = pack(unpack(checkpoint.data, external=checkpoint.arrays))
-            deliver(lambda: data)
-
-        threading.Thread(target=take, name="mapping-snapshot", daemon=True).start()
+        threading.Thread(target=deliver, args=(make,), name="mapping-snapshot", daemon=True).start()
 
     def load_state_dict(self, state: dict) -> None:
         """Continue from a snapshot's map part (unpacked): the process loads it; it is the checkpoint too."""
         data = pack(state)
-        with self._checkpoint_lock, self._wire:
+        with self._wire:
             self._checkpoint = _Checkpoint(data, self._submitted, {})
             self._drop_replay_through(self._submitted)
             self._send_load(self._checkpoint)
@@ -249,6 +252,17 @@ class MappingProcess:
             self._process.kill()
             self._process.join()
         self._channel.close()
+        self._fail_open_calls("the mapping process was closed")
+
+    def _fail_open_calls(self, why: str, name: str | None = None) -> None:
+        """Answer the calls still open (named `name`, or all) with the error `why`."""
+        with self._state:
+            lost = [call for call in self._calls.values() if name is None or call.name == name]
+            for call in lost:
+                del self._calls[call.call_id]
+        for call in lost:
+            call.error = why
+            call.done.set()
 
     @property
     def pid(self) -> int | None:
@@ -291,39 +305,53 @@ class MappingProcess:
                     "queried": sorted(self._queried)})
 
     # -- checkpoints ---------------------------------------------------------------------------------------------
-    def _take_checkpoint(self) -> _Checkpoint:
-        """A snapshot of the process's stage, kept as the checkpoint a restart loads."""
-        with self._checkpoint_lock:
-            known = list(self._checkpoint.arrays)
+    def _request_checkpoint(self) -> tuple[_Call, int]:
+        """Ask the process for a cut of its stage now; returns the call and how many jobs it covers. The arrays
+        held here are not sent again (and stay held until the reply comes)."""
+        with self._wire:
             with self._state:
                 self._next_call += 1
-                call = _Call(self._next_call, "snapshot", {"known": known})
+                call = _Call(self._next_call, "snapshot", {"known": sorted(self._arrays)})
                 self._calls[call.call_id] = call
-            with self._wire:
-                covers = self._submitted
-                self._send_call(call)
-            call.done.wait()
+                self._pinned[call.call_id] = set(self._arrays)
+            covers = self._submitted
+            self._send_call(call)
+        return call, covers
+
+    def _complete_checkpoint(self, call: _Call, covers: int) -> _Checkpoint:
+        """Wait for the cut `call` asked for; it becomes the checkpoint unless a later one already is."""
+        call.done.wait()
+        with self._wire:
+            self._pinned.pop(call.call_id, None)
             if call.error is not None:
                 raise RuntimeError(f"the mapping process's snapshot failed: {call.error}")
             reply = call.value
-            arrays = {**self._checkpoint.arrays, **reply["arrays"]}
-            with self._wire:  # a restart reads the checkpoint and the jobs after it as one
-                self._checkpoint = _Checkpoint(reply["bytes"], covers, {d: arrays[d] for d in reply["digests"]})
+            self._arrays.update(reply["arrays"])
+            missing = [d for d in reply["digests"] if d not in self._arrays]
+            if missing:
+                raise RuntimeError(f"the mapping process's snapshot refers to {len(missing)} arrays not held here")
+            checkpoint = _Checkpoint(reply["bytes"], covers, {d: self._arrays[d] for d in reply["digests"]})
+            if covers >= self._checkpoint.covers:  # a restart reads the checkpoint and the jobs after it as one
+                self._checkpoint = checkpoint
                 self._drop_replay_through(covers)
-            return self._checkpoint
+            keep = set(self._checkpoint.arrays).union(*self._pinned.values())
+            self._arrays = {d: a for d, a in self._arrays.items() if d in keep}
+        return checkpoint
 
     def _drop_replay_through(self, covers: int) -> None:
         while self._replay and self._replay[0][0] <= covers:
             self._replay.popleft()
 
     def _checkpoint_in_background(self) -> None:
-        def take() -> None:
+        call, covers = self._request_checkpoint()
+
+        def complete() -> None:
             try:
-                self._take_checkpoint()
+                self._complete_checkpoint(call, covers)
             except RuntimeError:
                 log.warning("mapping process: a checkpoint failed", exc_info=True)
 
-        threading.Thread(target=take, name="mapping-checkpoint", daemon=True).start()
+        threading.Thread(target=complete, name="mapping-checkpoint", daemon=True).start()
 
     # -- what the process sends ----------------------------------------------------------------------------------
     def _start_reader(self) -> None:
@@ -401,13 +429,8 @@ class MappingProcess:
         log.warning("mapping process %s exited (code %s): restarting it from its checkpoint", self._process.pid,
                     self._process.exitcode)
         self._process.join(1.0)
-        with self._state:  # a snapshot cut in the dead process is lost: its caller hears so (what it covers changed)
-            lost = [call for call in self._calls.values() if call.name == "snapshot"]
-            for call in lost:
-                del self._calls[call.call_id]
-        for call in lost:
-            call.error = "the mapping process exited before the snapshot was made"
-            call.done.set()
+        # a snapshot cut in the dead process is lost: its caller hears so (what it would cover changed)
+        self._fail_open_calls("the mapping process exited before the snapshot was made", name="snapshot")
         with self._wire:
             if self._closing:
                 return
