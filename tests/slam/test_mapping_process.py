@@ -167,3 +167,24 @@ def test_the_worker_memory_figure_counts_its_mapping_processes() -> None:
         assert resident_mb() >= own + proportional_mb(process.pid)  # its pages count (shared ones once)
     finally:
         process.close()
+
+
+def test_a_live_rgb_only_session_keeps_publishing_poses_while_its_mapping_process_is_stalled() -> None:
+    source = open_source(str(Path(__file__).parents[1] / "data" / "icl_mini"), use_gt_depth=False,
+                         use_gt_poses=False, max_frames=24)
+    rgb, intrinsics = list(source), source.intrinsics
+    config = SlamConfig.preset("rgbd", mapping={"process": True, "refine_iterations": 1, "final_refine_passes": 0})
+    system = SlamSystem(config, intrinsics)
+    system.push(rgb[0])
+    pid = system.mapping_stage.pid
+    os.kill(pid, signal.SIGSTOP)  # multi-view depth, fusion and refinement can do nothing now
+    try:
+        results = push_all_within(system, rgb[1:])
+        assert system.mode == "visual_odometry" and system.depth_source == "mvs"
+        assert all(np.all(np.isfinite(r.pose)) for r in results)
+        assert sum(r.tracked for r in results) >= len(results) - 2
+        assert system.mapping_stage.keyframes_mapped == 0 and system.mapping_stage.pending > 0
+    finally:
+        os.kill(pid, signal.SIGCONT)
+    system.finish()
+    assert system.stats()["keyframes_mapped"] >= 3 and system.num_gaussians > 1000
