@@ -102,6 +102,8 @@ def test_tracking_publishes_poses_while_the_mapping_process_is_stopped(frames) -
     assert system.live_stats()["mapping_lag_keyframes"] == 0
     assert system.stats()["keyframes_mapped"] == keyframes + 1 + (system.last_frame_mapped is not None)
     assert system.num_gaussians > 0
+    # both processes' stages in one breakdown: tracking timed here, mapping's reported by its process
+    assert system.timings.seconds["frontend_tracking"] > 0 and system.timings.counts["map_merge"] >= keyframes
 
 
 def test_a_killed_mapping_process_is_replaced_and_no_keyframe_is_lost(frames, monkeypatch) -> None:
@@ -188,3 +190,16 @@ def test_a_live_rgb_only_session_keeps_publishing_poses_while_its_mapping_proces
         os.kill(pid, signal.SIGCONT)
     system.finish()
     assert system.stats()["keyframes_mapped"] >= 3 and system.num_gaussians > 1000
+
+
+def test_a_mapping_process_that_keeps_dying_fails_the_session_with_a_clear_error(frames, monkeypatch) -> None:
+    monkeypatch.setattr(proxy_module, "MAX_RESTARTS", 0)
+    system = SlamSystem(process_config(queue_size=64))
+    push_all_within(system, frames[:3])
+    os.kill(system.mapping_stage.pid, signal.SIGKILL)
+    deadline = time.monotonic() + 30
+    while system.mapping_stage._failure is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    with pytest.raises(RuntimeError, match="mapping process died"):
+        system.push(frames[3])
+    system.close()

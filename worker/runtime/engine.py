@@ -20,7 +20,7 @@ from protocol.codec import pack, unpack
 from worker.data.frame import Frame, FrameResult
 from worker.geometry import Intrinsics
 from worker.pipeline.snapshot_chunks import ChunkWrite, chunk_versions
-from worker.settings_choice import Machine, SessionInput, choose_settings
+from worker.settings_choice import MAPPING_PROCESS_CORES, Machine, SessionInput, choose_settings
 
 ENGINE_KINDS = ("slam", "passthrough")
 
@@ -120,6 +120,10 @@ def warm_up(kind: str) -> None:
                     "worker.tracking.schur_native"):
         importlib.import_module(kernels).available()  # compiles on a fresh machine, else loads the cached library
     torch.optim.Adam([torch.zeros(1, requires_grad=True)])
+    if Machine.detect().cpu_cores >= MAPPING_PROCESS_CORES:  # sessions will map in processes of their own
+        from worker.pipeline.mapping_process.launcher import prestart
+
+        prestart()
 
 
 def engine_intrinsics(engine: SessionEngine) -> dict[str, float | int] | None:

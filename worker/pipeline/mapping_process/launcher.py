@@ -22,9 +22,17 @@ def _mapping_context() -> BaseContext:
     with _context_lock:
         if _context is None:
             context = multiprocessing.get_context("forkserver")
-            context.set_forkserver_preload([child.__name__])
+            context.set_forkserver_preload(["worker.pipeline.mapping_process.preload"])
             _context = context
         return _context
+
+
+def prestart() -> None:
+    """Start the fork server now (it imports the engine, ~3 s of a core), not under a session's first frames."""
+    from multiprocessing import forkserver
+
+    _mapping_context()
+    forkserver.ensure_running()
 
 
 def start_mapping_process(config: SlamConfig) -> tuple[BaseProcess, Channel]:

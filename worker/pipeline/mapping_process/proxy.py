@@ -34,12 +34,16 @@ from worker.pipeline.map_jobs import KeyframeJob, PoseUpdateJob, build_gaussian_
 from worker.pipeline.mapping_process.channel import Channel, ChannelClosed
 from worker.pipeline.mapping_process.launcher import start_mapping_process
 from worker.pipeline.mapping_stage import MappingStage
-from worker.pipeline.stage_times import StageTimes
+from worker.pipeline.stage_times import STAGES, StageTimes
 
 log = logging.getLogger(__name__)
 
-CHECKPOINT_EVERY = 8  # keyframes mapped between two checkpoints of the map (a restart replays at most these)
+# Keyframes mapped after the last checkpoint of the map (the session's own snapshot or one of ours) before we take
+# one: a restart replays about these. A worker snapshots its sessions more often than this (`snapshot_every`), so
+# in the service these are the checkpoints: a map is packed once, not twice.
+CHECKPOINT_EVERY = 8
 CLOSE_WAIT_S = 10.0
+MAX_RESTARTS = 3  # processes a session replaces; one more death fails its mapping stage
 _STATS_BEFORE_A_REPORT = {"keyframes_mapped": 0, "keyframes_shed": {"reduced": 0, "merge_only": 0, "dropped": 0},
                           "mapping_busy_s": 0.0, "keyframes_caught_up": 0, "keyframes_owed": 0}
 
@@ -334,6 +338,8 @@ class MappingProcess:
             if covers >= self._checkpoint.covers:  # a restart reads the checkpoint and the jobs after it as one
                 self._checkpoint = checkpoint
                 self._drop_replay_through(covers)
+                with self._state:
+                    self._mapped_since_checkpoint = 0  # the session's own snapshots count: no extra cut is due
             keep = set(self._checkpoint.arrays).union(*self._pinned.values())
             self._arrays = {d: a for d, a in self._arrays.items() if d in keep}
         return checkpoint
@@ -350,6 +356,8 @@ class MappingProcess:
                 self._complete_checkpoint(call, covers)
             except RuntimeError:
                 log.warning("mapping process: a checkpoint failed", exc_info=True)
+                with self._state:
+                    self._mapped_since_checkpoint = 0  # try again as many keyframes later
 
         threading.Thread(target=complete, name="mapping-checkpoint", daemon=True).start()
 
@@ -398,8 +406,7 @@ class MappingProcess:
                 if self._waiting and self._waiting[0][0] == keyframe:
                     self._waiting.popleft()
                 self._mapped_since_checkpoint += 1
-                if self._mapped_since_checkpoint >= CHECKPOINT_EVERY:
-                    self._mapped_since_checkpoint = 0
+                if self._mapped_since_checkpoint == CHECKPOINT_EVERY:  # once, until a cut resets the count
                     checkpoint_due = True
             self._state.notify_all()
         if self.stereo is not None and message.get("hint") is not None:
@@ -407,6 +414,8 @@ class MappingProcess:
             self.stereo.recent_hint = (None if depth_range is None else tuple(depth_range), scene_depth)
         timings = message["timings"]
         for stage, seconds in timings["seconds"].items():
+            if STAGES.get(stage, ("",))[0] != "backend":
+                continue  # the process times mapping's stages only; the others are timed here
             base_seconds, base_count = self._timing_base.get(stage, (0.0, 0))
             self.timings.set_total(stage, base_seconds + seconds, base_count + int(timings["counts"][stage]))
         if checkpoint_due:
@@ -434,11 +443,19 @@ class MappingProcess:
         with self._wire:
             if self._closing:
                 return
+            if self.restarts >= MAX_RESTARTS:  # a job that kills every process it reaches: the stage fails
+                self._give_up(f"the mapping process died {self.restarts + 1} times (exit code "
+                              f"{self._process.exitcode}); the session's map is lost")
+                return
             self.restarts += 1
             self._timing_base = {stage: (self.timings.seconds[stage], self.timings.counts[stage])
-                                 for stage in self.timings.seconds if stage.startswith("map_")}
+                                 for stage, (thread, _, _) in STAGES.items() if thread == "backend"}
             self._channel.close(drain_s=0.0)
-            self._process, self._channel = start_mapping_process(self.config)
+            try:
+                self._process, self._channel = start_mapping_process(self.config)
+            except (OSError, RuntimeError, ValueError) as err:
+                self._give_up(f"the mapping process died and could not be restarted: {err}")
+                return
             with self._state:
                 self._sent = 0
                 self._report = {**self._report, "received": 0, "pending": 0}
@@ -453,3 +470,9 @@ class MappingProcess:
             for call in open_calls:
                 self._send_call(call)
             self._start_reader()
+
+    def _give_up(self, why: str) -> None:
+        """The stage fails: the session's next frame raises `why`; open calls are answered with it."""
+        log.error("mapping process: %s", why)
+        self._failure = why
+        self._fail_open_calls(why)
