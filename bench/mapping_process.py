@@ -52,6 +52,7 @@ def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench mapping_process", description=__doc__.split("\n\n")[0])
     parser.add_argument("--sequences", nargs="+", choices=sorted(SEQUENCES), default=["icl"])
     parser.add_argument("--modes", nargs="+", choices=sorted(MODES), default=["rgbd", "rgb"])
+    parser.add_argument("--variants", nargs="+", choices=list(VARIANTS), default=list(VARIANTS))
     parser.add_argument("--max-frames", type=int, default=None)
     args = parser.parse_args(argv)
     recorder = Recorder("mapping_process", argv)
@@ -61,7 +62,7 @@ def main(argv: list[str]) -> int:
             print(f"{name}: {source} not found, skipped", flush=True)
             continue
         for mode in args.modes:
-            figures = {variant: run_once(source, mode, variant, args.max_frames) for variant in VARIANTS}
+            figures = {variant: run_once(source, mode, variant, args.max_frames) for variant in args.variants}
             for variant, values in figures.items():
                 recorder.write({"area": "mapping_process", "sequence": source.name, "mode": mode,
                                 "variant": variant}, values)
