@@ -28,7 +28,7 @@ The rule, in order:
    of the interpreter. Measured live through the service (bench/results/out_of_box, 2 cores, 30 frames/s): TUM
    fr1/xyz RGB only 2.33 cm / 18.90 dB against 4.14 cm / 16.74 dB with a mapping thread (offline 1.96 cm); ICL the
    same within the spread. The other inputs keep a mapping thread: with the process their pose latency p95 rose
-   (ICL 58-91 ms against 20-25, TUM 111-126 against 47-56) and their maps were 0.4-0.7 dB lower.
+   (ICL 54-98 ms against 33-43, TUM 111-126 against 62-90) for maps within 0.3 dB of the thread's.
 
 This module is torch-free: the gateway imports it to say what its workers would choose (GET /v1/presets).
 """
