@@ -3,15 +3,14 @@ so, finish() drains every stage, and a snapshot taken while mapping lags restore
 
 from __future__ import annotations
 
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from live_sessions import live_config, push_all_within
 
 from protocol.codec import unpack
-from worker.config import SlamConfig
 from worker.data import Frame, open_source
 from worker.pipeline.tracking_stage import follow_corrections
 from worker.slam import SlamSystem
@@ -23,24 +22,6 @@ SIZE = (80, 60)
 def frames() -> list[Frame]:
     return list(open_source(Path(__file__).parents[1] / "data" / "icl_mini", max_frames=14, resize=SIZE,
                             use_gt_depth=True))
-
-
-def live_config(**overrides) -> SlamConfig:
-    """RGB-D odometry (no poses), every stage in its own thread, a keyframe every 2 frames."""
-    base = {"input": {"surfel_init": "depth"}, "frontend": {"keyframe_every": 2}, "threaded": True}
-    for key, value in overrides.items():
-        base[key] = {**base.get(key, {}), **value} if isinstance(value, dict) else value
-    return SlamConfig.preset("test", **base)
-
-
-def push_all_within(system: SlamSystem, frames: list[Frame], timeout_s: float = 120.0) -> list:
-    """Push `frames` from another thread; fails if tracking does not get through them (it waited for mapping)."""
-    results: list = []
-    pusher = threading.Thread(target=lambda: results.extend(system.push(f) for f in frames), daemon=True)
-    pusher.start()
-    pusher.join(timeout_s)
-    assert not pusher.is_alive(), "tracking waited for the stalled mapping stage"
-    return results
 
 
 def test_tracking_publishes_poses_while_mapping_is_stalled_and_finish_drains(frames) -> None:

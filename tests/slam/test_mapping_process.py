@@ -7,13 +7,13 @@ from __future__ import annotations
 
 import os
 import signal
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from live_sessions import live_config, push_all_within
 
 from worker.config import SlamConfig
 from worker.data import Frame, open_source
@@ -33,21 +33,8 @@ def frames() -> list[Frame]:
 
 
 def process_config(**overrides) -> SlamConfig:
-    """RGB-D odometry, threaded, a keyframe every 2 frames, mapping in its own process."""
-    base = {"input": {"surfel_init": "depth"}, "frontend": {"keyframe_every": 2}, "threaded": True,
-            "mapping": {"process": True}}
-    for key, value in overrides.items():
-        base[key] = {**base.get(key, {}), **value} if isinstance(value, dict) else value
-    return SlamConfig.preset("test", **base)
-
-
-def push_all_within(system: SlamSystem, frames: list[Frame], timeout_s: float = 120.0) -> list:
-    results: list = []
-    pusher = threading.Thread(target=lambda: results.extend(system.push(f) for f in frames), daemon=True)
-    pusher.start()
-    pusher.join(timeout_s)
-    assert not pusher.is_alive(), "tracking waited for the mapping process"
-    return results
+    """`live_config` with mapping in its own process."""
+    return live_config(**{**overrides, "mapping": {"process": True, **overrides.get("mapping", {})}})
 
 
 def keyframe_jobs(frames: list[Frame], count: int) -> list[KeyframeJob]:
