@@ -120,7 +120,8 @@ def warm_up(kind: str) -> None:
                     "worker.tracking.schur_native"):
         importlib.import_module(kernels).available()  # compiles on a fresh machine, else loads the cached library
     torch.optim.Adam([torch.zeros(1, requires_grad=True)])
-    if Machine.detect().cpu_cores >= MAPPING_PROCESS_CORES:  # sessions will map in processes of their own
+    machine = Machine.detect()
+    if not machine.cuda and machine.cpu_cores >= MAPPING_PROCESS_CORES:  # RGB-only sessions map in processes
         from worker.pipeline.mapping_process.launcher import prestart
 
         prestart()
