@@ -174,10 +174,13 @@ class FrameMessage(ClientMessage):
     timestamp: float = info(doc="seconds")
     image: bytes = info(doc="JPEG or PNG (RGB) as raw bytes; every frame of a session the same size")
     intrinsics: dict[str, float] | list[float] | None = info(
-        doc="overrides the session's intrinsics for this frame",
+        doc=("overrides the session's intrinsics for this frame: {fx, fy, cx, cy} in pixels of this image; the "
+             "session's lens distortion still applies unless the object names its own `distortion` ({model: "
+             "radtan|fisheye, k1, k2, ...} as the session's intrinsics take it; null: none)"),
         schema={
             "oneOf": [
-                {"type": "object", "required": ["fx", "fy", "cx", "cy"]},
+                {"type": "object", "required": ["fx", "fy", "cx", "cy"],
+                 "properties": {"distortion": {"type": "object", "description": "as the session's intrinsics'"}}},
                 {"type": "array", "items": {"type": "number"}, "minItems": 4, "maxItems": 4},
             ]
         },

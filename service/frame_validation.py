@@ -11,6 +11,7 @@ from typing import Any
 
 from protocol.codec import unpack
 from protocol.image_header import PNG_SIGNATURE, image_size
+from protocol.lens import distortion_problem
 from protocol.limits import MAX_IMAGE_SIDE, MAX_SEQ
 from service.pose_check import pose_problem
 
@@ -103,3 +104,8 @@ def _check_intrinsics(value: Any, session_intrinsics: dict[str, Any] | None, wid
     if not (0 <= cx <= width and 0 <= cy <= height):
         raise FrameRejected("bad_intrinsics",
                             f"principal point ({cx}, {cy}) lies outside the {width}x{height} image", seq)
+    distortion = value.get("distortion") if isinstance(value, dict) else None
+    if distortion is not None:
+        problem = distortion_problem(distortion, fx, fy, cx, cy, width, height)
+        if problem:
+            raise FrameRejected("bad_intrinsics", problem, seq)

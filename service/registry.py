@@ -19,6 +19,7 @@ import redis.asyncio as aioredis
 from redis.exceptions import NoScriptError
 
 from protocol import keys
+from protocol.lens import is_identity
 from protocol.poses import similarity_scale
 from service.paging import index_member, index_page
 from worker.runtime.archive import BlobStore
@@ -341,6 +342,16 @@ def _matches(record: dict[str, str], status: str | None, device_id: str | None, 
             and (name is None or record.get("name") == name))
 
 
+def engine_camera(record: dict[str, Any]) -> dict[str, Any] | None:
+    """The pinhole camera the session's engine works with: as the worker published it, else the intrinsics given
+    when they have no lens distortion (a distorted camera's pinhole is the worker's to compute); None while
+    unknown."""
+    if record.get("estimated_intrinsics"):
+        return json.loads(record["estimated_intrinsics"])
+    given = json.loads(record.get("intrinsics") or "null")
+    return given if given is None or is_identity(given.get("distortion")) else None
+
+
 def parse_session(record: dict[str, Any]) -> dict[str, Any]:
     """The API form of a session hash."""
     out: dict[str, Any] = {
@@ -348,7 +359,7 @@ def parse_session(record: dict[str, Any]) -> dict[str, Any]:
         "status": record["status"], "created_at": record["created_at"], "updated_at": record["updated_at"],
         "worker": record.get("worker") or None, "preset": record.get("preset") or None,
         "pose_mode": record.get("pose_mode") or None, "intrinsics": json.loads(record.get("intrinsics") or "null"),
-        "estimated_intrinsics": json.loads(record.get("estimated_intrinsics") or record.get("intrinsics") or "null"),
+        "estimated_intrinsics": engine_camera(record),
         "metadata": json.loads(record.get("metadata") or "{}"), "error": record.get("error") or None,
         "depth_camera": json.loads(record.get("depth_camera") or "null"),
         "warnings": json.loads(record.get("warnings") or "[]"),

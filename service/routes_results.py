@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import json
 import re
 from typing import Annotated, Literal
 
@@ -10,12 +11,13 @@ import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 from fastapi.responses import PlainTextResponse
 
+from protocol.lens import is_identity
 from protocol.limits import MAX_RENDER_SIDE, MIN_RENDER_SIDE
 from protocol.poses import split_similarity
 from service.auth import Principal, caller
 from service.deps import registry, session_for
 from service.pose_check import pose_problem
-from service.registry import ArchiveUnavailable, Registry, parse_session
+from service.registry import ArchiveUnavailable, Registry, engine_camera, parse_session
 from service.schemas import ErrorBody, Trajectory
 from service.worker_requests import WORKER_ANSWERS, ask_worker
 
@@ -168,18 +170,18 @@ def render_params(record: dict[str, str], pose: str, width: int | None, height: 
     problem = pose_problem(values)
     if problem:
         raise HTTPException(400, f"pose must be a camera-to-world [sR|t; 0 0 0 1] matrix: {problem}")
-    import json
-
     session_k = json.loads(record.get("intrinsics") or "null")
+    if session_k is not None and not is_identity(session_k.get("distortion")):
+        session_k = engine_camera(record)  # a distorted camera renders as the pinhole its frames were brought to
     if width is None or height is None:
         if session_k is None:
-            raise HTTPException(400, "width and height are required (the session has no intrinsics)")
+            raise HTTPException(400, "width and height are required (the session has no intrinsics yet)")
         width, height = width or session_k["width"], height or session_k["height"]
     if width * height > max_pixels:
         raise HTTPException(400, f"{width}x{height} exceeds the limit of {max_pixels} pixels")
     if None in (fx, fy, cx, cy):
         if session_k is None:
-            raise HTTPException(400, "fx, fy, cx, cy are required (the session has no intrinsics)")
+            raise HTTPException(400, "fx, fy, cx, cy are required (the session has no intrinsics yet)")
         sx, sy = width / session_k["width"], height / session_k["height"]
         fx = fx if fx is not None else session_k["fx"] * sx
         fy = fy if fy is not None else session_k["fy"] * sy

@@ -39,7 +39,8 @@ async def create_session(body: SessionCreate, request: Request, principal: Princ
     if quota and await reg.live_sessions_of(principal.key_id) >= quota:
         raise HTTPException(429, f"this API key has {quota} live sessions, its limit (FLASHMONO_MAX_LIVE_SESSIONS): "
                                  "finish or delete one first")
-    session = await reg.create_session({**body.model_dump(mode="json"), **in_map}, owner=principal.key_id)
+    session = await reg.create_session({**body.model_dump(mode="json", exclude_none=True), **in_map},
+                                       owner=principal.key_id)
     if in_map:
         await maps.add_session(in_map["map_id"], session["id"], in_map["map_mode"])
     request.app.state.metrics.sessions_created.inc()

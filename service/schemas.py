@@ -5,9 +5,19 @@ from __future__ import annotations
 import math
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, Strict, StrictBool, model_validator
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    Strict,
+    StrictBool,
+    model_serializer,
+    model_validator,
+)
 
 from protocol.keys import SessionStatus
+from protocol.lens import RADTAN, distortion_problem
 from protocol.limits import MAX_IMAGE_SIDE
 from protocol.map_package import MapScale
 from protocol.map_store import MapMode, MapStatus, SessionRole
@@ -44,8 +54,32 @@ def json_int(**constraints: Any) -> Any:
 JsonFloat = Annotated[float, Strict()]
 
 
+class DistortionIn(BaseModel):
+    """The lens distortion of the streamed images, in OpenCV's models with each coefficient named: `radtan`
+    (radial-tangential: k1 k2 p1 p2 k3; phones, webcams, COLMAP's OPENCV camera) or `fisheye` (equidistant: k1-k4;
+    COLMAP's OPENCV_FISHEYE). Coefficients not given are 0. The worker undistorts each frame once, before tracking,
+    to a pinhole camera of the same size (the session's `estimated_intrinsics`: render with these)."""
+
+    model_config = ConfigDict(extra="forbid")
+    model: Literal["radtan", "fisheye"] = Field(RADTAN, description="radtan (the default) or fisheye")
+    k1: JsonFloat | None = None
+    k2: JsonFloat | None = None
+    k3: JsonFloat | None = None
+    k4: JsonFloat | None = Field(None, description="fisheye only")
+    p1: JsonFloat | None = Field(None, description="radtan only (tangential)")
+    p2: JsonFloat | None = Field(None, description="radtan only (tangential)")
+
+    def wire(self) -> dict[str, Any]:
+        """The coefficients given, with the model: the dict `protocol.lens` reads."""
+        return {key: value for key, value in self.model_dump().items() if value is not None}
+
+    @model_serializer(mode="wrap")
+    def _coefficients_given(self, handler):  # no return annotation: the schema stays the model's
+        return {key: value for key, value in handler(self).items() if value is not None}
+
+
 class IntrinsicsIn(BaseModel):
-    """Pinhole intrinsics of the streamed images, in pixels."""
+    """Intrinsics of the streamed images, in pixels: the pinhole camera, and its lens distortion if any."""
 
     model_config = ConfigDict(extra="forbid")
     fx: JsonFloat = Field(gt=0)
@@ -54,6 +88,15 @@ class IntrinsicsIn(BaseModel):
     cy: JsonFloat
     width: json_int(gt=0, le=MAX_IMAGE_SIDE)
     height: json_int(gt=0, le=MAX_IMAGE_SIDE)
+    distortion: DistortionIn | None = Field(
+        None, description="the lens distortion of the images as sent (null: none, or images already undistorted)")
+
+    @model_serializer(mode="wrap")
+    def _pinhole_without_null_lens(self, handler):  # no return annotation: the schema stays the model's
+        out = handler(self)
+        if out.get("distortion") is None:
+            out.pop("distortion", None)
+        return out
 
     @model_validator(mode="after")
     def _principal_point_inside(self) -> IntrinsicsIn:
@@ -62,6 +105,11 @@ class IntrinsicsIn(BaseModel):
         if not (0 <= self.cx <= self.width and 0 <= self.cy <= self.height):
             raise ValueError(f"principal point ({self.cx}, {self.cy}) lies outside the "
                              f"{self.width}x{self.height} image")
+        if self.distortion is not None:
+            problem = distortion_problem(self.distortion.wire(), self.fx, self.fy, self.cx, self.cy, self.width,
+                                         self.height)
+            if problem:
+                raise ValueError(problem)
         return self
 
 

@@ -15,6 +15,7 @@ import numpy as np
 from protocol.image_header import image_size
 from worker.data.frame import Frame
 from worker.geometry import Intrinsics
+from worker.geometry.lens import Lens, Undistortion, undistorted_camera, undistortion
 
 DEFAULT_MAX_SIDE = 640  # the longest side a frame is worked on at (FLASHMONO_MAX_FRAME_SIDE)
 _REDUCED_COLOR = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4,
@@ -44,9 +45,11 @@ def working_size(width: int, height: int, session_intrinsics: dict[str, Any] | N
 
 
 def decode_frame(message: dict[str, Any], session_intrinsics: dict[str, Any] | None,
-                 max_side: int = DEFAULT_MAX_SIDE) -> Frame:
+                 max_side: int = DEFAULT_MAX_SIDE, depth_in_colour: bool = True) -> Frame:
     """The Frame for a validated wire message {seq, timestamp, image, intrinsics?, depth?, pose?}, at the
-    session's working resolution (see `working_size`)."""
+    session's working resolution (see `working_size`), undistorted when its camera has a lens distortion (the
+    depth too when it is registered to the colour image: `depth_in_colour`; a session's `depth_camera` depth is
+    registered to the undistorted colour camera later)."""
     try:
         _, sent_w, sent_h = image_size(message["image"])
     except ValueError as err:
@@ -56,6 +59,9 @@ def decode_frame(message: dict[str, Any], session_intrinsics: dict[str, Any] | N
     intrinsics = frame_intrinsics(message.get("intrinsics"), session_intrinsics, sent_w, sent_h)
     if intrinsics is not None and (width, height) != (sent_w, sent_h):
         intrinsics = intrinsics.scaled(width, height)
+    lens_fix = frame_undistortion(message.get("intrinsics"), session_intrinsics, sent_w, sent_h, width, height)
+    if lens_fix is not None:
+        image, intrinsics = lens_fix.image(image), lens_fix.pinhole
     depth = None
     if message.get("depth") is not None:
         raw = cv2.imdecode(np.frombuffer(message["depth"], dtype=np.uint8), cv2.IMREAD_UNCHANGED)
@@ -66,6 +72,8 @@ def decode_frame(message: dict[str, Any], session_intrinsics: dict[str, Any] | N
                                           f"{sent_w}x{sent_h}")
         if raw.shape != (height, width):  # nearest: averaging would mix valid depths with holes (0)
             raw = cv2.resize(raw, (width, height), interpolation=cv2.INTER_NEAREST)
+        if lens_fix is not None and depth_in_colour:
+            raw = lens_fix.depth(raw)
         depth = raw.astype(np.float32) / 1000.0
     pose = None
     if message.get("pose") is not None:
@@ -87,6 +95,46 @@ def frame_intrinsics(value: Any, session_intrinsics: dict[str, Any] | None, widt
         base = Intrinsics.from_dict(session_intrinsics)
         return base if (base.width, base.height) == (width, height) else base.scaled(width, height)
     return None
+
+
+def _declared_camera(value: Any, session_intrinsics: dict[str, Any] | None, width: int, height: int
+                     ) -> tuple[Intrinsics, dict[str, Any] | None] | None:
+    """The camera the image was sent with, at the size it was declared at (the frame's own at the image's size,
+    else the session's), and its wire distortion: the frame's own `distortion` when its intrinsics name one (null:
+    none), else the session's (a lens does not change from frame to frame; its focal length may)."""
+    session_lens = (session_intrinsics or {}).get("distortion")
+    if isinstance(value, dict):
+        camera = Intrinsics(*(float(value[k]) for k in ("fx", "fy", "cx", "cy")), width, height)
+        return camera, value["distortion"] if "distortion" in value else session_lens
+    if value is not None:
+        return Intrinsics(*(float(v) for v in value), width, height), session_lens
+    if session_intrinsics:
+        return Intrinsics.from_dict(session_intrinsics), session_lens
+    return None
+
+
+def frame_undistortion(value: Any, session_intrinsics: dict[str, Any] | None, sent_w: int, sent_h: int,
+                       width: int, height: int) -> Undistortion | None:
+    """The undistortion of a frame sent at sent_w x sent_h and worked on at width x height, None for a pinhole
+    camera. The pinhole camera is computed where the camera was declared, then scaled, so that every frame and the
+    session's own camera (`session_camera`) agree whatever the working size."""
+    declared = _declared_camera(value, session_intrinsics, sent_w, sent_h)
+    lens = Lens.from_wire(declared[1]) if declared is not None else None
+    if lens is None:
+        return None
+    camera = declared[0]
+    pinhole = undistorted_camera(camera, lens)
+    return undistortion(camera.scaled(width, height), lens, pinhole.scaled(width, height))
+
+
+def session_camera(session_intrinsics: dict[str, Any] | None) -> Intrinsics | None:
+    """The session's camera as the engine sees it: its pinhole camera after undistortion, if it has a lens
+    distortion."""
+    if not session_intrinsics:
+        return None
+    camera = Intrinsics.from_dict(session_intrinsics)
+    lens = Lens.from_wire(session_intrinsics.get("distortion"))
+    return camera if lens is None else undistorted_camera(camera, lens)
 
 
 def _decode_image(data: bytes, width: int, height: int) -> np.ndarray:

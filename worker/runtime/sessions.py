@@ -41,12 +41,11 @@ from protocol.messages import (
 from protocol.poses import similarity_scale
 from worker import events as engine_events
 from worker.data.frame import Frame
-from worker.geometry import Intrinsics
 from worker.pipeline.snapshot_chunks import ChunkWrite
 from worker.runtime.engine import SessionEngine, close_engine, create_engine, engine_intrinsics, restore_engine
 from worker.runtime.failpoints import failpoint
 from worker.runtime.finish_requests import RequestsWhileFinishing
-from worker.runtime.frames import FrameError, decode_frame
+from worker.runtime.frames import FrameError, decode_frame, session_camera
 from worker.runtime.leases import Leases
 from worker.runtime.map_exchange import MapExchange
 from worker.runtime.outage import REDIS_DOWN
@@ -267,9 +266,7 @@ class SessionRunner(threading.Thread):
                     raise SessionGone
                 self._session["settings"] = text
                 log.info("session %s: settings %s (%s)", self.session_id, choice.preset, "; ".join(choice.reasons))
-        intrinsics = self._session_intrinsics()
-        self.engine = create_engine(self.config.engine, preset,
-                                    Intrinsics.from_dict(intrinsics) if intrinsics else None,
+        self.engine = create_engine(self.config.engine, preset, session_camera(self._session_intrinsics()),
                                     pose_mode=self._session.get("pose_mode") or None,
                                     tracking_side=self._tracking_side(),
                                     depth_camera=json.loads(self._session.get("depth_camera") or "null"),
@@ -284,11 +281,12 @@ class SessionRunner(threading.Thread):
     def _decode(self, message: dict[str, Any]) -> Frame:
         """The frame at the session's working size; the session's first frame decides its settings (and the
         engine), which may name a smaller working size: that frame is then decoded again at it."""
-        frame = decode_frame(message, self._session_intrinsics(), self._max_frame_side())
+        depth_in_colour = json.loads(self._session.get("depth_camera") or "null") is None
+        frame = decode_frame(message, self._session_intrinsics(), self._max_frame_side(), depth_in_colour)
         if self.engine is None:
             self._create_engine(frame)
             if max(frame.image.shape[:2]) > self._max_frame_side():
-                frame = decode_frame(message, self._session_intrinsics(), self._max_frame_side())
+                frame = decode_frame(message, self._session_intrinsics(), self._max_frame_side(), depth_in_colour)
         return frame
 
     def _max_frame_side(self) -> int:

@@ -1,7 +1,8 @@
 """Photo captures with a `transforms.json` (instant-ngp / nerfstudio layout, poses from COLMAP).
 
 The file gives one pinhole camera (`fl_x`, `fl_y`, `cx`, `cy`, `w`, `h`, or `camera_angle_x`), optional OpenCV
-radial-tangential distortion (`k1`, `k2`, `k3`, `p1`, `p2`) and per frame a `file_path` and a camera-to-world
+radial-tangential distortion (`k1`, `k2`, `k3`, `p1`, `p2`; with `camera_model` OPENCV_FISHEYE, the fisheye's
+`k1`-`k4`) and per frame a `file_path` and a camera-to-world
 `transform_matrix` in the OpenGL convention (x right, y up, z backwards). Frames are read in file-name order (the
 capture order of a video or a photo series); their poses become ground truth in the OpenCV convention. Images are
 undistorted on load, so the pinhole camera holds exactly; that camera is zoomed in just enough that every pixel
@@ -16,21 +17,21 @@ import logging
 import math
 from pathlib import Path
 
-import cv2
 import numpy as np
 
+from protocol.lens import FISHEYE, MODEL_KEYS, RADTAN, distortion_problem
 from worker.data.frame import Frame
 from worker.geometry import Intrinsics
+from worker.geometry.lens import Lens, undistorted_camera, undistortion
 
 from .base import DatasetError, FrameRecord, RecordedSource, SourceOptions, finish_frame, natural_key, read_rgb
 
 logger = logging.getLogger(__name__)
 
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])  # flips the camera's y and z axes
-_DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")
 
 
-def _camera(data: dict, path: Path) -> tuple[Intrinsics, np.ndarray | None]:
+def _camera(data: dict, path: Path) -> tuple[Intrinsics, Lens | None]:
     try:
         width, height = int(data["w"]), int(data["h"])
         fx = float(data["fl_x"]) if "fl_x" in data else 0.5 * width / math.tan(0.5 * float(data["camera_angle_x"]))
@@ -38,9 +39,12 @@ def _camera(data: dict, path: Path) -> tuple[Intrinsics, np.ndarray | None]:
         cx, cy = float(data.get("cx", width / 2)), float(data.get("cy", height / 2))
     except (KeyError, TypeError, ValueError) as exc:
         raise DatasetError(f"{path}: needs w, h and fl_x (or camera_angle_x): {exc}") from exc
-    coefficients = np.array([float(data.get(k, 0.0)) for k in _DISTORTION_KEYS])
-    distortion = coefficients if np.any(coefficients != 0.0) else None
-    return Intrinsics(fx, fy, cx, cy, width, height), distortion
+    model = FISHEYE if data.get("camera_model") == "OPENCV_FISHEYE" else RADTAN
+    distortion = {"model": model, **{k: float(data[k]) for k in MODEL_KEYS[model] if k in data}}
+    problem = distortion_problem(distortion, fx, fy, cx, cy, width, height)
+    if problem:
+        raise DatasetError(f"{path}: {problem}")
+    return Intrinsics(fx, fy, cx, cy, width, height), Lens.from_wire(distortion)
 
 
 def _pose(frame: dict, path: Path) -> np.ndarray:
@@ -65,10 +69,12 @@ class TransformsJsonSource(RecordedSource):
             raise DatasetError(f"cannot read {path}: {exc}") from exc
         if not isinstance(data, dict) or not isinstance(data.get("frames"), list):
             raise DatasetError(f"{path}: expected an object with a 'frames' list")
-        intrinsics, self._distortion = _camera(data, path)
-        self._photo_camera = _matrix(intrinsics)
-        if self._distortion is not None:
-            intrinsics = _undistorted_camera(intrinsics, self._distortion)
+        intrinsics, lens = _camera(data, path)
+        self._undistortion = None
+        if lens is not None:
+            pinhole = undistorted_camera(intrinsics, lens)
+            self._undistortion = undistortion(intrinsics, lens, pinhole)
+            intrinsics = pinhole
         present = []
         for frame in data["frames"]:
             image_path = root / str(frame.get("file_path", ""))
@@ -88,19 +94,8 @@ class TransformsJsonSource(RecordedSource):
         if (image.shape[1], image.shape[0]) != self._native_size:
             raise DatasetError(f"{record.image_path} is {image.shape[1]}x{image.shape[0]}, the camera says "
                                f"{self._native_size[0]}x{self._native_size[1]}")
-        if self._distortion is not None:
-            image = cv2.undistort(image, self._photo_camera, self._distortion,
-                                  newCameraMatrix=_matrix(self._native_intrinsics))
+        if self._undistortion is not None:
+            image = self._undistortion.image(image)
         return finish_frame(index, record.timestamp, image, self._native_intrinsics, None, record.gt_pose,
                             self.options)
 
-
-def _matrix(intrinsics: Intrinsics) -> np.ndarray:
-    return np.array([[intrinsics.fx, 0.0, intrinsics.cx], [0.0, intrinsics.fy, intrinsics.cy], [0.0, 0.0, 1.0]])
-
-
-def _undistorted_camera(photo: Intrinsics, distortion: np.ndarray) -> Intrinsics:
-    """The pinhole camera of the undistorted photos: every one of its pixels inside the photo."""
-    size = (photo.width, photo.height)
-    K, _ = cv2.getOptimalNewCameraMatrix(_matrix(photo), distortion, size, 0.0, size)
-    return Intrinsics(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), photo.width, photo.height)
