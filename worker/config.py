@@ -18,7 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from worker.data.registration_config import DepthCameraConfig
 from worker.depth.config import MultiViewDepthConfig
 from worker.tracking.rgbd_config import RgbdOdometryConfig
-from worker.tracking.seeded_config import DevicePoseConfig, PoseChoiceConfig
+from worker.tracking.seeded_config import DeviceClockConfig, DevicePoseConfig, PoseChoiceConfig
 from worker.tracking.vo_config import VisualOdometryConfig
 
 log = logging.getLogger(__name__)
@@ -223,6 +223,9 @@ class InputConfig(_Section):
     pose_choice: PoseChoiceConfig = Field(
         default_factory=PoseChoiceConfig, description="pose_mode auto without depth: prior or seeded, chosen by how "
         "well the device poses agree with the images over the first frames (a `pose_source_chosen` event)")
+    device_clock: DeviceClockConfig = Field(
+        default_factory=DeviceClockConfig, description="frames carrying poses: the device pose clock's offset from "
+        "the camera's, estimated from the images or given (`worker.tracking.device_clock`)")
     depth_camera: DepthCameraConfig | None = Field(
         None, description="the depth camera's intrinsics and depth-to-colour extrinsic: depth is registered to the "
         "colour camera before use (worker.data.registration); without it, misregistration is detected and reported")

@@ -63,6 +63,7 @@ def run_sequence(
     scale: float = 1.0,
     finish_progress: Callable[[dict[str, Any]], None] | None = None,
     max_eval_frames: int = MAX_EVAL_FRAMES,
+    device_poses: Callable[[Frame], np.ndarray | None] | None = None,
 ) -> dict[str, Any]:
     """Run one sequence end to end and evaluate it (see the module docstring).
 
@@ -73,8 +74,10 @@ def run_sequence(
     iterations, then merge only, when mapping falls behind) and its tracking budget, to study what a live stream
     gets. `scale` multiplies every pose and depth of the source (the same scene in other length units).
     `finish_progress` is called twice a second while the run finishes, with `FinishStatus.as_dict()`. The rendering
-    scores use at most `max_eval_frames` held-out frames, evenly spread (0: every one)."""
+    scores use at most `max_eval_frames` held-out frames, evenly spread (0: every one). `device_poses` replaces each
+    frame's device pose (a benchmark's copy of the ground truth with a clock offset, bench/device_clock.py)."""
     from worker.data import open_source
+    from worker.pipeline.session_stats import device_clock
     from worker.slam import SlamSystem
 
     out = Path(out_dir)
@@ -98,6 +101,8 @@ def run_sequence(
         injector = None if drift is None else drift.injector()
         start = time.perf_counter()
         for k, frame in enumerate(src):
+            if device_poses is not None:
+                frame.pose = device_poses(frame)
             if injector is not None and frame.pose is not None:
                 frame.pose = injector.apply(frame.pose)
             if unknown_intrinsics:
@@ -139,6 +144,7 @@ def run_sequence(
             "threaded": config.threaded,
             "use_gt_depth": use_gt_depth, "use_gt_poses": use_gt_poses, "scale": scale, "tracking": system.tracking,
             "depth_source": system.depth_source, **system.pose_source_choice(),
+            "device_clock": device_clock(system),
             "intrinsics": intrinsics.to_dict() if intrinsics else None,
             "intrinsics_estimated": given_intrinsics is None,
             "drift": None if drift is None else drift.to_dict(),

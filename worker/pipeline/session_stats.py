@@ -48,3 +48,10 @@ def pose_source_choice(system: SessionParts) -> dict[str, Any]:
         return summary()
     pose_mode = system.config.input.pose_mode
     return {"pose_source": "seeded" if pose_mode == "auto" else pose_mode, "pose_agreement": None}
+
+
+def device_clock(system: SessionParts) -> dict[str, Any] | None:
+    """The device pose clock's offset applied and how it was measured (`worker.tracking.device_clock`); None when
+    the session's frames carry no device poses or the clock is off."""
+    clock = getattr(system.pose_source, "device_clock", None) if system.tracking == "device" else None
+    return None if clock is None else clock.summary()

@@ -15,7 +15,19 @@ def build_pose_source(tracking: str, config: SlamConfig, with_depth: bool, submi
     settings. Device poses follow `input.pose_mode`: "seeded" (and "auto" with depth) tracks from the device's
     motion and sends the device poses as keyframe priors through `submit_prior`; "auto" without depth judges them
     over the first frames (worker.tracking.pose_choice); else they are the poses. `model`: the learned model as a
-    pose source, for "model"."""
+    pose source, for "model". Device poses are re-timed by the device clock first (`input.device_clock`:
+    the source's `device_clock`, worker.tracking.device_clock) unless it is off with no offset given."""
+    source = _device_or_other(tracking, config, with_depth, submit_prior, model)
+    clock = config.input.device_clock
+    if tracking == "device" and (clock.mode == "estimate" or clock.offset_s != 0.0):
+        from worker.tracking.device_clock import DeviceClock
+
+        source.device_clock = DeviceClock(clock)
+    return source
+
+
+def _device_or_other(tracking: str, config: SlamConfig, with_depth: bool, submit_prior: Callable[[Any], None],
+                     model: ModelTracking | None):
     pose_mode = config.input.pose_mode
     if tracking == "device" and (pose_mode == "seeded" or (pose_mode == "auto" and with_depth)):
         from worker.tracking.seeded import seeded_tracking

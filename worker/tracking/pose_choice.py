@@ -25,6 +25,7 @@ from worker.data.frame import Frame
 from worker.events import EngineEvent, PoseSourceChosen
 from worker.geometry import Intrinsics
 from worker.tracking.base import TrackingResult
+from worker.tracking.device_clock import DeviceClock, clock_state, load_clock_state, retimed
 from worker.tracking.pose_agreement import AgreementVerdict, PoseAgreement
 from worker.tracking.seeded_config import PoseChoiceConfig
 from worker.tracking.sources import DevicePoses
@@ -48,6 +49,7 @@ class ChosenDevicePoses:
         self.choice: str | None = None if c.within_frames > 0 else "prior"  # "prior" or "seeded" once judged
         self.verdict: AgreementVerdict | None = None
         self.reason = None if self.choice is None else "pose_choice.within_frames is 0: not judged"
+        self.device_clock: DeviceClock | None = None  # re-times the device poses for both sources, when set
 
     @property
     def judging(self) -> bool:
@@ -73,6 +75,7 @@ class ChosenDevicePoses:
         return bool(getattr(self.source, "calibrating", False))
 
     def track(self, frame: Frame, intrinsics: Intrinsics | None) -> TrackingResult:
+        frame = retimed(self.device_clock, frame, intrinsics)
         if self.seeded is not None:
             return self.seeded.track(frame, intrinsics)
         result = self.device.track(frame, intrinsics)
@@ -126,7 +129,7 @@ class ChosenDevicePoses:
         return result
 
     def keyframe_added(self, frame: Frame, pose: np.ndarray) -> None:
-        self.source.keyframe_added(frame, pose)
+        self.source.keyframe_added(retimed(self.device_clock, frame, None), pose)
 
     def summary(self) -> dict[str, Any]:
         """The choice (prior while still judging) and the figures it was made by."""
@@ -148,9 +151,10 @@ class ChosenDevicePoses:
         return {"choice": self.choice, "reason": self.reason, "device": self.device.state_dict(),
                 "agreement": self.agreement.state_dict(),
                 "verdict": None if v is None else [v.given_px, v.fitted_px, v.triples, v.max_ratio],
-                "seeded": None if self.seeded is None else self.seeded.state_dict()}
+                "seeded": None if self.seeded is None else self.seeded.state_dict(), **clock_state(self.device_clock)}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        load_clock_state(self.device_clock, state)
         if "choice" not in state:  # a session snapshot by a worker without the choice: it used the device's poses
             self.device.load_state_dict(state)
             self.choice, self.reason = "prior", "resumed from a snapshot made before pose sources were judged"

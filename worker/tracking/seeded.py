@@ -60,6 +60,7 @@ from worker.tracking.device_check import (
     motion_size,
     relative,
 )
+from worker.tracking.device_clock import DeviceClock, clock_state, load_clock_state, retimed
 from worker.tracking.seeded_config import DevicePoseConfig
 
 log = logging.getLogger(__name__)
@@ -117,6 +118,7 @@ class SeededTracking:
         self.slips = 0  # disagreements the images laid on the odometry
         self.priors_sent = 0
         self.priors_dropped = 0
+        self.device_clock: DeviceClock | None = None  # re-times the device poses first, when set
 
     # -- what the engine reads from a pose source ---------------------------------------------------------------
     @property
@@ -129,6 +131,7 @@ class SeededTracking:
 
     # -- tracking ------------------------------------------------------------------------------------------------
     def track(self, frame: Frame, intrinsics: Intrinsics | None) -> TrackingResult:
+        frame = retimed(self.device_clock, frame, intrinsics)
         if frame.pose is None:
             return self._track_without_device(frame, intrinsics)
         device = checked_device_pose(frame.pose, frame.index)
@@ -373,6 +376,7 @@ class SeededTracking:
     def keyframe_added(self, frame: Frame, pose: np.ndarray) -> None:
         """The odometry may keep the keyframe as a place; the device's pose of it goes to the pose graph as a prior
         (none right after a jump)."""
+        frame = retimed(self.device_clock, frame, None)
         if self.alignment is not None:
             self.odometry.keyframe_added(frame, self.to_odometry(pose))
             if self.monocular and frame.pose is not None and not self.skip_next_prior:
@@ -450,12 +454,14 @@ class SeededTracking:
                 "counts": [self.jumps, self.priors_sent, self.priors_dropped, self.slips],
                 "scale_marks": [[d, o] for d, o in self.scale_marks], "lost_since": self.lost_since,
                 "measured_scale": self.measured_scale, "scale_settled": self.scale_settled,
-                "last_prior": None if self.last_prior is None else list(self.last_prior)}
+                "last_prior": None if self.last_prior is None else list(self.last_prior),
+                **clock_state(self.device_clock)}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         def matrix(value) -> np.ndarray | None:
             return None if value is None else np.asarray(value, np.float64)
 
+        load_clock_state(self.device_clock, state)
         self.odometry.load_state_dict(state["odometry"])
         self.alignment, self.scale = matrix(state["alignment"]), float(state["scale"])
         self.correction = matrix(state["correction"])

@@ -95,3 +95,32 @@ class PoseChoiceConfig(BaseModel):
         3, ge=1, le=100, description="with fewer triples than this by then (a slow start, sparse views), the device "
         "poses are kept (prior): one or two triples' median is no evidence against them")
     step: int = Field(2, ge=1, le=30, description="frames between the views of a triple")
+
+
+class DeviceClockConfig(BaseModel):
+    """Frames with device poses: the offset between the device's pose clock and the camera's
+    (`worker.tracking.device_clock`). A frame's device pose is taken as the camera's pose at `timestamp + offset`;
+    the device trajectory is read at `timestamp - offset` instead."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+    mode: Literal["estimate", "off"] = Field(
+        "estimate", description="estimate: measured from the images' own frame-to-frame motion over the first frames "
+        "with motion (a few ms a frame while measuring, nothing after), trusted only with a clear minimum "
+        "(`max_uncertainty_s`), else `offset_s` is kept; off: `offset_s` only")
+    offset_s: float = Field(
+        0.0, ge=-0.5, le=0.5, description="the device clock minus the camera's, seconds (a frame's device pose is "
+        "the pose at its timestamp plus this), as the client knows it: used from the first frame, and kept where "
+        "the estimate is not trusted")
+    window_frames: int = Field(
+        90, ge=10, le=1000, description="estimate: measured once this many frames with device poses came ...")
+    retry_frames: int = Field(30, ge=1, le=1000, description="... again every this many more while not trusted ...")
+    max_frames: int = Field(
+        300, ge=10, le=5000, description="... until this many frames: then not estimated (`offset_s` kept)")
+    search_s: float = Field(0.1, gt=0, le=0.5, description="the offsets searched: within +- this")
+    max_uncertainty_s: float = Field(
+        0.005, gt=0, le=0.1, description="the estimate is trusted when its bootstrap spread over the frame pairs is "
+        "at most this")
+    max_extrapolation_s: float = Field(
+        0.05, ge=0, le=0.5, description="a negative offset reads the device after its newest pose: its last motion "
+        "continues at constant velocity at most this long (a live frame cannot wait for the next pose)")

@@ -17,6 +17,7 @@ from worker.data.frame import Frame
 from worker.events import Relocalized, TrackingLost
 from worker.geometry import Intrinsics
 from worker.tracking.base import TrackingResult
+from worker.tracking.device_clock import DeviceClock, clock_state, load_clock_state, retimed
 
 log = logging.getLogger(__name__)
 
@@ -47,15 +48,18 @@ def choose_tracking(requested: str, frame: Frame, uses_pose: bool, uses_depth: b
 
 class DevicePoses:
     """The frames' own poses (validated: finite, rigid up to a uniform scale). A frame without one (the device not
-    ready, a gap in its log) holds the last pose and is reported lost until poses come again."""
+    ready, a gap in its log) holds the last pose and is reported lost until poses come again. `device_clock`, when
+    set, re-times the poses first (worker.tracking.device_clock)."""
 
     name = "device"
 
     def __init__(self) -> None:
         self.last_pose: np.ndarray | None = None
         self.lost = False
+        self.device_clock: DeviceClock | None = None
 
     def track(self, frame: Frame, intrinsics: Intrinsics | None) -> TrackingResult:
+        frame = retimed(self.device_clock, frame, intrinsics)
         if frame.pose is None:
             events = [] if self.lost else [TrackingLost(frame=frame.index, reason="the frame has no device pose")]
             self.lost = True
@@ -72,9 +76,11 @@ class DevicePoses:
         """Nothing to do: the device keeps its own map."""
 
     def state_dict(self) -> dict[str, Any]:
-        return {"last_pose": [] if self.last_pose is None else self.last_pose, "lost": self.lost}
+        return {"last_pose": [] if self.last_pose is None else self.last_pose, "lost": self.lost,
+                **clock_state(self.device_clock)}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        load_clock_state(self.device_clock, state)
         last = np.asarray(state.get("last_pose", []), np.float64)
         self.last_pose = last.reshape(4, 4) if last.size == 16 else None
         self.lost = bool(state.get("lost", False))

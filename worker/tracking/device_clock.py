@@ -1,0 +1,145 @@
+"""The device's pose clock against the camera's: each frame's device pose re-timed to the frame's true time.
+
+A phone (ARKit/ARCore) or a motion-capture system stamps its poses with a clock 20-50 ms off the camera's: the pose
+a frame carries is the camera's pose at `timestamp + offset`. `DeviceClock` keeps the device poses received with
+their timestamps, measures the offset over the first frames with motion (worker.tracking.clock_offset; TUM fr1/xyz's
+motion capture: +8 ms against its Kinect, ICL's rendered poses: 0) and gives each frame the device trajectory read
+at `timestamp - offset`: slerp and linear between the received poses.
+
+A positive offset reads between poses already received. A negative one reads after the newest pose: a live frame
+cannot wait for the next, so the newest interval's motion continues at constant velocity, at most
+`max_extrapolation_s` (50 ms: the -40 ms a phone shows is within it; beyond, a turn's guess would be worse than the
+offset it corrects). Frames before the estimate get the poses with the given offset (`offset_s`, 0 by default);
+frames seen again (the judged start replays its frames) are read with the offset known then.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+
+from worker.data.frame import Frame
+from worker.geometry import Intrinsics
+from worker.tracking.clock_offset import ClockEstimate, PairTracker, estimate_offset
+from worker.tracking.device_check import checked_device_pose
+from worker.tracking.pose_interpolation import interpolate_poses
+from worker.tracking.seeded_config import DeviceClockConfig
+
+log = logging.getLogger(__name__)
+
+KEEP_POSES = 90  # received poses kept once measured: the judged start's replay (30 frames) and the offset's reach
+
+
+class DeviceClock:
+    """Re-times frames' device poses by the device clock's offset, given or measured (module docstring)."""
+
+    def __init__(self, config: DeviceClockConfig | None = None) -> None:
+        self.config = config or DeviceClockConfig()
+        self.offset_s = float(self.config.offset_s)  # applied now
+        self.estimate: ClockEstimate | None = None
+        self.measuring = self.config.mode == "estimate"
+        self.frames = 0  # frames with a device pose received
+        self.times: list[float] = []
+        self.poses: list[np.ndarray] = []
+        self.pairs = PairTracker()
+
+    def pose_at(self, frame: Frame, intrinsics: Intrinsics | None) -> np.ndarray | None:
+        """The device's pose at the frame's true time (None when the frame carries none). A frame newer than any seen
+        is kept (and measured, with `intrinsics`, while measuring)."""
+        if frame.pose is None:
+            self.pairs.forget_previous()
+            return None
+        pose = checked_device_pose(frame.pose, frame.index)
+        t = float(frame.timestamp)
+        if not self.times or t > self.times[-1]:
+            self._receive(frame, t, pose, intrinsics)
+        if self.offset_s == 0.0:
+            return pose
+        return interpolate_poses(np.asarray(self.times), np.stack(self.poses), np.asarray(t - self.offset_s),
+                                 self.config.max_extrapolation_s)
+
+    def _receive(self, frame: Frame, t: float, pose: np.ndarray, intrinsics: Intrinsics | None) -> None:
+        self.times.append(t)
+        self.poses.append(pose)
+        self.frames += 1
+        if self.measuring and intrinsics is not None:
+            K = intrinsics.matrix().numpy().astype(np.float64)
+            self.pairs.add(t, frame.image, frame.depth, K)
+            c = self.config
+            if self.frames >= c.window_frames and (self.frames - c.window_frames) % c.retry_frames == 0:
+                self._measure(final=self.frames + c.retry_frames > c.max_frames)
+        elif self.measuring and self.frames >= self.config.max_frames:
+            self._conclude(ClockEstimate(None, None, 0, "no camera intrinsics to measure the offset with"))
+        if not self.measuring and len(self.times) > KEEP_POSES:
+            del self.times[:-KEEP_POSES], self.poses[:-KEEP_POSES]
+
+    def _measure(self, final: bool) -> None:
+        c = self.config
+        estimate = estimate_offset(self.pairs.pairs, np.asarray(self.times), np.stack(self.poses), c.search_s,
+                                   c.max_uncertainty_s)
+        if estimate.offset_s is not None or final:
+            self._conclude(estimate)
+
+    def _conclude(self, estimate: ClockEstimate) -> None:
+        """Measuring is over: the estimate's offset from now on when trusted and distinct from zero (within twice
+        its uncertainty a measured 0 is kept: exact poses stay untouched), else the given one."""
+        self.estimate, self.measuring = estimate, False
+        self.pairs = PairTracker()
+        if estimate.offset_s is not None and abs(estimate.offset_s) > 2 * (estimate.uncertainty_s or 0.0):
+            self.offset_s = estimate.offset_s
+        elif estimate.offset_s is not None:
+            self.offset_s = 0.0
+        log.info("device clock offset %.1f ms applied (%s)", self.offset_s * 1000.0, estimate.reason)
+
+    def finish_measuring(self) -> None:
+        """The stream ended while measuring: the frames so far are all there is."""
+        if self.measuring:
+            self._measure(final=True)
+
+    def summary(self) -> dict[str, Any]:
+        """What the session reports: the offset applied, how it was measured (None while measuring)."""
+        return {"mode": self.config.mode, "offset_ms": round(self.offset_s * 1000.0, 2),
+                "given_offset_ms": round(self.config.offset_s * 1000.0, 2),
+                "measuring": self.measuring, "estimate": None if self.estimate is None else self.estimate.to_dict()}
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"offset_s": self.offset_s, "measuring": self.measuring, "frames": self.frames,
+                "estimate": None if self.estimate is None else self.estimate.to_dict(),
+                "times": list(self.times), "poses": np.asarray(self.poses, np.float64).reshape(-1, 16),
+                "pairs": self.pairs.state_dict()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.offset_s, self.measuring = float(state["offset_s"]), bool(state["measuring"])
+        self.frames = int(state["frames"])
+        self.estimate = None if state["estimate"] is None else ClockEstimate.from_dict(state["estimate"])
+        self.times = [float(t) for t in state["times"]]
+        self.poses = list(np.asarray(state["poses"], np.float64).reshape(-1, 4, 4))
+        self.pairs = PairTracker()
+        self.pairs.load_state_dict(state["pairs"])
+
+
+def retimed(clock: DeviceClock | None, frame: Frame, intrinsics: Intrinsics | None) -> Frame:
+    """`frame` with the device pose at its true time by `clock` (the frame itself without a clock or a pose): what a
+    pose source reads device poses from (`device_clock` on DevicePoses, SeededTracking, ChosenDevicePoses)."""
+    if clock is None or frame.pose is None:
+        return frame
+    pose = clock.pose_at(frame, intrinsics)
+    return frame if pose is frame.pose else replace(frame, pose=pose)
+
+
+def clock_state(clock: DeviceClock | None) -> dict[str, Any]:
+    """The clock's part of its pose source's snapshot (nothing without a clock)."""
+    return {} if clock is None else {"device_clock": clock.state_dict()}
+
+
+def load_clock_state(clock: DeviceClock | None, state: dict[str, Any]) -> None:
+    """The clock from its pose source's snapshot; one made before the clock keeps the given offset, unmeasured."""
+    if clock is None:
+        return
+    if "device_clock" in state:
+        clock.load_state_dict(state["device_clock"])
+    else:
+        clock.measuring = False
