@@ -57,8 +57,9 @@ def _drop_none(values: dict[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in values.items() if v is not None}
 
 
-def intrinsics_payload(intrinsics: Any) -> dict[str, float] | None:
-    """{fx, fy, cx, cy, width?, height?} from a dict, a worker.geometry.Intrinsics or a 4-sequence."""
+def intrinsics_payload(intrinsics: Any) -> dict[str, Any] | None:
+    """{fx, fy, cx, cy, width?, height?, distortion?} from a dict, a worker.geometry.Intrinsics or a 4-sequence;
+    `distortion` ({model, k1, k2, ...}: the lens, see openapi.yaml's DistortionIn) is passed on as given."""
     if intrinsics is None:
         return None
     if isinstance(intrinsics, dict):
@@ -73,12 +74,14 @@ def intrinsics_payload(intrinsics: Any) -> dict[str, float] | None:
     missing = {"fx", "fy", "cx", "cy"} - values.keys()
     if missing:
         raise ValueError(f"intrinsics lack {sorted(missing)}")
-    out: dict[str, float] = {}
+    out: dict[str, Any] = {}
     for key, value in values.items():
         if key in ("width", "height"):
             out[key] = int(value)
         elif key in ("fx", "fy", "cx", "cy"):
             out[key] = float(value)
+        elif key == "distortion" and value is not None:
+            out[key] = dict(value)
     if out["fx"] <= 0 or out["fy"] <= 0:
         raise ValueError("focal lengths must be positive")
     return out

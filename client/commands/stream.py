@@ -36,6 +36,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--stride", type=int, default=1, help="use every STRIDE-th frame")
     parser.add_argument("--max-frames", type=int, help="stop after this many frames")
     parser.add_argument("--resize", type=parse_size, metavar="WxH", help="resize frames (intrinsics follow)")
+    parser.add_argument("--camera", metavar="JSON", help="the camera's calibration, a JSON file {fx, fy, cx, cy, "
+                                                         "width, height, distortion?} (distortion as openapi.yaml's "
+                                                         "DistortionIn, e.g. {\"model\": \"radtan\", \"k1\": "
+                                                         "0.1, ...}): the new session's intrinsics, the frames sent "
+                                                         "as the camera took them (a webcam's raw images)")
     parser.add_argument("--send-depth", action="store_true", help="send the source's depth maps (RGB-D mode)")
     parser.add_argument("--send-pose", action="store_true", help="send the source's poses (posed mode)")
     parser.add_argument("--jpeg-quality", type=int, default=90, help="JPEG quality 1..100 (default %(default)s)")
@@ -60,10 +65,12 @@ def run(args: argparse.Namespace) -> int:
     frames = open_frames(args.source, stride=args.stride, max_frames=args.max_frames, resize=args.resize,
                          **source_options)
     total = _length(frames)
+    camera = _camera(args.camera) if args.camera else None
     with make_client(args) as client:
         session_id = args.session
         if session_id is None:
-            session = client.create_session(intrinsics=getattr(frames, "intrinsics", None), preset=args.preset,
+            session = client.create_session(intrinsics=camera or getattr(frames, "intrinsics", None),
+                                            preset=args.preset,
                                             name=args.name, device_id=args.device_id,
                                             skip_frames=_skips_frames(args), frame_rate=args.fps)
             session_id = session.id
@@ -81,7 +88,8 @@ def run(args: argparse.Namespace) -> int:
             else:
                 bar.update(1)
 
-        wire = WireOptions(jpeg_quality=args.jpeg_quality, send_depth=args.send_depth, send_pose=args.send_pose)
+        wire = WireOptions(jpeg_quality=args.jpeg_quality, send_depth=args.send_depth, send_pose=args.send_pose,
+                           send_intrinsics=camera is None)
         try:
             summary = client.stream(session_id, frames, on_event=on_event, fps=args.fps, window=args.window,
                                     max_pending=args.max_pending, wire=wire)
@@ -99,6 +107,19 @@ def run(args: argparse.Namespace) -> int:
             print(f"trajectory written to {args.tum_out}")
         print(session_id)
     return 0
+
+
+def _camera(path: str) -> dict:
+    """The calibration file's intrinsics (checked by the server when the session is created)."""
+    import json
+
+    try:
+        camera = json.loads(open(path).read())
+    except (OSError, json.JSONDecodeError) as err:
+        raise ValueError(f"--camera {path}: {err}") from err
+    if not isinstance(camera, dict):
+        raise ValueError(f"--camera {path}: expected an object {{fx, fy, cx, cy, width, height, distortion?}}")
+    return camera
 
 
 def _length(frames: object) -> int | None:

@@ -110,3 +110,29 @@ def test_a_frame_with_a_bad_lens_gets_an_error_and_the_session_goes_on(stack, ap
     assert [(m["code"], m.get("seq")) for m in errors] == [("bad_intrinsics", 3)]
     assert "folds" in errors[0]["message"]
     assert sorted(m["seq"] for m in received if m["type"] == "pose") == [0, 1, 2, 4, 5, 6, 7]
+
+
+def test_the_cli_streams_a_raw_camera_with_its_calibration_file(stack, api, tmp_path, capsys) -> None:
+    """`flashmono stream FOLDER --camera calibration.json`: the SDK creates the session with the lens, sends the
+    images as taken (no per-frame intrinsics), and the worker undistorts them."""
+    from client.cli import main
+
+    calibration = tmp_path / "camera.json"
+    calibration.write_text(json.dumps({**CAMERA, "distortion": LENS}))
+    status = main(["stream", str(RAW / "rgb"), "--server", stack.base_url, "--camera", str(calibration),
+                   "--max-frames", "12", "--quiet"])
+    assert status == 0
+    sid = capsys.readouterr().out.strip().splitlines()[-1]
+    session = api.get(f"/v1/sessions/{sid}").json()
+    assert session["intrinsics"]["distortion"] == LENS and session["frames_processed"] == 12
+    pinhole = session_camera({**CAMERA, "distortion": LENS}).scaled(320, 240)
+    assert abs(session["estimated_intrinsics"]["fx"] - pinhole.fx) < 1e-6
+
+
+def test_the_cli_refuses_a_calibration_file_that_is_not_one(stack, tmp_path, capsys) -> None:
+    from client.cli import main
+
+    calibration = tmp_path / "camera.json"
+    calibration.write_text("[1, 2, 3]")
+    assert main(["stream", str(RAW / "rgb"), "--server", stack.base_url, "--camera", str(calibration)]) != 0
+    assert "expected an object" in capsys.readouterr().err
