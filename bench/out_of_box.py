@@ -125,14 +125,21 @@ def case_args(mode: str, size: str, frames: int | None) -> argparse.Namespace:
 
 
 def run_case(stack: ServeProcess, source: Path, mode: str, size: str, frames_cap: int | None) -> dict[str, Any]:
-    import httpx
-
     args = case_args(mode, size, frames_cap)
     width, height = (int(v) for v in size.split("x"))
     with_depth, with_pose = mode_inputs(mode)
     frames, intrinsics = load_frames(str(source), (width, height), frames_cap, with_depth=with_depth,
                                      with_pose=with_pose)
     messages = encode(frames, with_depth=with_depth, with_pose=with_pose)
+    return live_figures(stack, frames, intrinsics, messages, args)
+
+
+def live_figures(stack: ServeProcess, frames, intrinsics, messages: list[bytes], args: argparse.Namespace
+                 ) -> dict[str, Any]:
+    """One live case's figures: `messages` streamed by bench.live's paced client (`frames` hold the ground truth
+    and the images PSNR is scored against, rendered with `intrinsics`)."""
+    import httpx
+
     load_before = os.getloadavg()[0]
     result = asyncio.run(stream_case(stack, frames, intrinsics, messages, args))
     summary = result["summary"]
