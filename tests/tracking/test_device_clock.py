@@ -152,3 +152,28 @@ def test_the_factory_clocks_device_sources_only_when_asked():
     off = config.model_copy(update={"input": config.input.model_copy(
         update={"device_clock": DeviceClockConfig(mode="off")})})
     assert build_pose_source("device", off, False, lambda prior: None).device_clock is None
+
+
+def test_a_session_snapshot_keeps_the_clock_measuring(tum):
+    """Snapshot (msgpack) mid-measurement, restored as on another worker: both sessions measure the same offset."""
+    from worker.slam import SlamSystem
+
+    frames, intrinsics = tum
+    config = SlamConfig.preset("test")
+    clock = config.input.device_clock.model_copy(update={"window_frames": 40})
+    config = config.model_copy(update={"threaded": False, "input": config.input.model_copy(
+        update={"device_clock": clock})})
+    system = SlamSystem(config, intrinsics=intrinsics)
+    for frame in frames[:25]:
+        system.push(frame)
+    restored = SlamSystem.restore(system.snapshot())
+    try:
+        assert restored.stats()["device_clock"] == system.stats()["device_clock"]
+        for frame in frames[25:]:
+            system.push(frame)
+            restored.push(frame)
+        measured = system.stats()["device_clock"]
+        assert measured["estimate"]["estimated"] and restored.stats()["device_clock"] == measured
+    finally:
+        system.close()
+        restored.close()

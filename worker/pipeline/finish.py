@@ -22,6 +22,9 @@ def finish_session(system: SessionParts) -> None:
     started = time.perf_counter()
     stage, mapping, status = system.tracking_stage, system.mapping_stage, system.finish_status
     system.finish_events += system.judged_start.conclude()  # the stream ended while the device poses were judged
+    clock = getattr(stage.pose_source, "device_clock", None)
+    if clock is not None:  # a stream shorter than the clock's window: measured on what came, for the report
+        clock.finish_measuring()
     if mapping is not None:
         stage.map_last_frame()
         stage.hand_to_mapping(force=True)

@@ -25,7 +25,7 @@ def session_stats(system: SessionParts) -> dict[str, Any]:
             "keyframes_mapped": 0 if mapping is None else mapping.keyframes_mapped,
             "mapping_process_restarts": 0 if mapping is None else mapping.restarts,
             **live_stats(system), "pose_source": pose_source_choice(system)["pose_source"],
-            "runtime_breakdown": system.timings.breakdown(int(frames))}
+            "device_clock": device_clock(system), "runtime_breakdown": system.timings.breakdown(int(frames))}
 
 
 def live_stats(system: SessionParts) -> dict[str, Any]:
