@@ -36,11 +36,29 @@ def test_a_cpu_gets_the_cpu_mapping_settings_for_every_input(mode, live):
     assert "device" not in choice.overrides and choice.tracking_side is None  # 320 px: tracked as it comes
     assert any("no CUDA GPU" in reason for reason in choice.reasons)
     assert choice.reasons[-1].startswith(f"input: {mode};")
+    mapping = {"final_refine_budget_s": 0.0} if not live else {}  # a recording: every pass, as flashmono run
     if mode == "rgb":  # visual odometry on 2 cores: mapping beside tracking, not under it
-        assert choice.overrides == {"mapping": {"process": True}}
+        assert choice.overrides == {"mapping": {"process": True, **mapping}}
         assert any("process of its own" in reason for reason in choice.reasons)
     else:
-        assert choice.overrides == {}
+        assert choice.overrides == ({"mapping": mapping} if mapping else {})
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_a_recording_gets_every_pass_of_the_final_refinement_and_a_live_stream_a_bounded_finish(mode):
+    """A live stream's finish is bounded so the phone gets its map in time; a recording (every frame tracked) is
+    refined as `flashmono run` refines it."""
+    from worker.config import SlamConfig, deep_merge
+
+    depth, poses = MODES[mode]
+    budgets = {}
+    for live in (True, False):
+        choice = choose_settings(SessionInput(depth=depth, device_poses=poses, width=320, height=240, live=live), CPU)
+        config = SlamConfig.preset(choice.preset, **deep_merge(choice.engine_overrides(), {}))
+        budgets[live] = config.mapping.final_refine_budget_s
+        assert config.mapping.final_refine_passes > 0
+        assert any("every pass" in reason for reason in choice.reasons) == (not live)
+    assert budgets == {True: SlamConfig().mapping.final_refine_budget_s, False: 0.0} and budgets[True] > 0
 
 
 def test_one_core_maps_in_a_thread():
@@ -53,11 +71,11 @@ def test_the_paper_settings_need_a_gpu_and_trained_weights():
     received = SessionInput(depth=False, device_poses=False, width=640, height=480)
     assert choose_settings(received, CPU).preset == "rgbd"
     gpu_only = choose_settings(received, GPU_ONLY)
-    assert gpu_only.preset == "rgbd" and gpu_only.overrides == {"device": "cuda"}
+    assert gpu_only.preset == "rgbd" and gpu_only.overrides["device"] == "cuda"
     assert any("no trained weights" in reason for reason in gpu_only.reasons)
     paper = choose_settings(received, GPU_WEIGHTS)
     assert paper.preset == "paper"
-    assert paper.engine_overrides() == {"frontend": {"checkpoint": "/weights/cut3r_512.safetensors"}}
+    assert paper.engine_overrides()["frontend"] == {"checkpoint": "/weights/cut3r_512.safetensors"}
     # weights without a GPU are not enough
     assert choose_settings(received, Machine(cpu_cores=2, checkpoint="/w.safetensors")).preset == "rgbd"
 
