@@ -90,6 +90,49 @@ def tum_case(stack: ServeProcess, case: str, raw_dir: Path, frames_cap: int | No
     return live_figures(stack, frames, undistorted, messages, args)
 
 
+def decoded_folder(raw_dir: Path, out: Path, variant: str, count: int | None) -> Path:
+    """The raw frames as the worker decodes them (`decode_frame`: with the lens, undistorted; without, as sent),
+    written losslessly as a folder `flashmono run` reads (PNG, millimetre depth, the camera the worker used, the
+    motion capture): the offline run of exactly what a live session's engine receives."""
+    import shutil
+
+    from worker.runtime.frames import decode_frame
+
+    camera, lens, _ = tum_calibration()
+    declared = {**camera, "distortion": lens} if variant == "lens" else camera
+    messages = raw_tum_messages(raw_dir, count or 10**6, with_depth=True)
+    (out / "rgb").mkdir(parents=True, exist_ok=True)
+    (out / "depth").mkdir(exist_ok=True)
+    for message in messages:
+        frame = decode_frame(msgpack.unpackb(message, raw=False), declared)
+        name = f"{frame.index:06d}.png"
+        cv2.imwrite(str(out / "rgb" / name), cv2.cvtColor(frame.image, cv2.COLOR_RGB2BGR))
+        cv2.imwrite(str(out / "depth" / name), np.round(frame.depth * 1000).astype(np.uint16))
+    k = frame.intrinsics
+    (out / "intrinsics.json").write_text(json.dumps({"fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy,
+                                                    "width": k.width, "height": k.height, "depth_scale": 1000.0,
+                                                    "fps": 30}))
+    lines = (TUM / "groundtruth.txt").read_text().splitlines(keepends=True)
+    (out / "groundtruth.txt").write_text("".join(lines[:len(messages) + sum(line.startswith("#") for line in lines)]))
+    shutil.copy(TUM / "README.md", out / "SOURCE_README.md")
+    return out
+
+
+def offline_case(case: str, raw_dir: Path, frames_cap: int | None) -> dict[str, Any]:
+    """`flashmono run` (its defaults) of the frames a live session's engine receives: the raw frames decoded with
+    their lens or without, or the frames undistorted offline at 640x480."""
+    import tempfile
+
+    from bench.live import run_offline
+
+    mode, variant = case.split("-", 1)
+    args = case_args(mode, "320x240", frames_cap)
+    with tempfile.TemporaryDirectory(prefix="bench-lens-") as tmp:
+        source = TUM if variant == "undistorted" else decoded_folder(raw_dir, Path(tmp) / "frames", variant,
+                                                                      frames_cap)
+        return run_offline(str(source), (320, 240), frames_cap, args, Path(tmp) / "run")
+
+
 # ------------------------------------------------------------------------------------------------------ photos
 def fox_photos(folder: Path) -> tuple[dict[str, Any], dict[str, Any], list[tuple[Path, np.ndarray]]]:
     """(camera, lens, [(photo, camera-to-world pose in OpenCV axes)] in file order) of a transforms.json folder
@@ -156,11 +199,23 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--fox", type=Path, help="instant-ngp's fox folder (transforms.json + images/)")
     parser.add_argument("--cases", nargs="+", choices=TUM_CASES + FOX_CASES, default=list(TUM_CASES + FOX_CASES))
     parser.add_argument("--frames", type=int, default=None, help="at most this many TUM frames a case")
+    parser.add_argument("--offline", action="store_true", help="the TUM cases through `flashmono run` instead (the "
+                        "frames the worker decodes, written losslessly: the lens handling without live load)")
     args = parser.parse_args(argv)
     recorder = Recorder("lens", argv)
     todo = [c for c in args.cases if (c in FOX_CASES and args.fox) or (c in TUM_CASES and args.tum_raw)]
     if not todo:
         raise SystemExit("give --tum-raw and/or --fox (the data is fetched, not shipped)")
+    if args.offline:
+        for case in [c for c in todo if c in TUM_CASES]:
+            load_start = loadavg()
+            values = offline_case(case, args.tum_raw, args.frames)
+            print(f"{case} offline: ATE {100 * (values['ate_m'] or float('nan')):.2f} cm, PSNR "
+                  f"{values['psnr'] or float('nan'):.2f} dB, {values['wall_s']:.0f} s", flush=True)
+            mode, variant = case.split("-", 1)
+            recorder.write({"area": "lens", "sequence": "tum_fr1_xyz_raw", "mode": mode,
+                            "variant": f"{variant}-offline"}, values, load_at_case_start=load_start)
+        return 0
     with ServeProcess() as stack:
         for case in todo:
             load_start = loadavg()

@@ -14,7 +14,10 @@ its own. Also the map's size and, offline, its load time and memory. One JSON fi
 `bench/results/map_reuse/` per session in the map (`run`: second_half, again), the whole case beside (`detail`);
 a case already written is skipped, `--force` runs it again.
 
-`python -m bench map_reuse [--sequences icl tum] [--modes rgbd posed-rgb rgb] [--force]`
+With `--together`, two devices map one room at once (issue 44 point 3): a session over the first third builds the
+map, then two `extend` sessions stream the second and the last third concurrently (`together_case`).
+
+`python -m bench map_reuse [--sequences icl tum] [--modes rgbd posed-rgb rgb] [--force] [--together]`
 """
 
 from __future__ import annotations
@@ -157,6 +160,68 @@ def run_case(stack: ServeProcess, name: str, source: Path, other: Path | None, m
     return out
 
 
+async def _concurrent(stack: ServeProcess, runs: list[tuple[list, Any, dict[str, Any]]], mode: str) -> list[dict]:
+    """Several live sessions streaming at once (two devices), each as `_session` streams one."""
+    import httpx
+
+    with_depth, with_pose = mode_inputs(mode)
+    jobs = []
+    for frames, intrinsics, fields in runs:
+        args = case_args(mode, SIZE, None)
+        args.psnr_every, args.session_fields = 0, fields
+        jobs.append(stream_case(stack, frames, intrinsics, encode(frames, with_depth, with_pose), args))
+    results = await asyncio.gather(*jobs)
+    async with httpx.AsyncClient(base_url=stack.base_url, timeout=60) as http:
+        for result in results:
+            sid = result["summary"]["session"]
+            poses = (await http.get(f"/v1/sessions/{sid}/trajectory")).json()["poses"]
+            result["poses"] = {int(p["seq"]): np.asarray(p["pose"], np.float64).reshape(4, 4) for p in poses}
+    return results
+
+
+def together_case(stack: ServeProcess, name: str, source: Path, mode: str) -> dict[str, Any]:
+    """Two devices mapping one room together (issue 44 point 3): a session over the first third builds the map;
+    two `extend` sessions then stream the second and the last third at the same time, each at 30 frames/s. Each
+    device's ATE in the map's world (the build's alignment, none of their own), both together, the peer (one
+    session over the last two thirds, no map), and the map's versions and sessions afterwards."""
+    import httpx
+
+    width, height = (int(v) for v in SIZE.split("x"))
+    with_depth, with_pose = mode_inputs(mode)
+    frames, intrinsics = load_frames(str(source), (width, height), None, with_depth, with_pose)
+    third = len(frames) // 3
+    rgb_only = mode == "rgb"
+    build = _session(stack, frames[:third], intrinsics, mode)
+    world_to_gt = _alignment(build["poses"], frames, rgb_only)
+    saved = httpx.post(f"{stack.base_url}/v1/maps", json={"session_id": build["summary"]["session"],
+                                                           "name": f"{name} {mode} together"}, timeout=300)
+    saved.raise_for_status()
+    map_id = saved.json()["id"]
+    parts = {"device_a": frames[third:2 * third], "device_b": frames[2 * third:]}
+    extend = {"map_id": map_id, "map_mode": "extend"}
+    results = asyncio.run(_concurrent(stack, [(part, intrinsics, extend) for part in parts.values()], mode))
+    out: dict[str, Any] = {"map_id": map_id, "build": {"frames": third, "ate_m": build["summary"]["ate_m"]}}
+    joint_est, joint_ref = [], []
+    for (device, part), result in zip(parts.items(), results):
+        out[device] = _in_map_figures(result, map_id, world_to_gt, part)
+        out[device]["session"] = result["summary"]["session"]
+        for seq, pose in result["poses"].items():
+            if part[seq].gt_pose is not None:
+                joint_est.append(world_to_gt[:3, :3] @ pose[:3, 3] + world_to_gt[:3, 3])
+                joint_ref.append(np.asarray(part[seq].gt_pose)[:3, 3])
+    out["together_ate_in_map_m"] = float(np.sqrt(np.mean(np.sum((np.stack(joint_est) - np.stack(joint_ref)) ** 2,
+                                                                  axis=1))))
+    peer = _session(stack, frames[third:], intrinsics, mode)
+    out["peer_ate_m"] = peer["summary"]["ate_m"]
+    stored = httpx.get(f"{stack.base_url}/v1/maps/{map_id}", timeout=60).json()
+    members = httpx.get(f"{stack.base_url}/v1/maps/{map_id}/sessions", timeout=60).json()
+    out["map_after"] = {"versions": [{"version": v["version"], "session_id": v["session_id"],
+                                      "keyframes": v["meta"].get("keyframes"), "surfels": v["meta"].get("surfels")}
+                                     for v in stored.get("versions", [])],
+                        "sessions": members}
+    return out
+
+
 def _source(name: str) -> Path | None:
     return next((p for p in SEQUENCES[name] if p.is_dir()), None)
 
@@ -167,8 +232,11 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--modes", nargs="+", choices=["rgbd", "posed-rgbd", "posed-rgb", "rgb"],
                         default=["rgbd", "posed-rgb", "rgb"])
     parser.add_argument("--force", action="store_true", help="run cases whose results exist again")
+    parser.add_argument("--together", action="store_true", help="two devices extending one map at once instead")
     args = parser.parse_args(argv)
     recorder = Recorder("map_reuse", argv)
+    if args.together:
+        return _together(args, recorder)
     cases = [(n, _source(n), m) for n in args.sequences for m in args.modes if _source(n) is not None]
     todo = [c for c in cases if args.force or not (recorder.folder / f"{case_slug(_case(c, 'again'))}.json").exists()]
     print(f"{len(cases)} cases, {len(todo)} to run", flush=True)
@@ -187,6 +255,35 @@ def main(argv: list[str]) -> int:
                   f"{second['live_in_map_share']:.1%}, p95 {second['latency_p95_ms']:.0f} ms | again ATE "
                   f"{_cm(again['ate_in_map_m'])}, {_s(again)}, {again['live_in_map_share']:.1%} | unrelated "
                   f"{figures.get('unrelated', {}).get('relocalizations')} relocalized", flush=True)
+    return 0
+
+
+def _together(args: argparse.Namespace, recorder: Recorder) -> int:
+    with ServeProcess() as stack:
+        for name in args.sequences:
+            source = _source(name)
+            if source is None:
+                continue
+            for mode in args.modes:
+                started = time.monotonic()
+                figures = together_case(stack, name, source, mode)
+                figures["wall_s"] = round(time.monotonic() - started, 1)
+                a, b = figures["device_a"], figures["device_b"]
+                recorder.write({**_case((name, source, mode), "together")},
+                               {"together_ate_in_map_m": figures["together_ate_in_map_m"],
+                                "peer_ate_m": figures["peer_ate_m"],
+                                "device_a_ate_in_map_m": a["ate_in_map_m"], "device_b_ate_in_map_m": b["ate_in_map_m"],
+                                "device_a_first_pose_in_map_s": a["first_pose_in_map_s"],
+                                "device_b_first_pose_in_map_s": b["first_pose_in_map_s"],
+                                "device_a_posed_share": a["posed_share"], "device_b_posed_share": b["posed_share"],
+                                "device_a_latency_p95_ms": a["latency_p95_ms"],
+                                "device_b_latency_p95_ms": b["latency_p95_ms"]}, detail=figures)
+                print(f"{name} {mode} together: ATE in the map's world {_cm(a['ate_in_map_m'])} / "
+                      f"{_cm(b['ate_in_map_m'])}, both {_cm(figures['together_ate_in_map_m'])} (peer "
+                      f"{_cm(figures['peer_ate_m'])}); first pose in map {_s(a)} / {_s(b)}; posed "
+                      f"{a['posed_share']:.1%} / {b['posed_share']:.1%}; p95 {a['latency_p95_ms']:.0f} / "
+                      f"{b['latency_p95_ms']:.0f} ms; map versions {len(figures['map_after']['versions'])}",
+                      flush=True)
     return 0
 
 
