@@ -9,9 +9,9 @@ ICL's poses are exact (rendered), so there it should find the injected one alone
 
 - `estimate` cases: `worker.tracking.device_clock.DeviceClock` with the session's defaults over the frames, with and
   without depth: the offset it measured, its uncertainty, and after how many frames.
-- `slam` cases (TUM fr1/xyz): `flashmono run`'s engine (worker.offline.run_sequence) in posed RGB-D (`pose_mode`
-  auto = seeded) and posed RGB (auto: judged, prior or seeded), with `input.device_clock.mode` estimate and off;
-  ATE against the unshifted ground truth and held-out PSNR. Records under bench/results/device_clock/.
+- `slam` cases (TUM fr1/xyz, or `--slam-sequence`): `flashmono run`'s engine (worker.offline.run_sequence) in posed
+  RGB-D (`pose_mode` auto = seeded) and posed RGB (auto: judged, prior or seeded), with `input.device_clock.mode`
+  estimate and off; ATE against the unshifted ground truth and held-out PSNR. Records under bench/results/device_clock/.
 """
 
 from __future__ import annotations
@@ -57,39 +57,55 @@ def estimate_case(path: Path, frames: int | None, offset_s: float, with_depth: b
                   truth: tuple[np.ndarray, np.ndarray]) -> dict[str, Any]:
     """The DeviceClock's estimate over the sequence with device poses `offset_s` ahead of the camera."""
     from worker.data import open_source
+    from worker.eval import absolute_trajectory_error
     from worker.tracking.device_clock import DeviceClock
 
     shifted = ShiftedPoses(*truth, offset_s)
-    clock = DeviceClock()
+    clock = DeviceClock(use_depth=with_depth)
     src = open_source(str(path), use_gt_poses=True, max_frames=frames, resize=SIZE)
     spent, n = 0.0, 0
+    given, retimed, reference = [], [], []
     for frame in src:
         frame.pose = shifted(frame)
-        if not with_depth:
-            frame.depth = None
         start = time.perf_counter()
-        clock.pose_at(frame, src.intrinsics)
-        spent += time.perf_counter() - start
-        n += 1
-        if not clock.measuring:
-            break
+        pose = clock.pose_at(frame, src.intrinsics)
+        if clock.measuring:
+            spent += time.perf_counter() - start
+            n += 1
+        given.append(frame.pose)
+        retimed.append(pose)
+        reference.append(frame.gt_pose)
     clock.finish_measuring()
     estimate = clock.estimate.to_dict() if clock.estimate else {}
+
+    def ate_cm(poses: list[np.ndarray], start: int = 0) -> float:
+        return round(absolute_trajectory_error(np.stack(poses[start:]), np.stack(reference[start:]), "se3").rmse
+                     * 100, 3)
+
+    after = n + 1  # the frames after the estimate: what the session gets once it is measured
     return {"injected_ms": round(offset_s * 1000, 1), "estimated": estimate.get("estimated"),
             "estimated_ms": estimate.get("offset_ms"), "uncertainty_ms": estimate.get("uncertainty_ms"),
             "applied_ms": round(clock.offset_s * 1000, 2), "pairs": estimate.get("pairs"), "frames_to_estimate": n,
-            "mean_ms_per_frame": round(spent / max(n, 1) * 1000, 2), "reason": estimate.get("reason")}
+            "mean_ms_per_frame": round(spent / max(n, 1) * 1000, 2), "reason": estimate.get("reason"),
+            "device_ate_cm_given": ate_cm(given), "device_ate_cm_retimed": ate_cm(retimed),
+            "device_ate_cm_given_after_estimate": ate_cm(given, after),
+            "device_ate_cm_retimed_after_estimate": ate_cm(retimed, after)}
 
 
-def slam_case(path: Path, frames: int | None, offset_s: float, with_depth: bool, mode: str,
+def slam_case(path: Path, frames: int | None, offset_s: float, input_mode: str, mode: str,
               truth: tuple[np.ndarray, np.ndarray]) -> dict[str, Any]:
-    """A posed run with device poses `offset_s` ahead and the device clock `mode` (estimate / off)."""
+    """A posed run (`input_mode` posed-rgbd, posed-rgb, or posed-rgb-prior: pose_mode prior, the device poses are
+    the odometry) with device poses `offset_s` ahead and the device clock `mode` (estimate / off)."""
     from worker.config import SlamConfig
     from worker.offline import run_sequence
 
     config = SlamConfig.preset("rgbd")
     clock = config.input.device_clock.model_copy(update={"mode": mode})
-    config = config.model_copy(update={"input": config.input.model_copy(update={"device_clock": clock})})
+    update: dict[str, Any] = {"device_clock": clock}
+    if input_mode == "posed-rgb-prior":
+        update["pose_mode"] = "prior"
+    config = config.model_copy(update={"input": config.input.model_copy(update=update)})
+    with_depth = input_mode == "posed-rgbd"
     load = loadavg()
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="bench-device-clock-") as out:
@@ -113,7 +129,9 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--frames", type=int, default=None, help="frames per sequence (default: all)")
     parser.add_argument("--offsets-ms", default="0,20,40,-40", help="injected offsets of the estimate cases")
     parser.add_argument("--slam-offsets-ms", default="0,40,-40", help="injected offsets of the SLAM runs")
-    parser.add_argument("--slam-modes", default="posed-rgbd,posed-rgb", help="SLAM inputs (posed-rgbd, posed-rgb)")
+    parser.add_argument("--slam-modes", default="posed-rgbd,posed-rgb,posed-rgb-prior",
+                        help="SLAM inputs (posed-rgbd, posed-rgb, posed-rgb-prior)")
+    parser.add_argument("--slam-sequence", default="tum_fr1_xyz", choices=sorted(SEQUENCES), help="SLAM runs on")
     parser.add_argument("--no-slam", action="store_true", help="estimates only")
     parser.add_argument("--no-estimates", action="store_true", help="SLAM runs only")
     args = parser.parse_args(argv)
@@ -131,17 +149,19 @@ def main(argv: list[str]) -> int:
                 recorder.write(case, values)
                 print(f"estimate {name} {case['mode']} injected {values['injected_ms']:+.0f} ms: "
                       f"{values['estimated_ms']} +- {values['uncertainty_ms']} ms after {values['frames_to_estimate']} "
-                      f"frames ({values['mean_ms_per_frame']} ms/frame)", flush=True)
+                      f"frames ({values['mean_ms_per_frame']} ms/frame); device ATE after it "
+                      f"{values['device_ate_cm_given_after_estimate']} -> "
+                      f"{values['device_ate_cm_retimed_after_estimate']} cm", flush=True)
     if args.no_slam:
         return 0
-    path = SEQUENCES["tum_fr1_xyz"]
+    path = SEQUENCES[args.slam_sequence]
     truth = ground_truth(path, args.frames)
     frames_label = "all" if args.frames is None else str(args.frames)
     for input_mode in [m for m in args.slam_modes.split(",") if m]:
         for offset in _offsets(args.slam_offsets_ms):
             for mode in ("estimate", "off"):
-                values = slam_case(path, args.frames, offset, input_mode == "posed-rgbd", mode, truth)
-                case = {"area": "slam", "sequence": "tum_fr1_xyz", "mode": input_mode, "size": size,
+                values = slam_case(path, args.frames, offset, input_mode, mode, truth)
+                case = {"area": "slam", "sequence": args.slam_sequence, "mode": input_mode, "size": size,
                         "variant": f"{values['injected_ms']:+.0f}ms_clock-{mode}_frames-{frames_label}"}
                 recorder.write(case, values)
                 print(f"slam {input_mode} injected {values['injected_ms']:+.0f} ms clock {mode}: ATE "

@@ -36,8 +36,9 @@ KEEP_POSES = 90  # received poses kept once measured: the judged start's replay 
 class DeviceClock:
     """Re-times frames' device poses by the device clock's offset, given or measured (module docstring)."""
 
-    def __init__(self, config: DeviceClockConfig | None = None) -> None:
+    def __init__(self, config: DeviceClockConfig | None = None, use_depth: bool = True) -> None:
         self.config = config or DeviceClockConfig()
+        self.use_depth = use_depth  # the frames' depth measures the offset (metric reprojection), else epipolar
         self.offset_s = float(self.config.offset_s)  # applied now
         self.estimate: ClockEstimate | None = None
         self.measuring = self.config.mode == "estimate"
@@ -67,7 +68,7 @@ class DeviceClock:
         self.frames += 1
         if self.measuring and intrinsics is not None:
             K = intrinsics.matrix().numpy().astype(np.float64)
-            self.pairs.add(t, frame.image, frame.depth, K)
+            self.pairs.add(t, frame.image, frame.depth if self.use_depth else None, K)
             c = self.config
             if self.frames >= c.window_frames and (self.frames - c.window_frames) % c.retry_frames == 0:
                 self._measure(final=self.frames + c.retry_frames > c.max_frames)
