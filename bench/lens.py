@@ -53,26 +53,28 @@ def tum_calibration() -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
     return camera, lens, pinhole
 
 
-def raw_tum_messages(raw_dir: Path, count: int, with_depth: bool) -> list[bytes]:
-    """The first `count` frames of the shared sequence as the Kinect recorded them: the raw colour frame
-    area-downscaled to 320x240 (JPEG q95), its raw depth (TUM's 5000 units/m as millimetres, nearest), no
-    per-frame intrinsics (the session's carry the lens)."""
+def raw_tum_messages(raw_dir: Path, count: int, with_depth: bool, size: tuple[int, int] = (640, 480)
+                     ) -> list[bytes]:
+    """The first `count` frames of the shared sequence as the Kinect recorded them: the raw colour frame at `size`
+    (640x480 as recorded, or area-downscaled; JPEG q95), its raw depth (TUM's 5000 units/m as millimetres,
+    nearest), no per-frame intrinsics (the session's carry the lens)."""
     rows = [line.split() for line in (TUM / "source_frames.txt").read_text().splitlines()
             if not line.startswith("#")][:count]
     messages = []
     for seq, (_, _, rgb_file, _, depth_file, _) in enumerate(rows):
-        colour = cv2.resize(cv2.imread(str(raw_dir / rgb_file)), (320, 240), interpolation=cv2.INTER_AREA)
+        colour = cv2.resize(cv2.imread(str(raw_dir / rgb_file)), size, interpolation=cv2.INTER_AREA)
         message = {"type": "frame", "seq": seq, "timestamp": seq / 30.0,
                    "image": cv2.imencode(".jpg", colour, [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes()}
         if with_depth:
             raw = cv2.imread(str(raw_dir / depth_file), cv2.IMREAD_UNCHANGED).astype(np.float64)
-            depth = cv2.resize(np.round(raw / 5.0).astype(np.uint16), (320, 240), interpolation=cv2.INTER_NEAREST)
+            depth = cv2.resize(np.round(raw / 5.0).astype(np.uint16), size, interpolation=cv2.INTER_NEAREST)
             message["depth"] = cv2.imencode(".png", depth)[1].tobytes()
         messages.append(msgpack.packb(message, use_bin_type=True))
     return messages
 
 
-def tum_case(stack: ServeProcess, case: str, raw_dir: Path, frames_cap: int | None) -> dict[str, Any]:
+def tum_case(stack: ServeProcess, case: str, raw_dir: Path, frames_cap: int | None,
+             raw_size: tuple[int, int] = (640, 480)) -> dict[str, Any]:
     from bench.live import encode
 
     mode, variant = case.split("-", 1)
@@ -83,14 +85,15 @@ def tum_case(stack: ServeProcess, case: str, raw_dir: Path, frames_cap: int | No
     if variant == "undistorted":
         messages = encode(frames, with_depth=with_depth)
     else:
-        messages = raw_tum_messages(raw_dir, len(frames), with_depth)
+        messages = raw_tum_messages(raw_dir, len(frames), with_depth, raw_size)
         args.session_fields = {"intrinsics": {**camera, "distortion": lens} if variant == "lens" else camera}
         if variant == "no-lens":
             args.psnr_every = 0  # its map is in the distorted camera: no undistorted reference to score it against
     return live_figures(stack, frames, undistorted, messages, args)
 
 
-def decoded_folder(raw_dir: Path, out: Path, variant: str, count: int | None) -> Path:
+def decoded_folder(raw_dir: Path, out: Path, variant: str, count: int | None,
+                   raw_size: tuple[int, int] = (640, 480)) -> Path:
     """The raw frames as the worker decodes them (`decode_frame`: with the lens, undistorted; without, as sent),
     written losslessly as a folder `flashmono run` reads (PNG, millimetre depth, the camera the worker used, the
     motion capture): the offline run of exactly what a live session's engine receives."""
@@ -100,7 +103,7 @@ def decoded_folder(raw_dir: Path, out: Path, variant: str, count: int | None) ->
 
     camera, lens, _ = tum_calibration()
     declared = {**camera, "distortion": lens} if variant == "lens" else camera
-    messages = raw_tum_messages(raw_dir, count or 10**6, with_depth=True)
+    messages = raw_tum_messages(raw_dir, count or 10**6, with_depth=True, size=raw_size)
     (out / "rgb").mkdir(parents=True, exist_ok=True)
     (out / "depth").mkdir(exist_ok=True)
     for message in messages:
@@ -118,7 +121,8 @@ def decoded_folder(raw_dir: Path, out: Path, variant: str, count: int | None) ->
     return out
 
 
-def offline_case(case: str, raw_dir: Path, frames_cap: int | None) -> dict[str, Any]:
+def offline_case(case: str, raw_dir: Path, frames_cap: int | None, raw_size: tuple[int, int] = (640, 480)
+                 ) -> dict[str, Any]:
     """`flashmono run` (its defaults) of the frames a live session's engine receives: the raw frames decoded with
     their lens or without, or the frames undistorted offline at 640x480."""
     import tempfile
@@ -129,7 +133,7 @@ def offline_case(case: str, raw_dir: Path, frames_cap: int | None) -> dict[str, 
     args = case_args(mode, "320x240", frames_cap)
     with tempfile.TemporaryDirectory(prefix="bench-lens-") as tmp:
         source = TUM if variant == "undistorted" else decoded_folder(raw_dir, Path(tmp) / "frames", variant,
-                                                                      frames_cap)
+                                                                      frames_cap, raw_size)
         return run_offline(str(source), (320, 240), frames_cap, args, Path(tmp) / "run")
 
 
@@ -199,22 +203,26 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--fox", type=Path, help="instant-ngp's fox folder (transforms.json + images/)")
     parser.add_argument("--cases", nargs="+", choices=TUM_CASES + FOX_CASES, default=list(TUM_CASES + FOX_CASES))
     parser.add_argument("--frames", type=int, default=None, help="at most this many TUM frames a case")
+    parser.add_argument("--raw-size", default="640x480", help="the raw TUM frames' size as sent: 640x480 as "
+                        "recorded, or smaller (area-downscaled, as a phone app may send them)")
     parser.add_argument("--offline", action="store_true", help="the TUM cases through `flashmono run` instead (the "
                         "frames the worker decodes, written losslessly: the lens handling without live load)")
     args = parser.parse_args(argv)
     recorder = Recorder("lens", argv)
+    raw_size = tuple(int(v) for v in args.raw_size.split("x"))
     todo = [c for c in args.cases if (c in FOX_CASES and args.fox) or (c in TUM_CASES and args.tum_raw)]
     if not todo:
         raise SystemExit("give --tum-raw and/or --fox (the data is fetched, not shipped)")
     if args.offline:
         for case in [c for c in todo if c in TUM_CASES]:
             load_start = loadavg()
-            values = offline_case(case, args.tum_raw, args.frames)
+            values = offline_case(case, args.tum_raw, args.frames, raw_size)
             print(f"{case} offline: ATE {100 * (values['ate_m'] or float('nan')):.2f} cm, PSNR "
                   f"{values['psnr'] or float('nan'):.2f} dB, {values['wall_s']:.0f} s", flush=True)
             mode, variant = case.split("-", 1)
             recorder.write({"area": "lens", "sequence": "tum_fr1_xyz_raw", "mode": mode,
-                            "variant": f"{variant}-offline"}, values, load_at_case_start=load_start)
+                            "variant": f"{variant}-offline", "size": args.raw_size}, values,
+                           load_at_case_start=load_start)
         return 0
     with ServeProcess() as stack:
         for case in todo:
@@ -225,11 +233,12 @@ def main(argv: list[str]) -> int:
                       f"dB over {values['held_out']} photos, {values['wall_s']} s", flush=True)
                 sequence, mode = "instant_ngp_fox", "posed-rgb"
             else:
-                values = tum_case(stack, case, args.tum_raw, args.frames)
+                values = tum_case(stack, case, args.tum_raw, args.frames, raw_size)
                 print(f"{case}: posed {values['posed_share']:.1%}, p95 {values['latency_p95_ms']:.0f} ms, ATE "
                       f"{100 * (values['ate_m'] or float('nan')):.2f} cm, PSNR {values['psnr_db'] or float('nan'):.2f}"
                       f" dB, finish {values['finish_s']:.1f} s", flush=True)
                 sequence, mode = "tum_fr1_xyz_raw", case.split("-", 1)[0]
+                values["raw_size"] = args.raw_size
             variant = case.split("-", 1)[1] if case in TUM_CASES else case.removeprefix("fox-")
             recorder.write({"area": "lens", "sequence": sequence, "mode": mode, "variant": variant}, values,
                            load_at_case_start=load_start)

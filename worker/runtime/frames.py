@@ -7,6 +7,7 @@ size; the intrinsics are scaled with the image.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import cv2
@@ -55,13 +56,13 @@ def decode_frame(message: dict[str, Any], session_intrinsics: dict[str, Any] | N
     except ValueError as err:
         raise FrameError("bad_image", f"image is not a valid JPEG/PNG: {err}") from err
     width, height = working_size(sent_w, sent_h, session_intrinsics, max_side)
-    image = _decode_image(message["image"], width, height)
+    lens_fix = frame_undistortion(message.get("intrinsics"), session_intrinsics, sent_w, sent_h, width, height)
+    image = _decode_image(message["image"], *(lens_fix.size if lens_fix is not None else (width, height)))
     intrinsics = frame_intrinsics(message.get("intrinsics"), session_intrinsics, sent_w, sent_h)
     if intrinsics is not None and (width, height) != (sent_w, sent_h):
         intrinsics = intrinsics.scaled(width, height)
-    lens_fix = frame_undistortion(message.get("intrinsics"), session_intrinsics, sent_w, sent_h, width, height)
     if lens_fix is not None:
-        image, intrinsics = lens_fix.image(image), lens_fix.pinhole
+        image, intrinsics = _resized(lens_fix.image(image), width, height, cv2.INTER_AREA), lens_fix.pinhole
     depth = None
     if message.get("depth") is not None:
         raw = cv2.imdecode(np.frombuffer(message["depth"], dtype=np.uint8), cv2.IMREAD_UNCHANGED)
@@ -70,11 +71,10 @@ def decode_frame(message: dict[str, Any], session_intrinsics: dict[str, Any] | N
         if raw.shape != (sent_h, sent_w):
             raise FrameError("bad_depth", f"depth is {raw.shape[1]}x{raw.shape[0]} but the image is "
                                           f"{sent_w}x{sent_h}")
-        if raw.shape != (height, width):  # nearest: averaging would mix valid depths with holes (0)
-            raw = cv2.resize(raw, (width, height), interpolation=cv2.INTER_NEAREST)
         if lens_fix is not None and depth_in_colour:
-            raw = lens_fix.depth(raw)
-        depth = raw.astype(np.float32) / 1000.0
+            raw = lens_fix.depth(_resized(raw, *lens_fix.size, cv2.INTER_NEAREST))
+        # nearest: averaging would mix valid depths with holes (0)
+        depth = _resized(raw, width, height, cv2.INTER_NEAREST).astype(np.float32) / 1000.0
     pose = None
     if message.get("pose") is not None:
         pose = np.asarray(message["pose"], dtype=np.float64).reshape(4, 4)
@@ -113,18 +113,43 @@ def _declared_camera(value: Any, session_intrinsics: dict[str, Any] | None, widt
     return None
 
 
+@dataclass(frozen=True)
+class FrameUndistortion:
+    """How a frame with a lens is brought to its pinhole camera: decoded at `size`, undistorted there, then
+    area-downscaled to the working size, whose camera is `pinhole`."""
+
+    size: tuple[int, int]
+    remap: Undistortion
+    pinhole: Intrinsics
+
+    def image(self, image: np.ndarray) -> np.ndarray:
+        return self.remap.image(image)
+
+    def depth(self, depth: np.ndarray) -> np.ndarray:
+        return self.remap.depth(depth)
+
+
 def frame_undistortion(value: Any, session_intrinsics: dict[str, Any] | None, sent_w: int, sent_h: int,
-                       width: int, height: int) -> Undistortion | None:
+                       width: int, height: int) -> FrameUndistortion | None:
     """The undistortion of a frame sent at sent_w x sent_h and worked on at width x height, None for a pinhole
-    camera. The pinhole camera is computed where the camera was declared, then scaled, so that every frame and the
-    session's own camera (`session_camera`) agree whatever the working size."""
+    camera. It undistorts at up to twice the working size (as large as the frame is), so that its interpolation
+    blurs only what the downscale to the working size takes away. The pinhole camera is computed where the camera
+    was declared, then scaled, so that every frame and the session's own camera (`session_camera`) agree whatever
+    the working size."""
     declared = _declared_camera(value, session_intrinsics, sent_w, sent_h)
     lens = Lens.from_wire(declared[1]) if declared is not None else None
     if lens is None:
         return None
     camera = declared[0]
     pinhole = undistorted_camera(camera, lens)
-    return undistortion(camera.scaled(width, height), lens, pinhole.scaled(width, height))
+    size = (2 * width, 2 * height) if sent_w >= 2 * width and sent_h >= 2 * height else (sent_w, sent_h)
+    remap = undistortion(camera.scaled(*size), lens, pinhole.scaled(*size))
+    return FrameUndistortion(size, remap, pinhole.scaled(width, height))
+
+
+def _resized(image: np.ndarray, width: int, height: int, interpolation: int) -> np.ndarray:
+    return image if image.shape[:2] == (height, width) else cv2.resize(image, (width, height),
+                                                                       interpolation=interpolation)
 
 
 def session_camera(session_intrinsics: dict[str, Any] | None) -> Intrinsics | None:
