@@ -114,6 +114,17 @@ AREAS: tuple[Area, ...] = (
           Column("latency_p95_ms", "p95", "ms", "<= 100"), Column("false_per_1000_frames", "false / 1,000", "", "0"),
           Column("map_bytes", "map", "B")),
          ("sequence", "mode", "run")),
+    Area("lens", "Cameras as they come (lens distortion over the contract)",
+         "`python -m bench lens` (data fetched, not shipped): TUM fr1/xyz as the Kinect recorded it, lens and all, "
+         "streamed live (30 frames/s, as openapi.yaml documents a session) with TUM's calibration in the session's "
+         "intrinsics (`lens`), without it (`no-lens`), and the same frames undistorted offline (`undistorted`, the "
+         "shared folder); `-offline`: `flashmono run` of exactly the frames the worker decoded. `size`: the raw "
+         "frames as sent. The fox's 44 phone photos (COLMAP poses, every 8th held out, posed RGB): held-out PSNR "
+         "against the photo undistorted by OpenCV at full size.",
+         (Column("ate_m", "ATE", "cm"), Column("psnr_db", "PSNR", "dB"), Column("posed_share", "posed", "%"),
+          Column("latency_p95_ms", "p95", "ms"), Column("held_out_psnr_db", "held out", "dB", {
+              "instant_ngp_fox/posed-rgb": ">= 22"})),
+         ("sequence", "mode", "size", "variant")),
     Area("map_formats", "Map formats web clients read",
          "`python -m bench web_viewer`: a real ICL map written in each format; bytes per surfel over the wire.",
          (Column("bytes_per_surfel", "bytes / surfel", "B"),)),
