@@ -126,11 +126,14 @@ def _posed_frames(count: int) -> list[Frame]:
 
 
 def _posed_system() -> SlamSystem:
-    """Device poses, no mapping, no loop closure: a SlamSystem whose push is cheap."""
+    """Device poses, no mapping, no loop closure: a SlamSystem whose push is cheap. Its device clock is not
+    measured: these frames hover in place, so it would measure (and carry its measurement in every snapshot) up to
+    its last frame; the clock's own state is tested in tests/tracking/test_device_clock.py."""
     from worker.geometry import Intrinsics
 
     config = SlamConfig.preset("test", mapping={"enabled": False}, loop={"enabled": False},
-                               tracking={"source": "device"}, frontend={"keyframe_every": 10**6})
+                               tracking={"source": "device"}, frontend={"keyframe_every": 10**6},
+                               input={"device_clock": {"mode": "off"}})
     return SlamSystem(config, intrinsics=Intrinsics(30.0, 30.0, 16.0, 12.0, 32, 24))
 
 
