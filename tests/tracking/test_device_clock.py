@@ -62,16 +62,17 @@ def test_a_40_ms_offset_injected_into_real_kinect_frames_is_found(tum, depth):
     assert native.estimate.offset_s * 1000 == pytest.approx(TUM_NATIVE_MS, abs=4.0)
     assert ahead.estimate.offset_s * 1000 == pytest.approx(40 + TUM_NATIVE_MS, abs=6.0)
     assert ahead.estimate.uncertainty_s < 0.005
-    assert ahead.offset_s == ahead.estimate.offset_s  # applied
+    assert ahead.target_offset_s == ahead.estimate.offset_s  # applied, reached by 1 ms a frame
+    assert ahead.offset_s == pytest.approx(0.001)
 
 
 def test_exact_icl_poses_keep_no_offset_and_an_injected_one_is_found(icl):
     frames, intrinsics = icl  # 10 Hz: pairs 100 ms apart
     exact = measured(shifted(frames, 0.0), intrinsics, search_s=0.08)
-    assert exact.offset_s == 0.0
+    assert exact.target_offset_s == 0.0
     assert exact.estimate.offset_s is None or abs(exact.estimate.offset_s) <= 2 * exact.estimate.uncertainty_s
     ahead = measured(shifted(frames, 0.040), intrinsics, search_s=0.08)
-    assert ahead.offset_s * 1000 == pytest.approx(40.0, abs=5.0)
+    assert ahead.target_offset_s * 1000 == pytest.approx(40.0, abs=5.0)
 
 
 def test_a_still_stream_is_not_estimated(icl):
@@ -132,6 +133,7 @@ def test_state_dict_round_trip_mid_measurement(tum):
         np.testing.assert_allclose(a.pose, b.pose, atol=1e-9)
     assert restored.device_clock.estimate == straight.device_clock.estimate
     assert restored.device_clock.offset_s == straight.device_clock.offset_s != 0.0
+    assert restored.device_clock.target_offset_s == straight.device_clock.target_offset_s
     again = clocked(config)
     again.load_state_dict(restored.state_dict())
     assert again.device_clock.summary() == restored.device_clock.summary()
