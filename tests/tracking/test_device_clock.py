@@ -46,11 +46,12 @@ def shifted(frames, offset_s: float, depth: bool = True):
     return [replace(f, pose=p, depth=f.depth if depth else None) for f, p in zip(frames, poses)]
 
 
-def measured(frames, intrinsics, **config) -> DeviceClock:
-    clock = DeviceClock(DeviceClockConfig(window_frames=len(frames), max_frames=len(frames), **config))
+def measured(frames, intrinsics, final: bool = True, **config) -> DeviceClock:
+    config = {"window_frames": len(frames), "max_frames": len(frames), **config}
+    clock = DeviceClock(DeviceClockConfig(**config))
     for frame in frames:
         clock.pose_at(frame, intrinsics)
-    assert not clock.measuring
+    assert clock.measuring != final
     return clock
 
 
@@ -78,8 +79,11 @@ def test_exact_icl_poses_keep_no_offset_and_an_injected_one_is_found(icl):
 def test_a_still_stream_is_not_estimated(icl):
     frames, intrinsics = icl
     still = [replace(frames[0], index=i, timestamp=i / 30.0) for i in range(40)]
-    clock = measured(still, intrinsics, offset_s=0.012)
-    assert clock.estimate.offset_s is None and "no minimum" in clock.estimate.reason
+    clock = measured(still[:-1], intrinsics, offset_s=0.012, window_frames=40, max_frames=40, final=False)
+    assert clock.measuring and not clock.pairs.pairs  # nothing kept: a snapshot of a still stream stays small
+    clock.pose_at(still[-1], intrinsics)
+    assert not clock.measuring
+    assert clock.estimate.offset_s is None and "with motion" in clock.estimate.reason
     assert clock.offset_s == pytest.approx(0.012)  # the given offset is kept
     assert clock.summary()["estimate"]["estimated"] is False
 

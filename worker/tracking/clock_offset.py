@@ -26,14 +26,28 @@ from worker.tracking.pose_interpolation import interpolate_poses
 MAX_CORNERS = 120  # corners per pair: the cost is a median-like mean, more add little
 MIN_TRACKS = 15  # a pair with fewer tracked corners is not kept
 TRUNCATE_PX = {True: 3.0, False: 2.0}  # with depth (reprojection) / without (epipolar): beyond it a track is wrong
+MIN_FLOW_PX = 0.5  # a pair whose corners moved less (median) shows nothing of the offset: not kept
+MAX_PAIRS = 240  # the newest pairs kept (a snapshot carries them while measuring)
 BOOTSTRAP = 200
 COARSE_STEP_S = 0.005  # the first pass over the search range, refined around its minimum
+
+
+def _with_corners(t: float, grey: np.ndarray, depth: np.ndarray | None
+                  ) -> tuple[float, np.ndarray, np.ndarray, np.ndarray | None]:
+    """A frame as the next one tracks from: its time, grey image, corners and their depth (None without depth)."""
+    corners = cv2.goodFeaturesToTrack(grey, MAX_CORNERS, 0.01, 8)
+    uv = np.zeros((0, 2), np.float32) if corners is None else corners.reshape(-1, 2) + np.float32(0.5)
+    if depth is None:
+        return t, grey, uv, None
+    col = np.clip(uv[:, 0].astype(int), 0, depth.shape[1] - 1)
+    row = np.clip(uv[:, 1].astype(int), 0, depth.shape[0] - 1)
+    return t, grey, uv, np.asarray(depth[row, col], np.float64)
 
 
 @dataclass
 class FramePair:
     """Corners tracked from one frame (at `t0`) into the next (at `t1`): normalised image coordinates [n, 2] in
-    both, the depth of the first ones [n] (NaN without depth), the focal length (pixels per unit of them)."""
+    both, the depth of the first ones [n] (NaN without depth), float32; the focal length (pixels per unit of them)."""
 
     t0: float
     t1: float
@@ -48,57 +62,56 @@ class FramePair:
     @classmethod
     def from_state(cls, state: list[Any]) -> FramePair:
         t0, t1, x0, x1, depth, focal = state
-        return cls(float(t0), float(t1), np.asarray(x0, np.float64).reshape(-1, 2),
-                   np.asarray(x1, np.float64).reshape(-1, 2), np.asarray(depth, np.float64).ravel(), float(focal))
+        return cls(float(t0), float(t1), np.asarray(x0, np.float32).reshape(-1, 2),
+                   np.asarray(x1, np.float32).reshape(-1, 2), np.asarray(depth, np.float32).ravel(), float(focal))
 
 
 class PairTracker:
-    """Tracks corners from each frame into the next and keeps the pairs (see the module docstring)."""
+    """Tracks corners from each frame into the next and keeps the pairs that show motion (see the module docstring);
+    the newest MAX_PAIRS of them."""
 
     def __init__(self, max_gap_s: float = 0.1) -> None:
         self.max_gap_s = max_gap_s
         self.pairs: list[FramePair] = []
-        self._previous: tuple[float, np.ndarray, np.ndarray | None] | None = None  # (t, grey, depth)
+        # the previous frame: (t, grey, its corners [n, 2] (pixel centres at +0.5), their depth [n] or None)
+        self._previous: tuple[float, np.ndarray, np.ndarray, np.ndarray | None] | None = None
 
     def add(self, timestamp: float, image: np.ndarray, depth: np.ndarray | None, K: np.ndarray) -> None:
-        """The frame's corners tracked from the previous frame's (none across a gap longer than `max_gap_s`)."""
+        """The previous frame's corners tracked into this one (none across a gap longer than `max_gap_s`); this
+        frame's corners (and their depth) kept for the next."""
         grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
-        previous, self._previous = self._previous, (timestamp, grey, depth)
-        if previous is None or not 0 < timestamp - previous[0] <= self.max_gap_s:
+        previous, self._previous = self._previous, _with_corners(timestamp, grey, depth)
+        if previous is None or not 0 < timestamp - previous[0] <= self.max_gap_s or len(previous[2]) < MIN_TRACKS:
             return
-        t0, grey0, depth0 = previous
-        corners = cv2.goodFeaturesToTrack(grey0, MAX_CORNERS, 0.01, 8)
-        if corners is None or len(corners) < MIN_TRACKS:
-            return
-        uv0 = corners.reshape(-1, 2) + 0.5  # pixel centres at +0.5 (worker.tracking.optical_flow)
+        t0, grey0, uv0, z0 = previous
         uv1, ok = track_points(grey0, grey, uv0)
-        z = np.full(len(uv0), np.nan)
-        if depth0 is not None:
-            col = np.clip(uv0[:, 0].astype(int), 0, depth0.shape[1] - 1)
-            row = np.clip(uv0[:, 1].astype(int), 0, depth0.shape[0] - 1)
-            z = np.asarray(depth0[row, col], np.float64)
+        z = np.full(len(uv0), np.nan) if z0 is None else z0
+        if z0 is not None:
             ok &= z > 0
-        if ok.sum() < MIN_TRACKS:
+        if ok.sum() < MIN_TRACKS or np.median(np.linalg.norm(uv1[ok] - uv0[ok], axis=1)) < MIN_FLOW_PX:
             return
         Kinv = np.linalg.inv(K)
 
         def normalised(uv: np.ndarray) -> np.ndarray:
-            return (np.c_[uv, np.ones(len(uv))] @ Kinv.T)[:, :2]
+            return (np.c_[uv, np.ones(len(uv))] @ Kinv.T)[:, :2].astype(np.float32)
 
-        self.pairs.append(FramePair(t0, timestamp, normalised(uv0[ok]), normalised(uv1[ok]), z[ok],
-                                    float(np.sqrt(K[0, 0] * K[1, 1]))))
+        # float32: what a snapshot carries while measuring (a restored session measures the same)
+        self.pairs.append(FramePair(t0, timestamp, normalised(uv0[ok]), normalised(uv1[ok]),
+                                    z[ok].astype(np.float32), float(np.sqrt(K[0, 0] * K[1, 1]))))
+        del self.pairs[:-MAX_PAIRS]
 
     def state_dict(self) -> dict[str, Any]:
-        t, grey, depth = self._previous if self._previous is not None else (None, None, None)
+        t, grey, uv, z = self._previous if self._previous is not None else (None, None, None, None)
         return {"pairs": [p.to_state() for p in self.pairs], "previous_t": t, "previous_grey": grey,
-                "previous_depth": depth}
+                "previous_corners": uv, "previous_depth": z}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.pairs = [FramePair.from_state(p) for p in state["pairs"]]
-        grey, depth = state.get("previous_grey"), state.get("previous_depth")
-        self._previous = None if grey is None else (
+        grey, z = state.get("previous_grey"), state.get("previous_depth")
+        self._previous = None if grey is None or state.get("previous_corners") is None else (
             float(state["previous_t"]), np.asarray(grey, np.uint8),
-            None if depth is None else np.asarray(depth, np.float32))
+            np.asarray(state["previous_corners"], np.float32).reshape(-1, 2),
+            None if z is None else np.asarray(z, np.float64).ravel())
 
     def forget_previous(self) -> None:
         """The next frame starts a new run of pairs (a frame without a device pose came between)."""
@@ -193,7 +206,7 @@ def estimate_offset(pairs: list[FramePair], times: np.ndarray, poses: np.ndarray
     usable = [p for p in pairs if len(times) and p.t0 - search_s >= times[0] and p.t1 + search_s <= times[-1]]
     if len(usable) < min_pairs:
         return ClockEstimate(None, None, len(usable),
-                             f"{len(usable)} frame pairs with tracked corners, fewer than {min_pairs}")
+                             f"{len(usable)} frame pairs with motion and tracked corners, fewer than {min_pairs}")
     # A coarse grid over the search range, then every `step_s` around its minimum
     coarse = np.linspace(-search_s, search_s, 2 * int(round(search_s / COARSE_STEP_S)) + 1)
     coarse_costs = offset_costs(usable, times, poses, coarse)
