@@ -17,8 +17,8 @@ from live_stack import receive_until
 from websockets.sync.client import connect
 
 from service.launcher import LocalStack
-from worker.eval.metrics import absolute_trajectory_error
 from worker.data.tum_trajectory import read_tum
+from worker.eval.metrics import absolute_trajectory_error
 from worker.runtime.frames import session_camera
 
 RAW = Path(__file__).parents[1] / "data" / "tum_fr1_xyz_raw_mini"
