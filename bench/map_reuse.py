@@ -94,6 +94,8 @@ def _in_map_figures(result: dict[str, Any], map_id: str, world_to_gt: np.ndarray
         "live_in_map_share": in_map / max(1, summary["frames"]),
         "map_drift_corrections": sum(1 for _, m in run.events if m.get("type") == "drift_corrected"
                                      and m.get("source") == "map"),
+        "priors_from_other_sessions": sum(m.get("from_other_sessions") or 0 for _, m in run.events
+                                          if m.get("type") == "drift_corrected"),
         "acked_lost": summary["acked_lost"],
     }
     out["ate_in_map_m"] = (None if world_to_gt is None or first is None
@@ -277,12 +279,15 @@ def _together(args: argparse.Namespace, recorder: Recorder) -> int:
                                 "device_b_first_pose_in_map_s": b["first_pose_in_map_s"],
                                 "device_a_posed_share": a["posed_share"], "device_b_posed_share": b["posed_share"],
                                 "device_a_latency_p95_ms": a["latency_p95_ms"],
-                                "device_b_latency_p95_ms": b["latency_p95_ms"]}, detail=figures)
+                                "device_b_latency_p95_ms": b["latency_p95_ms"],
+                                "device_a_priors_from_b": a["priors_from_other_sessions"],
+                                "device_b_priors_from_a": b["priors_from_other_sessions"]}, detail=figures)
                 print(f"{name} {mode} together: ATE in the map's world {_cm(a['ate_in_map_m'])} / "
                       f"{_cm(b['ate_in_map_m'])}, both {_cm(figures['together_ate_in_map_m'])} (peer "
                       f"{_cm(figures['peer_ate_m'])}); first pose in map {_s(a)} / {_s(b)}; posed "
                       f"{a['posed_share']:.1%} / {b['posed_share']:.1%}; p95 {a['latency_p95_ms']:.0f} / "
-                      f"{b['latency_p95_ms']:.0f} ms; map versions {len(figures['map_after']['versions'])}",
+                      f"{b['latency_p95_ms']:.0f} ms; priors from the other device {a['priors_from_other_sessions']} / "
+                      f"{b['priors_from_other_sessions']}; map versions {len(figures['map_after']['versions'])}",
                       flush=True)
     return 0
 

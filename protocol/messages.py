@@ -482,6 +482,11 @@ class DriftCorrected(ServerMessage):
         doc="map: the priors are the keyframes' fixes in the saved map the session runs in (absent: device poses)",
         default=None,
     )
+    from_other_sessions: int | None = info(
+        doc=("map: how many of these priors are fixes among the keyframes other sessions extending the map shared "
+             "live (a loop between two devices; absent: none)"),
+        default=None,
+    )
     pgo_error_before: float | None = solve_error("before")
     pgo_error_after: float | None = solve_error("after")
 

@@ -57,5 +57,8 @@ def test_a_session_finds_itself_among_the_places_another_one_added(icl_frames, c
     assert second_map.shared_received == published_by_first  # every place of the first's, none of its own
     assert client.xlen(first_side.stream) > published_by_first  # and, anchored, it shares its own
     assert len(_relocalized(results)) == 1
+    # its fixes came from the first session's places (a loop between two devices), counted as such
+    assert second_map.shared_fixes > 0 and first_map.shared_fixes == 0 == alone_map.shared_fixes
+    assert second_map.stats()["map_shared_fixes"] == second_map.shared_fixes
     errors = [np.linalg.norm(pose[:3, 3] - icl_frames[i].gt_pose[:3, 3]) for i, _, pose in second.trajectory()]
     assert max(errors) < 0.06  # in the map's world

@@ -91,6 +91,7 @@ class SessionInMap:
         self.attach(session_metric=True)
         self.fixes = 0
         self.misses = 0
+        self.shared_fixes = 0  # fixes among the places other sessions in the map shared (a loop between devices)
         self.relocalized_at: int | None = None  # the frame whose fix anchored the session
         self.package: MapPackage | None = None  # the stored map itself (`from_package`), for renders and merges
         self._renderer: StoredMapRenderer | None = None
@@ -162,6 +163,7 @@ class SessionInMap:
             self.misses += 1
         else:
             self.fixes += 1
+            self.shared_fixes += is_shared_place(fix.view)
         return fix
 
     @property
@@ -225,19 +227,26 @@ class SessionInMap:
     def stats(self) -> dict[str, Any]:
         return {"map_id": self.map_id, "map_version": self.version, "map_mode": self.mode,
                 "map_relocalized": self.anchored, "map_fixes": self.fixes, "map_misses": self.misses,
-                "map_shared_places": self.shared_received,
+                "map_shared_places": self.shared_received, "map_shared_fixes": self.shared_fixes,
                 "map_load_seconds": self.load_seconds}
 
     def state_dict(self) -> dict[str, Any]:
         return {"map_id": self.map_id, "version": self.version, "mode": self.mode, "metric": self.metric,
                 "anchoring": self.anchoring.state_dict(), "fixes": self.fixes, "misses": self.misses,
+                "shared_fixes": self.shared_fixes,
                 "relocalized_at": self.relocalized_at}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.anchoring.load_state_dict(state["anchoring"])
         self.fixes, self.misses = int(state.get("fixes", 0)), int(state.get("misses", 0))
+        self.shared_fixes = int(state.get("shared_fixes", 0))
         at = state.get("relocalized_at")
         self.relocalized_at = None if at is None else int(at)
+
+
+def is_shared_place(view: int) -> bool:
+    """Whether a fix's view is a place another session in the map shared (not one of the saved map's keyframes)."""
+    return int(view) > SHARED_PLACE_IDS
 
 
 def prior_pose(fix_pose: np.ndarray, node: np.ndarray) -> np.ndarray:

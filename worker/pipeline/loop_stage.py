@@ -27,7 +27,7 @@ from worker.geometry import Intrinsics, se3_part
 from worker.loop.correction_check import implausible_correction
 from worker.loop.pose_graph import PosePrior, Sim3PoseGraph
 from worker.maps.localizer import MapView
-from worker.maps.session_in_map import MapQuery, SessionInMap, prior_pose
+from worker.maps.session_in_map import MapQuery, SessionInMap, is_shared_place, prior_pose
 from worker.pipeline.loop_closer import DepthKeyframePoints, LoopCloser
 from worker.pipeline.stage_thread import QueuedStage, StageThread
 from worker.pipeline.stage_times import StageTimes
@@ -125,6 +125,7 @@ class LoopClosingStage(QueuedStage):
         self.in_map: SessionInMap | None = None
         self.world_moves: list[tuple[int, np.ndarray]] = []
         self.map_priors_unsolved = 0
+        self.shared_priors_unsolved = 0  # of those, fixes among other sessions' shared places
         self.name = "loop-closing"
         self._init_queue()
         self._stage = StageThread("loop-closing", self._handle_numbered, threaded)
@@ -273,9 +274,11 @@ class LoopClosingStage(QueuedStage):
         self.pose_graph.add_prior(query.frame, prior_pose(fix.pose, node), in_map.prior_sigmas(scene_depth))
         self.pose_graph.flush()
         self.map_priors_unsolved += 1
+        self.shared_priors_unsolved += is_shared_place(fix.view)
         if self.map_priors_unsolved >= MAP_PRIORS_PER_SOLVE:
-            self.map_priors_unsolved = 0
-            self._solve(DriftCorrected(keyframe=int(query.frame), source="map"),
+            shared = self.shared_priors_unsolved or None
+            self.map_priors_unsolved = self.shared_priors_unsolved = 0
+            self._solve(DriftCorrected(keyframe=int(query.frame), source="map", from_other_sessions=shared),
                         self.pose_graph.state_dict())
 
     def _newer_map_query_waiting(self, query: MapQuery) -> bool:
@@ -358,7 +361,8 @@ class LoopClosingStage(QueuedStage):
                 "corrections_made": self.corrections_made,
                 "world_moves": [[number, transform] for number, transform in self.world_moves],
                 "in_map": None if self.in_map is None else self.in_map.state_dict(),
-                "map_priors_unsolved": self.map_priors_unsolved}
+                "map_priors_unsolved": self.map_priors_unsolved,
+                "shared_priors_unsolved": self.shared_priors_unsolved}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.pose_graph.load_state_dict(state["pose_graph"])
@@ -371,6 +375,7 @@ class LoopClosingStage(QueuedStage):
         self.corrections_made = int(state.get("corrections_made", 0))
         self.world_moves = [(int(n), np.asarray(t, np.float64)) for n, t in state.get("world_moves") or []]
         self.map_priors_unsolved = int(state.get("map_priors_unsolved", 0))
+        self.shared_priors_unsolved = int(state.get("shared_priors_unsolved", 0))
         if self.in_map is not None and state.get("in_map") is not None:
             self.in_map.load_state_dict(state["in_map"])
         with self._corrections_lock:
