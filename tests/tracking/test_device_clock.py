@@ -88,6 +88,29 @@ def test_a_still_stream_is_not_estimated(icl):
     assert clock.summary()["estimate"]["estimated"] is False
 
 
+def test_measuring_in_the_background_finds_what_inline_measuring_finds(tum):
+    """Threaded sessions measure on the clock's own thread: the same pairs, the same estimate; the tracking thread
+    applies it once done, and a snapshot taken meanwhile waits for the frames handed over."""
+    frames, intrinsics = tum
+    device = shifted(frames, 0.040)
+    config = DeviceClockConfig(window_frames=len(frames) - 8, max_frames=len(frames) - 8)
+    inline, background = DeviceClock(config), DeviceClock(config, background=True)
+    for frame in device[:20]:
+        inline.pose_at(frame, intrinsics)
+        background.pose_at(frame, intrinsics)
+    mid = background.state_dict()  # waits for the hand-overs so far
+    assert [p.t1 for p in background.pairs.pairs] == [p.t1 for p in inline.pairs.pairs]
+    assert mid["pairs"]["pairs"] and background.measuring
+    for frame in device[20:]:
+        inline.pose_at(frame, intrinsics)
+        background.pose_at(frame, intrinsics)
+    assert not inline.measuring
+    background.finish_measuring()
+    assert not background.measuring and background._worker is None
+    assert background.estimate == inline.estimate
+    assert background.target_offset_s == inline.target_offset_s != 0.0
+
+
 def test_interpolation_retimes_a_known_trajectory_exactly():
     omega, velocity = np.array([0.3, -0.5, 0.2]), np.array([0.4, 0.1, -0.2])  # rad/s, m/s
 

@@ -17,6 +17,7 @@ again (the judged start replays its frames) are read with the offset known then.
 from __future__ import annotations
 
 import logging
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import replace
 from typing import Any
 
@@ -42,9 +43,14 @@ SLEW_PER_FRAME_S = 0.001
 class DeviceClock:
     """Re-times frames' device poses by the device clock's offset, given or measured (module docstring)."""
 
-    def __init__(self, config: DeviceClockConfig | None = None, use_depth: bool = True) -> None:
+    def __init__(self, config: DeviceClockConfig | None = None, use_depth: bool = True,
+                 background: bool = False) -> None:
         self.config = config or DeviceClockConfig()
         self.use_depth = use_depth  # the frames' depth measures the offset (metric reprojection), else epipolar
+        self.background = background  # measure on a thread of its own (module docstring)
+        self._worker: ThreadPoolExecutor | None = None
+        self._estimates: list[tuple[Future[ClockEstimate], bool]] = []  # background estimates, with `final`
+        self._pending: list[Future[None]] = []  # background frame hand-overs not yet done
         self.offset_s = float(self.config.offset_s)  # applied now
         self.target_offset_s = self.offset_s  # ... and once reached (SLEW_PER_FRAME_S)
         self.estimate: ClockEstimate | None = None
@@ -58,10 +64,12 @@ class DeviceClock:
         """The device's pose at the frame's true time (None when the frame carries none). A frame newer than any seen
         is kept (and measured, with `intrinsics`, while measuring)."""
         if frame.pose is None:
-            self.pairs.forget_previous()
+            if self.measuring:
+                self._run(self.pairs.forget_previous)
             return None
         pose = checked_device_pose(frame.pose, frame.index)
         t = float(frame.timestamp)
+        self._collect(wait=False)
         if not self.times or t > self.times[-1]:
             self._receive(frame, t, pose, intrinsics)
             step = self.target_offset_s - self.offset_s
@@ -77,7 +85,7 @@ class DeviceClock:
         self.frames += 1
         if self.measuring and intrinsics is not None:
             K = intrinsics.matrix().numpy().astype(np.float64)
-            self.pairs.add(t, frame.image, frame.depth if self.use_depth else None, K)
+            self._run(self.pairs.add, t, frame.image, frame.depth if self.use_depth else None, K)
             c = self.config
             if self.frames >= c.window_frames and (self.frames - c.window_frames) % c.retry_frames == 0:
                 self._measure(final=self.frames + c.retry_frames > c.max_frames)
@@ -86,18 +94,55 @@ class DeviceClock:
         if not self.measuring and len(self.times) > KEEP_POSES:
             del self.times[:-KEEP_POSES], self.poses[:-KEEP_POSES]
 
+    def _run(self, task, *args) -> None:
+        """`task(*args)` now, or queued on the clock's thread (in order) with `background`."""
+        if not self.background:
+            task(*args)
+            return
+        self._pending = [f for f in self._pending if not f.done()]
+        self._pending.append(self._executor().submit(task, *args))
+
+    def _executor(self) -> ThreadPoolExecutor:
+        if self._worker is None:
+            self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="device-clock")
+        return self._worker
+
     def _measure(self, final: bool) -> None:
         c = self.config
-        estimate = estimate_offset(self.pairs.pairs, np.asarray(self.times), np.stack(self.poses), c.search_s,
-                                   c.max_uncertainty_s)
-        if estimate.offset_s is not None or final:
+        times, poses = np.asarray(self.times), np.stack(self.poses)  # as received so far (copies)
+        if not self.background:
+            self._take(estimate_offset(self.pairs.pairs, times, poses, c.search_s, c.max_uncertainty_s), final)
+            return
+        pairs = self.pairs
+
+        def estimate() -> ClockEstimate:  # on the clock's thread, after the frames handed over before it
+            return estimate_offset(list(pairs.pairs), times, poses, c.search_s, c.max_uncertainty_s)
+
+        self._estimates.append((self._executor().submit(estimate), final))
+
+    def _take(self, estimate: ClockEstimate, final: bool) -> None:
+        if self.measuring and (estimate.offset_s is not None or final):
             self._conclude(estimate)
+
+    def _collect(self, wait: bool) -> None:
+        """Background estimates done (all of them, after the frames handed over, with `wait`) are taken in order."""
+        if wait:
+            for future in self._pending:
+                future.result()
+            self._pending = []
+        while self._estimates and (wait or self._estimates[0][0].done()):
+            future, final = self._estimates.pop(0)
+            self._take(future.result(), final)
+        if not self.measuring and self._worker is not None and not self._estimates:
+            self._worker.shutdown(wait=False)
+            self._worker, self._pending = None, []
 
     def _conclude(self, estimate: ClockEstimate) -> None:
         """Measuring is over: the estimate's offset from now on when trusted and distinct from zero (within twice
         its uncertainty a measured 0 is kept: exact poses stay untouched), else the given one."""
         self.estimate, self.measuring = estimate, False
         self.pairs = PairTracker()
+        self._estimates = []
         if estimate.offset_s is not None and abs(estimate.offset_s) > 2 * (estimate.uncertainty_s or 0.0):
             self.target_offset_s = estimate.offset_s
         elif estimate.offset_s is not None:
@@ -106,8 +151,10 @@ class DeviceClock:
 
     def finish_measuring(self) -> None:
         """The stream ended while measuring: the frames so far are all there is."""
+        self._collect(wait=True)
         if self.measuring:
             self._measure(final=True)
+            self._collect(wait=True)
 
     def summary(self) -> dict[str, Any]:
         """What the session reports: the offset applied, how it was measured (None while measuring)."""
@@ -117,6 +164,7 @@ class DeviceClock:
                 "measuring": self.measuring, "estimate": None if self.estimate is None else self.estimate.to_dict()}
 
     def state_dict(self) -> dict[str, Any]:
+        self._collect(wait=True)  # the frames handed over and the estimates asked for are part of the state
         return {"offset_s": self.offset_s, "target_offset_s": self.target_offset_s, "measuring": self.measuring,
                 "frames": self.frames,
                 "estimate": None if self.estimate is None else self.estimate.to_dict(),

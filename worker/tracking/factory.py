@@ -22,7 +22,7 @@ def build_pose_source(tracking: str, config: SlamConfig, with_depth: bool, submi
     if tracking == "device" and (clock.mode == "estimate" or clock.offset_s != 0.0):
         from worker.tracking.device_clock import DeviceClock
 
-        source.device_clock = DeviceClock(clock, use_depth=with_depth)
+        source.device_clock = DeviceClock(clock, use_depth=with_depth, background=config.threaded)
     return source
 
 
