@@ -3,6 +3,9 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
+import cv2
 import numpy as np
 
 from worker.data.frame import Frame
@@ -17,9 +20,10 @@ def _config() -> SlamConfig:
     return SlamConfig.preset("rgbd", threaded=False, mapping={"enabled": False})
 
 
-def _session(frames: list[Frame], views: list) -> tuple[SlamSystem, SessionInMap]:
+def _session(frames: list[Frame], views: list, config: SlamConfig | None = None
+             ) -> tuple[SlamSystem, SessionInMap]:
     in_map = SessionInMap("map1", 1, "localize", lambda: views, map_metric=True)
-    return SlamSystem(_config(), intrinsics=frames[0].intrinsics, in_map=in_map), in_map
+    return SlamSystem(config or _config(), intrinsics=frames[0].intrinsics, in_map=in_map), in_map
 
 
 def _events(results, kind: str) -> list:
@@ -63,3 +67,25 @@ def test_a_restored_session_keeps_its_anchoring(icl_frames) -> None:
         assert np.linalg.norm(result.pose[:3, 3] - f.gt_pose[:3, 3]) < 0.06
     system.close()
     restored.close()
+
+
+def test_device_poses_still_being_judged_are_already_placed_in_the_map(icl_frames) -> None:
+    """Posed RGB (`pose_mode` auto judges the device poses over the first frames): the session looks those frames
+    up in the map while judging, so it is anchored before the verdict and the frames after the anchoring come out
+    in the map's world, though the device's own world is elsewhere."""
+    device_world = np.eye(4)
+    device_world[:3, :3] = cv2.Rodrigues(np.array([0.1, -0.3, 0.2]))[0]
+    device_world[:3, 3] = [0.7, -0.2, 1.5]
+    frames = [replace(f, depth=None, pose=device_world @ f.gt_pose) for f in icl_frames[:30]]
+    system, in_map = _session(frames, views_of(icl_frames[::4]), SlamConfig.preset(
+        "rgbd", threaded=False, mapping={"enabled": False}, input={"pose_choice": {"within_frames": 20}}))
+    results = [system.push(f) for f in frames]
+    kinds = [[e.TYPE for e in r.events] for r in results]
+    anchored = next(i for i, k in enumerate(kinds) if "relocalized" in k)
+    verdict = next(i for i, k in enumerate(kinds) if "pose_source_chosen" in k)
+    assert anchored <= 5 < verdict
+    for r in results[anchored:verdict]:  # provisional poses, already in the map's world
+        assert np.linalg.norm(r.pose[:3, 3] - frames[r.index].gt_pose[:3, 3]) < 0.03
+    errors = [np.linalg.norm(pose[:3, 3] - frames[i].gt_pose[:3, 3]) for i, _, pose in system.trajectory()]
+    assert np.sqrt(np.mean(np.square(errors))) < 0.03 and in_map.anchored
+    system.finish()

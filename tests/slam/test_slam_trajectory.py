@@ -49,6 +49,19 @@ def test_state_dict_round_trip_and_order_checks() -> None:
         other.listing("some")
 
 
+def test_a_world_moved_before_the_first_keyframe_places_it_and_survives_a_snapshot() -> None:
+    """A stored map's anchoring can come before the first keyframe (device poses still being judged): frames
+    tracked meanwhile and the first keyframe come out in the moved world."""
+    traj = Trajectory()
+    move = pose(1.0, 0.4)
+    traj.move_world(move)
+    assert np.allclose(traj.provisional(pose(0.1)), move @ pose(0.1))
+    restored = Trajectory()
+    restored.load_state_dict(traj.state_dict())
+    assert np.allclose(restored.add_keyframe(0, pose(0.2)), move @ pose(0.2))
+    assert np.allclose(restored.add_keyframe(1, pose(0.3), reference=0), move @ pose(0.3))
+
+
 def test_motion_keyframe_selector() -> None:
     sel = MotionKeyframeSelector(every=5, translation=0.2, rotation_deg=15.0)
     flags = [sel.is_keyframe(pose(0.01 * k)) for k in range(12)]

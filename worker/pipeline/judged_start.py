@@ -1,6 +1,7 @@
 """A session's first frames while its device poses are judged (`pose_mode` auto without depth).
 
-Those frames get the device's poses (provisional), are kept, and make no keyframe. At the verdict every kept frame
+Those frames get the device's poses (provisional), are kept, and make no keyframe; a session in a stored map looks
+them up in it meanwhile, and once anchored there their poses are in the map's world. At the verdict every kept frame
 goes through the chosen source from the first, as if the session had begun with it: with `seeded`, the map never
 holds a keyframe on the device poses the images disagreed with (the keyframes' multi-view depth is made on the
 visual odometry's poses). The verdict frame's result carries the replayed frames' events and the new revision.
@@ -35,12 +36,18 @@ class JudgedStart:
     def push(self, frame: Frame) -> FrameResult:
         """A frame while judging: the device's pose, kept; the verdict frame replays the kept ones."""
         stage = self.stage
+        corrections = stage.apply_loop_corrections()  # a stored map's anchoring moves the world already
         tracking, pose = stage.track(frame, stage.camera.of_frame(frame))
         self.frames.append(frame)
         if self.judging:
-            return FrameResult(frame.index, frame.timestamp, pose, False, tracking.submap_id, stage.revision,
-                               list(tracking.events), tracked=tracking.tracked)
-        return self.replay(tracking.events)
+            world = stage.trajectory.provisional(pose)
+            if tracking.tracked:
+                stage.query_map(frame, False, world)
+            return FrameResult(frame.index, frame.timestamp, world, False, tracking.submap_id, stage.revision,
+                               corrections + list(tracking.events), tracked=tracking.tracked)
+        result = self.replay(tracking.events)
+        result.events = corrections + result.events
+        return result
 
     def conclude(self) -> list[EngineEvent]:
         """The stream ended while judging: decide on what was measured and replay; returns the events."""

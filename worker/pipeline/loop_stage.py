@@ -85,6 +85,8 @@ class LoopCorrection:
 
     poses: dict[int, np.ndarray]
     event: EngineEvent
+    world_move: np.ndarray | None = None  # the whole world moved by it (a stored map's anchoring): frames before
+    # the first keyframe move too
 
 
 # What the stage takes, in order
@@ -291,7 +293,7 @@ class LoopClosingStage(QueuedStage):
         as they come (`_in_current_world`)."""
         self.pose_graph.move_world(transform)
         self.pose_graph.loosen_gauge(MAP_GAUGE_SIGMA)  # the map's priors hold the graph: its first node too
-        self._hand_back(LoopCorrection(dict(self.pose_graph.nodes), event))
+        self._hand_back(LoopCorrection(dict(self.pose_graph.nodes), event, np.asarray(transform, np.float64)))
         self.world_moves.append((self.corrections_made, np.asarray(transform, np.float64)))
 
     def _in_current_world(self, pose: np.ndarray, corrections_seen: int) -> np.ndarray:
@@ -345,8 +347,8 @@ class LoopClosingStage(QueuedStage):
         tracking has not taken yet, as data; a restored stage works through them (`load_state_dict`)."""
         def pack_state(items: list[Any]) -> bytes:
             with self._corrections_lock:
-                corrections = [{"poses": [[k, v] for k, v in c.poses.items()], "event": c.event.to_dict()}
-                               for c in self._corrections]
+                corrections = [{"poses": [[k, v] for k, v in c.poses.items()], "event": c.event.to_dict(),
+                                "world_move": c.world_move} for c in self._corrections]
             return pack({**self.state_dict(), "queued": [item_state(item) for item in items],
                          "corrections": corrections}, external=external)
 
@@ -380,7 +382,10 @@ class LoopClosingStage(QueuedStage):
             self.in_map.load_state_dict(state["in_map"])
         with self._corrections_lock:
             self._corrections = [LoopCorrection({int(k): np.asarray(v, np.float64) for k, v in c["poses"]},
-                                                event_from_dict(c["event"])) for c in state.get("corrections") or []]
+                                                event_from_dict(c["event"]),
+                                                None if c.get("world_move") is None
+                                                else np.asarray(c["world_move"], np.float64))
+                                 for c in state.get("corrections") or []]
         for item in state.get("queued") or []:  # submitted before the snapshot, not done in it: done now
             self.submit(item_from_state(item))
 

@@ -102,7 +102,7 @@ class TrackingStage:
                                                       tracking.submap_id, pose, self.last_keyframe)
         world = self.add_frame(frame, pose, is_kf, tracking.submap_id)
         if tracking.tracked:
-            self._query_map(frame, is_kf, world)
+            self.query_map(frame, is_kf, world)
         self.last_frame = None if is_kf else (frame, tracking.tracked)
         self.hand_to_mapping()
         return FrameResult(frame.index, frame.timestamp, world, is_kf, tracking.submap_id, self.revision, events,
@@ -133,7 +133,7 @@ class TrackingStage:
             self.loop_closing.submit(LoopQuery(frame.index, prediction[0].tensor, self.model_intrinsics()))
         return self.apply_loop_corrections() if not self.loop_closing.pending else []
 
-    def _query_map(self, frame: Frame, is_keyframe: bool, world: np.ndarray) -> None:
+    def query_map(self, frame: Frame, is_keyframe: bool, world: np.ndarray) -> None:
         """Hand the frame to loop closing to find it in the stored map the session runs in: every frame until
         the session is anchored in the map (loop closing sheds those it is late for), then each keyframe."""
         in_map = self.in_map
@@ -173,6 +173,8 @@ class TrackingStage:
         events = []
         for correction in self.loop_closing.take_corrections():
             self.corrections_taken += 1
+            if correction.world_move is not None:
+                self.trajectory.move_world(correction.world_move)
             revision, changed = self.apply_correction(correction.poses)
             if self.depth_source is not None and self.mapping is not None:
                 self.depth_source.move(changed)

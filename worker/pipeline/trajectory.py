@@ -67,13 +67,16 @@ class Trajectory:
         self.chunk_frames = chunk_frames
         self.chunk_revisions: dict[int, int] = {}  # sealed chunks whose records were revised: chunk -> version
         self._last_index: int | None = None
+        # Tracking's world -> this trajectory's world for a keyframe with no reference (the first): moved with the
+        # whole world (`move_world`), e.g. a session anchored in a stored map before its first keyframe
+        self.world_base = np.eye(4)
 
     def add_keyframe(self, kf_id: int, tracked_pose: np.ndarray, reference: int | None = None) -> np.ndarray:
         """Add keyframe `kf_id` from its tracked pose; returns its world pose. With a `reference` keyframe, the
         new keyframe follows that keyframe's corrections (its tracked relative pose is kept), so a keyframe after a
         loop closure starts from the corrected trajectory, not from the drifted odometry."""
         tracked = nearest_sim3(tracked_pose)
-        pose = tracked
+        pose = tracked if np.array_equal(self.world_base, np.eye(4)) else nearest_sim3(self.world_base @ tracked)
         if reference is not None:
             pose = nearest_sim3(self.keyframe_poses[reference] @ _inv(self.tracked_keyframe_poses[reference]) @ tracked)
         self.tracked_keyframe_poses[int(kf_id)] = tracked
@@ -90,6 +93,16 @@ class Trajectory:
                                        int(submap_id)))
         self._last_index = int(index)
         return self.pose_of(self.frames[-1])
+
+    def move_world(self, transform: np.ndarray) -> None:
+        """The whole world moved by `transform` (the keyframes move by their own correction): keyframes made
+        without a reference from now on start in the moved world."""
+        self.world_base = np.asarray(transform, np.float64) @ self.world_base
+
+    def provisional(self, tracked_pose: np.ndarray) -> np.ndarray:
+        """The world pose of a frame tracked before any keyframe (not recorded): its tracked pose moved with the
+        world."""
+        return self.world_base @ np.asarray(tracked_pose, np.float64)
 
     def pose_of(self, record: FrameRecord) -> np.ndarray:
         return self.keyframe_poses[record.keyframe] @ record.relative
@@ -178,6 +191,7 @@ class Trajectory:
                                        else np.zeros((0, 4, 4))),
             "chunk_frames": self.chunk_frames,
             "chunk_revisions": dict(self.chunk_revisions),
+            "world_base": self.world_base,
         }
 
     def state_dict(self) -> dict:
@@ -228,6 +242,7 @@ class Trajectory:
         self.revision = int(d["revision"])
         self.chunk_frames = int(d.get("chunk_frames", self.chunk_frames))
         self.chunk_revisions = {int(k): int(v) for k, v in (d.get("chunk_revisions") or {}).items()}
+        self.world_base = np.asarray(d.get("world_base", np.eye(4)), np.float64).reshape(4, 4)
         self.keyframe_poses = {int(k): np.asarray(p, np.float64) for k, p in zip(d["keyframe_ids"],
                                                                               d["keyframe_poses"])}
         self.tracked_keyframe_poses = {int(k): np.asarray(p, np.float64)
