@@ -61,6 +61,28 @@ def test_an_up_to_scale_session_meets_the_map_by_a_similarity() -> None:
     assert results[2] is not None and np.allclose(results[2], similarity, atol=1e-9)
 
 
+def test_a_similarity_is_found_past_one_fix_that_does_not_fit() -> None:
+    """An up-to-scale session's early fix whose own pose was off (the odometry not settled) no longer keeps the
+    others from agreeing; with it alone against one other, nothing anchors."""
+    scale = 0.5
+    similarity = WORLD.copy()
+    similarity[:3, :3] *= scale
+    own = [_pose(0.05 * k, 0, [0.4 * k, 0.1 * k * k, 0.0]) for k in range(5)]
+    in_map = []
+    for T in own:
+        rigid = similarity @ T
+        rigid[:3, :3] /= scale
+        in_map.append(rigid)
+    off = own[0].copy()
+    off[:3, 3] += [0.0, 0.3, 0.0]  # its own pose 30 cm (15 cm in the map) from where the others put it
+    anchoring = MapAnchoring(metric=False, agreeing=3)
+    assert anchoring.propose(0, off, _fix(in_map[0]), scene_depth=1.0) is None
+    assert anchoring.propose(1, own[1], _fix(in_map[1]), scene_depth=1.0) is None
+    assert anchoring.propose(2, own[2], _fix(in_map[2]), scene_depth=1.0) is None  # the off one and two others
+    found = anchoring.propose(3, own[3], _fix(in_map[3]), scene_depth=1.0)
+    assert found is not None and np.allclose(found, similarity, atol=1e-9)
+
+
 def test_the_anchoring_survives_its_state() -> None:
     anchoring = MapAnchoring(metric=True)
     own = [_pose(0.0, 2, [0.1 * k, 0.0, 0.0]) for k in range(2)]

@@ -106,25 +106,33 @@ class MapAnchoring:
                 <= self.angle_tolerance_deg)
 
     def _similarity_agreement(self) -> np.ndarray | None:
-        """One similarity fitted to every fix, when they span a baseline and it explains each of them."""
-        obs = self.observations
-        if len(obs) < max(self.agreeing, 2):
-            return None
-        map_centres = np.stack([o.in_map[:3, 3] for o in obs])
+        """One similarity fitted to the fixes that explain each other: fitted to all, the fix it explains worst
+        dropped while some are off (a fix of a frame tracked before the odometry settled, say), as long as
+        `agreeing` of them remain and span a baseline."""
+        obs = list(self.observations)
         depth = float(np.median([o.scene_depth for o in obs]))
-        if np.linalg.norm(map_centres - map_centres.mean(0), axis=1).max() < self.min_baseline * depth:
-            return None
-        transform = fit_similarity([o.own for o in obs], [o.in_map for o in obs])
-        if transform is None:
-            return None
-        scale = float(np.cbrt(np.linalg.det(transform[:3, :3])))
-        for o in obs:
-            moved = transform @ o.own
-            rotation = moved[:3, :3] / np.cbrt(np.linalg.det(moved[:3, :3]))
-            if (np.linalg.norm(moved[:3, 3] - o.in_map[:3, 3]) > self.position_tolerance * depth
-                    or _rotation_angle_deg(rotation.T @ o.in_map[:3, :3]) > self.angle_tolerance_deg):
+        while len(obs) >= max(self.agreeing, 2):
+            map_centres = np.stack([o.in_map[:3, 3] for o in obs])
+            if np.linalg.norm(map_centres - map_centres.mean(0), axis=1).max() < self.min_baseline * depth:
                 return None
-        return transform if np.isfinite(scale) and scale > 0 else None
+            transform = fit_similarity([o.own for o in obs], [o.in_map for o in obs])
+            if transform is None:
+                return None
+            scale = float(np.cbrt(np.linalg.det(transform[:3, :3])))
+            if not np.isfinite(scale) or scale <= 0:
+                return None
+            off = [self._similarity_miss(transform, o, depth) for o in obs]
+            if max(off) <= 1.0:
+                return transform
+            del obs[int(np.argmax(off))]
+        return None
+
+    def _similarity_miss(self, transform: np.ndarray, o: Observation, depth: float) -> float:
+        """How far `transform` takes the fix's own pose from its pose in the map, in tolerances (<= 1: within)."""
+        moved = transform @ o.own
+        rotation = moved[:3, :3] / np.cbrt(np.linalg.det(moved[:3, :3]))
+        return max(float(np.linalg.norm(moved[:3, 3] - o.in_map[:3, 3])) / (self.position_tolerance * depth),
+                   _rotation_angle_deg(rotation.T @ o.in_map[:3, :3]) / self.angle_tolerance_deg)
 
     def state_dict(self) -> dict[str, Any]:
         return {"transform": self.transform,
