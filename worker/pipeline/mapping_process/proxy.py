@@ -355,6 +355,8 @@ class MappingProcess:
             try:
                 self._complete_checkpoint(call, covers)
             except RuntimeError:
+                if self._closing:  # the session closed first: there is nothing left to keep
+                    return
                 log.warning("mapping process: a checkpoint failed", exc_info=True)
                 with self._state:
                     self._mapped_since_checkpoint = 0  # try again as many keyframes later
