@@ -168,8 +168,11 @@ class QueuedStage:
 
     def _handle_numbered(self, numbered: tuple[int, Any]) -> None:
         number, item = numbered
+        # Every snapshot asked for is made before the next item starts, whether that item came before it (then it
+        # goes into the snapshot as data) or after: a snapshot waits one work step at most, even where this thread
+        # would win the lock from the snapshot's own thread item after item
         with self._unfinished_lock:
-            due = [c for c in self._cuts if c.number < number]  # snapshots asked for before this item
+            due = list(self._cuts)
         for cut in due:
             with self.lock:
                 cut.take()
@@ -197,7 +200,7 @@ class QueuedStage:
         """The stage's state as of now, handed to `deliver(make_part)` without waiting for the queue: `make_part()`
         is `pack_state(items)`, called under the lock with the items submitted so far and not done yet (the one
         running included). A thread of its own makes it as soon as it gets the lock (one work step at most); the
-        stage's thread makes it first if it is about to start an item submitted after this call."""
+        stage's thread makes it first if it is about to start another item."""
         with self._unfinished_lock:
             number = self._submitted
 
