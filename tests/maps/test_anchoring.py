@@ -43,17 +43,22 @@ def test_a_fix_that_disagrees_does_not_anchor() -> None:
     assert not anchoring.anchored
 
 
-def test_an_up_to_scale_session_meets_the_map_by_a_similarity() -> None:
-    scale = 0.37
+def _up_to_scale_track(scale: float, frames: int) -> tuple[np.ndarray, list[np.ndarray], list[np.ndarray]]:
+    """A similarity of `scale` from an up-to-scale session's world to the map's, the session's own poses over a
+    curved path and the same poses in the map (rigid)."""
     similarity = WORLD.copy()
     similarity[:3, :3] *= scale
-    own = [_pose(0.05 * k, 0, [0.4 * k, 0.1 * k * k, 0.0]) for k in range(4)]
+    own = [_pose(0.05 * k, 0, [0.4 * k, 0.1 * k * k, 0.0]) for k in range(frames)]
     in_map = []
     for T in own:
-        moved = similarity @ T
-        rigid = moved.copy()
+        rigid = similarity @ T
         rigid[:3, :3] /= scale
         in_map.append(rigid)
+    return similarity, own, in_map
+
+
+def test_an_up_to_scale_session_meets_the_map_by_a_similarity() -> None:
+    similarity, own, in_map = _up_to_scale_track(0.37, 4)
     assert np.allclose(fit_similarity(own, in_map), similarity, atol=1e-9)
     anchoring = MapAnchoring(metric=False, agreeing=3)
     results = [anchoring.propose(k, T, _fix(M), scene_depth=1.0) for k, (T, M) in enumerate(zip(own, in_map))]
@@ -64,15 +69,7 @@ def test_an_up_to_scale_session_meets_the_map_by_a_similarity() -> None:
 def test_a_similarity_is_found_past_one_fix_that_does_not_fit() -> None:
     """An up-to-scale session's early fix whose own pose was off (the odometry not settled) no longer keeps the
     others from agreeing; with it alone against one other, nothing anchors."""
-    scale = 0.5
-    similarity = WORLD.copy()
-    similarity[:3, :3] *= scale
-    own = [_pose(0.05 * k, 0, [0.4 * k, 0.1 * k * k, 0.0]) for k in range(5)]
-    in_map = []
-    for T in own:
-        rigid = similarity @ T
-        rigid[:3, :3] /= scale
-        in_map.append(rigid)
+    similarity, own, in_map = _up_to_scale_track(0.5, 5)
     off = own[0].copy()
     off[:3, 3] += [0.0, 0.3, 0.0]  # its own pose 30 cm (15 cm in the map) from where the others put it
     anchoring = MapAnchoring(metric=False, agreeing=3)
