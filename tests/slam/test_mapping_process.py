@@ -99,9 +99,9 @@ def test_a_killed_mapping_process_is_replaced_and_no_keyframe_is_lost(frames, mo
     first = push_all_within(system, frames[:7])
     system.mapping_stage.wait_idle()
     deadline = time.monotonic() + 30
-    while system.mapping_stage._checkpoint.data is None and time.monotonic() < deadline:
+    while system.mapping_stage.checkpoint.data is None and time.monotonic() < deadline:
         time.sleep(0.05)
-    assert system.mapping_stage._checkpoint.covers >= 2, "no checkpoint was taken"
+    assert system.mapping_stage.checkpoint.covers >= 2, "no checkpoint was taken"
     killed = system.mapping_stage.pid
     os.kill(killed, signal.SIGKILL)
     rest = push_all_within(system, frames[7:])

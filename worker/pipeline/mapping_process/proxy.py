@@ -6,8 +6,8 @@ multi-view depth hint and the stage timings here up to date without a round trip
 for their depth come back from it and go to the loop-closing stage here.
 
 A process that dies is replaced: the new one loads the last checkpoint of the map (a snapshot of the stage, taken
-every `CHECKPOINT_EVERY` keyframes and with each of the session's own snapshots) and is sent again every job
-submitted after it, then every call that had no answer. A keyframe whose loop query was answered already does not
+every `CHECKPOINT_EVERY` keyframes and with each of the session's own snapshots; `restart_log`) and is sent again
+every job submitted after it, then every call that had no answer. A keyframe whose loop query was answered already does not
 ask again. Tracking goes on meanwhile: jobs submitted during the restart queue behind the replayed ones.
 """
 
@@ -33,6 +33,7 @@ from worker.pipeline.loop_stage import LoopQuery
 from worker.pipeline.map_jobs import KeyframeJob, PoseUpdateJob, build_gaussian_map, job_state
 from worker.pipeline.mapping_process.channel import Channel, ChannelClosed
 from worker.pipeline.mapping_process.launcher import start_mapping_process
+from worker.pipeline.mapping_process.restart_log import Checkpoint, RestartLog
 from worker.pipeline.mapping_stage import MappingStage
 from worker.pipeline.stage_times import STAGES, StageTimes
 
@@ -59,13 +60,6 @@ class _Call:
     error: str | None = None
 
 
-@dataclass
-class _Checkpoint:
-    data: bytes | None = None  # the stage's packed state (large arrays in `arrays`, by digest)
-    covers: int = 0  # the jobs submitted before it (numbers 1..covers) are in it, done or queued
-    arrays: dict[str, bytes] = field(default_factory=dict)
-
-
 class MappingProcess:
     """A MappingStage in a process of its own (see the module docstring)."""
 
@@ -84,14 +78,11 @@ class MappingProcess:
         self._sent = 0  # jobs sent to the current process
         self._report: dict[str, Any] = {"received": 0, "pending": 0, "stats": dict(_STATS_BEFORE_A_REPORT),
                                         "gaussians": 0, "held_images": 0}
-        self._replay: deque[tuple[int, KeyframeJob | PoseUpdateJob]] = deque()  # jobs after the checkpoint
+        self._restart_log = RestartLog()  # the checkpoint and the jobs after it (under `_wire`)
         self._waiting: deque[tuple[int, float]] = deque()  # (kf_id, submit time) of keyframe jobs not done
         self._queried: set[int] = set()  # keyframes whose loop query came back
         self._calls: dict[int, _Call] = {}
         self._next_call = 0
-        self._checkpoint = _Checkpoint()
-        self._arrays: dict[str, bytes] = {}  # large arrays of the checkpoint and of the cuts asked for, by digest
-        self._pinned: dict[int, set[str]] = {}  # per cut asked for: the arrays it was told are held here
         self._mapped_since_checkpoint = 0
         self._timing_base: dict[str, tuple[float, int]] = {}  # the stage timings of processes that died
         self._failure: str | None = None
@@ -107,7 +98,7 @@ class MappingProcess:
         self.raise_if_failed()
         with self._wire:
             self._submitted += 1
-            self._replay.append((self._submitted, job))
+            self._restart_log.record(self._submitted, job)
             if isinstance(job, KeyframeJob):
                 with self._state:
                     self._waiting.append((job.kf_id, time.monotonic()))
@@ -224,9 +215,8 @@ class MappingProcess:
         """Continue from a snapshot's map part (unpacked): the process loads it; it is the checkpoint too."""
         data = pack(state)
         with self._wire:
-            self._checkpoint = _Checkpoint(data, self._submitted, {})
-            self._drop_replay_through(self._submitted)
-            self._send_load(self._checkpoint)
+            self._restart_log.start_from(data, self._submitted)
+            self._send_load(self._restart_log.checkpoint)
         for item in state.get("queued") or []:
             if "keyframe" in item:
                 with self._state:
@@ -269,6 +259,11 @@ class MappingProcess:
             call.done.set()
 
     @property
+    def checkpoint(self) -> Checkpoint:
+        """The checkpoint of the map a replacement process would start from."""
+        return self._restart_log.checkpoint
+
+    @property
     def pid(self) -> int | None:
         """The process's id (tests and operators kill it to see a restart)."""
         return self._process.pid
@@ -304,7 +299,7 @@ class MappingProcess:
         except ChannelClosed:
             pass  # the reader sees the process gone and restarts it; what was sent then goes again
 
-    def _send_load(self, checkpoint: _Checkpoint) -> None:
+    def _send_load(self, checkpoint: Checkpoint) -> None:
         self._send({"op": "load", "data": checkpoint.data, "arrays": checkpoint.arrays,
                     "queried": sorted(self._queried)})
 
@@ -315,38 +310,24 @@ class MappingProcess:
         with self._wire:
             with self._state:
                 self._next_call += 1
-                call = _Call(self._next_call, "snapshot", {"known": sorted(self._arrays)})
+                call = _Call(self._next_call, "snapshot", {"known": self._restart_log.held_for(self._next_call)})
                 self._calls[call.call_id] = call
-                self._pinned[call.call_id] = set(self._arrays)
             covers = self._submitted
             self._send_call(call)
         return call, covers
 
-    def _complete_checkpoint(self, call: _Call, covers: int) -> _Checkpoint:
+    def _complete_checkpoint(self, call: _Call, covers: int) -> Checkpoint:
         """Wait for the cut `call` asked for; it becomes the checkpoint unless a later one already is."""
         call.done.wait()
         with self._wire:
-            self._pinned.pop(call.call_id, None)
             if call.error is not None:
+                self._restart_log.forget(call.call_id)
                 raise RuntimeError(f"the mapping process's snapshot failed: {call.error}")
-            reply = call.value
-            self._arrays.update(reply["arrays"])
-            missing = [d for d in reply["digests"] if d not in self._arrays]
-            if missing:
-                raise RuntimeError(f"the mapping process's snapshot refers to {len(missing)} arrays not held here")
-            checkpoint = _Checkpoint(reply["bytes"], covers, {d: self._arrays[d] for d in reply["digests"]})
-            if covers >= self._checkpoint.covers:  # a restart reads the checkpoint and the jobs after it as one
-                self._checkpoint = checkpoint
-                self._drop_replay_through(covers)
+            checkpoint, newest = self._restart_log.complete(call.call_id, call.value, covers)
+            if newest:
                 with self._state:
                     self._mapped_since_checkpoint = 0  # the session's own snapshots count: no extra cut is due
-            keep = set(self._checkpoint.arrays).union(*self._pinned.values())
-            self._arrays = {d: a for d, a in self._arrays.items() if d in keep}
         return checkpoint
-
-    def _drop_replay_through(self, covers: int) -> None:
-        while self._replay and self._replay[0][0] <= covers:
-            self._replay.popleft()
 
     def _checkpoint_in_background(self) -> None:
         call, covers = self._request_checkpoint()
@@ -463,9 +444,9 @@ class MappingProcess:
                 self._report = {**self._report, "received": 0, "pending": 0}
             if self._multiview:
                 self._send({"op": "multiview"})
-            if self._checkpoint.data is not None:
-                self._send_load(self._checkpoint)
-            for _, job in list(self._replay):
+            if self._restart_log.checkpoint.data is not None:
+                self._send_load(self._restart_log.checkpoint)
+            for job in self._restart_log.jobs():
                 self._send_job(job)
             with self._state:
                 open_calls = sorted(self._calls.values(), key=lambda c: c.call_id)
