@@ -7,8 +7,8 @@ for their depth come back from it and go to the loop-closing stage here.
 
 A process that dies is replaced: the new one loads the last checkpoint of the map (a snapshot of the stage, taken
 every `CHECKPOINT_EVERY` keyframes and with each of the session's own snapshots; `restart_log`) and is sent again
-every job submitted after it, then every call that had no answer. A keyframe whose loop query was answered already does not
-ask again. Tracking goes on meanwhile: jobs submitted during the restart queue behind the replayed ones.
+every job submitted after it, then every call that had no answer. A keyframe whose loop query was answered already
+does not ask again. Tracking goes on meanwhile: jobs submitted during the restart queue behind the replayed ones.
 """
 
 from __future__ import annotations
