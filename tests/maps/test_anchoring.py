@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from worker.maps.anchoring import MapAnchoring, fit_similarity
 from worker.maps.localizer import MapFix
@@ -43,12 +44,13 @@ def test_a_fix_that_disagrees_does_not_anchor() -> None:
     assert not anchoring.anchored
 
 
-def _up_to_scale_track(scale: float, frames: int) -> tuple[np.ndarray, list[np.ndarray], list[np.ndarray]]:
+def _up_to_scale_track(scale: float, frames: int, step: float = 1.0
+                       ) -> tuple[np.ndarray, list[np.ndarray], list[np.ndarray]]:
     """A similarity of `scale` from an up-to-scale session's world to the map's, the session's own poses over a
-    curved path and the same poses in the map (rigid)."""
+    curved path (`step` times as far apart) and the same poses in the map (rigid)."""
     similarity = WORLD.copy()
     similarity[:3, :3] *= scale
-    own = [_pose(0.05 * k, 0, [0.4 * k, 0.1 * k * k, 0.0]) for k in range(frames)]
+    own = [_pose(0.05 * k * step, 0, [0.4 * k * step, 0.1 * (k * step) ** 2, 0.0]) for k in range(frames)]
     in_map = []
     for T in own:
         rigid = similarity @ T
@@ -78,6 +80,25 @@ def test_a_similarity_is_found_past_one_fix_that_does_not_fit() -> None:
     assert anchoring.propose(2, own[2], _fix(in_map[2]), scene_depth=1.0) is None  # the off one and two others
     found = anchoring.propose(3, own[3], _fix(in_map[3]), scene_depth=1.0)
     assert found is not None and np.allclose(found, similarity, atol=1e-9)
+
+
+def test_two_fixes_whose_depth_measured_the_scale_anchor_an_up_to_scale_session_without_a_baseline() -> None:
+    """Fixes with the scale the frames' own points measured against the map's depth: two of different frames
+    that agree anchor at once, the camera hardly moved; a scale 10 % off does not agree."""
+    similarity, near, near_in_map = _up_to_scale_track(0.5, 3, step=0.01)  # 4 mm apart: no baseline
+    anchoring = MapAnchoring(metric=False, agreeing=3)
+    assert anchoring.propose(0, near[0], _fix(near_in_map[0]), scene_depth=1.0, scale=0.5) is None
+    assert anchoring.propose(1, near[1], _fix(near_in_map[1]), scene_depth=1.0, scale=0.55) is None  # 10 % off
+    found = anchoring.propose(2, near[2], _fix(near_in_map[2]), scene_depth=1.0, scale=0.501)
+    assert found is not None
+    assert np.cbrt(np.linalg.det(found[:3, :3])) == pytest.approx(0.5, rel=0.01)
+    assert np.allclose(found @ near[2][:, 3], similarity @ near[2][:, 3], atol=1e-3)
+    restored = MapAnchoring(metric=False, agreeing=3)
+    restored.load_state_dict(anchoring.state_dict())
+    assert [o.scale for o in restored.observations] == [0.5, 0.55, 0.501]
+    without = MapAnchoring(metric=False, agreeing=3)  # the same fixes without a scale: no baseline, no anchoring
+    assert all(without.propose(k, T, _fix(M), scene_depth=1.0) is None
+               for k, (T, M) in enumerate(zip(near, near_in_map)))
 
 
 def test_the_anchoring_survives_its_state() -> None:

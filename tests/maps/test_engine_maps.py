@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 import redis
 import torch
@@ -16,6 +17,7 @@ from service.redis_embedded import EmbeddedRedis
 from worker.config import SlamConfig
 from worker.data import open_source
 from worker.maps import add_version, build_package, load_gaussian_map, read_package
+from worker.maps.session_in_map import SessionInMap
 from worker.runtime.engine import PassthroughEngine
 from worker.runtime.requests import RequestError, serve_request
 from worker.slam import SlamSystem
@@ -99,3 +101,23 @@ def test_versions_of_a_map_in_redis(finished):
         client.delete(*keys.all_map_keys("m1"))
         with pytest.raises(MapNotFound):
             read_package(client, "m1")
+
+
+def test_an_rgb_only_session_meets_a_saved_map_at_the_scale_its_depth_measures(finished):
+    """Up to scale, the session's odometry points against the stored map's rendered depth give its scale in the
+    map from a single frame (`SessionInMap.depth_scale`); it agrees with the similarity the anchoring settles on,
+    and no frame is looked up before the odometry has points (its poses have no scale yet)."""
+    package = decode_package(build_package(finished, "living room", ["s1"]))
+    in_map = SessionInMap.from_package("m", 1, "localize", package)
+    frames = list(open_source(DATA, max_frames=30, resize=(160, 120), use_gt_depth=False))
+    system = SlamSystem(SlamConfig.preset("rgbd", threaded=False, mapping={"enabled": False}),
+                        intrinsics=frames[0].intrinsics, in_map=in_map)
+    results = [system.push(f) for f in frames]
+    assert in_map.anchored
+    first_keyframes = [r.index for r in results if r.is_keyframe][:2]
+    looked_up = [o.frame for o in in_map.anchoring.observations]
+    assert min(looked_up) >= first_keyframes[1] > first_keyframes[0] == 0  # not the first keyframe: no points yet
+    scales = [o.scale for o in in_map.anchoring.observations if o.scale is not None]
+    anchored_scale = float(np.cbrt(np.linalg.det(in_map.anchoring.transform[:3, :3])))
+    assert scales and all(abs(np.log(s / anchored_scale)) < np.log(1.15) for s in scales)
+    system.finish()

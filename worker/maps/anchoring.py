@@ -7,7 +7,9 @@ not happen by chance); otherwise the session anchors once `agreeing` fixes of di
 transform (within `position_tolerance` of the scene's depth and `angle_tolerance_deg`). A metric session (sensor
 depth or device poses) measures a rigid transform from each fix; an up-to-scale one (RGB only) needs fixes apart
 from each other to measure the scale, and fits one similarity to all of them (rotation averaged, then scale and
-translation by least squares on camera centres).
+translation by least squares on camera centres). Where a fix comes with the scale the frame's own points measure
+against the map's depth (`scale`), it gives a similarity of its own, and two such fixes of different frames that
+agree (scale included, within `scale_tolerance`) anchor the session without a baseline.
 """
 
 from __future__ import annotations
@@ -53,6 +55,7 @@ class Observation:
     in_map: np.ndarray
     inliers: int
     scene_depth: float
+    scale: float | None = None  # map units per own unit, measured from the frame's depth (up to scale only)
 
 
 @dataclass
@@ -64,6 +67,7 @@ class MapAnchoring:
     position_tolerance: float = 0.05  # of the scene's depth
     angle_tolerance_deg: float = 3.0
     min_baseline: float = 0.1  # up to scale: camera centres this far apart (of the scene's depth) measure the scale
+    scale_tolerance: float = 0.05  # up to scale: two fixes' depth-measured scales agree within this (relative)
     keep: int = 8
     transform: np.ndarray | None = None
     observations: list[Observation] = field(default_factory=list)
@@ -72,18 +76,24 @@ class MapAnchoring:
     def anchored(self) -> bool:
         return self.transform is not None
 
-    def propose(self, frame: int, own_pose: np.ndarray, fix: MapFix, scene_depth: float) -> np.ndarray | None:
-        """Add a fix of `frame` (own-world pose `own_pose`); the transform when the fixes agree now (or this one is
-        confirmed by the frame's depth), else None."""
+    def propose(self, frame: int, own_pose: np.ndarray, fix: MapFix, scene_depth: float,
+                scale: float | None = None) -> np.ndarray | None:
+        """Add a fix of `frame` (own-world pose `own_pose`; up to scale, with the `scale` its depth measured, if
+        any); the transform when the fixes agree now (or this one is confirmed by the frame's depth), else None."""
         if self.anchored:
             return None
         self.observations.append(Observation(int(frame), np.asarray(own_pose, np.float64), fix.pose,
-                                             fix.inliers, max(float(scene_depth), 1e-6)))
+                                             fix.inliers, max(float(scene_depth), 1e-6),
+                                             None if self.metric or scale is None else float(scale)))
         self.observations = self.observations[-self.keep:]
         if self.metric and confirmed(fix):
             transform = fix.pose @ _inverse(np.asarray(own_pose, np.float64))
+        elif self.metric:
+            transform = self._rigid_agreement()
         else:
-            transform = self._rigid_agreement() if self.metric else self._similarity_agreement()
+            transform = self._scaled_agreement()
+            if transform is None:
+                transform = self._similarity_agreement()
         if transform is not None:
             self.transform = transform
         return transform
@@ -98,6 +108,19 @@ class MapAnchoring:
             return None
         best = max([newest, *agree], key=lambda o: o.inliers)
         return best.in_map @ _inverse(best.own)
+
+    def _scaled_agreement(self) -> np.ndarray | None:
+        """Up to scale: the newest fix's similarity (its depth-measured scale) when another frame's agrees."""
+        newest = self.observations[-1]
+        if newest.scale is None:
+            return None
+        candidate = _scaled_transform(newest)
+        agree = [o for o in self.observations[:-1] if o.scale is not None and o.frame != newest.frame
+                 and abs(np.log(o.scale / newest.scale)) <= np.log1p(self.scale_tolerance)
+                 and self._same(candidate, _scaled_transform(o), newest.scene_depth)]
+        if len(agree) + 1 < max(self.agreeing - 1, 2):
+            return None
+        return _scaled_transform(max([newest, *agree], key=lambda o: o.inliers))
 
     def _same(self, a: np.ndarray, b: np.ndarray, scene_depth: float) -> bool:
         delta = _inverse(a) @ b
@@ -137,13 +160,15 @@ class MapAnchoring:
     def state_dict(self) -> dict[str, Any]:
         return {"transform": self.transform,
                 "observations": [{"frame": o.frame, "own": o.own, "in_map": o.in_map, "inliers": o.inliers,
-                                  "scene_depth": o.scene_depth} for o in self.observations]}
+                                  "scene_depth": o.scene_depth, "scale": o.scale} for o in self.observations]}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.transform = None if state.get("transform") is None else np.asarray(state["transform"], np.float64)
         self.observations = [Observation(int(o["frame"]), np.asarray(o["own"], np.float64),
                                          np.asarray(o["in_map"], np.float64), int(o["inliers"]),
-                                         float(o["scene_depth"])) for o in state.get("observations") or []]
+                                         float(o["scene_depth"]),
+                                         None if o.get("scale") is None else float(o["scale"]))
+                             for o in state.get("observations") or []]
 
 
 def confirmed(fix: MapFix) -> bool:
@@ -151,6 +176,16 @@ def confirmed(fix: MapFix) -> bool:
     CONFIRMED_DEPTH_AGREEMENT of them where the depth sees them."""
     return (fix.depth_agreement is not None and fix.depth_agreement >= CONFIRMED_DEPTH_AGREEMENT
             and fix.inliers >= CONFIRMED_INLIERS)
+
+
+def _scaled_transform(o: Observation) -> np.ndarray:
+    """The similarity S (scale `o.scale`) with S @ own ~ in_map for one fix: rotation and camera centre exact."""
+    own_rotation = o.own[:3, :3] / np.cbrt(np.linalg.det(o.own[:3, :3]))
+    R = o.in_map[:3, :3] @ own_rotation.T
+    out = np.eye(4)
+    out[:3, :3] = o.scale * R
+    out[:3, 3] = o.in_map[:3, 3] - o.scale * R @ o.own[:3, 3]
+    return out
 
 
 def fit_similarity(own: list[np.ndarray], in_map: list[np.ndarray]) -> np.ndarray | None:

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import torch
 
 from protocol.map_package import MapPackage
 from protocol.map_store import MAP_MODES, MapMode
@@ -45,6 +46,10 @@ log = logging.getLogger(__name__)
 WORLD_REFINE_FIXES = 5
 WORLD_REFINE_MIN = 0.003
 WORLD_REFINE_MIN_DEG = 0.2
+# An up-to-scale session's scale in the map from one frame (`depth_scale`): at least this many of its odometry's
+# points where the stored map renders a depth, their log depth ratios within this median absolute deviation
+DEPTH_SCALE_POINTS = 20
+DEPTH_SCALE_SPREAD = 0.05
 # Ids of the places other sessions share (apart from the map's keyframe ids)
 SHARED_PLACE_IDS = 1 << 50
 
@@ -52,8 +57,9 @@ SHARED_PLACE_IDS = 1 << 50
 @dataclass
 class MapQuery:
     """A frame to find in the stored map: its index, whether it is a keyframe (a graph node), its world pose when
-    tracking made the query, its grey image, camera matrix and depth (own units; None without), and how many
-    corrections tracking had applied then (a world move made after that is not in `own_pose` yet)."""
+    tracking made the query, its grey image, camera matrix and depth (own units; None without), how many
+    corrections tracking had applied then (a world move made after that is not in `own_pose` yet) and, for an
+    up-to-scale session, the points its odometry sees in it: [n, 3] pixel u, v and depth in the session's units."""
 
     frame: int
     keyframe: bool
@@ -62,17 +68,20 @@ class MapQuery:
     K: np.ndarray
     depth: np.ndarray | None = None
     corrections_seen: int = 0
+    own_points: np.ndarray | None = None
 
     def state(self) -> dict[str, Any]:
         return {"kind": "map_query", "frame": self.frame, "keyframe": self.keyframe, "own_pose": self.own_pose,
-                "gray": self.gray, "K": self.K, "depth": self.depth, "corrections_seen": self.corrections_seen}
+                "gray": self.gray, "K": self.K, "depth": self.depth, "corrections_seen": self.corrections_seen,
+                "own_points": self.own_points}
 
     @classmethod
     def from_state(cls, s: dict[str, Any]) -> MapQuery:
-        depth = s.get("depth")
+        depth, points = s.get("depth"), s.get("own_points")
         return cls(int(s["frame"]), bool(s["keyframe"]), np.asarray(s["own_pose"], np.float64),
                    np.asarray(s["gray"], np.uint8), np.asarray(s["K"], np.float64),
-                   None if depth is None else np.asarray(depth, np.float32), int(s["corrections_seen"]))
+                   None if depth is None else np.asarray(depth, np.float32), int(s["corrections_seen"]),
+                   None if points is None else np.asarray(points, np.float32).reshape(-1, 3))
 
 
 class SessionInMap:
@@ -121,9 +130,37 @@ class SessionInMap:
         """What the session's renders show: the stored map when it localizes in it, else its own map `own`."""
         if self.mode != "localize" or self.package is None:
             return own
-        if self._renderer is None:
-            self._renderer = StoredMapRenderer(self.package)
-        return self._renderer
+        return self._stored_renderer()
+
+    def _stored_renderer(self) -> StoredMapRenderer:
+        with self._lock:
+            if self._renderer is None:
+                self._renderer = StoredMapRenderer(self.package)
+            return self._renderer
+
+    def depth_scale(self, fix: MapFix, query: MapQuery) -> float | None:
+        """An up-to-scale session's scale in the map (map units per own unit) from one frame: the stored map's depth
+        rendered at the fix over the depth of the points the session's odometry sees at the same pixels (median);
+        None without such points, or where fewer than DEPTH_SCALE_POINTS of them meet the map or their ratios
+        spread by more than DEPTH_SCALE_SPREAD (median absolute deviation of the log ratio)."""
+        points = query.own_points
+        if self.package is None or points is None or len(points) < DEPTH_SCALE_POINTS:
+            return None
+        height, width = query.gray.shape
+        rendered = self._stored_renderer().render(fix.pose, torch.from_numpy(np.asarray(query.K, np.float32)),
+                                                  width, height)
+        depth = rendered.depth.detach().cpu().numpy().reshape(height, width)
+        u = np.clip(points[:, 0].astype(np.int64), 0, width - 1)
+        v = np.clip(points[:, 1].astype(np.int64), 0, height - 1)
+        seen = depth[v, u]
+        keep = (points[:, 2] > 0) & np.isfinite(seen) & (seen > 0)
+        if keep.sum() < DEPTH_SCALE_POINTS:
+            return None
+        log_ratio = np.log(seen[keep] / points[keep, 2])
+        centre = float(np.median(log_ratio))
+        if float(np.median(np.abs(log_ratio - centre))) > DEPTH_SCALE_SPREAD:
+            return None
+        return float(np.exp(centre))
 
     def attach(self, session_metric: bool, device_poses: bool = False) -> None:
         """Set how the session's world meets the map's, once the session knows its input (its first frame);

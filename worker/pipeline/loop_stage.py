@@ -262,7 +262,8 @@ class LoopClosingStage(QueuedStage):
         scene_depth = self.pose_graph.length_unit or 1.0
         if not in_map.anchored:
             own = self._in_current_world(query.own_pose, query.corrections_seen)
-            transform = in_map.anchoring.propose(query.frame, own, fix, scene_depth)
+            scale = None if in_map.metric else in_map.depth_scale(fix, query)
+            transform = in_map.anchoring.propose(query.frame, own, fix, scene_depth, scale)
             if transform is not None:
                 in_map.relocalized_at = query.frame
                 self._move_world(transform, Relocalized(map_id=in_map.map_id, frame=query.frame, **fix.quality()))

@@ -71,6 +71,7 @@ class TrackingStage:
         self.last_frame_mapped: int | None = None  # the final frame's index when finish() mapped it too
         self.in_map: SessionInMap | None = None  # the stored map the session runs in (worker.maps), if any
         self.corrections_taken = 0  # loop-closing corrections applied so far
+        self._source_has_points = False  # the pose source has seen points (its poses have a scale of their own)
 
     def loop_closing_submit(self, item) -> None:
         """Submit `item` to the loop-closing stage the session has now."""
@@ -102,7 +103,7 @@ class TrackingStage:
                                                       tracking.submap_id, pose, self.last_keyframe)
         world = self.add_frame(frame, pose, is_kf, tracking.submap_id)
         if tracking.tracked:
-            self.query_map(frame, is_kf, world)
+            self.query_map(frame, is_kf, world, tracking.depth)
         self.last_frame = None if is_kf else (frame, tracking.tracked)
         self.hand_to_mapping()
         return FrameResult(frame.index, frame.timestamp, world, is_kf, tracking.submap_id, self.revision, events,
@@ -133,19 +134,32 @@ class TrackingStage:
             self.loop_closing.submit(LoopQuery(frame.index, prediction[0].tensor, self.model_intrinsics()))
         return self.apply_loop_corrections() if not self.loop_closing.pending else []
 
-    def query_map(self, frame: Frame, is_keyframe: bool, world: np.ndarray) -> None:
+    def query_map(self, frame: Frame, is_keyframe: bool, world: np.ndarray, source_depth: np.ndarray | None = None
+                  ) -> None:
         """Hand the frame to loop closing to find it in the stored map the session runs in: every frame until
-        the session is anchored in the map (loop closing sheds those it is late for), then each keyframe."""
+        the session is anchored in the map (loop closing sheds those it is late for), then each keyframe. Without
+        sensor depth, the points the pose source sees in the frame (`source_depth`, its own units, at the tracked
+        size) go along until the anchoring: they measure an up-to-scale session's scale in the map, which looks
+        itself up only from the first frame with such points (before, its poses have no scale of their own)."""
         in_map = self.in_map
         if in_map is None or (in_map.anchored and not is_keyframe):
             return
+        if not in_map.metric and not self._source_has_points:  # an up-to-scale source's poses mean nothing yet
+            if source_depth is None or not np.any(source_depth > 0):
+                return
+            self._source_has_points = True
         small = self._tracked_frame if self._tracked_frame is not None and self._tracked_frame.index == frame.index \
             else at_most(frame, self.max_side)
         K = self.camera.for_frame(frame).scaled(small.width, small.height).matrix()
         gray = cv2.cvtColor(np.ascontiguousarray(small.image), cv2.COLOR_RGB2GRAY)
         depth = None if not self.with_depth or small.depth is None else np.asarray(small.depth, np.float32)
+        points = None
+        if depth is None and not in_map.anchored and source_depth is not None \
+                and source_depth.shape == gray.shape:
+            v, u = np.nonzero(source_depth > 0)
+            points = np.stack([u + 0.5, v + 0.5, source_depth[v, u]], axis=1).astype(np.float32)
         self.loop_closing.submit(MapQuery(frame.index, is_keyframe, np.asarray(world, np.float64).copy(), gray,
-                                          np.asarray(K, np.float64), depth, self.corrections_taken))
+                                          np.asarray(K, np.float64), depth, self.corrections_taken, points))
 
     def hand_to_mapping(self, force: bool = False) -> None:
         """The depth source's ready jobs to the mapping stage; none while the pose source is still estimating the
