@@ -17,6 +17,7 @@ again (the judged start replays its frames) are read with the offset known then.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import replace
 from typing import Any
@@ -94,7 +95,7 @@ class DeviceClock:
         if not self.measuring and len(self.times) > KEEP_POSES:
             del self.times[:-KEEP_POSES], self.poses[:-KEEP_POSES]
 
-    def _run(self, task, *args) -> None:
+    def _run(self, task: Callable[..., None], *args: Any) -> None:
         """`task(*args)` now, or queued on the clock's thread (in order) with `background`."""
         if not self.background:
             task(*args)
