@@ -228,7 +228,8 @@ class TrackingEvent:
     "new_map" (RGB-only: the old map was not found again, a new one begins at the last pose, `data["map"]`) or
     "maps_merged" (RGB-only: a map restarted after a loss was joined to the older one, scale included; the restarted
     map's poses moved, see `data["revision"]`) or "drift_corrected" (posed RGB, seeded: the pose graph was solved
-    with the device's poses, moving past keyframes and the map toward them, see `data["revision"]`) or
+    with the device's poses, moving past keyframes and the map toward them; RGB-D: with the newest keyframe's
+    alignment to the keyframes near it, `source` covisibility; see `data["revision"]`) or
     "poses_refined" (at the end of a session: the final refinement moved the keyframes' cameras where the map's
     renders fit their photos, every frame following its keyframe, see `data["revision"]`) or "rotation_only"
     (RGB-only: a turn too fast for new points; poses follow the tracks' rotation, the position held or measured,

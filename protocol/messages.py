@@ -472,14 +472,17 @@ class DriftCorrected(ServerMessage):
         "correcting the odometry's drift (its scale above all) between loop closures; past "
         "keyframes and their part of the map moved: GET the trajectory for revision "
         "`revision`. Sessions in a saved map: the same with the keyframes' fixes in the map "
-        "as priors (`source` map)"
+        "as priors (`source` map). RGB-D sessions: the newest keyframe was aligned to the older "
+        "keyframes near it, image and depth, and the graph solved with those edges (`source` "
+        "covisibility)"
     )
     OPEN: ClassVar[bool] = True
     seq: int
     revision: int | None = None
-    keyframe: int | None = info(doc="the newest keyframe whose device pose was used", default=None)
+    keyframe: int | None = info(doc="the newest keyframe whose device pose (or fix, or edges) was used", default=None)
     source: str | None = info(
-        doc="map: the priors are the keyframes' fixes in the saved map the session runs in (absent: device poses)",
+        doc=("map: the priors are the keyframes' fixes in the saved map the session runs in; covisibility: the "
+             "edges of an RGB-D keyframe to its neighbours (absent: device poses)"),
         default=None,
     )
     from_other_sessions: int | None = info(

@@ -111,6 +111,21 @@ class LoopConfig(_Section):
     alignment_max_rms: float = Field(
         0.005, gt=0, description="ICP: largest RMS point-to-plane residual, in scene length units (the median depth "
         "of the first keyframe with depth; ICL, 1.85 m: 0.9 cm), so that it holds in any pose units")
+    covisible_neighbours: int = Field(
+        4, ge=0, le=32, description="RGB-D sessions: each new keyframe is aligned densely (intensity and depth, as "
+        "RGB-D odometry aligns frames) to this many of the older keyframes its pose puts nearest; each fit is a "
+        "`covisible` pose-graph edge and the graph is solved (`drift_corrected`, source covisibility). 0 = off. "
+        "TUM fr1/xyz (788 frames, revisits throughout), odometry keyframes: ATE 4.5 -> 0.96 cm (bench/RESULTS.md)")
+    covisible_distance: float = Field(
+        0.3, gt=0, description="... older keyframes at most this far from it (scene length units) ...")
+    covisible_rotation_deg: float = Field(20.0, gt=0, le=180, description="... and turned at most this much")
+    covisible_min_overlap: float = Field(
+        0.5, gt=0, le=1, description="... kept when this share of the older keyframe's surface is found again ...")
+    covisible_max_residual: float = Field(
+        0.01, gt=0, description="... with a robust depth residual at most this (scene length units) ...")
+    covisible_max_photometric: float = Field(
+        0.12, gt=0, description="... and a robust intensity residual at most this (0..1 scale; RGB-D odometry's "
+        "`max_photometric_residual`): an alignment that slid along a flat surface fits its depth, not its image")
 
 
 class MappingConfig(_Section):

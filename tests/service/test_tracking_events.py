@@ -60,9 +60,11 @@ def test_the_sdk_reports_tracking_events(stack) -> None:
         session = client.create_session(intrinsics=frames[0].intrinsics, preset="fast")
         summary = client.stream(session.id, frames, wire=WireOptions(send_depth=True, send_pose=False),
                                 on_event=lambda e: seen.append(e) if isinstance(e, TrackingEvent) else None)
-    kinds = [(e.kind, e.seq) for e in summary.tracking_events]
+    # RGB-D keyframes tied to their neighbours solve the graph as they come (`drift_corrected`): not this test's
+    kinds = [(e.kind, e.seq) for e in summary.tracking_events if e.kind != "drift_corrected"]
     assert kinds == [("tracking_lost", BLACK), ("relocalized", BLACK + 1)]
-    assert [(e.kind, e.seq) for e in seen] == kinds and summary.tracking_events[0].data["reason"]
+    assert [(e.kind, e.seq) for e in seen if e.kind != "drift_corrected"] == kinds
+    assert next(e for e in summary.tracking_events if e.kind == "tracking_lost").data["reason"]
 
 
 def test_a_new_map_after_a_jump_reaches_the_client(stack) -> None:

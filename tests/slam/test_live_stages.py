@@ -6,6 +6,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from live_sessions import live_config, push_all_within
@@ -140,6 +141,37 @@ def test_keyframes_made_after_an_optimisation_follow_the_newest_corrected_one() 
     np.testing.assert_allclose(moved[4], at(2.5))  # rigidly with keyframe 2: no jump between 2 and 4
     np.testing.assert_allclose(moved[6], at(3.5))
     assert set(moved) == set(current)
+
+
+def test_keyframes_that_follow_correction_after_correction_stay_similarities() -> None:
+    """The loop stage lags tracking by a few keyframes and corrects after every keyframe (RGB-D's dense edges): the
+    newest keyframes follow one correction, then are corrected themselves while newer ones follow. A pose built
+    from a followed pose and the closed-form inverse of another must not keep their shear: it doubled with every
+    correction and reached a reflection on TUM fr1/xyz after ~60."""
+    rng = np.random.default_rng(0)
+
+    def rigid(scale: float) -> np.ndarray:
+        pose = np.eye(4)
+        pose[:3, :3] = cv2.Rodrigues(rng.normal(scale=scale, size=3))[0]
+        pose[:3, 3] = rng.normal(scale=scale, size=3)
+        return pose
+
+    def exact(pose: np.ndarray) -> np.ndarray:  # the graph's solution: a rigid pose near the one it was given
+        u, _, vt = np.linalg.svd(pose[:3, :3])
+        out = pose.copy()
+        out[:3, :3] = u @ vt
+        return rigid(0.002) @ out
+
+    current = {0: rigid(1.0)}
+    for keyframe in range(1, 100):
+        current[keyframe] = current[keyframe - 1] @ rigid(0.05)  # tracking's newest keyframe
+        known = sorted(current)[:-3]  # the loop stage is 3 keyframes behind, and corrects after each one
+        if known:
+            current = follow_corrections(current, {k: exact(current[k]) for k in known})
+    for pose in current.values():
+        rotation = pose[:3, :3]
+        np.testing.assert_allclose(rotation.T @ rotation, np.eye(3), atol=1e-9)
+        assert np.linalg.det(rotation) > 0
 
 
 def test_a_tracking_resolution_tracks_large_frames_small_and_maps_them_whole() -> None:

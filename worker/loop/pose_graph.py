@@ -5,8 +5,9 @@ H = T_i^-1 T_j (the pose of j in the frame of i) and penalises log(H^-1 T_i^-1 T
 information matrix. GTSAM solves in the scene's length unit (`length_unit`, the median depth of the first
 keyframe whose depth is known: worker.geometry.scene_units): translations are divided by it on the way in and
 multiplied on the way out, so that edge sigmas, the robust kernel and iSAM2's relinearisation threshold mean the
-same for the same scene in metres or in millimetres. Three kinds of edges exist: sequential
-(consecutive keyframes inside one submap), inter-submap (through the overlap frame) and loop. Loop edges get a
+same for the same scene in metres or in millimetres. The main kinds of edges are sequential
+(consecutive keyframes inside one submap), inter-submap (through the overlap frame), loop and covisible (RGB-D
+keyframes aligned densely to the older ones near them; `EDGE_KINDS` lists all). Loop and covisible edges get a
 robust kernel by default so a single wrong loop is down-weighted instead of bending the whole trajectory; a prior
 pins the first keyframe (the gauge).
 Absolute priors (`PosePrior`, e.g. a device's pose of a keyframe with its stated uncertainty) pull single nodes
@@ -39,7 +40,9 @@ log = logging.getLogger(__name__)
 # new_map: between a lost map and a map begun from nothing after it; restart: across the seam of a monocular map
 # restarted from the last tracked frame after a loss (its scale is a guess); map_join: the Sim(3) that joins such a
 # map to an older one where it recognised an older keyframe.
-EDGE_KINDS = ("sequential", "inter_submap", "loop", "new_map", "restart", "map_join")
+# covisible: between RGB-D keyframes that see the same surfaces, measured by dense alignment
+# (worker.loop.keyframe_alignment).
+EDGE_KINDS = ("sequential", "inter_submap", "loop", "new_map", "restart", "map_join", "covisible")
 DIVERGED_COST_RATIO = 1.05  # an incremental solve ending this much above its starting cost is redone in batch
 
 
@@ -71,6 +74,7 @@ DEFAULT_SIGMAS: dict[str, EdgeSigmas] = {
     "sequential": EdgeSigmas(0.01, 0.01, 0.01),
     "inter_submap": EdgeSigmas(0.01, 0.01, 0.01),
     "loop": EdgeSigmas(0.02, 0.02, 0.02),
+    "covisible": EdgeSigmas(0.01, 0.01, 0.01),  # the alignment odometry's own edges come from: as certain
     # Between the last keyframe of a lost map and the first of the map begun after it: the new map was only placed
     # at the last pose with the old scene depth, so the edge holds it there until a loop gives the true Sim(3).
     "new_map": EdgeSigmas(1.0, 10.0, 1.0),
@@ -178,12 +182,12 @@ def _as_matrix(T: np.ndarray | torch.Tensor) -> np.ndarray:
 class Sim3PoseGraph:
     """Keyframe Sim(3) pose graph: add nodes and edges, then `optimize()`.
 
-    robust: "cauchy", "huber" or None; applied to the edge kinds in `robust_kinds` (loop edges by default) with
-    threshold `robust_k` on the whitened residual norm. incremental: solve with iSAM2 after the first (batch)
-    solve; False solves every time with batch Levenberg-Marquardt. relinearize_threshold: iSAM2 relinearises a
-    node whose step exceeds this tangent-space norm. length_unit: pose units per scene length unit, the unit of
-    the edges' translation sigmas (None: 1, until `set_length_unit`). The methods may be called from several
-    threads (one lock).
+    robust: "cauchy", "huber" or None; applied to the edge kinds in `robust_kinds` (loop and covisible edges by
+    default) with threshold `robust_k` on the whitened residual norm. incremental: solve with iSAM2 after the first
+    (batch) solve; False solves every time with batch Levenberg-Marquardt. relinearize_threshold: iSAM2 relinearises
+    a node whose step exceeds this tangent-space norm. length_unit: pose units per scene length unit, the unit of
+    the edges' translation sigmas (None: 1, until `set_length_unit`). The methods may be called from several threads
+    (one lock).
     """
 
     def __init__(
@@ -191,7 +195,7 @@ class Sim3PoseGraph:
         sigmas: Mapping[str, EdgeSigmas] | None = None,
         robust: str | None = "cauchy",
         robust_k: float = 1.0,
-        robust_kinds: Iterable[str] = ("loop",),
+        robust_kinds: Iterable[str] = ("loop", "covisible"),
         prior_sigma: float = 1e-6,
         incremental: bool = True,
         relinearize_threshold: float = 0.001,

@@ -12,7 +12,8 @@ import logging
 from dataclasses import dataclass
 from typing import Any
 
-from worker.config import SlamConfig
+from worker.config import LoopConfig, SlamConfig
+from worker.loop.keyframe_alignment import KeyframeAlignment
 from worker.loop.pose_graph import DEFAULT_SIGMAS, EdgeSigmas, Sim3PoseGraph
 from worker.maps.session_in_map import SessionInMap
 from worker.pipeline.depth_sources import (
@@ -158,7 +159,17 @@ def _loop_stage(config: SlamConfig, tracking: str | None, with_depth: bool, clos
                           and tracking == "device" and not with_depth else 0)
     return LoopClosingStage(config.loop, pose_graph(config, metric), closer, depth_points, metric=metric,
                             threaded=config.threaded and tracking != "model", timings=timings,
-                            solve_priors_every=solve_priors_every)
+                            solve_priors_every=solve_priors_every,
+                            alignment=_keyframe_alignment(config.loop) if tracking == "rgbd_odometry" and with_depth
+                            else None)
+
+
+def _keyframe_alignment(lc: LoopConfig) -> KeyframeAlignment | None:
+    """Dense edges between neighbouring RGB-D keyframes, unless configured off."""
+    if not lc.enabled or lc.covisible_neighbours == 0:
+        return None
+    return KeyframeAlignment(lc.covisible_neighbours, lc.covisible_distance, lc.covisible_rotation_deg,
+                             lc.covisible_min_overlap, lc.covisible_max_residual, lc.covisible_max_photometric)
 
 
 def idle_loop_stage(config: SlamConfig, timings: StageTimes) -> LoopClosingStage:

@@ -17,6 +17,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
 
+import cv2
 import numpy as np
 import torch
 
@@ -25,6 +26,7 @@ from worker.config import LoopConfig
 from worker.events import DriftCorrected, EngineEvent, LoopClosed, MapsMerged, Relocalized, event_from_dict
 from worker.geometry import Intrinsics, se3_part
 from worker.loop.correction_check import implausible_correction
+from worker.loop.keyframe_alignment import KeyframeAlignment
 from worker.loop.pose_graph import PosePrior, Sim3PoseGraph
 from worker.maps.localizer import MapView
 from worker.maps.session_in_map import MapQuery, SessionInMap, is_shared_place, prior_pose
@@ -106,7 +108,8 @@ class LoopClosingStage(QueuedStage):
 
     def __init__(self, cfg: LoopConfig, pose_graph: Sim3PoseGraph, closer: LoopCloser | None,
                  depth_points: DepthKeyframePoints | None, metric: bool, threaded: bool,
-                 timings: StageTimes | None = None, solve_priors_every: int = 0) -> None:
+                 timings: StageTimes | None = None, solve_priors_every: int = 0,
+                 alignment: KeyframeAlignment | None = None) -> None:
         self.cfg = cfg
         # > 0: the graph is solved after this many device priors (a monocular odometry's drift corrected between
         # loops: `drift_corrected`); 0: priors wait for the next loop
@@ -115,6 +118,7 @@ class LoopClosingStage(QueuedStage):
         self.pose_graph = pose_graph
         self.closer = closer
         self.depth_points = depth_points
+        self.alignment = alignment  # RGB-D: dense edges from each keyframe to the older ones near it
         self.metric = metric  # given metric poses and depth: a loop measures no scale change
         self.timings = timings or StageTimes()
         self.loops = 0
@@ -175,6 +179,8 @@ class LoopClosingStage(QueuedStage):
         if isinstance(item, CameraUpdate):
             if self.depth_points is not None:
                 self.depth_points.reproject(item.K)
+            if self.alignment is not None:
+                self.alignment.reproject(np.asarray(item.K, np.float64))
             return
         if isinstance(item, GraphKeyframe):
             if self.pose_graph.length_unit is None:  # the first scene depth known is the graph's length unit
@@ -184,11 +190,31 @@ class LoopClosingStage(QueuedStage):
                 self.pose_graph.add_edge(item.previous, item.kf_id, item.relative, kind=item.kind)
             self.pose_graph.flush()  # iSAM2 takes the keyframe now: a later loop's solve has less to do
             return
+        if self.alignment is not None and item.depth is not None:
+            self._align_to_neighbours(item)
         if self.closer is None:
             return
         if item.depth is not None and self.depth_points is not None:
             self.depth_points.add(item.kf_id, item.depth, item.K)
         self._close_loop(item)
+
+    def _align_to_neighbours(self, query: LoopQuery) -> None:
+        """Add the keyframe's dense edges to the older keyframes near it and solve (`drift_corrected`)."""
+        if query.kf_id not in self.pose_graph.nodes:
+            return
+        grey = cv2.cvtColor(np.ascontiguousarray((query.image[0].permute(1, 2, 0).numpy() * 255.0).round()
+                                                 .clip(0, 255).astype(np.uint8)), cv2.COLOR_RGB2GRAY)
+        self.alignment.add(query.kf_id, grey, query.depth.numpy(), np.asarray(query.K, np.float64))
+        linked = {edge.i for edge in self.pose_graph.edges if edge.j == query.kf_id}
+        with self.timings.measure("keyframe_alignment"):
+            edges = self.alignment.edges(query.kf_id, dict(self.pose_graph.nodes), self.pose_graph.length_unit or 1.0,
+                                         skip=linked)
+        if not edges:
+            return
+        before = self.pose_graph.state_dict()
+        for edge in edges:
+            self.pose_graph.add_edge(edge.i, edge.j, edge.relative, kind="covisible")
+        self._solve(DriftCorrected(keyframe=int(query.kf_id), source="covisibility"), before)
 
     def _close_loop(self, query: LoopQuery) -> None:
         constraints = self.closer.process_keyframe(query.kf_id, query.image, query.intrinsics)
@@ -360,6 +386,7 @@ class LoopClosingStage(QueuedStage):
         return {"pose_graph": self.pose_graph.state_dict(),
                 "loop": None if self.closer is None else self.closer.state_dict(),
                 "depth_points": None if self.depth_points is None else self.depth_points.state_dict(),
+                "alignment": None if self.alignment is None else self.alignment.state_dict(),
                 "loops": self.loops, "priors_unsolved": self.priors_unsolved,
                 "corrections_made": self.corrections_made,
                 "world_moves": [[number, transform] for number, transform in self.world_moves],
@@ -373,6 +400,8 @@ class LoopClosingStage(QueuedStage):
             self.closer.load_state_dict(state["loop"])
         if self.depth_points is not None and state.get("depth_points") is not None:
             self.depth_points.load_state_dict(state["depth_points"])
+        if self.alignment is not None and state.get("alignment") is not None:
+            self.alignment.load_state_dict(state["alignment"])
         self.loops = int(state.get("loops", 0))
         self.priors_unsolved = int(state.get("priors_unsolved", 0))
         self.corrections_made = int(state.get("corrections_made", 0))

@@ -17,6 +17,7 @@ STAGES: dict[str, tuple[str, str, str]] = {
     "frontend_inference": ("frontend", "feed-forward inference (tracking)", "frame"),
     "loop_detection": ("frontend", "loop closure detection", "frame"),
     "loop_relocalization": ("frontend", "loop frame relocalization", "event"),
+    "keyframe_alignment": ("frontend", "dense alignment of keyframes to their neighbours (RGB-D)", "event"),
     "pgo": ("frontend", "PGO (Sim(3) optimization)", "event"),
     "map_relocalization": ("frontend", "finding frames in a stored map", "event"),
     "map_depth": ("backend", "multi-view depth of keyframes", "event"),

@@ -24,7 +24,7 @@ import torch
 
 from worker.data.frame import Frame, FrameResult
 from worker.events import DriftCorrected, EngineEvent, MapsMerged, Relocalized
-from worker.geometry import Intrinsics, sim3_inverse
+from worker.geometry import Intrinsics, nearest_sim3, sim3_inverse
 from worker.maps.session_in_map import MapQuery, SessionInMap
 from worker.pipeline.depth_sources.base import DepthSource
 from worker.pipeline.keyframes import MotionKeyframeSelector
@@ -317,5 +317,6 @@ def follow_corrections(current: dict[int, np.ndarray], corrected: dict[int, np.n
         if kf in corrected:
             anchor = kf
         elif anchor is not None:
-            out[kf] = corrected[anchor] @ sim3_inverse(torch.from_numpy(current[anchor])).numpy() @ current[kf]
+            out[kf] = nearest_sim3(corrected[anchor] @ sim3_inverse(torch.from_numpy(current[anchor])).numpy()
+                                   @ current[kf])  # a keyframe may follow many corrections: no shear may build up
     return out
