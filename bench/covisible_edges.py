@@ -79,8 +79,10 @@ def run_peer(source: Path, size: tuple[int, int]) -> dict[str, Any]:
         poses, seconds, lost = run_open3d(frames, src.intrinsics)
     except ImportError as error:
         return {"error": f"not installed ({error})"}
-    truth = np.stack([f.gt_pose for f in frames])
-    return {"ate_m": absolute_trajectory_error(poses, truth, "se3").rmse, "ms_per_frame": round(1e3 * seconds, 1),
+    known = [i for i, f in enumerate(frames) if f.gt_pose is not None]
+    truth = np.stack([frames[i].gt_pose for i in known])
+    return {"ate_m": absolute_trajectory_error(poses[known], truth, "se3").rmse,
+            "ms_per_frame": round(1e3 * seconds, 1),
             "frames_lost": lost, "frames": len(frames)}
 
 
@@ -88,7 +90,7 @@ def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench covisible_edges", description=__doc__.split("\n\n")[0])
     parser.add_argument("--source", type=Path, action="append", help="a sequence folder (repeatable)")
     parser.add_argument("--size", default="320x240")
-    parser.add_argument("--variants", nargs="+", choices=("on", "off"), default=["on", "off"])
+    parser.add_argument("--variants", nargs="*", choices=("on", "off"), default=["on", "off"])
     parser.add_argument("--no-peer", action="store_true", help="leave Open3D out")
     parser.add_argument("--pingpong", type=int, default=1, help="play each sequence forward and back N sweeps (a "
                         "long session coming back to its places)")
