@@ -76,3 +76,21 @@ def test_a_restored_session_aligns_its_next_keyframes_to_the_ones_before_the_sna
     later = [e for e in restored.pose_graph.edges_of_kind("covisible") if e.j > max(before)]
     assert later and any(e.i in before for e in later)
     restored.close()
+
+
+def test_posed_rgbd_ties_keyframes_too_unless_the_device_poses_are_kept_as_they_are() -> None:
+    src = open_source(str(DATA), use_gt_depth=True, use_gt_poses=True)  # the motion capture as the device's poses
+    frames = list(src)
+    for pose_mode, tied in (("seeded", True), ("fixed", False)):
+        config = SlamConfig.preset("rgbd", threaded=False, mapping={"enabled": False},
+                                   input={"pose_mode": pose_mode})
+        system = SlamSystem(config, src.intrinsics)
+        for frame in frames:
+            system.push(frame)
+        system.finish()
+        assert system.tracking == "device"
+        assert bool(system.pose_graph.edges_of_kind("covisible")) == tied, pose_mode
+        if not tied:  # the device's poses, untouched
+            for (_, _, pose), frame in zip(system.trajectory(), frames):
+                np.testing.assert_allclose(pose, frame.pose, atol=1e-9)
+        system.close()

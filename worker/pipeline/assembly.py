@@ -160,12 +160,12 @@ def _loop_stage(config: SlamConfig, tracking: str | None, with_depth: bool, clos
     return LoopClosingStage(config.loop, pose_graph(config, metric), closer, depth_points, metric=metric,
                             threaded=config.threaded and tracking != "model", timings=timings,
                             solve_priors_every=solve_priors_every,
-                            alignment=_keyframe_alignment(config.loop) if tracking == "rgbd_odometry" and with_depth
-                            else None)
+                            alignment=_keyframe_alignment(config.loop) if metric and closer is not None else None)
 
 
 def _keyframe_alignment(lc: LoopConfig) -> KeyframeAlignment | None:
-    """Dense edges between neighbouring RGB-D keyframes, unless configured off."""
+    """Dense edges between neighbouring keyframes with sensor depth and metric poses (RGB-D, posed RGB-D), unless
+    configured off."""
     if not lc.enabled or lc.covisible_neighbours == 0:
         return None
     return KeyframeAlignment(lc.covisible_neighbours, lc.covisible_distance, lc.covisible_rotation_deg,
