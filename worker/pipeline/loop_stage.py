@@ -118,7 +118,7 @@ class LoopClosingStage(QueuedStage):
         self.pose_graph = pose_graph
         self.closer = closer
         self.depth_points = depth_points
-        self.alignment = alignment  # RGB-D: dense edges from each keyframe to the older ones near it
+        self.alignment = alignment  # sensor depth, metric poses: dense edges from each keyframe to older ones near it
         self.metric = metric  # given metric poses and depth: a loop measures no scale change
         self.timings = timings or StageTimes()
         self.loops = 0
