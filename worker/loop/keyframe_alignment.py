@@ -25,6 +25,7 @@ from worker.tracking.dense_alignment import (
     build_pyramid,
     kernels,
 )
+from worker.tracking.motion import relative_motion
 
 WORKING_SIDE = 320  # keyframes are aligned with their long side halved down to at most this many pixels
 PYRAMID_LEVELS = 3
@@ -64,10 +65,6 @@ def _scaled(K: np.ndarray, scale: float) -> np.ndarray:
     out = np.array(K, np.float64)
     out[:2] *= scale
     return out
-
-
-def _rotation_deg(R: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 class KeyframeAlignment:
@@ -114,10 +111,9 @@ class KeyframeAlignment:
         for i, pose in poses.items():
             if i >= j or i in skip or i not in self.keyframes:
                 continue
-            relative = np.linalg.inv(pose) @ poses[j]
-            distance, turn = float(np.linalg.norm(relative[:3, 3])) / unit, _rotation_deg(relative[:3, :3])
-            if distance <= self.max_distance and turn <= self.max_rotation_deg:
-                candidates.append((distance + np.radians(turn), i, relative))
+            moved, turn = relative_motion(pose, poses[j])
+            if moved / unit <= self.max_distance and turn <= self.max_rotation_deg:
+                candidates.append((moved / unit + np.radians(turn), i, np.linalg.inv(pose) @ poses[j]))
         candidates.sort(key=lambda c: c[0])
         out = []
         for _, i, relative in candidates[: self.neighbours]:
