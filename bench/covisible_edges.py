@@ -32,29 +32,36 @@ def run_variant(source: Path, size: tuple[int, int], neighbours: int | None, out
                 ) -> dict[str, Any]:
     """`flashmono run SOURCE --use-gt-depth [--pingpong N]` with its default settings; `neighbours` overrides the
     edges' count."""
+    return run_loop_variant(source, size, {} if neighbours is None else {"covisible_neighbours": neighbours}, out,
+                            use_gt_depth=True, pingpong=pingpong)
+
+
+def run_loop_variant(source: Path, size: tuple[int, int], loop_update: dict[str, Any], out: Path,
+                     use_gt_depth: bool, pingpong: int = 1) -> dict[str, Any]:
+    """`flashmono run SOURCE [--use-gt-depth] [--pingpong N]` with its default settings but `loop_update` in the
+    loop section; ATE, keyframe ATE (SE(3) with depth, Sim(3) without), PSNR, depth L1, keyframes, loops, wall."""
     from client.commands.run import load_config
     from worker.eval import read_tum
     from worker.offline import run_sequence
 
-    config = load_config(argparse.Namespace(use_gt_depth=True, use_gt_poses=False, preset=None, config=None,
+    config = load_config(argparse.Namespace(use_gt_depth=use_gt_depth, use_gt_poses=False, preset=None, config=None,
                                             finish_budget=None, deterministic=False))
-    if neighbours is not None:
-        config = config.model_copy(update={"loop": config.loop.model_copy(
-            update={"covisible_neighbours": neighbours})})
+    config = config.model_copy(update={"loop": config.loop.model_copy(update=loop_update)})
     start = time.perf_counter()
-    metrics = run_sequence(str(source), out, config, use_gt_depth=True, resize=size, pingpong=pingpong)
+    metrics = run_sequence(str(source), out, config, use_gt_depth=use_gt_depth, resize=size, pingpong=pingpong)
     wall = time.perf_counter() - start
     keyframes = read_tum(out / "trajectory_keyframes.tum")
+    alignment = "se3" if use_gt_depth else "sim3"
     return {"ate_m": metrics.get("ate_rmse"),
-            "keyframe_ate_m": _keyframe_ate(source, size, keyframes) if pingpong == 1 else None,
+            "keyframe_ate_m": _keyframe_ate(source, size, keyframes, alignment) if pingpong == 1 else None,
             "psnr_db": metrics.get("psnr"), "depth_l1_m": metrics.get("depth_l1"),
             "keyframes": metrics.get("num_keyframes"), "loops": metrics.get("loops"),
             "events": metrics.get("events"), "frames": metrics.get("num_frames"), "wall_s": round(wall, 1),
             "keyframe_alignment": (metrics.get("runtime_breakdown") or {}).get("keyframe_alignment")}
 
 
-def _keyframe_ate(source: Path, size: tuple[int, int], keyframes) -> float | None:
-    """SE(3)-aligned ATE of the keyframes alone against the sequence's ground truth."""
+def _keyframe_ate(source: Path, size: tuple[int, int], keyframes, alignment: str = "se3") -> float | None:
+    """ATE of the keyframes alone against the sequence's ground truth (`alignment` se3 or sim3)."""
     from worker.data import open_source
     from worker.eval import absolute_trajectory_error
 
@@ -64,7 +71,7 @@ def _keyframe_ate(source: Path, size: tuple[int, int], keyframes) -> float | Non
              if round(float(t), 6) in truth]
     if len(pairs) < 3:
         return None
-    return absolute_trajectory_error(np.stack([p for p, _ in pairs]), np.stack([g for _, g in pairs]), "se3").rmse
+    return absolute_trajectory_error(np.stack([p for p, _ in pairs]), np.stack([g for _, g in pairs]), alignment).rmse
 
 
 def run_peer(source: Path, size: tuple[int, int]) -> dict[str, Any]:

@@ -9,7 +9,7 @@ fixed when poses and depth are metric. The parts are wired to each other here an
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 from worker.config import LoopConfig, SlamConfig
@@ -157,7 +157,8 @@ def _loop_stage(config: SlamConfig, tracking: str | None, with_depth: bool, clos
     device_poses = config.input.device_poses
     solve_priors_every = (device_poses.graph_solve_keyframes if device_poses.drift_correction == "pose_graph"
                           and tracking == "device" and not with_depth else 0)
-    return LoopClosingStage(config.loop, pose_graph(config, metric), closer, depth_points, metric=metric,
+    graph = pose_graph(config, metric, monocular=tracking == "visual_odometry")
+    return LoopClosingStage(config.loop, graph, closer, depth_points, metric=metric,
                             threaded=config.threaded and tracking != "model", timings=timings,
                             solve_priors_every=solve_priors_every,
                             alignment=_keyframe_alignment(config.loop) if metric and closer is not None else None)
@@ -177,10 +178,18 @@ def idle_loop_stage(config: SlamConfig, timings: StageTimes) -> LoopClosingStage
     return _loop_stage(config, None, False, None, None, timings)
 
 
-def pose_graph(config: SlamConfig, metric: bool = False) -> Sim3PoseGraph:
-    """The keyframe pose graph; `metric` (given poses and depth) leaves the scale no freedom."""
+def pose_graph(config: SlamConfig, metric: bool = False, monocular: bool = False) -> Sim3PoseGraph:
+    """The keyframe pose graph; `metric` (given poses and depth) leaves the scale no freedom; `monocular` (visual
+    odometry) lets the odometry's scale drift and takes its loops' measured uncertainty (`loop.monocular_*`)."""
     lc = config.loop
     sigmas = {kind: EdgeSigmas(s.rotation, s.translation, METRIC_LOG_SCALE_SIGMA if metric else s.log_scale)
               for kind, s in {**DEFAULT_SIGMAS, "loop": EdgeSigmas(0.02, 0.02, 0.02)}.items()}
-    return Sim3PoseGraph(robust=None if lc.robust_kernel == "none" else lc.robust_kernel, robust_k=lc.robust_k,
+    robust_k = lc.robust_k
+    if monocular and not metric:
+        for kind in ("sequential", "inter_submap"):
+            sigmas[kind] = replace(sigmas[kind], log_scale=lc.monocular_scale_sigma)
+        sigmas["loop"] = EdgeSigmas(sigmas["loop"].rotation, lc.monocular_loop_translation_sigma,
+                                    lc.monocular_loop_scale_sigma)
+        robust_k = lc.monocular_robust_k
+    return Sim3PoseGraph(robust=None if lc.robust_kernel == "none" else lc.robust_kernel, robust_k=robust_k,
                          sigmas=sigmas)
