@@ -11,6 +11,7 @@ import torch
 from worker.config import LoopConfig
 from worker.geometry import sim3_decompose
 from worker.loop.pose_graph import EdgeSigmas, PosePrior, Sim3PoseGraph
+from worker.loop.synthetic import shrinking_odometry
 from worker.pipeline.loop_stage import GraphKeyframe, LoopClosingStage
 from worker.tracking.seeded import DRIFT_PRIOR_LOG_SCALE_SIGMA
 
@@ -32,12 +33,7 @@ def _truth() -> list[np.ndarray]:
 
 def _tracked(truth: list[np.ndarray]) -> list[np.ndarray]:
     """The odometry's keyframe poses: the true rotations, each step SHRINK times shorter than the one before."""
-    out = [truth[0].copy()]
-    for k in range(1, len(truth)):
-        step = np.linalg.inv(truth[k - 1]) @ truth[k]
-        step[:3, 3] *= SHRINK ** k
-        out.append(out[-1] @ step)
-    return out
+    return shrinking_odometry(truth, SHRINK)
 
 
 def _run(solve_every: int) -> tuple[LoopClosingStage, list]:

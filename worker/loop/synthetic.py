@@ -84,6 +84,17 @@ def make_loop_problem(
     return SyntheticLoopProblem(gt, torch.stack(drifted).numpy(), graph, pairs)
 
 
+def shrinking_odometry(truth: list[np.ndarray], shrink: float) -> list[np.ndarray]:
+    """A monocular odometry's keyframe poses along `truth` (camera-to-world): the true rotations, each step `shrink`
+    times shorter than the one before (its unit drifts), starting at the first true pose."""
+    out = [np.asarray(truth[0], np.float64).copy()]
+    for k in range(1, len(truth)):
+        step = np.linalg.inv(truth[k - 1]) @ truth[k]
+        step[:3, 3] *= shrink ** k
+        out.append(out[-1] @ step)
+    return out
+
+
 def ate_rmse(estimated: np.ndarray, ground_truth: np.ndarray) -> float:
     """Absolute trajectory error (RMSE of camera centres) after Sim(3) Umeyama alignment."""
     est = torch.from_numpy(np.asarray(estimated, np.float64)[:, :3, 3])
