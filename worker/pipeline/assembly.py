@@ -180,7 +180,7 @@ def idle_loop_stage(config: SlamConfig, timings: StageTimes) -> LoopClosingStage
 
 def pose_graph(config: SlamConfig, metric: bool = False, monocular: bool = False) -> Sim3PoseGraph:
     """The keyframe pose graph; `metric` (given poses and depth) leaves the scale no freedom; `monocular` (visual
-    odometry) lets the odometry's scale drift and takes its loops' measured uncertainty (`loop.monocular_*`)."""
+    odometry) takes `loop.monocular_*` for the odometry's scale, its loops' sigmas and their kernel."""
     lc = config.loop
     sigmas = {kind: EdgeSigmas(s.rotation, s.translation, METRIC_LOG_SCALE_SIGMA if metric else s.log_scale)
               for kind, s in {**DEFAULT_SIGMAS, "loop": EdgeSigmas(0.02, 0.02, 0.02)}.items()}
