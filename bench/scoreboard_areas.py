@@ -83,10 +83,13 @@ AREAS: tuple[Area, ...] = (
          "(`graph-defaults`: the graph of the metric modes) and with the pose graph of visual-odometry sessions set "
          "for a drifting scale (`graph-drift`: the odometry's log-scale free at 0.03 a keyframe, loops at their "
          "measured uncertainty, robust kernel 3; `loop.monocular_*`) in the same run. ATE Sim(3)-aligned over every "
-         "frame and over the keyframes alone; PSNR and depth L1 on the held-out frames.",
+         "frame and over the keyframes alone; PSNR and depth L1 on the held-out frames. The peer: `python -m bench "
+         "colmap_peer` (pycolmap's incremental structure from motion on every 10th frame, the camera held; ATE of "
+         "the frames it registered).",
          (Column("ate_m", "ATE", "cm", {"tum_fr1_xyz/rgb": "<= 1.2 (issue 43)"}),
           Column("keyframe_ate_m", "keyframes ATE", "cm"), Column("psnr_db", "PSNR", "dB"),
-          Column("depth_l1_m", "depth L1", "cm"), Column("loops", "loops", ""), Column("wall_s", "wall", "s")),
+          Column("depth_l1_m", "depth L1", "cm"), Column("loops", "loops", ""),
+          Column("registered_share", "registered", "%"), Column("wall_s", "wall", "s")),
          ("sequence", "mode", "size", "variant")),
     Area("real", "Real footage (held-out views, keyframe depth, tracking)",
          "`flashmono run` on recorded sequences (`python -m bench real_sequences`), PSNR on the frames both modes "
