@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from bench.monocular_graph import DRIFT  # the benchmark's `drift` variant: the same settings
 from worker.config import SlamConfig
 from worker.geometry import sim3_decompose
 from worker.loop.pose_graph import Sim3PoseGraph
@@ -65,10 +66,6 @@ def _solve(graph: Sim3PoseGraph) -> tuple[float, float]:
     scales = np.array([float(sim3_decompose(torch.from_numpy(poses[k]))[0]) for k in range(KEYFRAMES)])
     unit_error = np.log(scales * SHRINK ** np.arange(KEYFRAMES))  # a keyframe's unit should undo the shrinking
     return ate / extent, float(np.ptp(unit_error))
-
-
-DRIFT = {"monocular_robust_k": 3.0, "monocular_scale_sigma": 0.03, "monocular_loop_translation_sigma": 0.04,
-         "monocular_loop_scale_sigma": 0.05}  # bench.monocular_graph's `drift` variant
 
 
 def test_loops_take_out_the_scale_drift_that_the_default_graph_keeps() -> None:
