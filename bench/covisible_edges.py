@@ -39,24 +39,35 @@ def run_variant(source: Path, size: tuple[int, int], neighbours: int | None, out
 def run_loop_variant(source: Path, size: tuple[int, int], loop_update: dict[str, Any], out: Path,
                      use_gt_depth: bool, pingpong: int = 1) -> dict[str, Any]:
     """`flashmono run SOURCE [--use-gt-depth] [--pingpong N]` with its default settings but `loop_update` in the
-    loop section; ATE, keyframe ATE (SE(3) with depth, Sim(3) without), PSNR, depth L1, keyframes, loops, wall."""
+    loop section (see `run_configured`)."""
+    return run_configured(source, size, {"loop": loop_update}, out, use_gt_depth, pingpong=pingpong)
+
+
+def run_configured(source: Path, size: tuple[int, int], overrides: dict[str, Any], out: Path, use_gt_depth: bool,
+                   use_gt_poses: bool = False, pingpong: int = 1) -> dict[str, Any]:
+    """`flashmono run SOURCE [--use-gt-depth] [--use-gt-poses] [--pingpong N]` with its default settings and the
+    nested section `overrides` merged in; ATE, keyframe ATE (SE(3) with depth or poses, Sim(3) without), PSNR,
+    depth L1, keyframes, loops, the pose source chosen, wall."""
     from client.commands.run import load_config
+    from worker.config import SlamConfig, deep_merge
     from worker.eval import read_tum
     from worker.offline import run_sequence
 
-    config = load_config(argparse.Namespace(use_gt_depth=use_gt_depth, use_gt_poses=False, preset=None, config=None,
-                                            finish_budget=None, deterministic=False))
-    config = config.model_copy(update={"loop": config.loop.model_copy(update=loop_update)})
+    config = load_config(argparse.Namespace(use_gt_depth=use_gt_depth, use_gt_poses=use_gt_poses, preset=None,
+                                            config=None, finish_budget=None, deterministic=False))
+    config = SlamConfig.model_validate(deep_merge(config.model_dump(), overrides))
     start = time.perf_counter()
-    metrics = run_sequence(str(source), out, config, use_gt_depth=use_gt_depth, resize=size, pingpong=pingpong)
+    metrics = run_sequence(str(source), out, config, use_gt_depth=use_gt_depth, use_gt_poses=use_gt_poses,
+                           resize=size, pingpong=pingpong)
     wall = time.perf_counter() - start
     keyframes = read_tum(out / "trajectory_keyframes.tum")
-    alignment = "se3" if use_gt_depth else "sim3"
+    alignment = "se3" if use_gt_depth or use_gt_poses else "sim3"
     return {"ate_m": metrics.get("ate_rmse"),
             "keyframe_ate_m": _keyframe_ate(source, size, keyframes, alignment) if pingpong == 1 else None,
             "psnr_db": metrics.get("psnr"), "depth_l1_m": metrics.get("depth_l1"),
             "keyframes": metrics.get("num_keyframes"), "loops": metrics.get("loops"),
             "events": metrics.get("events"), "frames": metrics.get("num_frames"), "wall_s": round(wall, 1),
+            "pose_source": metrics.get("pose_source"),
             "keyframe_alignment": (metrics.get("runtime_breakdown") or {}).get("keyframe_alignment")}
 
 

@@ -91,6 +91,16 @@ AREAS: tuple[Area, ...] = (
           Column("depth_l1_m", "depth L1", "cm"), Column("loops", "loops", ""),
           Column("registered_share", "registered", "%"), Column("wall_s", "wall", "s")),
          ("sequence", "mode", "size", "variant")),
+    Area("posed_rgb", "Posed RGB: the device's scale against the odometry's drift",
+         "`python -m bench posed_rgb_drift [--source DIR] [--size WxH]`: `flashmono run --use-gt-poses` (no depth) "
+         "where `pose_mode` auto picks seeded visual odometry, with each `input.device_poses.drift_correction` "
+         "(settle is the default), beside RGB only on the same frames, in the same run. ATE SE(3)-aligned with "
+         "poses, Sim(3) for RGB only; PSNR and depth L1 on the held-out frames.",
+         (Column("ate_m", "ATE", "cm"), Column("keyframe_ate_m", "keyframes ATE", "cm"),
+          Column("psnr_db", "PSNR", "dB", {"tum_fr1_xyz/posed-rgb": ">= RGB only (issue 43)"}),
+          Column("depth_l1_m", "depth L1", "cm", {"tum_fr1_xyz/posed-rgb": "<= 10 (issue 43)"}),
+          Column("loops", "loops", ""), Column("wall_s", "wall", "s")),
+         ("sequence", "mode", "size", "variant")),
     Area("real", "Real footage (held-out views, keyframe depth, tracking)",
          "`flashmono run` on recorded sequences (`python -m bench real_sequences`), PSNR on the frames both modes "
          "held out (`python -m bench held_out`), as captured; keyframe depth of posed RGB against the sensor's depth "

@@ -264,6 +264,27 @@ def test_the_scale_settles_over_the_first_window_and_the_odometry_keeps_it(drift
     assert all(np.all(np.isfinite(p)) for p in outputs)
 
 
+def test_a_settled_scale_is_measured_again_in_steps_where_the_odometry_drifts_past_the_tolerance() -> None:
+    """drift_correction settle with `settle_tolerance` 0.1: the odometry shrinks 0.5 % a frame, so the kept scale is
+    10 % off within about 20 frames; the world is then re-anchored once at the measured scale and kept at it again.
+    The output follows the device's scale to within the tolerance (plus the window's lag), in a few steps, not at
+    every keyframe, and no pose jumps."""
+    truth = _curve()
+    scales = []
+    config = DevicePoseConfig(drift_correction="settle", settle_tolerance=0.1)
+    _, results = _track_seeded(_ScaleDriftingOdometry(truth), truth, config,
+                               after_frame=lambda n, tracking: scales.append(tracking.scale))
+    settled_at = 3 * 9  # the 9th keyframe mark (the first keyframe comes before the odometry's map)
+    changes = [n for n in range(settled_at + 1, len(scales)) if scales[n] != scales[n - 1]]
+    assert 1 <= len(changes) <= 3  # steps of ~10 %: 0.995 ** 55 is 24 % of drift (0: none)
+    outputs = [r.pose for r in results]
+    step = lambda poses: np.linalg.norm(np.diff(np.stack(poses)[-20:, :3, 3], axis=0), axis=1).sum()  # noqa: E731
+    assert abs(step(outputs) / step(truth) - 1.0) < 0.15  # kept at the settled scale: 24 % short
+    steps_out = np.linalg.norm(np.diff(np.stack(outputs)[:, :3, 3], axis=0), axis=1)
+    assert steps_out.max() < 3 * np.median(steps_out)
+    assert all(np.all(np.isfinite(p)) for p in outputs)
+
+
 def test_a_device_jump_unsettles_the_scale_until_a_full_window_measures_it_again() -> None:
     """drift_correction settle: a device jump (0.5 m at frame 45, after the scale settled) restarts the scale's
     window: distances across it measure nothing, and the kept scale may be what made the odometry disagree."""

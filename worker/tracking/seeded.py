@@ -16,14 +16,15 @@ a depth camera's trajectory follows the depth camera. With them, the session's o
 - each keyframe's device pose goes to the pose graph as an absolute prior with the stated uncertainty
   (`device_poses.prior_translation`, `prior_rotation_deg`), inflated where the device and the tracked poses
   disagree by more (`prior_inflation`): loop closures weigh it against the odometry;
-- monocular: the odometry's scale drifts (`drift_correction`). By default (`reanchor`) it is measured again at
-  each keyframe over the last ones and the world re-anchored there: the trajectory keeps the device's scale, while
-  new keyframes and the map built before them differ in scale. With `settle` the initialisation's two-view scale
-  is measured again only until a full window of keyframes measured it, then kept: the map stays at one scale, and
-  the trajectory drifts from the device's as the odometry does until a loop closure weighs the priors. With
-  `pose_graph` the scale settles likewise, the priors leave each node's scale free, and the loop-closing stage
-  solves the graph every few priors (`drift_corrected`), moving past keyframes and their part of the map. A new
-  map the odometry makes after a loss takes the device's scale again (`_align_monocular`).
+- monocular: the odometry's scale drifts (`drift_correction`). By default (`settle`) the initialisation's
+  two-view scale is measured again at each keyframe only until a full window of keyframes measured it, then kept:
+  the map stays at one scale, and the trajectory drifts from the device's as the odometry does until a loop closure
+  weighs the priors (`settle_tolerance` re-anchors once where the drift passes a share). With `reanchor` it is
+  measured again at each keyframe and the world re-anchored there: the trajectory keeps the device's scale, while
+  new keyframes and the map built before them differ in scale. With `pose_graph` the scale settles likewise, the
+  priors leave each node's scale free, and the loop-closing stage solves the graph every few priors
+  (`drift_corrected`), moving past keyframes and their part of the map. A new map the odometry makes after a loss
+  takes the device's scale again (`_align_monocular`).
 
 The output lives in the device's world: the odometry's world is aligned to the device pose of its first frame
 (rigid with depth; for monocular visual odometry, also scaled by the device's baseline over its initialisation).
@@ -414,7 +415,7 @@ class SeededTracking:
         if measured.sum() < 2 or odometry_steps[measured].sum() <= 1e-9:
             return
         self.measured_scale = float(device_steps[measured].sum() / odometry_steps[measured].sum())
-        if self.scale_settled:  # the world keeps its scale (the map stays at one scale)
+        if self.scale_settled and not self._settled_scale_off(c):  # the world keeps its scale (one map scale)
             return
         self.scale = self.measured_scale
         self.alignment = pose @ np.linalg.inv(_scaled(odometry, self.scale))
@@ -422,6 +423,12 @@ class SeededTracking:
         # keyframes, then kept (in the graph, whose gauge holds the first keyframe's scale, a first scale far off
         # would also bend the map there)
         self.scale_settled = c.drift_correction != "reanchor" and len(self.scale_marks) > c.scale_keyframes
+
+    def _settled_scale_off(self, c: DevicePoseConfig) -> bool:
+        """settle: whether the odometry's scale has drifted from the kept one by more than `settle_tolerance`
+        (the world is then re-anchored once at the measured scale, and kept at it again)."""
+        tolerance = c.settle_tolerance if c.drift_correction == "settle" else 0.0
+        return tolerance > 0 and abs(math.log(self.measured_scale / self.scale)) > math.log1p(tolerance)
 
     def _prior_sigmas(self, device: np.ndarray, tracked: np.ndarray) -> EdgeSigmas:
         """The stated uncertainty of a device pose, inflated to `prior_inflation` times its disagreement with the
