@@ -42,7 +42,7 @@ def main(argv: list[str]) -> int:
             print(f"{source.name} {variant}: ATE {100 * values['ate_m']:.2f} cm, PSNR {values['psnr_db']:.2f} dB, "
                   f"pose source {values['pose_source']}, {values['loops']} loops, {values['wall_s']:.0f} s",
                   flush=True)
-            recorder.write({"area": "posed", "sequence": source.name, "mode": "posed-rgb" if posed else "rgb",
+            recorder.write({"area": "posed_rgb", "sequence": source.name, "mode": "posed-rgb" if posed else "rgb",
                             "size": args.size, "variant": variant if posed else "rgb-only"}, values,
                            load_at_case_start=load_start)
     return 0

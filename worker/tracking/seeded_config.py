@@ -52,7 +52,7 @@ class DevicePoseConfig(BaseModel):
         "320x240 TUM fr1/xyz with its motion capture: 1.80 cm, 21.69 dB, RGB only 1.98 cm, 20.76 dB; KITTI 00 "
         "0-199 at 620x188: 21.21 dB, ATE 1.74 m, as RGB only's drift). reanchor: measured again at every keyframe "
         "and the world re-anchored there, so the trajectory keeps the device's scale while new keyframes and the "
-        "map built before them differ in scale (TUM 2.74 cm, 19.80 dB: below RGB only; KITTI 30 cm, 20.95 dB); "
+        "map built before them differ in scale (TUM 2.53 cm, 19.13 dB: below RGB only; KITTI 30 cm, 20.95 dB); "
         "pose_graph: settled, then the pose graph is solved with the device priors every `graph_solve_keyframes` "
         "keyframes, moving past keyframes and their part of the map (Sim(3): scale included) toward the device's "
         "trajectory (a `drift_corrected` revision; TUM 1.52 cm, 22.31 dB; KITTI 3.5 cm, but 19.55 dB: the "
