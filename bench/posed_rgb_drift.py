@@ -1,8 +1,8 @@
 """Posed RGB (images and device poses, no depth) where `pose_mode` auto chooses seeded visual odometry: the ways the
-device's scale meets the odometry's drifting one (`input.device_poses.drift_correction`: settle, the default,
-reanchor, pose_graph), beside RGB only on the same frames, in the same run.
+device's scale meets the odometry's drifting one (`input.device_poses.drift_correction`: reanchor, the default,
+settle, pose_graph), beside RGB only on the same frames, in the same run.
 
-    python -m bench posed_rgb_drift [--source DIR ...] [--size 320x240] [--variants settle reanchor pose_graph rgb]
+    python -m bench posed_rgb_drift [--source DIR ...] [--size 320x240] [--variants reanchor settle pose_graph rgb]
 
 Default source: the shared TUM fr1/xyz folder, its motion capture sent as the device's poses (`auto` judges them and
 picks seeded there; ICL's exact poses are taken as they are, so the setting does not reach ICL). A drive (KITTI 00,
@@ -21,7 +21,7 @@ from pathlib import Path
 from bench.covisible_edges import SHARED, run_configured
 from bench.record import Recorder, loadavg
 
-VARIANTS = ("settle", "reanchor", "pose_graph", "rgb")
+VARIANTS = ("reanchor", "settle", "pose_graph", "rgb")
 
 
 def main(argv: list[str]) -> int:

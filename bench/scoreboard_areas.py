@@ -94,7 +94,7 @@ AREAS: tuple[Area, ...] = (
     Area("posed_rgb", "Posed RGB: the device's scale against the odometry's drift",
          "`python -m bench posed_rgb_drift [--source DIR] [--size WxH]`: `flashmono run --use-gt-poses` (no depth) "
          "where `pose_mode` auto picks seeded visual odometry, with each `input.device_poses.drift_correction` "
-         "(settle is the default), beside RGB only on the same frames, in the same run. ATE SE(3)-aligned with "
+         "(reanchor is the default), beside RGB only on the same frames, in the same run. ATE SE(3)-aligned with "
          "poses, Sim(3) for RGB only; PSNR and depth L1 on the held-out frames.",
          (Column("ate_m", "ATE", "cm"), Column("keyframe_ate_m", "keyframes ATE", "cm"),
           Column("psnr_db", "PSNR", "dB", {"tum_fr1_xyz/posed-rgb": ">= RGB only (issue 43)"}),

@@ -16,13 +16,13 @@ a depth camera's trajectory follows the depth camera. With them, the session's o
 - each keyframe's device pose goes to the pose graph as an absolute prior with the stated uncertainty
   (`device_poses.prior_translation`, `prior_rotation_deg`), inflated where the device and the tracked poses
   disagree by more (`prior_inflation`): loop closures weigh it against the odometry;
-- monocular: the odometry's scale drifts (`drift_correction`). By default (`settle`) the initialisation's
-  two-view scale is measured again at each keyframe only until a full window of keyframes measured it, then kept:
-  the map stays at one scale, and the trajectory drifts from the device's as the odometry does until a loop closure
-  weighs the priors (`settle_tolerance` re-anchors once where the drift passes a share). With `reanchor` it is
-  measured again at each keyframe and the world re-anchored there: the trajectory keeps the device's scale, while
-  new keyframes and the map built before them differ in scale. With `pose_graph` the scale settles likewise, the
-  priors leave each node's scale free, and the loop-closing stage solves the graph every few priors
+- monocular: the odometry's scale drifts (`drift_correction`). By default (`reanchor`) it is measured again at
+  each keyframe over the last ones and the world re-anchored there: the trajectory keeps the device's scale, while
+  new keyframes and the map built before them differ in scale. With `settle` the initialisation's two-view scale
+  is measured again only until a full window of keyframes measured it, then kept: the map stays at one scale, and
+  the trajectory drifts from the device's as the odometry does until a loop closure weighs the priors
+  (`settle_tolerance` re-anchors once where the drift passes a share). With `pose_graph` the scale settles likewise,
+  the priors leave each node's scale free, and the loop-closing stage solves the graph every few priors
   (`drift_corrected`), moving past keyframes and their part of the map. A new map the odometry makes after a loss
   takes the device's scale again (`_align_monocular`).
 

@@ -44,19 +44,20 @@ class DevicePoseConfig(BaseModel):
         "device's over the odometry's distances between the last this many keyframes (no jump between them), and "
         "the world re-anchored there so that no pose jumps; 0: only from the initialisation's baseline")
     drift_correction: Literal["reanchor", "settle", "pose_graph"] = Field(
-        "settle", description="monocular: how the device's scale meets the odometry's drifting one. settle (the "
-        "default): the initialisation's two-view scale is measured again at each keyframe until a full "
-        "`scale_keyframes` window measured it, then kept: the map stays at one scale, the device still seeds the "
-        "odometry and checks it for jumps (a jump measures the scale again), and its poses are priors a loop "
-        "closure weighs; between loops the trajectory drifts from the device's as the odometry does (offline, "
-        "320x240 TUM fr1/xyz with its motion capture: 1.80 cm, 21.69 dB, RGB only 1.98 cm, 20.76 dB; KITTI 00 "
-        "0-199 at 620x188: 21.21 dB, ATE 1.74 m, as RGB only's drift). reanchor: measured again at every keyframe "
-        "and the world re-anchored there, so the trajectory keeps the device's scale while new keyframes and the "
-        "map built before them differ in scale (TUM 2.53 cm, 19.13 dB: below RGB only; KITTI 30 cm, 20.95 dB); "
-        "pose_graph: settled, then the pose graph is solved with the device priors every `graph_solve_keyframes` "
-        "keyframes, moving past keyframes and their part of the map (Sim(3): scale included) toward the device's "
-        "trajectory (a `drift_corrected` revision; TUM 1.52 cm, 22.31 dB; KITTI 3.5 cm, but 19.55 dB: the "
-        "keyframes' parts of the map move apart where no loop ties them)")
+        "reanchor", description="monocular: how the device's scale meets the odometry's drifting one. reanchor (the "
+        "default): measured again at every keyframe and the world re-anchored there, so the trajectory keeps the "
+        "device's scale while new keyframes and the map built before them differ in scale (offline, 320x240 TUM "
+        "fr1/xyz with its motion capture: 2.53 cm, 19.13 dB, below RGB only's 1.98 cm, 20.73 dB; KITTI 00 0-199 at "
+        "620x188: 30 cm, 20.95 dB; live on TUM, five runs: 2.1-4.6 cm, 16.6-18.9 dB). settle: the "
+        "initialisation's two-view scale is measured again at each keyframe until a full `scale_keyframes` window "
+        "measured it, then kept: the map stays at one scale, the device still seeds the odometry and checks it for "
+        "jumps (a jump measures the scale again), and its poses are priors a loop closure weighs; between loops the "
+        "trajectory drifts from the device's as the odometry does (offline TUM 1.80 cm, 21.69 dB; KITTI 21.21 dB "
+        "but 1.74 m; live on TUM, five runs: 2.8-5.0 cm, 15.9-20.1 dB: not the default). pose_graph: settled, then "
+        "the pose graph is solved with the device priors every `graph_solve_keyframes` keyframes, moving past "
+        "keyframes and their part of the map (Sim(3): scale included) toward the device's trajectory (a "
+        "`drift_corrected` revision; offline TUM 1.53 cm, 22.31 dB; KITTI 3.5 cm, but 19.55 dB: the keyframes' "
+        "parts of the map move apart where no loop ties them)")
     settle_tolerance: float = Field(
         0.0, ge=0, le=1, description="settle: where the scale measured over the last `scale_keyframes` keyframes "
         "differs from the kept one by more than this share, the world is re-anchored once at the measured scale and "
