@@ -17,6 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from worker.data.registration_config import DepthCameraConfig
 from worker.depth.config import MultiViewDepthConfig
+from worker.tracking.photos.config import PhotoRegistrationConfig
 from worker.tracking.rgbd_config import RgbdOdometryConfig
 from worker.tracking.seeded_config import DeviceClockConfig, DevicePoseConfig, PoseChoiceConfig
 from worker.tracking.vo_config import VisualOdometryConfig
@@ -291,12 +292,14 @@ class InputConfig(_Section):
 class TrackingConfig(_Section):
     """The pose source and the settings of the geometric ones."""
 
-    source: Literal["auto", "device", "rgbd_odometry", "visual_odometry", "model"] = Field(
+    source: Literal["auto", "device", "rgbd_odometry", "visual_odometry", "photos", "model"] = Field(
         "auto", description="pose source: auto = the frames' poses when they carry them, else RGB-D odometry with "
-        "depth, else visual odometry (the learned model instead of the odometries when a model other than the "
-        "shipped synthetic one is configured)")
+        "depth, else visual odometry for video and photo registration for photos (`photos.min_interval_s`; the "
+        "learned model instead of the odometries when a model other than the shipped synthetic one is "
+        "configured); photos = photo registration (incremental structure from motion) whatever the frame rate")
     rgbd: RgbdOdometryConfig = Field(default_factory=RgbdOdometryConfig)
     visual: VisualOdometryConfig = Field(default_factory=VisualOdometryConfig)
+    photos: PhotoRegistrationConfig = Field(default_factory=PhotoRegistrationConfig)
     max_side: int = Field(
         0, ge=0, le=8192, description="the tracking resolution: frames whose long side is larger are tracked at this "
         "long side (aspect kept; mapping keeps the full frame); 0 = as they come")

@@ -49,7 +49,12 @@ class TrackingLost(EngineEvent, messages.TrackingLost):
 
 
 class Relocalized(EngineEvent, messages.Relocalized):
-    """A pose source found the camera again: how (`method`), against what (`place`, `keyframe`, `map_id`)."""
+    """A pose source found the camera again: how (`method`), against what (`place`, `keyframe`, `map_id`). frames:
+    the poses of frames reported lost that the source has placed since, [[index, 4x4 list]] (photo registration:
+    the engine revises the trajectory with them); registered_frames: their indices, once revised."""
+
+    frames: list[list[Any]] | None = None
+    registered_frames: list[int] | None = None
 
 
 class Initializing(EngineEvent, messages.Initializing):

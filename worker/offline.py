@@ -20,7 +20,7 @@ import numpy as np
 
 from worker.config import SlamConfig
 from worker.data.frame import Frame
-from worker.events import Initialized
+from worker.events import Initialized, Relocalized
 from worker.geometry import se3_part
 from worker.pipeline.drift import PoseDrift
 
@@ -77,7 +77,7 @@ def run_sequence(
     scores use at most `max_eval_frames` held-out frames, evenly spread (0: every one). `device_poses` replaces each
     frame's device pose (a benchmark's copy of the ground truth with a clock offset, bench/device_clock.py)."""
     from worker.data import open_source
-    from worker.pipeline.session_stats import device_clock
+    from worker.pipeline.session_stats import device_clock, pose_strategy
     from worker.slam import SlamSystem
 
     out = Path(out_dir)
@@ -143,7 +143,7 @@ def run_sequence(
             "keyframes_shed": system.live_stats()["keyframes_shed"], "live_pacing": live_pacing,
             "threaded": config.threaded,
             "use_gt_depth": use_gt_depth, "use_gt_poses": use_gt_poses, "scale": scale, "tracking": system.tracking,
-            "depth_source": system.depth_source, **system.pose_source_choice(),
+            "pose_strategy": pose_strategy(system), "depth_source": system.depth_source, **system.pose_source_choice(),
             "device_clock": device_clock(system),
             "intrinsics": intrinsics.to_dict() if intrinsics else None,
             "intrinsics_estimated": given_intrinsics is None,
@@ -151,8 +151,8 @@ def run_sequence(
             "runtime_breakdown": system.timings.breakdown(len(frames)),
             "eval_frames_held_every": hold_every,
         }
-        registered = {int(i) for r in results for e in r.events if isinstance(e, Initialized)
-                      for i in e.registered_frames or []}  # lost frames a new map posed later
+        registered = {int(i) for r in results for e in r.events if isinstance(e, (Initialized, Relocalized))
+                      for i in e.registered_frames or []}  # lost frames posed later (a new map, photo registration)
         metrics["frames_registered"] = int(sum(r.tracked or r.index in registered for r in results))
         metrics.update(_trajectory_metrics(frames, all_poses, drift, [r.tracked for r in results],
                                            [r.tracked or r.index in registered for r in results]))

@@ -34,6 +34,7 @@ def finish_session(system: SessionParts) -> None:
     status.begin("loop_closing", system.loop_stage.pending)
     system.loop_stage.wait_idle()
     system.finish_events += stage.apply_loop_corrections()  # loops the stage closed after the last frame
+    system.finish_events += stage.apply_source_refinement()  # photo registration's last bundle adjustment
     if mapping is None:
         status.begin("done", 0)
         return

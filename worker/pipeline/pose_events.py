@@ -4,7 +4,8 @@
   placeholders as a new trajectory revision; for a restarted map (`map` > 1) they are tied to its first keyframe
   once it exists, so that a loop or a join that moves the map moves them too (the event waits for it);
 - a new camera estimate in `initialized` remakes the loop-closing stage's keyframe points (`CameraUpdate`);
-- `relocalized` by reinitialising makes the next keyframe's odometry edge a `restart` seam;
+- `relocalized` by reinitialising makes the next keyframe's odometry edge a `restart` seam; one with frames (photo
+  registration placed photos it had reported lost) revises their poses as a new trajectory revision;
 - `maps_merged` (a restarted map recognised an older one) becomes a Sim(3) edge between keyframes (`MapJoin`).
 """
 
@@ -44,6 +45,8 @@ class PoseEvents:
         for event in events:
             if isinstance(event, Initialized) and event.frames:
                 event = self._initialized(event)
+            elif isinstance(event, Relocalized) and event.frames:
+                event = self._registered_later(event)
             if event is not None and not isinstance(event, MapsMerged):
                 out.append(event)
         return out
@@ -69,6 +72,14 @@ class PoseEvents:
             self._revise_on_keyframe = (out, revised)
             return None
         return replace(out, revision=self.trajectory.revise_frames(revised), frames_revised=len(revised))
+
+    def _registered_later(self, event: Relocalized) -> Relocalized:
+        """The event with the trajectory revised by the poses of the frames it placed late."""
+        revised = {int(i): np.asarray(p, np.float64) for i, p in event.frames}
+        revised = {i: p for i, p in revised.items() if np.all(np.isfinite(p))}
+        self.counters["frames_registered_later"] += len(revised)
+        return replace(event, frames=None, revision=self.trajectory.revise_frames(revised),
+                       registered_frames=sorted(revised))
 
     def _revise_new_map_frames(self, keyframe: int | None, submap_id: int) -> Initialized:
         """The frames a new map waited for (reported lost), posed by its initialisation: tied to the map's first

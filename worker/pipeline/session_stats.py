@@ -25,6 +25,7 @@ def session_stats(system: SessionParts) -> dict[str, Any]:
             "keyframes_mapped": 0 if mapping is None else mapping.keyframes_mapped,
             "mapping_process_restarts": 0 if mapping is None else mapping.restarts,
             **live_stats(system), "pose_source": pose_source_choice(system)["pose_source"],
+            "pose_strategy": pose_strategy(system),
             "device_clock": device_clock(system), "runtime_breakdown": system.timings.breakdown(int(frames))}
 
 
@@ -35,6 +36,13 @@ def live_stats(system: SessionParts) -> dict[str, Any]:
     mapping = ({"mapping_lag_keyframes": 0, "mapping_lag_s": 0.0, "keyframes_shed": {}, "keyframes_owed": 0,
                 "keyframes_caught_up": 0} if system.mapping_stage is None else system.mapping_stage.stats())
     return {**{key: mapping[key] for key in LIVE_MAPPING_KEYS}, "loop_pending": system.loop_stage.pending}
+
+
+def pose_strategy(system: SessionParts) -> str | None:
+    """What tracks the frames: the pose source's name (RGB only: `visual_odometry` for video, `photos` for photo
+    registration, once the first two frames chose); None before the first frame."""
+    source = getattr(system, "pose_source", None)
+    return None if source is None else source.name
 
 
 def pose_source_choice(system: SessionParts) -> dict[str, Any]:

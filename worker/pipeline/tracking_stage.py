@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from worker.data.frame import Frame, FrameResult
-from worker.events import DriftCorrected, EngineEvent, MapsMerged, Relocalized
+from worker.events import DriftCorrected, EngineEvent, MapsMerged, PosesRefined, Relocalized
 from worker.geometry import Intrinsics, nearest_sim3, sim3_inverse
 from worker.maps.session_in_map import MapQuery, SessionInMap
 from worker.pipeline.depth_sources.base import DepthSource
@@ -198,6 +198,26 @@ class TrackingStage:
             self.counters[counter] = self.counters.get(counter, 0) + 1
             events.append(replace(correction.event, revision=revision))
         return events
+
+    def apply_source_refinement(self) -> list[EngineEvent]:
+        """The pose source's own refinement of its poses, where it has one (photo registration's bundle adjustment
+        of every photo, `refined_poses`): the keyframes move to it as after a loop (the frames between them, the
+        jobs not in the map yet and the map follow), the other frames it posed are put where it says. Returns the
+        `poses_refined` event, or nothing."""
+        refine = getattr(self.pose_source, "refined_poses", None)
+        poses = refine() if refine is not None else {}
+        if not poses:
+            return []
+        trajectory = self.trajectory
+        old = {k: pose.copy() for k, pose in trajectory.keyframe_poses.items()}
+        _, changed = self.apply_correction({k: p for k, p in poses.items() if k in old})
+        trajectory.spread_keyframe_moves(old)
+        revision = trajectory.place_frames({i: p for i, p in poses.items() if i not in old})
+        if self.depth_source is not None and self.mapping is not None:
+            self.depth_source.move(changed)
+            if changed:
+                self.mapping.submit(PoseUpdateJob(changed))
+        return [PosesRefined(keyframes=len(changed), revision=revision)]
 
     # -- the steps -----------------------------------------------------------------------------------------------
     @property

@@ -130,6 +130,18 @@ class Trajectory:
                 touched.add(position)
         return self._revised(touched)
 
+    def place_frames(self, poses: dict[int, np.ndarray]) -> int:
+        """Put past non-keyframes at these world poses as the trajectory is now (their keyframes' current poses:
+        unlike `revise_frames`, whose poses are in the world the keyframes were tracked in). Returns the new
+        revision."""
+        touched = set()
+        for position, record in enumerate(self.frames):
+            if record.index in poses and not record.is_keyframe:
+                record.relative = _inv(self.keyframe_poses[record.keyframe]) @ np.asarray(poses[record.index],
+                                                                                            np.float64)
+                touched.add(position)
+        return self._revised(touched)
+
     def spread_keyframe_moves(self, old_keyframe_poses: Mapping[int, np.ndarray]) -> int:
         """After keyframes moved from `old_keyframe_poses` to their current poses, each frame between its keyframe
         and the next one moves with both, by how near it is to each (frame indices; the rotation along the geodesic),

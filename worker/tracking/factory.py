@@ -11,12 +11,13 @@ from worker.tracking.sources import DevicePoses, ModelTracking
 
 def build_pose_source(tracking: str, config: SlamConfig, with_depth: bool, submit_prior: Callable[[Any], None],
                       model: ModelTracking | None = None):
-    """The pose source `tracking` ("device", "model", "rgbd_odometry" or "visual_odometry") with the session's
-    settings. Device poses follow `input.pose_mode`: "seeded" (and "auto" with depth) tracks from the device's
-    motion and sends the device poses as keyframe priors through `submit_prior`; "auto" without depth judges them
-    over the first frames (worker.tracking.pose_choice); else they are the poses. `model`: the learned model as a
-    pose source, for "model". Device poses are re-timed by the device clock first (`input.device_clock`:
-    the source's `device_clock`, worker.tracking.device_clock) unless it is off with no offset given."""
+    """The pose source `tracking` ("device", "model", "rgbd_odometry" or "visual_odometry": RGB only, video or
+    photos) with the session's settings. Device poses follow `input.pose_mode`: "seeded" (and "auto" with depth)
+    tracks from the device's motion and sends the device poses as keyframe priors through `submit_prior`; "auto"
+    without depth judges them over the first frames (worker.tracking.pose_choice); else they are the poses.
+    `model`: the learned model as a pose source, for "model". Device poses are re-timed by the device clock first
+    (`input.device_clock`: the source's `device_clock`, worker.tracking.device_clock) unless it is off with no
+    offset given."""
     source = _device_or_other(tracking, config, with_depth, submit_prior, model)
     clock = config.input.device_clock
     if tracking == "device" and (clock.mode == "estimate" or clock.offset_s != 0.0):
@@ -49,7 +50,22 @@ def _device_or_other(tracking: str, config: SlamConfig, with_depth: bool, submit
 
         return RgbdOdometry(config.tracking.rgbd)
     if tracking == "visual_odometry":
-        from worker.tracking.visual_odometry import VisualOdometry
-
-        return VisualOdometry(config.tracking.visual)
+        return _monocular(config)
     raise ValueError(f"unknown pose source {tracking!r}")
+
+
+def _monocular(config: SlamConfig):
+    """RGB only: visual odometry, photo registration, or (source auto) the one the first two frames' interval
+    chooses (worker.tracking.monocular_choice)."""
+    from worker.tracking.photos import PhotoRegistration
+    from worker.tracking.visual_odometry import VisualOdometry
+
+    tracking = config.tracking
+    if tracking.source == "photos":
+        return PhotoRegistration(tracking.photos)
+    if tracking.source == "visual_odometry" or tracking.photos.min_interval_s == 0:
+        return VisualOdometry(tracking.visual)
+    from worker.tracking.monocular_choice import MonocularChoice
+
+    return MonocularChoice(lambda: VisualOdometry(tracking.visual), lambda: PhotoRegistration(tracking.photos),
+                           tracking.photos.min_interval_s)

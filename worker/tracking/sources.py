@@ -21,15 +21,16 @@ from worker.tracking.device_clock import DeviceClock, clock_state, load_clock_st
 
 log = logging.getLogger(__name__)
 
-TRACKING_CHOICES = ("auto", "device", "rgbd_odometry", "visual_odometry", "model")
+TRACKING_CHOICES = ("auto", "device", "rgbd_odometry", "visual_odometry", "photos", "model")
 
 
 def choose_tracking(requested: str, frame: Frame, uses_pose: bool, uses_depth: bool, custom_model: bool) -> str:
     """The pose source for a session whose first frame is `frame`.
 
     "auto": the device's poses when frames carry them, else RGB-D odometry when they carry depth, else visual
-    odometry; the learned model instead of either odometry when a model other than the shipped synthetic one is
-    configured (its weights are the user's choice). An explicit choice is checked against what the frame carries.
+    odometry (the monocular mode: video or photos, worker.tracking.monocular_choice; "photos" is that mode too);
+    the learned model instead of either odometry when a model other than the shipped synthetic one is configured
+    (its weights are the user's choice). An explicit choice is checked against what the frame carries.
     """
     if requested not in TRACKING_CHOICES:
         raise ValueError(f"unknown tracking {requested!r}; choose one of {list(TRACKING_CHOICES)}")
@@ -43,7 +44,7 @@ def choose_tracking(requested: str, frame: Frame, uses_pose: bool, uses_depth: b
         raise ValueError(f"tracking 'device' needs poses with the frames; frame {frame.index} has none")
     if requested == "rgbd_odometry" and not uses_depth:
         raise ValueError(f"tracking 'rgbd_odometry' needs depth with the frames; frame {frame.index} has none")
-    return requested
+    return "visual_odometry" if requested == "photos" else requested  # the monocular mode, photos its strategy
 
 
 class DevicePoses:
