@@ -10,7 +10,7 @@ camera's distance to the object (the point nearest every optical axis). Recorded
 ATE, the worst photo's share, how many are within 5 %, the wall time of the registration (features included, photo
 after photo as a session gets them, and the final bundle adjustment the session's finish runs) and the load; the
 peer (pycolmap, a bench extra: SIFT, sequential matching, incremental mapping, the camera held) the same. Records go to
-bench/results/photo_orbit/ (scoreboard area `rgb`).
+bench/results/photo_orbit/ (scoreboard area `photo_orbit`).
 
 `--from-middlebury` converts Middlebury's templeRing or dinoRing (Seitz et al., CVPR 2006: 47-48 photos on a ring
 with calibrated cameras, `*_par.txt`) into that layout: photos in ring order, the upside-down half (positive
@@ -50,13 +50,14 @@ def score(estimated: dict[int, np.ndarray], truth: dict[int, np.ndarray]) -> dic
     distance = dict(zip(sorted(truth), np.linalg.norm(every[:, :3, 3] - orbit_centre(every), axis=1)))
     posed = sorted(i for i in estimated if i in truth)
     out: dict[str, Any] = {"photos": len(truth), "registered": len(posed),
+                           "registered_share": round(len(posed) / len(truth), 4),
                            "median_distance": round(float(np.median(list(distance.values()))), 4)}
     if len(posed) < 3:
-        return out | {"ate": None, "worst_share": None, "within_5_percent": 0}
+        return out | {"ate_units": None, "worst_share": None, "within_5_percent": 0}
     result = absolute_trajectory_error(np.stack([estimated[i] for i in posed]), np.stack([truth[i] for i in posed]),
                                        "sim3")
     share = result.errors / np.array([distance[i] for i in posed])
-    return out | {"ate": round(result.rmse, 5), "ate_share": round(result.rmse / out["median_distance"], 5),
+    return out | {"ate_units": round(result.rmse, 5), "ate_share": round(result.rmse / out["median_distance"], 5),
                   "worst_share": round(float(share.max()), 4), "worst_photo": int(posed[int(share.argmax())]),
                   "within_5_percent": int((share <= TARGET_SHARE).sum())}
 
@@ -90,8 +91,8 @@ def run_peer(source: Path, size: tuple[int, int] | None) -> dict[str, Any]:
     distance = float(np.median(np.linalg.norm(truth[:, :3, 3] - orbit_centre(truth), axis=1)))
     with tempfile.TemporaryDirectory(prefix="bench-orbit-colmap-") as tmp:
         values = run_colmap(source, (frames[0].width, frames[0].height), 1, Path(tmp))
-    ate = values.get("ate_m")
-    return values | {"ate_share": None if ate is None else round(ate / distance, 5)}
+    ate = values.pop("ate_m", None)  # in the capture's units
+    return values | {"ate_units": ate, "ate_share": None if ate is None else round(ate / distance, 5)}
 
 
 def middlebury_ring_to_transforms(src: Path, dst: Path) -> int:
@@ -161,8 +162,9 @@ def main(argv: list[str]) -> int:
             except ImportError as error:
                 values = {"error": f"not installed ({error})"}
             print(f"{source.name} {variant}: {values}", flush=True)
-            recorder.write({"area": "rgb", "sequence": source.name, "mode": "rgb", "size": args.size or "native",
-                            "variant": variant}, values, load_at_case_start=load_start)
+            case = {"area": "photo_orbit", "sequence": source.name, "mode": "rgb", "size": args.size or "native",
+                    "variant": variant}
+            recorder.write(case, values, load_at_case_start=load_start)
     return 0
 
 

@@ -38,7 +38,8 @@ class StatusRow:
 
 SEQUENCES = {"icl_livingroom1_micro": "ICL living room (211 frames)", "icl_mini": "ICL mini (71 frames)",
              "tum_fr1_xyz": "TUM fr1/xyz (788 frames)", "rgbd_dataset_freiburg1_rpy": "TUM fr1/rpy (694 frames)",
-             "tum_fr1_xyz_pingpong3": "TUM fr1/xyz forward, back, forward (2,362 frames)"}
+             "tum_fr1_xyz_pingpong3": "TUM fr1/xyz forward, back, forward (2,362 frames)",
+             "temple": "Middlebury templeRing (47 photos)", "fox": "instant-ngp fox (50 photos)"}
 MODES = {"rgbd": "RGB-D", "posed-rgbd": "posed RGB-D", "posed-rgb": "posed RGB", "rgb": "RGB only"}
 
 _LIVE_ATE = {"*": "within 10 % of offline"}
@@ -91,6 +92,18 @@ AREAS: tuple[Area, ...] = (
           Column("depth_l1_m", "depth L1", "cm"), Column("loops", "loops", ""),
           Column("registered_share", "registered", "%"), Column("wall_s", "wall", "s")),
          ("sequence", "mode", "size", "variant")),
+    Area("photo_orbit", "RGB only: photo orbits",
+         "`python -m bench photo_orbit --source DIR`: a photo capture with its poses (`transforms.json`) through "
+         "the pose source RGB-only sessions use for photos (worker.tracking.photos: photo after photo, then the "
+         "final adjustment of all), against pycolmap on the same photos (SIFT, sequential matching, incremental "
+         "mapping, the camera held). Each photo's camera centre after one Sim(3) alignment, as a share of its "
+         "distance to the object; wall time features included.",
+         (Column("registered_share", "registered", "%", ">= 100 % (issue 43)"),
+          Column("ate_share", "ATE / distance", "%"),
+          Column("worst_share", "worst photo / distance", "%", "<= 5 % (issue 43)"),
+          Column("within_5_percent", "photos within 5 %", ""), Column("wall_s", "wall", "s", "<= 120 (issue 43)"),
+          Column("s_per_photo", "per photo", "s")),
+         ("sequence", "size", "variant")),
     Area("posed_rgb", "Posed RGB: the device's scale against the odometry's drift",
          "`python -m bench posed_rgb_drift [--source DIR] [--size WxH]`: `flashmono run --use-gt-poses` (no depth) "
          "where `pose_mode` auto picks seeded visual odometry, with each `input.device_poses.drift_correction` "

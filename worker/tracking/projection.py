@@ -73,3 +73,15 @@ def projection_jacobians(pc: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.
     J[:, 0, 3], J[:, 0, 4], J[:, 0, 5] = -fx * xz * yz, fx * (1.0 + xz * xz), -fx * yz
     J[:, 1, 3], J[:, 1, 4], J[:, 1, 5] = -fy * (1.0 + yz * yz), fy * xz * yz, fy * xz
     return J[:, :, :3], J
+
+
+def sparse_depth_image(points: np.ndarray, uv: np.ndarray, pose_c2w: np.ndarray, camera: Intrinsics) -> np.ndarray:
+    """z-depth [H, W] float32 of world points [N, 3] at their pixels uv [N, 2] in the camera posed `pose_c2w` (the
+    keypoints that see them), 0 elsewhere and behind the camera."""
+    depth = np.zeros((camera.height, camera.width), np.float32)
+    z = to_camera(points, pose_c2w)[:, 2]
+    col = np.clip(uv[:, 0].astype(np.int64), 0, camera.width - 1)
+    row = np.clip(uv[:, 1].astype(np.int64), 0, camera.height - 1)
+    keep = z > 0
+    depth[row[keep], col[keep]] = z[keep]
+    return depth

@@ -13,7 +13,7 @@ from .bundle_adjustment import Observations, bundle_adjust, reprojection_chi2
 from .covisibility import LocalWindow, covisible_window
 from .features import Features
 from .local_map import Keyframe
-from .projection import rigid, to_camera
+from .projection import rigid, sparse_depth_image, to_camera
 from .reobservation import nearest_keypoints, search_by_projection
 from .track_triangulation import triangulate_tracks
 from .tracks import Tracks, lookup_sorted
@@ -206,12 +206,5 @@ def median_depth(s: VoState, kf: Keyframe) -> float:
 
 def sparse_depth(s: VoState, kf: Keyframe, camera: Intrinsics) -> np.ndarray:
     """z-depth of the keyframe's points at their pixels, 0 elsewhere."""
-    depth = np.zeros((camera.height, camera.width), np.float32)
     has = np.flatnonzero(kf.point_ids >= 0)
-    z = to_camera(s.map.positions[kf.point_ids[has]], kf.pose)[:, 2]
-    uv = kf.features.keypoints[has]
-    col = np.clip(uv[:, 0].astype(np.int64), 0, camera.width - 1)
-    row = np.clip(uv[:, 1].astype(np.int64), 0, camera.height - 1)
-    keep = z > 0
-    depth[row[keep], col[keep]] = z[keep]
-    return depth
+    return sparse_depth_image(s.map.positions[kf.point_ids[has]], kf.features.keypoints[has], kf.pose, camera)

@@ -15,7 +15,7 @@ from worker.events import Initialized, Initializing, Relocalized, TrackingLost
 from worker.geometry import Intrinsics
 
 from ..base import TrackingResult
-from ..projection import camera_matrix, to_camera
+from ..projection import camera_matrix, sparse_depth_image
 from .config import PhotoRegistrationConfig
 from .features import extract_features
 from .incremental import IncrementalRegistration, Registration
@@ -53,7 +53,7 @@ class PhotoRegistration:
         events = self._events(frame.index, done)
         self.last_pose, self.lost = done.pose.copy(), False
         quality = min(1.0, done.inliers / max(4.0 * self.config.min_inliers, 1.0))
-        return TrackingResult(done.pose.copy(), keyframe_hint=True, depth=self._sparse_depth(intrinsics),
+        return TrackingResult(done.pose.copy(), keyframe_hint=True, depth=self._sparse_depth(frame.index, intrinsics),
                               events=events, quality=quality)
 
     def _waiting(self, index: int, done: Registration) -> TrackingResult:
@@ -75,19 +75,12 @@ class PhotoRegistration:
                                 inliers=done.inliers, lost_frames=len(frames) or None, frames=frames or None)]
         return []
 
-    def _sparse_depth(self, camera: Intrinsics) -> np.ndarray:
-        """z-depth of the newest photo's points at their keypoints, 0 elsewhere."""
+    def _sparse_depth(self, index: int, camera: Intrinsics) -> np.ndarray:
+        """z-depth of photo `index`'s points at their keypoints, 0 elsewhere."""
         m = self.registration.map
-        photo = m.photos[-1]
-        depth = np.zeros((camera.height, camera.width), np.float32)
+        photo = next(p for p in reversed(m.photos) if p.index == index)
         has = np.flatnonzero(photo.point_of >= 0)
-        z = to_camera(m.points[photo.point_of[has]], photo.pose)[:, 2]
-        uv = photo.features.keypoints[has]
-        col = np.clip(uv[:, 0].astype(np.int64), 0, camera.width - 1)
-        row = np.clip(uv[:, 1].astype(np.int64), 0, camera.height - 1)
-        keep = z > 0
-        depth[row[keep], col[keep]] = z[keep]
-        return depth
+        return sparse_depth_image(m.points[photo.point_of[has]], photo.features.keypoints[has], photo.pose, camera)
 
     def refined_poses(self) -> dict[int, np.ndarray]:
         """Every registered photo's pose after a bundle adjustment of all of them (frame index -> camera-to-world):
