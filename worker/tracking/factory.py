@@ -55,7 +55,7 @@ def _device_or_other(tracking: str, config: SlamConfig, with_depth: bool, submit
 
 
 def _monocular(config: SlamConfig):
-    """RGB only: visual odometry, photo registration, or (source auto) the one the first two frames' interval
+    """RGB only: visual odometry, photo registration, or (source auto) the one the first frames' timing
     chooses (worker.tracking.monocular_choice)."""
     from worker.tracking.photos import PhotoRegistration
     from worker.tracking.visual_odometry import VisualOdometry

@@ -1,8 +1,10 @@
-"""RGB-only sessions with `tracking.source` auto: video or photos, told apart by the time between the first two
-frames. Video (frames closer than `tracking.photos.min_interval_s`) goes to visual odometry, whose optical flow
-follows small steps; photos go to photo registration (worker.tracking.photos), which matches features however far
-apart the views are. The first frame waits for the second (a placeholder pose, as visual odometry gives it), then
-both go through the chosen source."""
+"""RGB-only sessions with `tracking.source` auto: video or photos, told apart by the time between their first
+frames. Video (the first three frames less than `tracking.photos.min_interval_s` apart, either step) goes to visual
+odometry, whose optical flow follows small steps; photos (both steps that long or longer: a person taking photos, not
+a camera's clock with a late frame) go to photo registration (worker.tracking.photos), which matches features
+however far apart the views are. The first frames wait for the third (placeholder poses, as visual odometry gives
+them before its first map), then all go through the chosen source. Without intrinsics the frames are video at once
+(photo registration needs the camera; visual odometry estimates it)."""
 
 from __future__ import annotations
 
@@ -18,8 +20,11 @@ from worker.tracking.base import TrackingResult
 VIDEO, PHOTOS = "visual_odometry", "photos"
 
 
+DECIDING_FRAMES = 3  # the frames whose two steps decide
+
+
 class MonocularChoice:
-    """Visual odometry or photo registration, chosen at the second frame (module docstring). `new_video` and
+    """Visual odometry or photo registration, chosen at the third frame (module docstring). `new_video` and
     `new_photos` build the two sources."""
 
     def __init__(self, new_video: Callable[[], Any], new_photos: Callable[[], Any], min_interval_s: float) -> None:
@@ -27,7 +32,7 @@ class MonocularChoice:
         self.min_interval_s = min_interval_s
         self.chosen: str | None = None
         self.source = None
-        self.first: tuple[Frame, Intrinsics | None] | None = None
+        self.waiting: list[tuple[Frame, Intrinsics | None]] = []
 
     @property
     def name(self) -> str:
@@ -40,24 +45,23 @@ class MonocularChoice:
             raise AttributeError(attribute)
         return getattr(source, attribute)
 
-    def choose(self, first: Frame, second: Frame, intrinsics: Intrinsics | None) -> str:
-        """Photos when the two frames are at least `min_interval_s` apart and the camera is known."""
-        interval = second.timestamp - first.timestamp
-        photos = self.min_interval_s > 0 and interval >= self.min_interval_s and intrinsics is not None
-        return PHOTOS if photos else VIDEO
+    def choose(self, frames: list[Frame]) -> str:
+        """Photos when every step between `frames` is at least `min_interval_s`."""
+        steps = np.diff([f.timestamp for f in frames])
+        return PHOTOS if self.min_interval_s > 0 and len(steps) and steps.min() >= self.min_interval_s else VIDEO
 
     def track(self, frame: Frame, intrinsics: Intrinsics | None) -> TrackingResult:
         if self.source is not None:
             return self.source.track(frame, intrinsics)
-        if self.first is None:
-            self.first = (frame, intrinsics)
+        self.waiting.append((frame, intrinsics))
+        if intrinsics is not None and len(self.waiting) < DECIDING_FRAMES:
             return TrackingResult(np.eye(4), tracked=True, keyframe_hint=False, quality=0.0)
-        self.chosen = self.choose(self.first[0], frame, intrinsics)
+        self.chosen = VIDEO if intrinsics is None else self.choose([f for f, _ in self.waiting])
         self.source = self.new_photos() if self.chosen == PHOTOS else self.new_video()
-        early = self.source.track(*self.first)
-        self.first = None
+        early = [self.source.track(*item) for item in self.waiting[:-1]]
+        self.waiting = []
         result = self.source.track(frame, intrinsics)
-        result.events = early.events + result.events
+        result.events = [e for r in early for e in r.events] + result.events
         return result
 
     def keyframe_added(self, frame: Frame, pose: np.ndarray) -> None:
@@ -65,10 +69,9 @@ class MonocularChoice:
             self.source.keyframe_added(frame, pose)
 
     def state_dict(self) -> dict[str, Any]:
-        waiting = None if self.first is None else {
-            "index": self.first[0].index, "timestamp": self.first[0].timestamp, "image": self.first[0].image,
-            "intrinsics": None if self.first[1] is None else self.first[1].to_dict()}
-        return {"chosen": self.chosen, "first": waiting,
+        waiting = [{"index": f.index, "timestamp": f.timestamp, "image": f.image,
+                    "intrinsics": None if k is None else k.to_dict()} for f, k in self.waiting]
+        return {"chosen": self.chosen, "waiting": waiting,
                 "source": None if self.source is None else self.source.state_dict()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -77,7 +80,6 @@ class MonocularChoice:
         if self.chosen is not None:
             self.source = self.new_photos() if self.chosen == PHOTOS else self.new_video()
             self.source.load_state_dict(state["source"])
-        first = state.get("first")
-        self.first = None if first is None else (
-            Frame(index=int(first["index"]), timestamp=float(first["timestamp"]), image=np.asarray(first["image"])),
-            None if first["intrinsics"] is None else Intrinsics.from_dict(first["intrinsics"]))
+        self.waiting = [(Frame(index=int(w["index"]), timestamp=float(w["timestamp"]), image=np.asarray(w["image"])),
+                         None if w["intrinsics"] is None else Intrinsics.from_dict(w["intrinsics"]))
+                        for w in state.get("waiting", [])]

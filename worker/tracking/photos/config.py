@@ -11,10 +11,10 @@ class PhotoRegistrationConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    min_interval_s: float = Field(0.25, ge=0.0, description="RGB-only sessions with `tracking.source` auto: when the "
-                                                            "first two frames are this far apart in time or more, "
-                                                            "they are photos and are registered (else video, for "
-                                                            "visual odometry); 0: never")
+    min_interval_s: float = Field(0.4, ge=0.0, description="RGB-only sessions with `tracking.source` auto: when the "
+                                                           "first three frames are each this far apart in time or "
+                                                           "more, they are photos and are registered (else video, "
+                                                           "for visual odometry); 0: never")
     max_features: int = Field(2000, ge=100, description="SIFT keypoints per photo at the most")
     match_ratio: float = Field(0.8, gt=0.0, lt=1.0, description="Lowe ratio of a descriptor match (both ways)")
     neighbours: int = Field(6, ge=1, description="the latest registered photos a new photo is matched against first")
@@ -25,6 +25,9 @@ class PhotoRegistrationConfig(BaseModel):
     min_inliers: int = Field(30, ge=6, description="PnP inliers a photo needs to be registered")
     chi2_px: float = Field(5.991, gt=0.0, description="squared reprojection error (in pixel sigmas) of an inlier")
     min_parallax_deg: float = Field(1.5, gt=0.0, description="triangulation angle a new point needs, degrees")
+    waiting_photos: int = Field(12, ge=2, description="photos kept while no pair has made the first map (the newest "
+                                                      "this many; each new photo is tried against them, oldest "
+                                                      "first)")
     retry_photos: int = Field(30, ge=0, description="photos that could not be registered, kept to be tried again "
                                                     "after each photo that is (the newest this many)")
     local_window: int = Field(8, ge=2, description="photos adjusted with a new one (those sharing most points)")

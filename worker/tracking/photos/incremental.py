@@ -104,7 +104,7 @@ class IncrementalRegistration:
             self._anchor_at_first_photo()
             posed = {p.index: p.pose.copy() for p in self.map.photos if p.index != index}
             return Registration("initialized", self.map.photos[b].pose.copy(), posed, len(two.points))
-        self.waiting.append((index, features))
+        self.waiting = (self.waiting + [(index, features)])[-c.waiting_photos:]
         return Registration("waiting", reason=reason)
 
     def _anchor_at_first_photo(self) -> None:
