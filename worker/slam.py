@@ -8,12 +8,10 @@ keeps the pose graph, detects and verifies loops and hands optimised keyframe po
 a new trajectory revision. Tracking never waits for either. `SlamConfig.threaded=False` runs every stage inline in
 the caller: deterministic.
 
-The session's first frame decides its parts (worker.pipeline.assembly): the pose source (worker.tracking, chosen by
-`choose_tracking`: the device's poses, RGB-D odometry, visual odometry or the learned model) and where keyframe
-surfels come from (worker.pipeline.depth_sources: the sensor's depth, multi-view stereo, the model). This module only
-assembles them and serves the session's API: push, finish, trajectory, renders, exports, stats and snapshots
-(worker.pipeline.snapshot).
-"""
+The first frame decides the parts (worker.pipeline.assembly): the pose source (worker.tracking, `choose_tracking`:
+device poses, RGB-D odometry, visual odometry or photo registration, the learned model) and the keyframe surfels'
+source (worker.pipeline.depth_sources). This module assembles them and serves the session's API (snapshots:
+worker.pipeline.snapshot)."""
 
 from __future__ import annotations
 
@@ -116,8 +114,13 @@ class SlamSystem:
 
     @property
     def needs_every_frame(self) -> bool:
-        """Whether a live stream should skip no frame now (device poses are being judged)."""
+        """Whether frames go through the judged start now (device poses are being judged)."""
         return self.judged_start.judging
+
+    @property
+    def keeps_every_frame(self) -> bool:
+        """Whether a live stream should skip no frame now: device poses judged, or photos (each one registered)."""
+        return self.needs_every_frame or bool(getattr(getattr(self, "pose_source", None), "keeps_every_frame", False))
 
     @property
     def last_frame_mapped(self) -> int | None:

@@ -35,8 +35,12 @@ def _timed(frames, times: list[float]):
                                            ([0.0, 1 / 30, 2 / 30], "visual_odometry")])
 def test_both_first_steps_must_be_long_for_photos(frames, times, chosen) -> None:
     choice = _choice()
-    results = [choice.track(f, f.intrinsics) for f in _timed(frames, times)]
+    timed = _timed(frames, times)
+    results = [choice.track(f, f.intrinsics) for f in timed[:2]]
+    assert choice.chosen is None and choice.keeps_every_frame  # a live stream skips none while it decides
+    results.append(choice.track(timed[2], timed[2].intrinsics))
     assert choice.chosen == chosen and choice.name == chosen
+    assert choice.keeps_every_frame == (chosen == "photos")
     assert isinstance(choice.source, PhotoRegistration if chosen == "photos" else VisualOdometry)
     assert all(np.all(np.isfinite(r.pose)) for r in results)
     assert results[0].keyframe_hint is False and results[1].keyframe_hint is False  # placeholders while deciding

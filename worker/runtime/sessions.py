@@ -398,11 +398,12 @@ class SessionRunner(threading.Thread):
         """Newest first wins: a frame that waited longer than `skip_after_ms` while a newer frame is waiting is
         skipped (never the session's first frame, a frame already counted, more than a few in a row, a second one
         in a row that arrived more than `max_skipped_span_ms` after the last tracked frame, or while the engine
-        needs every frame: judging device poses over the first frames, worker.tracking.pose_choice)."""
+        keeps every frame: judging device poses over the first frames, worker.tracking.pose_choice; registering
+        photos, worker.tracking.photos)."""
         if fields.get(b"kind", b"frame") != b"frame":
             return False
         limit = self.config.skip_after_ms if self._session.get("skip_frames") == "1" else 0
-        if getattr(self.engine, "needs_every_frame", False):
+        if getattr(self.engine, "keeps_every_frame", False):
             limit = 0
         arrival_ms = float(stream_id_tuple(entry_id)[0])
         span_ms = 0.0 if self._last_tracked_arrival_ms is None else arrival_ms - self._last_tracked_arrival_ms

@@ -38,6 +38,11 @@ class MonocularChoice:
     def name(self) -> str:
         return self.chosen or VIDEO
 
+    @property
+    def keeps_every_frame(self) -> bool:
+        """A live stream skips no frame while the choice waits for its frames, nor once they are photos."""
+        return self.chosen != VIDEO
+
     def __getattr__(self, attribute: str) -> Any:
         # what the engine asks of a pose source beyond the protocol (estimated_intrinsics, calibrating, ...)
         source = self.__dict__.get("source")

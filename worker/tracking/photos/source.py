@@ -28,6 +28,7 @@ class PhotoRegistration:
     """PoseSource for photo captures (see the module docstring). Needs the camera's intrinsics."""
 
     name = "photos"
+    keeps_every_frame = True  # a live stream skips no photo: each one is a view no other frame repeats
 
     def __init__(self, config: PhotoRegistrationConfig | None = None) -> None:
         self.config = config or PhotoRegistrationConfig()
