@@ -315,7 +315,9 @@ class Relocalized(ServerMessage):
         doc="how tracking came back: absent for a short loss (the last tracked frame's points found again); place "
         "recognition, learned, learned keyframe, learned glue (visual odometry against a remembered keyframe), "
         "reinitialized (a new map from two views scaled to the old), device (device poses again), device_pose (a "
-        "seeded session's odometry restarted at the device's pose)",
+        "seeded session's odometry restarted at the device's pose), photo registration (a photo session registers "
+        "photos again), registered later (a photo session placed photos it had reported lost: `lost_frames` of "
+        "them, the trajectory revised at `revision`)",
     )
     reason: str | None = info(doc="device_pose: why the odometry was restarted", default=None)
     place: int | None = info(doc="visual odometry: the earlier frame it was placed against", default=None)
