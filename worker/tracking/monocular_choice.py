@@ -33,6 +33,7 @@ class MonocularChoice:
         self.chosen: str | None = None
         self.source = None
         self.waiting: list[tuple[Frame, Intrinsics | None]] = []
+        self.keyframes: dict[int, tuple[Frame, np.ndarray]] = {}  # engine keyframes among the waiting frames
 
     @property
     def name(self) -> str:
@@ -63,8 +64,12 @@ class MonocularChoice:
             return TrackingResult(np.eye(4), tracked=True, keyframe_hint=False, quality=0.0)
         self.chosen = VIDEO if intrinsics is None else self.choose([f for f, _ in self.waiting])
         self.source = self.new_photos() if self.chosen == PHOTOS else self.new_video()
-        early = [self.source.track(*item) for item in self.waiting[:-1]]
-        self.waiting = []
+        early = []
+        for item in self.waiting[:-1]:  # as if the source had had them as they came, keyframes told
+            early.append(self.source.track(*item))
+            if item[0].index in self.keyframes:
+                self.source.keyframe_added(*self.keyframes[item[0].index])
+        self.waiting, self.keyframes = [], {}
         result = self.source.track(frame, intrinsics)
         result.events = [e for r in early for e in r.events] + result.events
         return result
@@ -72,11 +77,14 @@ class MonocularChoice:
     def keyframe_added(self, frame: Frame, pose: np.ndarray) -> None:
         if self.source is not None:
             self.source.keyframe_added(frame, pose)
+        else:  # the session's first frame: told to the source once it tracks that frame
+            self.keyframes[frame.index] = (frame, pose.copy())
 
     def state_dict(self) -> dict[str, Any]:
         waiting = [{"index": f.index, "timestamp": f.timestamp, "image": f.image,
                     "intrinsics": None if k is None else k.to_dict()} for f, k in self.waiting]
-        return {"chosen": self.chosen, "waiting": waiting,
+        keyframes = [{"index": i, "pose": pose} for i, (_, pose) in self.keyframes.items()]
+        return {"chosen": self.chosen, "waiting": waiting, "keyframes": keyframes,
                 "source": None if self.source is None else self.source.state_dict()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -88,3 +96,6 @@ class MonocularChoice:
         self.waiting = [(Frame(index=int(w["index"]), timestamp=float(w["timestamp"]), image=np.asarray(w["image"])),
                          None if w["intrinsics"] is None else Intrinsics.from_dict(w["intrinsics"]))
                         for w in state.get("waiting", [])]
+        frames = {f.index: f for f, _ in self.waiting}
+        self.keyframes = {int(k["index"]): (frames[int(k["index"])], np.asarray(k["pose"], np.float64).reshape(4, 4))
+                          for k in state.get("keyframes", []) if int(k["index"]) in frames}
