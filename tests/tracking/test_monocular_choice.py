@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from protocol.codec import pack, unpack
 from worker.data import open_source
 from worker.tracking.monocular_choice import MonocularChoice
 from worker.tracking.photos import PhotoRegistration
@@ -52,3 +53,17 @@ def test_frames_without_intrinsics_are_video_at_once(frames) -> None:
     assert choice.chosen == "visual_odometry" and isinstance(choice.source, VisualOdometry)
     assert result.events  # the odometry's own answer to the first frame, not a placeholder
     assert choice.estimated_intrinsics is choice.source.estimated_intrinsics  # what the engine asks reaches it
+
+
+def test_a_snapshot_of_visual_odometry_alone_continues_as_video(frames) -> None:
+    odometry = VisualOdometry()
+    expected = [odometry.track(f, f.intrinsics).pose for f in frames]
+    before = VisualOdometry()  # a session snapshot of a version whose RGB-only pose source was the odometry itself
+    for f in frames[:4]:
+        before.track(f, f.intrinsics)
+    choice = _choice()
+    choice.load_state_dict(unpack(pack(before.state_dict())))
+    assert choice.chosen == "visual_odometry" and not choice.keeps_every_frame
+    got = [choice.track(f, f.intrinsics).pose for f in frames[4:]]
+    for a, b in zip(got, expected[4:]):
+        np.testing.assert_allclose(a, b, atol=1e-9)

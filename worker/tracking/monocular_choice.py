@@ -88,6 +88,8 @@ class MonocularChoice:
                 "source": None if self.source is None else self.source.state_dict()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        if "chosen" not in state:  # a snapshot of a version before the choice: visual odometry's own state
+            state = {"chosen": VIDEO, "source": state}
         self.chosen = state["chosen"]
         self.source = None
         if self.chosen is not None:
