@@ -40,7 +40,7 @@ def live_stats(system: SessionParts) -> dict[str, Any]:
 
 def pose_strategy(system: SessionParts) -> str | None:
     """What tracks the frames: the pose source's name (RGB only: `visual_odometry` for video, `photos` for photo
-    registration, once the first two frames chose); None before the first frame."""
+    registration, once the first frames chose); None before the first frame."""
     source = getattr(system, "pose_source", None)
     return None if source is None else source.name
 

@@ -190,10 +190,7 @@ class TrackingStage:
             if correction.world_move is not None:
                 self.trajectory.move_world(correction.world_move)
             revision, changed = self.apply_correction(correction.poses)
-            if self.depth_source is not None and self.mapping is not None:
-                self.depth_source.move(changed)
-                if changed:
-                    self.mapping.submit(PoseUpdateJob(changed))
+            self._move_map(changed)
             counter = CORRECTION_COUNTERS.get(type(correction.event), "loops")
             self.counters[counter] = self.counters.get(counter, 0) + 1
             events.append(replace(correction.event, revision=revision))
@@ -213,11 +210,15 @@ class TrackingStage:
         _, changed = self.apply_correction({k: p for k, p in poses.items() if k in old})
         trajectory.spread_keyframe_moves(old)
         revision = trajectory.place_frames({i: p for i, p in poses.items() if i not in old})
+        self._move_map(changed)
+        return [PosesRefined(keyframes=len(changed), revision=revision)]
+
+    def _move_map(self, changed: dict[int, np.ndarray]) -> None:
+        """The jobs not in the map yet and the map follow keyframes that moved."""
         if self.depth_source is not None and self.mapping is not None:
             self.depth_source.move(changed)
             if changed:
                 self.mapping.submit(PoseUpdateJob(changed))
-        return [PosesRefined(keyframes=len(changed), revision=revision)]
 
     # -- the steps -----------------------------------------------------------------------------------------------
     @property
