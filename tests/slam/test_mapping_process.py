@@ -190,3 +190,9 @@ def test_a_mapping_process_that_keeps_dying_fails_the_session_with_a_clear_error
     with pytest.raises(RuntimeError, match="mapping process died"):
         system.push(frames[3])
     system.close()
+
+
+def test_the_fork_server_is_ready_with_the_engine_imported_when_prestart_returns() -> None:
+    from worker.pipeline.mapping_process.launcher import prestart
+
+    assert prestart(timeout_s=120)

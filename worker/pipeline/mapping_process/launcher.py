@@ -5,6 +5,7 @@ than the seconds a fresh interpreter takes to import torch, and shares those pag
 from __future__ import annotations
 
 import multiprocessing
+import sys
 import threading
 from multiprocessing.context import BaseContext
 from multiprocessing.process import BaseProcess
@@ -27,12 +28,20 @@ def _mapping_context() -> BaseContext:
         return _context
 
 
-def prestart() -> None:
-    """Start the fork server now (it imports the engine, ~3 s of a core), not under a session's first frames."""
-    from multiprocessing import forkserver
+def _ready() -> None:
+    """The probe forked once at start-up: its fork returns only after the server's imports, which it checks."""
+    loaded = all(name in sys.modules for name in ("worker.pipeline.mapping_process.preload", "torch._dynamo"))
+    sys.exit(0 if loaded else 1)
 
-    _mapping_context()
-    forkserver.ensure_running()
+
+def prestart(timeout_s: float = 120.0) -> bool:
+    """Start the fork server now and wait for its imports (the engine, ~3 s of a core), so that neither the first
+    session's first frames nor the worker's readiness come before them. True once a probe process has forked and
+    exited cleanly."""
+    probe = _mapping_context().Process(target=_ready, name="flashmono-mapping-probe", daemon=True)
+    probe.start()  # starts the server (ensure_running) and blocks until it has preloaded and forked
+    probe.join(timeout_s)
+    return probe.exitcode == 0
 
 
 def start_mapping_process(config: SlamConfig) -> tuple[BaseProcess, Channel]:
