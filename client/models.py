@@ -231,7 +231,8 @@ class TrackingEvent:
     with the device's poses, moving past keyframes and the map toward them; RGB-D: with the newest keyframe's
     alignment to the keyframes near it, `source` covisibility; see `data["revision"]`) or
     "poses_refined" (at the end of a session: the final refinement moved the keyframes' cameras where the map's
-    renders fit their photos, every frame following its keyframe, see `data["revision"]`) or "rotation_only"
+    renders fit their photos, every frame following its keyframe; RGB-D frames tracked against a place come back to
+    were put on its keyframe's final pose, `data["frames"]`; see `data["revision"]`) or "rotation_only"
     (RGB-only: a turn too fast for new points; poses follow the tracks' rotation, the position held or measured,
     `quality` at most 0.5). `data`: the message as it came; `message`: typed (`TRACKING_MESSAGES`), its fields
     documented in openapi.yaml."""

@@ -500,16 +500,19 @@ class DriftCorrected(ServerMessage):
 class PosesRefined(ServerMessage):
     TYPE: ClassVar[str] = "poses_refined"
     DOC: ClassVar[str] = (
-        "sent once while a session finishes, before `finished`, when "
-        "`mapping.final_refine_poses` is on: the final refinement moved the keyframes' "
+        "sent once while a session finishes, before `finished`, when its last step moved "
+        "poses: with `mapping.final_refine_poses` on, the final refinement moved the keyframes' "
         "cameras where the map's renders fit their photos (photometric bundle adjustment; "
-        "never with pose_mode fixed), every frame following its keyframe: GET the "
-        "trajectory for revision `revision`"
+        "never with pose_mode fixed), every frame following its keyframe; and frames tracked "
+        "against an earlier keyframe the camera came back to (RGB-D) were put on that "
+        "keyframe's final pose: GET the trajectory for revision `revision`"
     )
     OPEN: ClassVar[bool] = True
     seq: int
     revision: int | None = None
     keyframes: int | None = info(doc="how many keyframes' cameras moved", default=None)
+    frames: int | None = info(doc="how many frames were put on the earlier keyframe they were tracked against",
+                              default=None)
 
 
 @dataclass(frozen=True, kw_only=True)

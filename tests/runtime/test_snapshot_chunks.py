@@ -111,6 +111,18 @@ def test_restore_from_chunks_equals_the_full_state_after_corrections_and_revisio
         Trajectory.joined_state(unpack(pack(state)), {0: chunks[0]})
 
 
+def test_chunks_written_before_frame_anchors_load_with_none() -> None:
+    traj = _trajectory(2 * CHUNK + 3)
+    state, write = traj.chunked_state({})
+    strip = ("anchor", "anchored")
+    old_chunks = {i: pack({k: v for k, v in unpack(raw).items() if k not in strip}) for i, raw in write.new.items()}
+    old_state = {k: v for k, v in unpack(pack(state)).items() if k not in strip}
+    restored = Trajectory()
+    restored.load_state_dict(Trajectory.joined_state(old_state, old_chunks))
+    _assert_same(traj, restored)
+    assert {r.anchor for r in restored.frames} == {-1}
+
+
 def _all_chunks(traj: Trajectory, stored: dict[int, int]) -> dict[int, bytes]:
     return traj.chunked_state(stored)[1].new
 

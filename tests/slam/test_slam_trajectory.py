@@ -120,3 +120,30 @@ def test_frames_between_two_moved_keyframes_move_with_both() -> None:
     assert traj.chunk_revisions == {0: 1, 1: 1}  # frames 1 and 2, 3 sit in sealed chunks 0 and 1
     assert traj.spread_keyframe_moves(traj.keyframe_poses) == 3  # nothing moved: nothing changes
     assert {i: p for i, _, p in traj.listing("all")}.keys() == after.keys()
+
+
+def test_frames_measured_against_an_earlier_keyframe_are_placed_on_it() -> None:
+    traj = Trajectory()
+    traj.add_keyframe(0, pose(0.0))
+    traj.add_frame(0, 0.0, 0, pose(0.0), True, 0)
+    traj.add_keyframe(5, pose(0.5), reference=0)
+    traj.add_frame(5, 0.5, 5, pose(0.5), True, 0)
+    # the odometry has the frame at 0.6 (drifted); measured against keyframe 0, come back to, it is at 0.58
+    traj.add_frame(6, 0.6, 5, pose(0.6), False, 0, anchor=(0, pose(0.58)))
+    traj.add_frame(7, 0.7, 5, pose(0.7), False, 0)
+    traj.update_keyframes({5: pose(0.52)})  # the graph moved keyframe 5, not 0
+    revision = traj.revision
+    assert np.allclose(traj.pose_at(6), pose(0.52) @ np.linalg.inv(pose(0.5)) @ pose(0.6))  # follows keyframe 5
+    assert traj.anchor_frames() == 1 and traj.revision == revision + 1
+    assert np.allclose(traj.pose_at(6), pose(0.58))
+    assert np.allclose(traj.pose_at(7), pose(0.52) @ np.linalg.inv(pose(0.5)) @ pose(0.7))  # not anchored
+    restored = Trajectory()
+    restored.load_state_dict(traj.state_dict())
+    assert [r.anchor for r in restored.frames] == [-1, -1, 0, -1]
+    restored.update_keyframes({0: pose(0.01)})
+    assert restored.anchor_frames() == 1 and np.allclose(restored.pose_at(6), pose(0.01) @ pose(0.58))
+    # a state written before anchors loads with none
+    old = {k: v for k, v in traj.state_dict().items() if k not in ("anchor", "anchored")}
+    before = Trajectory()
+    before.load_state_dict(old)
+    assert before.anchor_frames() == 0 and np.allclose(before.pose_at(6), traj.pose_at(6))

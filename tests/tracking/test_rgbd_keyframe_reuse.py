@@ -62,3 +62,23 @@ def test_coming_back_tracks_against_old_keyframes_instead_of_making_new_ones(seq
     restored.load_state_dict(unpack(pack(odometry.state_dict())))
     assert [p.index for p in restored.places] == [p.index for p in odometry.places] and len(odometry.places) > 3
     assert np.allclose(restored.places[-1].pose, odometry.places[-1].pose)
+
+
+def test_frames_tracked_against_an_old_keyframe_carry_it_as_their_anchor(sequence) -> None:
+    frames, intr, length = sequence
+    odometry = RgbdOdometry()
+    selector = MotionKeyframeSelector(6, 0.2, 15.0)
+    keyframes, measured = [], []
+    for frame in frames:
+        result = odometry.track(frame, intr)
+        if result.anchor is not None:
+            keyframe, relative = result.anchor
+            assert keyframe in keyframes and keyframe < frame.index
+            true = np.linalg.inv(frames[keyframe].gt_pose) @ frame.gt_pose
+            measured.append(np.linalg.norm(relative[:3, 3] - true[:3, 3]))
+        if not keyframes or (result.keyframe_hint is not False
+                             and selector.is_keyframe(result.pose, force=bool(result.keyframe_hint))):
+            keyframes.append(frame.index)
+            odometry.keyframe_added(frame, result.pose)
+    assert len(measured) > 0.3 * (len(frames) - length)  # much of the way back is measured against the first sweep
+    assert np.mean(measured) < 0.01 and np.max(measured) < 0.03  # the true motion from the old keyframe

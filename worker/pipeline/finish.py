@@ -3,11 +3,14 @@
 Phases (worker.pipeline.finish_status): `mapping` (the newest view joins the map; the depth source's last jobs and the
 backlog are mapped), `loop_closing` (every loop query answered; the corrections applied to the trajectory and the
 map), `refining` (the final refinement of the whole map, within `final_refine_budget_s`; with
-`final_refine_poses` the keyframes' cameras too, which the trajectory then follows), `done`.
+`final_refine_poses` the keyframes' cameras too, which the trajectory then follows), `done`. Last, the frames the
+pose source measured against an earlier keyframe it came back to are put on that keyframe's final pose
+(`Trajectory.anchor_frames`); one `poses_refined` event reports the keyframes and frames moved.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
@@ -36,11 +39,13 @@ def finish_session(system: SessionParts) -> None:
     system.finish_events += stage.apply_loop_corrections()  # loops the stage closed after the last frame
     system.finish_events += stage.apply_source_refinement()  # photo registration's last bundle adjustment
     if mapping is None:
+        _anchor_frames(system, None)
         status.begin("done", 0)
         return
     if system.finish_events:
         mapping.wait_idle()
     cfg = system.config.mapping
+    refined = None
     if cfg.final_refine_passes:
         budget = cfg.final_refine_budget_s  # from the start of finish() (the drain too) where the config says so
         since = started if cfg.final_refine_budget_counts_drain else time.perf_counter()
@@ -50,8 +55,20 @@ def finish_session(system: SessionParts) -> None:
         moved = mapping.refine_all(cfg.final_refine_passes, budget_s=left, seed=cfg.final_refine_seed,
                                    train_poses=_refines_keyframe_poses(system), on_step=status.step)
         if moved:
-            system.finish_events.append(_follow_refined_keyframes(system, moved))
+            refined = _follow_refined_keyframes(system, moved)
+    _anchor_frames(system, refined)
     status.begin("done", 0)
+
+
+def _anchor_frames(system: SessionParts, refined: PosesRefined | None) -> None:
+    """Put the anchored frames on their anchors' final poses; `refined` (the final refinement's event, if any)
+    then carries the count and the newest revision, else an event of its own does when any frame moved."""
+    trajectory = system.tracking_stage.trajectory
+    frames = trajectory.anchor_frames()
+    if refined is not None:
+        system.finish_events.append(dataclasses.replace(refined, frames=frames or None, revision=trajectory.revision))
+    elif frames:
+        system.finish_events.append(PosesRefined(keyframes=0, frames=frames, revision=trajectory.revision))
 
 
 def _refines_keyframe_poses(system: SessionParts) -> bool:

@@ -101,7 +101,7 @@ class TrackingStage:
             events += self._query_loops(frame, prediction)
         events += self.events.after_keyframe_decision(tracking.events, frame.index if is_kf else None,
                                                       tracking.submap_id, pose, self.last_keyframe)
-        world = self.add_frame(frame, pose, is_kf, tracking.submap_id)
+        world = self.add_frame(frame, pose, is_kf, tracking.submap_id, tracking.anchor)
         if tracking.tracked:
             self.query_map(frame, is_kf, world, tracking.depth)
         self.last_frame = None if is_kf else (frame, tracking.tracked)
@@ -273,10 +273,12 @@ class TrackingStage:
                                         else at_most(frame, self.max_side), tracked_pose)
         return world
 
-    def add_frame(self, frame: Frame, tracked_pose: np.ndarray, is_keyframe: bool, submap_id: int) -> np.ndarray:
-        """Record the frame against the newest keyframe; returns its world pose now."""
+    def add_frame(self, frame: Frame, tracked_pose: np.ndarray, is_keyframe: bool, submap_id: int,
+                  anchor: tuple[int, np.ndarray] | None = None) -> np.ndarray:
+        """Record the frame against the newest keyframe (and the earlier keyframe the source measured it against,
+        `anchor`); returns its world pose now."""
         return self.trajectory.add_frame(frame.index, frame.timestamp, self.last_keyframe, tracked_pose,
-                                         is_keyframe, submap_id)
+                                         is_keyframe, submap_id, anchor)
 
     def apply_correction(self, poses: dict[int, np.ndarray]) -> tuple[int, dict[int, np.ndarray]]:
         """Move the keyframes to optimised poses; those the optimisation did not know (made after it) follow the

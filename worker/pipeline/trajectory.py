@@ -3,6 +3,9 @@
 Each frame stores its pose relative to its reference keyframe (the latest keyframe at or before it) as tracking
 measured it; its world pose is the keyframe's current pose times that relative pose. A pose-graph update therefore
 moves every frame with its keyframe (paper 4.2) and bumps the revision, so clients know the past was rewritten.
+A frame the pose source measured against an earlier keyframe it came back to also keeps that `anchor` and its pose
+relative to it; `anchor_frames` (at the session's end) puts such frames on the anchor's corrected pose, which the
+loops and the graph have freed of the drift the newest keyframe still carries.
 
 The per-frame records are the only part that grows with the session. A chunked state (`chunked_state`) keeps them
 out of the snapshot: full runs of `chunk_frames` records are sealed into chunks written once (`ChunkWrite.new`,
@@ -26,7 +29,8 @@ from worker.geometry import nearest_sim3, sim3_blend, sim3_inverse
 from worker.pipeline.snapshot_chunks import ChunkWrite, chunk_versions
 
 CHUNK_FRAMES = 256  # frame records per sealed chunk
-FRAME_COLUMNS = ("index", "timestamp", "keyframe", "relative", "is_keyframe", "submap_id")
+FRAME_COLUMNS = ("index", "timestamp", "keyframe", "relative", "is_keyframe", "submap_id", "anchor", "anchored")
+NO_ANCHOR = -1
 
 
 def _inv(T: np.ndarray) -> np.ndarray:
@@ -41,6 +45,8 @@ class FrameRecord:
     relative: np.ndarray  # T_kf^-1 T_frame, from tracking
     is_keyframe: bool
     submap_id: int
+    anchor: int = NO_ANCHOR  # an earlier keyframe the source measured this frame against (come back to)
+    anchored: np.ndarray | None = None  # T_anchor^-1 T_frame, as the source measured it
 
 
 def _columns(records: list[FrameRecord]) -> dict[str, np.ndarray]:
@@ -51,7 +57,16 @@ def _columns(records: list[FrameRecord]) -> dict[str, np.ndarray]:
         "relative": np.stack([r.relative for r in records]) if records else np.zeros((0, 4, 4)),
         "is_keyframe": np.asarray([r.is_keyframe for r in records], bool),
         "submap_id": np.asarray([r.submap_id for r in records], np.int64),
+        "anchor": np.asarray([r.anchor for r in records], np.int64),
+        "anchored": (np.stack([np.eye(4) if r.anchored is None else r.anchored for r in records]) if records
+                     else np.zeros((0, 4, 4))),
     }
+
+
+def _with_anchor_columns(part: Mapping[str, Any]) -> dict[str, Any]:
+    """Frame columns of a state or chunk written before anchors: none anchored."""
+    count = len(part["index"])
+    return {"anchor": np.full(count, NO_ANCHOR, np.int64), "anchored": np.tile(np.eye(4), (count, 1, 1)), **part}
 
 
 class Trajectory:
@@ -84,13 +99,16 @@ class Trajectory:
         return pose
 
     def add_frame(self, index: int, timestamp: float, keyframe: int, tracked_pose: np.ndarray, is_keyframe: bool,
-                  submap_id: int) -> np.ndarray:
-        """Record a frame from its tracked pose, tied to `keyframe`; returns its world pose now."""
+                  submap_id: int, anchor: tuple[int, np.ndarray] | None = None) -> np.ndarray:
+        """Record a frame from its tracked pose, tied to `keyframe`; returns its world pose now. `anchor`: an
+        earlier keyframe the source measured the frame against and the pose relative to it (`anchor_frames`)."""
         if self._last_index is not None and index <= self._last_index:
             raise ValueError(f"frame index {index} is not after the previous frame {self._last_index}")
         rel = nearest_sim3(_inv(self.tracked_keyframe_poses[keyframe]) @ np.asarray(tracked_pose, np.float64))
-        self.frames.append(FrameRecord(int(index), float(timestamp), int(keyframe), rel, bool(is_keyframe),
-                                       int(submap_id)))
+        record = FrameRecord(int(index), float(timestamp), int(keyframe), rel, bool(is_keyframe), int(submap_id))
+        if anchor is not None and not is_keyframe and int(anchor[0]) in self.keyframe_poses:
+            record.anchor, record.anchored = int(anchor[0]), nearest_sim3(np.asarray(anchor[1], np.float64))
+        self.frames.append(record)
         self._last_index = int(index)
         return self.pose_of(self.frames[-1])
 
@@ -141,6 +159,16 @@ class Trajectory:
                                                                                             np.float64)
                 touched.add(position)
         return self._revised(touched)
+
+    def anchor_frames(self) -> int:
+        """Put every anchored frame at its anchor keyframe's current pose times the pose measured against it (the
+        frame keeps following its own keyframe from there). Returns how many frames were placed; a new revision
+        when any was."""
+        placed = {r.index: self.keyframe_poses[r.anchor] @ r.anchored for r in self.frames
+                  if r.anchor != NO_ANCHOR and r.anchor in self.keyframe_poses}
+        if placed:
+            self.place_frames(placed)
+        return len(placed)
 
     def spread_keyframe_moves(self, old_keyframe_poses: Mapping[int, np.ndarray]) -> int:
         """After keyframes moved from `old_keyframe_poses` to their current poses, each frame between its keyframe
@@ -243,6 +271,7 @@ class Trajectory:
                                  f"the snapshot needs version {version}")
             parts.append(part)
         parts.append(state)
+        parts = [_with_anchor_columns(p) for p in parts]
         joined = {k: np.concatenate([np.asarray(p[k]) for p in parts]) for k in FRAME_COLUMNS}
         return {**{k: v for k, v in state.items() if k != "chunks"}, **joined,
                 "chunk_frames": int(manifest["frames"])}
@@ -259,7 +288,10 @@ class Trajectory:
                                                                               d["keyframe_poses"])}
         self.tracked_keyframe_poses = {int(k): np.asarray(p, np.float64)
                                        for k, p in zip(d["keyframe_ids"], d["tracked_keyframe_poses"])}
-        self.frames = [FrameRecord(int(i), float(t), int(k), np.asarray(rel, np.float64), bool(kf), int(s))
-                       for i, t, k, rel, kf, s in zip(d["index"], d["timestamp"], d["keyframe"], d["relative"],
-                                                      d["is_keyframe"], d["submap_id"])]
+        d = _with_anchor_columns(d)
+        self.frames = [FrameRecord(int(i), float(t), int(k), np.asarray(rel, np.float64), bool(kf), int(s), int(a),
+                                   None if a == NO_ANCHOR else np.asarray(anchored, np.float64))
+                       for i, t, k, rel, kf, s, a, anchored in zip(d["index"], d["timestamp"], d["keyframe"],
+                                                                   d["relative"], d["is_keyframe"], d["submap_id"],
+                                                                   d["anchor"], d["anchored"])]
         self._last_index = self.frames[-1].index if self.frames else None

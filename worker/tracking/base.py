@@ -31,6 +31,9 @@ class TrackingResult:
     (visual odometry: the pose's inliers as a share of the last keyframe's tracked points; 0 for a placeholder),
     None when the source does not say. translation_measured: False where only the orientation was measured and the
     position was held or predicted (visual odometry's turn models): a device's motion knows it better.
+    anchor: (keyframe id, pose relative to it) when the source measured this frame against an earlier engine
+    keyframe it came back to (RGB-D odometry's reused places): the session's finish places the frame on that
+    keyframe's corrected pose rather than on the drift accumulated since (worker.pipeline.trajectory).
     """
 
     pose: np.ndarray
@@ -42,6 +45,7 @@ class TrackingResult:
     prediction: Any = None
     quality: float | None = None
     translation_measured: bool = True
+    anchor: tuple[int, np.ndarray] | None = None
 
 
 class PoseSource(Protocol):
