@@ -50,3 +50,23 @@ def test_frames_come_back_to_a_keyframe_end_on_its_final_pose() -> None:
 
     assert error(np.stack([poses[i] for i in rows])) <= 1.05 * error(as_followed)
     system.close()
+
+
+def test_posed_rgbd_frames_come_back_to_a_keyframe_are_anchored_in_the_device_world() -> None:
+    source = open_source(str(DATA), use_gt_depth=True, use_gt_poses=True)  # the motion capture as the device
+    recorded = list(source)
+    frames = [replace(recorded[p], index=i, timestamp=i / 30) for i, p in enumerate(sweep_order(len(recorded), 2))]
+    config = SlamConfig.preset("rgbd", threaded=False, mapping={"enabled": False}, input={"pose_mode": "seeded"})
+    system = SlamSystem(config, source.intrinsics)
+    for frame in frames:
+        system.push(frame)
+    system.finish()
+    trajectory = system.tracking_stage.trajectory
+    anchored = [r for r in trajectory.frames if r.anchor != -1]
+    assert len(anchored) >= 5
+    poses = dict((i, p) for i, _, p in system.trajectory())
+    gt = {f.index: f.gt_pose for f in frames}
+    for record in anchored:  # on the anchor, in the device's world and units: near the device's pose
+        assert np.allclose(poses[record.index], trajectory.keyframe_poses[record.anchor] @ record.anchored)
+        assert np.linalg.norm(poses[record.index][:3, 3] - gt[record.index][:3, 3]) < 0.05
+    system.close()

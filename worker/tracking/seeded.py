@@ -178,7 +178,8 @@ class SeededTracking:
         depth = None if result.depth is None or not from_odometry else result.depth * np.float32(self.scale)
         return TrackingResult(pose.copy(), tracked=result.tracked, depth=depth, events=events,
                               keyframe_hint=result.keyframe_hint if from_odometry else False,
-                              quality=result.quality if from_odometry else None)
+                              quality=result.quality if from_odometry else None,
+                              anchor=self._anchor_in_session(result) if from_odometry else None)
 
     def _track_without_device(self, frame: Frame, intrinsics: Intrinsics | None) -> TrackingResult:
         """A frame without a device pose (the device not ready yet, a gap in its log): the odometry tracks it alone
@@ -198,7 +199,7 @@ class SeededTracking:
         self.previous_pose, self.last_pose, self.last_index = self.last_pose, pose, frame.index
         depth = None if result.depth is None else result.depth * np.float32(self.scale)
         return TrackingResult(pose.copy(), depth=depth, events=events, keyframe_hint=result.keyframe_hint,
-                              quality=result.quality)
+                              quality=result.quality, anchor=self._anchor_in_session(result))
 
     def _can_resume(self, device_motion: np.ndarray | None) -> bool:
         """Whether a frame the RGB-D odometry lost can be tracked again from the device's pose."""
@@ -365,6 +366,14 @@ class SeededTracking:
     def _in_output_units(self, device_motion: np.ndarray) -> np.ndarray:
         """A device motion in the units of the output's world (the odometry's once the scale settled)."""
         return _scaled(device_motion, 1.0 / self._drift())
+
+    def _anchor_in_session(self, result: TrackingResult) -> tuple[int, np.ndarray] | None:
+        """The odometry's anchor (an earlier keyframe and the pose measured against it) in the session's units; none
+        where the position was not measured."""
+        if result.anchor is None or not result.translation_measured:
+            return None
+        keyframe, relative = result.anchor
+        return keyframe, _scaled(relative, self.scale)
 
     def to_session(self, odometry_pose: np.ndarray) -> np.ndarray:
         """An odometry pose in the session's (device) world."""
