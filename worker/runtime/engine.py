@@ -9,6 +9,7 @@
 
 from __future__ import annotations
 
+import logging
 import os
 import time
 from collections.abc import Mapping
@@ -21,6 +22,8 @@ from worker.data.frame import Frame, FrameResult
 from worker.geometry import Intrinsics
 from worker.pipeline.snapshot_chunks import ChunkWrite, chunk_versions
 from worker.settings_choice import MAPPING_PROCESS_CORES, Machine, SessionInput, choose_settings
+
+log = logging.getLogger(__name__)
 
 ENGINE_KINDS = ("slam", "passthrough")
 
@@ -124,7 +127,8 @@ def warm_up(kind: str) -> None:
     if not machine.cuda and machine.cpu_cores >= MAPPING_PROCESS_CORES:  # RGB-only sessions map in processes
         from worker.pipeline.mapping_process.launcher import prestart
 
-        prestart()
+        if not prestart():  # sessions still start their mapping processes; the first may wait for the server
+            log.warning("the mapping processes' fork server did not answer its start-up probe")
 
 
 def engine_intrinsics(engine: SessionEngine) -> dict[str, float | int] | None:
