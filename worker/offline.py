@@ -77,7 +77,7 @@ def run_sequence(
     scores use at most `max_eval_frames` held-out frames, evenly spread (0: every one). `device_poses` replaces each
     frame's device pose (a benchmark's copy of the ground truth with a clock offset, bench/device_clock.py)."""
     from worker.data import open_source
-    from worker.pipeline.session_stats import device_clock, pose_strategy
+    from worker.pipeline.session_stats import device_clock, final_adjustment, pose_strategy
     from worker.slam import SlamSystem
 
     out = Path(out_dir)
@@ -144,7 +144,7 @@ def run_sequence(
             "threaded": config.threaded,
             "use_gt_depth": use_gt_depth, "use_gt_poses": use_gt_poses, "scale": scale, "tracking": system.tracking,
             "pose_strategy": pose_strategy(system), "depth_source": system.depth_source, **system.pose_source_choice(),
-            "device_clock": device_clock(system),
+            "device_clock": device_clock(system), "final_adjustment": final_adjustment(system),
             "intrinsics": intrinsics.to_dict() if intrinsics else None,
             "intrinsics_estimated": given_intrinsics is None,
             "drift": None if drift is None else drift.to_dict(),

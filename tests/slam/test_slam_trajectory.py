@@ -147,3 +147,20 @@ def test_frames_measured_against_an_earlier_keyframe_are_placed_on_it() -> None:
     before = Trajectory()
     before.load_state_dict(old)
     assert before.anchor_frames() == 0 and np.allclose(before.pose_at(6), traj.pose_at(6))
+
+
+def test_source_corrections_move_every_frame_from_its_tracked_pose() -> None:
+    traj = Trajectory()
+    traj.add_keyframe(0, pose(0.0))
+    for i in range(15):
+        if i == 10:
+            traj.add_keyframe(10, pose(1.0), reference=0)
+        traj.add_frame(i, i / 30, 0 if i < 10 else 10, pose(i / 10), i in (0, 10), 0)
+    traj.update_keyframes({0: pose(0.0, 0.2), 10: pose(1.0, 0.2)})  # a loop correction the source's replaces
+    shift = pose(0.4)
+    placed = traj.source_corrected_poses({2: np.eye(4), 12: shift})  # the source's own keyframes
+    assert sorted(placed) == list(range(15))
+    assert np.allclose(placed[0], pose(0.0)) and np.allclose(placed[2], pose(0.2))  # before and on the first
+    assert np.allclose(placed[7], pose(0.7 + 0.2))  # halfway between the two: half the move
+    assert np.allclose(placed[14], shift @ pose(1.4))  # after the last: its move
+    assert traj.source_corrected_poses({}) == {}

@@ -26,7 +26,8 @@ def session_stats(system: SessionParts) -> dict[str, Any]:
             "mapping_process_restarts": 0 if mapping is None else mapping.restarts,
             **live_stats(system), "pose_source": pose_source_choice(system)["pose_source"],
             "pose_strategy": pose_strategy(system),
-            "device_clock": device_clock(system), "runtime_breakdown": system.timings.breakdown(int(frames))}
+            "device_clock": device_clock(system), "final_adjustment": final_adjustment(system),
+            "runtime_breakdown": system.timings.breakdown(int(frames))}
 
 
 def live_stats(system: SessionParts) -> dict[str, Any]:
@@ -63,3 +64,14 @@ def device_clock(system: SessionParts) -> dict[str, Any] | None:
     the session's frames carry no device poses or the clock is off."""
     clock = getattr(system.pose_source, "device_clock", None) if system.tracking == "device" else None
     return None if clock is None else clock.summary()
+
+
+def final_adjustment(system: SessionParts) -> dict[str, Any] | None:
+    """Visual odometry's final bundle adjustment (`worker.tracking.global_adjustment`), once the session finished:
+    whether it moved the keyframes, the revisit pairs verified, the points joined, the observations and the seconds
+    it took; None before the finish and for other pose sources."""
+    result = getattr(getattr(system, "pose_source", None), "final_adjustment", None)
+    if result is None:
+        return None
+    return {"applied": bool(result.poses), "keyframes": len(result.poses), "pairs": result.pairs,
+            "points_joined": result.joined, "observations": result.observations, "seconds": round(result.seconds, 3)}

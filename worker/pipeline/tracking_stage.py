@@ -198,11 +198,16 @@ class TrackingStage:
 
     def apply_source_refinement(self) -> list[EngineEvent]:
         """The pose source's own refinement of its poses, where it has one (photo registration's bundle adjustment
-        of every photo, `refined_poses`): the keyframes move to it as after a loop (the frames between them, the
+        of every photo, `refined_poses`; visual odometry's final bundle adjustment, `keyframe_corrections`): the
+        keyframes move to it as after a loop (the frames between them, the
         jobs not in the map yet and the map follow), the other frames it posed are put where it says. Returns the
         `poses_refined` event, or nothing."""
         refine = getattr(self.pose_source, "refined_poses", None)
         poses = refine() if refine is not None else {}
+        if not poses:  # visual odometry's final bundle adjustment: its keyframes' moves, the frames follow
+            corrections = getattr(self.pose_source, "keyframe_corrections", None)
+            moves = corrections() if corrections is not None else {}
+            poses = self.trajectory.source_corrected_poses(moves) if moves else {}
         if not poses:
             return []
         trajectory = self.trajectory

@@ -160,6 +160,27 @@ class Trajectory:
                 touched.add(position)
         return self._revised(touched)
 
+    def source_corrected_poses(self, corrections: Mapping[int, np.ndarray]) -> dict[int, np.ndarray]:
+        """World poses of every recorded frame after the pose source moved its own keyframes (frame index -> the
+        rigid motion from the pose it handed out to the adjusted one, in the world it tracked in): each frame's
+        tracked pose moves with the source keyframes before and after it, by how near it is to each (the first and
+        last ones alone outside them). The source's adjustment replaces the corrections made here since."""
+        order = np.array(sorted(corrections), np.int64)
+        if len(order) == 0:
+            return {}
+        moves = [torch.from_numpy(np.asarray(corrections[int(k)], np.float64)) for k in order]
+        placed = {}
+        for record in self.frames:
+            tracked = self.tracked_keyframe_poses[record.keyframe] @ record.relative
+            after = int(np.searchsorted(order, record.index, side="right"))
+            if after == 0 or after == len(order):
+                move = moves[min(after, len(order) - 1)].numpy()
+            else:
+                a, b = order[after - 1], order[after]
+                move = sim3_blend(moves[after - 1], moves[after], float(record.index - a) / float(b - a)).numpy()
+            placed[record.index] = self.world_base @ move @ tracked
+        return placed
+
     def anchor_frames(self) -> int:
         """Put every anchored frame at its anchor keyframe's current pose times the pose measured against it (the
         frame keeps following its own keyframe from there). Returns how many frames were placed; a new revision

@@ -3,12 +3,15 @@ are dropped when the window slides)."""
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
 
 from .bundle_adjustment import Observations
 from .features import Features
+
+_GENERATIONS = itertools.count()  # tells maps apart in memory (a map restarted after a loss numbers points anew)
 
 
 @dataclass
@@ -42,8 +45,8 @@ class Keyframe:
 
 
 class LocalMap:
-    """Points (positions [P, 3], descriptors [P, 32], times projected into the image and times matched) and the
-    keyframe window that observes them."""
+    """Points (positions [P, 3], descriptors [P, 32], times projected into the image and times matched, ids that
+    stay when rows are renumbered) and the keyframe window that observes them."""
 
     def __init__(self) -> None:
         self.keyframes: list[Keyframe] = []
@@ -51,6 +54,9 @@ class LocalMap:
         self.descriptors = np.zeros((0, 32), np.uint8)
         self.visible = np.zeros(0, np.int64)
         self.found = np.zeros(0, np.int64)
+        self.ids = np.zeros(0, np.int64)
+        self.next_id = 0
+        self.generation = next(_GENERATIONS)
 
     def __len__(self) -> int:
         return len(self.positions)
@@ -62,6 +68,9 @@ class LocalMap:
         self.descriptors = np.concatenate([self.descriptors, descriptors.reshape(-1, 32)])
         self.visible = np.concatenate([self.visible, np.ones(len(positions), np.int64)])
         self.found = np.concatenate([self.found, np.ones(len(positions), np.int64)])
+        added = len(self.positions) - start
+        self.ids = np.concatenate([self.ids, np.arange(self.next_id, self.next_id + added)])
+        self.next_id += added
         return np.arange(start, len(self.positions))
 
     def observations(self, sigma_of) -> Observations:
@@ -92,7 +101,7 @@ class LocalMap:
         for kf in self.keyframes:
             kf.point_ids = remap[kf.point_ids]  # -1 indexes the trailing -1
         self.positions, self.descriptors = self.positions[keep], self.descriptors[keep]
-        self.visible, self.found = self.visible[keep], self.found[keep]
+        self.visible, self.found, self.ids = self.visible[keep], self.found[keep], self.ids[keep]
         return remap
 
     def slide(self, window: int) -> list[Keyframe]:
@@ -108,7 +117,8 @@ class LocalMap:
 
     def to_state(self) -> dict:
         return {"keyframes": [kf.to_state() for kf in self.keyframes], "positions": self.positions,
-                "descriptors": self.descriptors, "visible": self.visible, "found": self.found}
+                "descriptors": self.descriptors, "visible": self.visible, "found": self.found,
+                "ids": self.ids, "next_id": self.next_id}
 
     @classmethod
     def from_state(cls, state: dict) -> LocalMap:
@@ -118,4 +128,7 @@ class LocalMap:
         m.descriptors = np.asarray(state["descriptors"], np.uint8).reshape(-1, 32)
         m.visible = np.asarray(state["visible"], np.int64).reshape(-1)
         m.found = np.asarray(state["found"], np.int64).reshape(-1)
+        # a snapshot from before point ids: fresh ones
+        m.ids = np.asarray(state.get("ids", np.arange(len(m.positions))), np.int64).reshape(-1)
+        m.next_id = int(state.get("next_id", len(m.positions)))
         return m

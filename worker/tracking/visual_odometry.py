@@ -43,15 +43,18 @@ from worker.geometry import Intrinsics
 
 from . import schur_native
 from .base import TrackingResult
+from .global_adjustment import GlobalAdjustment, adjust_globally
 from .learned_places import LearnedPlaces
 from .local_map import LocalMap
 from .map_join import similarity_scale
+from .projection import camera_matrix, invert_pose
 from .relocalization import Place
 from .vo_calibration import camera_of
 from .vo_config import VisualOdometryConfig
 from .vo_frame_tracking import track_frame
 from .vo_initialisation import initialise
 from .vo_map_join import output_is_identity, to_output
+from .vo_places import archive
 from .vo_recovery import lose, lose_or_restart, recognise_place, relocalise
 from .vo_state import STATE_VERSION, Anchor, JoinState, VoParts, VoState
 
@@ -67,6 +70,8 @@ class VisualOdometry:
         self.parts = VoParts.build(self.config)
         schur_native.available()  # builds (or loads) the compiled kernel now, not at the first keyframe
         self.state = VoState.start(self.config)
+        self._camera: Intrinsics | None = None
+        self.final_adjustment: GlobalAdjustment | None = None  # the last `keyframe_corrections()`'s outcome
 
     # ---- what callers read (the state's, read-only here) -----------------------------------------------------
     @property
@@ -125,7 +130,7 @@ class VisualOdometry:
         `motion_guess` (previous^-1 @ current in this odometry's units, e.g. a device's relative motion) replaces
         the constant-velocity guess when given."""
         s, parts, index = self.state, self.parts, frame.index
-        camera = camera_of(s, frame, intrinsics)
+        camera = self._camera = camera_of(s, frame, intrinsics)
         gray = cv2.cvtColor(frame.image, cv2.COLOR_RGB2GRAY)
         parts.learned.begin_frame(index)
         if motion_guess is not None and not output_is_identity(s):  # output units -> the map's
@@ -156,6 +161,21 @@ class VisualOdometry:
         """The engine's keyframes do not change VO's own; they are remembered as places to come back to."""
         if self.config.reuse_keyframes > 0:
             self.state.engine_keyframes.append((int(frame.index), np.asarray(pose, np.float64).copy()))
+
+    def keyframe_corrections(self) -> dict[int, np.ndarray]:
+        """The final bundle adjustment (`global_adjustment`) over every keyframe this odometry made: for each, by
+        frame index, the rigid motion from the pose its frame was given to the adjusted one, in the poses' world (frames
+        between keyframes follow them). Empty when it did not run: off, no revisits, a map restarted after a loss,
+        or a joined map's poses handed out through a similarity."""
+        s = self.state
+        if s.archive.max_keyframes == 0 or self._camera is None or not output_is_identity(s):
+            return {}
+        archive(s, self.parts, s.map.keyframes)  # the window's keyframes, as they are now
+        before = {k: kf.pose if kf.handed_out is None else kf.handed_out for k, kf in s.archive.keyframes.items()}
+        result = adjust_globally(s.archive, camera_matrix(self._camera), s.map_depth, self.config,
+                                 self.parts.extractor.level_sigmas)
+        self.final_adjustment = result
+        return {k: pose @ invert_pose(before[k]) for k, pose in result.poses.items()}
 
     # ---- snapshots -------------------------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:

@@ -59,6 +59,7 @@ def insert_keyframe(s: VoState, parts: VoParts, index: int, pose: np.ndarray, gr
             window = LocalWindow(np.arange(held, count), np.arange(held))
         adjust(s, parts, K, window)
     s.tracked_at_keyframe = int(s.tracks.mapped.sum())
+    s.archive.note_handed_out(index, kf.pose)
     return kf
 
 

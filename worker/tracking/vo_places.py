@@ -9,6 +9,7 @@ from itertools import zip_longest
 import numpy as np
 
 from .features import Features
+from .keyframe_archive import ArchivedKeyframe
 from .learned_places import nearest_within
 from .local_map import Keyframe
 from .relocalization import Place
@@ -43,8 +44,25 @@ def place_of(s: VoState, parts: VoParts, kf: Keyframe) -> Place:
                  gray=s.keyframe_images.get(kf.index))
 
 
+def archive(s: VoState, parts: VoParts, keyframes: list[Keyframe]) -> None:
+    """Keep the keyframes' observations for the final bundle adjustment (their point rows still valid)."""
+    if s.archive.max_keyframes == 0:
+        return
+    m = s.map
+    for kf in keyframes:
+        has = np.flatnonzero(kf.point_ids >= 0)
+        rows = kf.point_ids[has]
+        near, orb_rows = place_rows(parts, kf)
+        s.archive.record(ArchivedKeyframe(kf.index, kf.pose.copy(), kf.features.keypoints[has].astype(np.float32),
+                                          m.ids[rows], kf.features.octaves[has], kf.orb.keypoints[near],
+                                          kf.orb.descriptors[near], m.ids[orb_rows]),
+                         dict(zip(m.ids[rows].tolist(), m.positions[rows].copy(), strict=True)), m.generation)
+
+
 def retire(s: VoState, parts: VoParts, keyframes: list[Keyframe]) -> None:
-    """Keyframes leaving the map become places; the newest `learned_places` keep their image."""
+    """Keyframes leaving the map become places (and are archived); the newest `learned_places` keep their
+    image."""
+    archive(s, parts, keyframes)
     places = (place_of(s, parts, kf) for kf in keyframes)
     s.retired.extend(p for p in places if len(p.points) >= parts.config.reloc_min_inliers)
     del s.retired[: max(0, len(s.retired) - parts.config.reloc_keyframes)]

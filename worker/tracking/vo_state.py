@@ -16,6 +16,7 @@ import numpy as np
 from worker.geometry import Intrinsics
 
 from .features import Features, OrbExtractor
+from .keyframe_archive import KeyframeArchive
 from .learned_places import LearnedPlaces
 from .local_map import LocalMap
 from .projection import to_camera
@@ -155,10 +156,13 @@ class VoState:
     maps_made: int = 1
     output: np.ndarray = field(default_factory=lambda: np.eye(4))
     join: JoinState | None = None
+    # every keyframe made, for the final bundle adjustment (memory only: not in the snapshot)
+    archive: KeyframeArchive = field(default_factory=lambda: KeyframeArchive(0))
 
     @classmethod
     def start(cls, config: VisualOdometryConfig) -> VoState:
-        return cls(FocalEstimator(config), deque(maxlen=max(1, config.reuse_keyframes)))
+        return cls(FocalEstimator(config), deque(maxlen=max(1, config.reuse_keyframes)),
+                   archive=KeyframeArchive(config.final_adjustment_keyframes if config.final_adjustment else 0))
 
     def state_dict(self) -> dict[str, Any]:
         """The snapshot's fields (msgpack-able; bounded by the window and the place memory), in their order, without
