@@ -28,6 +28,7 @@ def finish_session(system: SessionParts) -> None:
     clock = getattr(stage.pose_source, "device_clock", None)
     if clock is not None:  # a stream shorter than the clock's window: measured on what came, for the report
         clock.finish_measuring()
+    stage.begin_source_adjustment()  # visual odometry's final bundle adjustment, while the stages drain
     if mapping is not None:
         stage.map_last_frame()
         stage.hand_to_mapping(force=True)

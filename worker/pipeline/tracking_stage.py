@@ -15,6 +15,8 @@ the full frame.
 
 from __future__ import annotations
 
+import logging
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import replace
 from typing import Any
 
@@ -40,6 +42,8 @@ from worker.tracking.base import TrackingResult
 # The counter each kind of correction counts in.
 CORRECTION_COUNTERS = {MapsMerged: "maps_merged", DriftCorrected: "drift_corrections",
                        Relocalized: "map_relocalizations"}
+
+log = logging.getLogger(__name__)
 
 
 class TrackingStage:
@@ -71,6 +75,7 @@ class TrackingStage:
         self.last_frame_mapped: int | None = None  # the final frame's index when finish() mapped it too
         self.in_map: SessionInMap | None = None  # the stored map the session runs in (worker.maps), if any
         self.corrections_taken = 0  # loop-closing corrections applied so far
+        self._source_adjustment: Future | None = None  # the pose source's final adjustment, begun at the finish
         self._source_has_points = False  # the pose source has seen points (its poses have a scale of their own)
 
     def loop_closing_submit(self, item) -> None:
@@ -196,6 +201,28 @@ class TrackingStage:
             events.append(replace(correction.event, revision=revision))
         return events
 
+    def begin_source_adjustment(self) -> None:
+        """Begin the pose source's final adjustment of its keyframes (visual odometry's `keyframe_corrections`), if
+        it has one, in a thread of its own: it reads only the source's own records, which no frame changes any
+        more, so it runs while the mapping stage drains (`apply_source_refinement` takes its result)."""
+        adjust = getattr(self.pose_source, "keyframe_corrections", None)
+        if adjust is None or self._source_adjustment is not None:
+            return
+        pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="source-adjustment")
+        self._source_adjustment = pool.submit(adjust)
+        pool.shutdown(wait=False)  # the thread ends with its one job
+
+    def _source_adjustment_result(self) -> dict[int, np.ndarray]:
+        """The final adjustment's keyframe moves ({} without one; a failure is logged and the poses stay)."""
+        future, self._source_adjustment = self._source_adjustment, None
+        if future is None:
+            return {}
+        try:
+            return future.result()
+        except Exception:  # a bug there must not cost the session its finish: the trajectory stays as it was
+            log.exception("the pose source's final adjustment failed; the poses stay as they were")
+            return {}
+
     def apply_source_refinement(self) -> list[EngineEvent]:
         """The pose source's own refinement of its poses, where it has one (photo registration's bundle adjustment
         of every photo, `refined_poses`; visual odometry's final bundle adjustment, `keyframe_corrections`): the
@@ -205,8 +232,8 @@ class TrackingStage:
         refine = getattr(self.pose_source, "refined_poses", None)
         poses = refine() if refine is not None else {}
         if not poses:  # visual odometry's final bundle adjustment: its keyframes' moves, the frames follow
-            corrections = getattr(self.pose_source, "keyframe_corrections", None)
-            moves = corrections() if corrections is not None else {}
+            self.begin_source_adjustment()
+            moves = self._source_adjustment_result()
             poses = self.trajectory.source_corrected_poses(moves) if moves else {}
         if not poses:
             return []
