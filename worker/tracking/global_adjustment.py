@@ -4,7 +4,7 @@ revisit sees again are joined to the first visit's.
 Optical flow follows a point only while it stays in view, so a place seen again gets new points, triangulated at
 the scale and position the odometry has drifted to; the windowed adjustments never see both. Here each keyframe's
 ORB features on map points are matched to those of older keyframes near it that it shares no window with (ratio
-test, then PnP on the older keyframe's points from the keyframe's own pose: only matches the geometry agrees with
+test, then the keyframe's own pose refined on the older keyframe's points: only matches the geometry agrees with
 are kept), matched points become one, and one bundle adjustment moves all keyframes but the two oldest (they hold
 pose and scale). This is ORB-SLAM's loop fusion and global bundle adjustment, run once, at the end.
 """
@@ -93,8 +93,8 @@ def _verified_matches(older: ArchivedKeyframe, newer: ArchivedKeyframe, position
     qb = np.array([m.trainIdx for m in good])
     world = np.array([positions[int(i)] for i in older.orb_point_ids[qa]], np.float64)
     w2c = np.linalg.inv(newer.pose)
-    # matches far from where the keyframe's own pose puts their points are wrong or the pair is (drift moves
-    # points by less): they leave before RANSAC, which spends most of its time on pairs that do not verify
+    # matches far from where the keyframe's own pose puts their points are wrong, or the pair is (drift moves
+    # points by less): they leave before the pose is refined on the rest
     camera = world @ w2c[:3, :3].T + w2c[:3, 3]
     projected = camera[:, :2] / np.maximum(camera[:, 2:3], 1e-9) * K[[0, 1], [0, 1]] + K[:2, 2]
     radius = c.fuse_search_share * 2.0 * max(K[0, 2], K[1, 2])
