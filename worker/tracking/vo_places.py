@@ -35,35 +35,43 @@ def place_rows(parts: VoParts, kf: Keyframe) -> tuple[np.ndarray, np.ndarray]:
     return near, kf.point_ids[has[nearest]]
 
 
-def place_of(s: VoState, parts: VoParts, kf: Keyframe) -> Place:
-    """The keyframe's ORB keypoints that lie on one of its map points' observations, with those points."""
-    near, rows = place_rows(parts, kf)
+def place_of(s: VoState, parts: VoParts, kf: Keyframe,
+             matched: tuple[np.ndarray, np.ndarray] | None = None) -> Place:
+    """The keyframe's ORB keypoints that lie on one of its map points' observations, with those points
+    (`matched`: its `place_rows`, when already found)."""
+    near, rows = place_rows(parts, kf) if matched is None else matched
     orb = kf.orb
     return Place(kf.index, kf.pose.copy(), orb.keypoints[near], orb.descriptors[near],
                  s.map.positions[rows].copy(), map_id=s.map_id, output=s.output.copy(),
                  gray=s.keyframe_images.get(kf.index))
 
 
+def _archive_one(s: VoState, kf: Keyframe, near: np.ndarray, orb_rows: np.ndarray) -> None:
+    """Keep one keyframe's observations and its ORB keypoints `near` on the points `orb_rows` (`place_rows`)."""
+    m = s.map
+    has = np.flatnonzero(kf.point_ids >= 0)
+    rows = kf.point_ids[has]
+    s.archive.record(ArchivedKeyframe(kf.index, kf.pose.copy(), kf.features.keypoints[has].astype(np.float32),
+                                      m.ids[rows], kf.features.octaves[has], kf.orb.keypoints[near],
+                                      kf.orb.descriptors[near], m.ids[orb_rows]),
+                     dict(zip(m.ids[rows].tolist(), m.positions[rows].copy(), strict=True)), m.generation)
+
+
 def archive(s: VoState, parts: VoParts, keyframes: list[Keyframe]) -> None:
     """Keep the keyframes' observations for the final bundle adjustment (their point rows still valid)."""
-    if s.archive.max_keyframes == 0:
-        return
-    m = s.map
-    for kf in keyframes:
-        has = np.flatnonzero(kf.point_ids >= 0)
-        rows = kf.point_ids[has]
-        near, orb_rows = place_rows(parts, kf)
-        s.archive.record(ArchivedKeyframe(kf.index, kf.pose.copy(), kf.features.keypoints[has].astype(np.float32),
-                                          m.ids[rows], kf.features.octaves[has], kf.orb.keypoints[near],
-                                          kf.orb.descriptors[near], m.ids[orb_rows]),
-                         dict(zip(m.ids[rows].tolist(), m.positions[rows].copy(), strict=True)), m.generation)
+    if s.archive.max_keyframes:
+        for kf in keyframes:
+            _archive_one(s, kf, *place_rows(parts, kf))
 
 
 def retire(s: VoState, parts: VoParts, keyframes: list[Keyframe]) -> None:
     """Keyframes leaving the map become places (and are archived); the newest `learned_places` keep their
     image."""
-    archive(s, parts, keyframes)
-    places = (place_of(s, parts, kf) for kf in keyframes)
+    matched = [place_rows(parts, kf) for kf in keyframes]  # once a keyframe: both uses need them
+    if s.archive.max_keyframes:
+        for kf, (near, orb_rows) in zip(keyframes, matched, strict=True):
+            _archive_one(s, kf, near, orb_rows)
+    places = (place_of(s, parts, kf, m) for kf, m in zip(keyframes, matched, strict=True))
     s.retired.extend(p for p in places if len(p.points) >= parts.config.reloc_min_inliers)
     del s.retired[: max(0, len(s.retired) - parts.config.reloc_keyframes)]
     for place in s.retired[: max(0, len(s.retired) - parts.config.learned_places)]:
