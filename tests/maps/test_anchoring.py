@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from worker.maps.anchoring import MapAnchoring, fit_similarity
+from worker.geometry.align import fit_similarity
+from worker.maps.anchoring import MapAnchoring
 from worker.maps.localizer import MapFix
 
 

@@ -1,7 +1,9 @@
-"""Umeyama alignment: the similarity that best maps one point set onto another in least squares."""
+"""Similarity alignment: Umeyama's between point sets, and one between camera poses (rotations averaged, then
+scale and translation by least squares on the centres)."""
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from .transforms import make_sim3
@@ -40,3 +42,30 @@ def umeyama_sim3(source: torch.Tensor, target: torch.Tensor, with_scale: bool = 
     """Umeyama as one 4x4 similarity."""
     s, R, t = umeyama(source, target, with_scale)
     return make_sim3(R, t, s)
+
+
+def nearest_rotation(M: np.ndarray) -> np.ndarray:
+    """The rotation nearest `M` [3, 3] (Frobenius norm)."""
+    U, _, Vt = np.linalg.svd(M)
+    D = np.diag([1.0, 1.0, float(np.sign(np.linalg.det(U @ Vt)))])
+    return U @ D @ Vt
+
+
+def fit_similarity(own: list[np.ndarray], in_map: list[np.ndarray]) -> np.ndarray | None:
+    """The similarity S with S @ own_i ~ in_map_i: rotation from the poses' rotations, scale and translation by
+    least squares on the camera centres. None when the centres do not spread (no scale to measure)."""
+    rotations = [m[:3, :3] @ (o[:3, :3] / np.cbrt(np.linalg.det(o[:3, :3]))).T for o, m in zip(own, in_map)]
+    R = nearest_rotation(np.sum(rotations, axis=0))
+    a = np.stack([R @ o[:3, 3] for o in own])
+    b = np.stack([m[:3, 3] for m in in_map])
+    a0, b0 = a - a.mean(0), b - b.mean(0)
+    spread = float(np.sum(a0 * a0))
+    if spread <= 1e-12:
+        return None
+    scale = float(np.sum(a0 * b0) / spread)
+    if scale <= 0:
+        return None
+    out = np.eye(4)
+    out[:3, :3] = scale * R
+    out[:3, 3] = b.mean(0) - scale * a.mean(0)
+    return out

@@ -19,6 +19,8 @@ from typing import Any
 
 import numpy as np
 
+from worker.geometry.align import fit_similarity
+
 from .localizer import MapFix
 
 # A fix the frame's depth confirms (see `confirmed`) anchors a metric session alone.
@@ -38,12 +40,6 @@ def _inverse(T: np.ndarray) -> np.ndarray:
 
 def _rotation_angle_deg(R: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
-
-
-def _nearest_rotation(M: np.ndarray) -> np.ndarray:
-    U, _, Vt = np.linalg.svd(M)
-    D = np.diag([1.0, 1.0, float(np.sign(np.linalg.det(U @ Vt)))])
-    return U @ D @ Vt
 
 
 @dataclass
@@ -185,24 +181,4 @@ def _scaled_transform(o: Observation) -> np.ndarray:
     out = np.eye(4)
     out[:3, :3] = o.scale * R
     out[:3, 3] = o.in_map[:3, 3] - o.scale * R @ o.own[:3, 3]
-    return out
-
-
-def fit_similarity(own: list[np.ndarray], in_map: list[np.ndarray]) -> np.ndarray | None:
-    """The similarity S with S @ own_i ~ in_map_i: rotation from the poses' rotations, scale and translation by
-    least squares on the camera centres. None when the centres do not spread (no scale to measure)."""
-    rotations = [m[:3, :3] @ (o[:3, :3] / np.cbrt(np.linalg.det(o[:3, :3]))).T for o, m in zip(own, in_map)]
-    R = _nearest_rotation(np.sum(rotations, axis=0))
-    a = np.stack([R @ o[:3, 3] for o in own])
-    b = np.stack([m[:3, 3] for m in in_map])
-    a0, b0 = a - a.mean(0), b - b.mean(0)
-    spread = float(np.sum(a0 * a0))
-    if spread <= 1e-12:
-        return None
-    scale = float(np.sum(a0 * b0) / spread)
-    if scale <= 0:
-        return None
-    out = np.eye(4)
-    out[:3, :3] = scale * R
-    out[:3, 3] = b.mean(0) - scale * a.mean(0)
     return out

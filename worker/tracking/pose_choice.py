@@ -131,6 +131,16 @@ class ChosenDevicePoses:
     def keyframe_added(self, frame: Frame, pose: np.ndarray) -> None:
         self.source.keyframe_added(retimed(self.device_clock, frame, None), pose)
 
+    def keyframe_corrections(self) -> dict[int, np.ndarray]:
+        """The chosen source's final adjustment of its keyframes (seeded visual odometry's), {} without one."""
+        adjust = getattr(self.source, "keyframe_corrections", None)
+        return {} if adjust is None else adjust()
+
+    @property
+    def final_adjustment(self):
+        """The chosen source's final bundle adjustment once it ran (None before, or without one)."""
+        return getattr(self.source, "final_adjustment", None)
+
     def summary(self) -> dict[str, Any]:
         """The choice (prior while still judging) and the figures it was made by."""
         return {"pose_source": self.choice or "prior",

@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
@@ -50,7 +51,7 @@ import numpy as np
 
 from worker.data.frame import Frame
 from worker.events import DevicePoseJump, EngineEvent, Initialized, MapsMerged, OdometrySlip, Relocalized
-from worker.geometry import Intrinsics
+from worker.geometry import Intrinsics, fit_similarity
 from worker.loop.pose_graph import EdgeSigmas, PosePrior
 from worker.tracking.base import TrackingResult
 from worker.tracking.dense_alignment import fits_clearly_better
@@ -79,6 +80,25 @@ def _scaled(pose: np.ndarray, scale: float) -> np.ndarray:
     out = np.array(pose, np.float64)
     out[:3, 3] *= scale
     return out
+
+
+# Frames marked beyond the odometry's archive bound: its window's keyframes, not archived yet.
+MARKS_BEYOND_ARCHIVE = 64
+# A keyframe whose device pose lies this many times the median distance from the fitted one is left out of the fit.
+MARK_OUTLIER_FACTOR = 3.0
+
+
+def _fit_robustly(own: list[np.ndarray], device: list[np.ndarray]) -> np.ndarray | None:
+    """The similarity laying `own` poses on `device` poses (`fit_similarity`), fitted once more without the poses
+    it leaves far off (a device jump, a stretch the device lost)."""
+    similarity = fit_similarity(own, device)
+    if similarity is None:
+        return None
+    off = np.array([np.linalg.norm((similarity @ o)[:3, 3] - d[:3, 3]) for o, d in zip(own, device)])
+    kept = off <= MARK_OUTLIER_FACTOR * max(float(np.median(off)), 1e-9)
+    if kept.all() or kept.sum() < 3:
+        return similarity
+    return fit_similarity([o for o, k in zip(own, kept) if k], [d for d, k in zip(device, kept) if k])
 
 
 class SeededTracking:
@@ -120,11 +140,19 @@ class SeededTracking:
         self.priors_sent = 0
         self.priors_dropped = 0
         self.device_clock: DeviceClock | None = None  # re-times the device poses first, when set
+        # (output, device pose in the session's world) of the frames that became the odometry's keyframes, for its
+        # final adjustment's placing in the device's world (memory only, as the odometry's keyframe archive)
+        self.keyframe_marks: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
 
     # -- what the engine reads from a pose source ---------------------------------------------------------------
     @property
     def estimated_intrinsics(self) -> Intrinsics | None:
         return getattr(self.odometry, "estimated_intrinsics", None)
+
+    @property
+    def final_adjustment(self):
+        """The odometry's final bundle adjustment, once `keyframe_corrections` ran it (None before, or without)."""
+        return getattr(self.odometry, "final_adjustment", None)
 
     @property
     def calibrating(self) -> bool:
@@ -173,6 +201,8 @@ class SeededTracking:
             self.waiting[frame.index] = (pose.copy(), device)
             while len(self.waiting) > MAX_WAITING_FRAMES:
                 del self.waiting[next(iter(self.waiting))]
+        if from_odometry and self.monocular:
+            self._mark_keyframe(frame.index, pose, self.correction @ device)
         self.previous_pose, self.last_pose = self.last_pose, pose
         self.last_device, self.last_index, self.last_tracked = device, frame.index, from_odometry
         depth = None if result.depth is None or not from_odometry else result.depth * np.float32(self.scale)
@@ -200,6 +230,38 @@ class SeededTracking:
         depth = None if result.depth is None else result.depth * np.float32(self.scale)
         return TrackingResult(pose.copy(), depth=depth, events=events, keyframe_hint=result.keyframe_hint,
                               quality=result.quality, anchor=self._anchor_in_session(result))
+
+    def _mark_keyframe(self, index: int, pose: np.ndarray, device: np.ndarray) -> None:
+        """Remember the output and device pose of a frame the odometry made a keyframe of (bounded as its archive)."""
+        made = getattr(self.odometry, "is_keyframe", None)
+        if made is None or not made(index):
+            return
+        self.keyframe_marks[index] = (pose.copy(), np.array(device, np.float64))
+        bound = getattr(self.odometry.config, "final_adjustment_keyframes", 0) + MARKS_BEYOND_ARCHIVE
+        while len(self.keyframe_marks) > bound:
+            self.keyframe_marks.popitem(last=False)
+
+    def keyframe_corrections(self) -> dict[int, np.ndarray]:
+        """Monocular: the odometry's final bundle adjustment placed in the device's world. Its adjusted keyframes
+        have one scale and no drift; the one similarity that best lays them on their device poses (rotations
+        averaged, then scale and position by least squares, keyframes off by more than `MARK_OUTLIER_FACTOR` times
+        the median fitted again without them) puts them in the session's world and units. Returns, by frame index,
+        each keyframe's rigid motion from the pose its frame was given to that placed pose ({} where the odometry
+        did not adjust, or fewer than three keyframes have device poses)."""
+        adjust = getattr(self.odometry, "adjusted_keyframes", None)
+        if not self.monocular or adjust is None:
+            return {}
+        adjusted = {k: poses[1] for k, poses in adjust().items() if k in self.keyframe_marks}
+        similarity = _fit_robustly([adjusted[k] for k in adjusted],
+                                   [self.keyframe_marks[k][1] for k in adjusted]) if len(adjusted) >= 3 else None
+        if similarity is None:
+            return {}
+        moves = {}
+        for k, pose in adjusted.items():
+            placed = similarity @ pose
+            placed[:3, :3] /= np.cbrt(np.linalg.det(placed[:3, :3]))
+            moves[k] = placed @ np.linalg.inv(self.keyframe_marks[k][0])
+        return moves
 
     def _can_resume(self, device_motion: np.ndarray | None) -> bool:
         """Whether a frame the RGB-D odometry lost can be tracked again from the device's pose."""

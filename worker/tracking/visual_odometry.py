@@ -162,11 +162,16 @@ class VisualOdometry:
         if self.config.reuse_keyframes > 0:
             self.state.engine_keyframes.append((int(frame.index), np.asarray(pose, np.float64).copy()))
 
-    def keyframe_corrections(self) -> dict[int, np.ndarray]:
+    def is_keyframe(self, index: int) -> bool:
+        """Whether frame `index` became one of this odometry's keyframes that the final adjustment will see."""
+        archive_ = self.state.archive
+        return index in archive_.handed_out or index in archive_.keyframes
+
+    def adjusted_keyframes(self) -> dict[int, tuple[np.ndarray, np.ndarray]]:
         """The final bundle adjustment (`global_adjustment`) over every keyframe this odometry made: for each, by
-        frame index, the rigid motion from the pose its frame was given to the adjusted one, in the poses' world (frames
-        between keyframes follow them). Empty when it did not run: off, no revisits, a map restarted after a loss,
-        or a joined map's poses handed out through a similarity."""
+        frame index, the pose its frame was given and the adjusted pose (this odometry's world). Empty when it did
+        not run: off, no revisits, a map restarted after a loss, or a joined map's poses handed out through a
+        similarity."""
         s = self.state
         if s.archive.max_keyframes == 0 or self._camera is None or not output_is_identity(s):
             return {}
@@ -175,7 +180,12 @@ class VisualOdometry:
         result = adjust_globally(s.archive, camera_matrix(self._camera), s.map_depth, self.config,
                                  self.parts.extractor.level_sigmas)
         self.final_adjustment = result
-        return {k: pose @ invert_pose(before[k]) for k, pose in result.poses.items()}
+        return {k: (before[k], pose) for k, pose in result.poses.items()}
+
+    def keyframe_corrections(self) -> dict[int, np.ndarray]:
+        """Each adjusted keyframe's rigid motion from the pose its frame was given to its adjusted pose
+        (`adjusted_keyframes`), by frame index: frames between keyframes follow them."""
+        return {k: adjusted @ invert_pose(given) for k, (given, adjusted) in self.adjusted_keyframes().items()}
 
     # ---- snapshots -------------------------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
