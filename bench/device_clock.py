@@ -1,6 +1,7 @@
 """Device pose clock offsets: estimated on real frames, and what compensating them does to posed SLAM.
 
-`python -m bench device_clock [--frames N] [--offsets-ms 0,20,40,-40] [--slam-offsets-ms 0,40,-40] [--no-slam]`
+`python -m bench device_clock [--frames N] [--offsets-ms 0,20,40,-40] [--slam-offsets-ms 0,40,-40] [--slam-clock
+estimate,off] [--settings defaults] [--no-slam]`
 
 The device poses are the sequences' ground truth re-timed: a copy with a clock offset d carries, at frame time t,
 the ground truth read at t + d (slerp / linear between its poses at the frames' timestamps). TUM fr1/xyz's ground truth
@@ -11,7 +12,9 @@ ICL's poses are exact (rendered), so there it should find the injected one alone
   without depth: the offset it measured, its uncertainty, and after how many frames.
 - `slam` cases (TUM fr1/xyz, or `--slam-sequence`): `flashmono run`'s engine (worker.offline.run_sequence) in posed
   RGB-D (`pose_mode` auto = seeded) and posed RGB (auto: judged, prior or seeded), with `input.device_clock.mode`
-  estimate and off; ATE against the unshifted ground truth and held-out PSNR. Records under bench/results/device_clock/.
+  estimate and off; ATE against the unshifted ground truth and held-out PSNR. The SLAM runs take `flashmono run`'s
+  settings for their input on this machine (`--settings defaults`; records before 2026-11-30 ran the `rgbd` preset,
+  which maps posed RGB poorly: their variants carry no settings suffix). Records under bench/results/device_clock/.
 """
 
 from __future__ import annotations
@@ -98,19 +101,25 @@ def estimate_case(path: Path, frames: int | None, offset_s: float, with_depth: b
 
 
 def slam_case(path: Path, frames: int | None, offset_s: float, input_mode: str, mode: str,
-              truth: tuple[np.ndarray, np.ndarray]) -> dict[str, Any]:
+              truth: tuple[np.ndarray, np.ndarray], settings: str = "defaults") -> dict[str, Any]:
     """A posed run (`input_mode` posed-rgbd, posed-rgb, or posed-rgb-prior: pose_mode prior, the device poses are
-    the odometry) with device poses `offset_s` ahead and the device clock `mode` (estimate / off)."""
+    the odometry) with device poses `offset_s` ahead and the device clock `mode` (estimate / off). `settings`:
+    "defaults", what `flashmono run` chooses for the input on this machine (a newcomer's session), or a preset."""
     from worker.config import SlamConfig
     from worker.offline import run_sequence
+    from worker.settings_choice import Machine, SessionInput, choose_settings
 
-    config = SlamConfig.preset("rgbd")
+    with_depth = input_mode == "posed-rgbd"
+    if settings == "defaults":
+        choice = choose_settings(SessionInput(depth=with_depth, device_poses=True, live=False), Machine.detect())
+        config = SlamConfig.preset(choice.preset, **choice.engine_overrides())
+    else:
+        config = SlamConfig.preset(settings)
     clock = config.input.device_clock.model_copy(update={"mode": mode})
     update: dict[str, Any] = {"device_clock": clock}
     if input_mode == "posed-rgb-prior":
         update["pose_mode"] = "prior"
     config = config.model_copy(update={"input": config.input.model_copy(update=update)})
-    with_depth = input_mode == "posed-rgbd"
     load = loadavg()
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="bench-device-clock-") as out:
@@ -137,6 +146,9 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--slam-modes", default="posed-rgbd,posed-rgb,posed-rgb-prior",
                         help="SLAM inputs (posed-rgbd, posed-rgb, posed-rgb-prior)")
     parser.add_argument("--slam-sequence", default="tum_fr1_xyz", choices=sorted(SEQUENCES), help="SLAM runs on")
+    parser.add_argument("--slam-clock", default="estimate,off", help="device clock modes of the SLAM runs")
+    parser.add_argument("--settings", default="defaults",
+                        help="SLAM runs' settings: defaults (flashmono run's for the input) or a preset (rgbd, ...)")
     parser.add_argument("--no-slam", action="store_true", help="estimates only")
     parser.add_argument("--no-estimates", action="store_true", help="SLAM runs only")
     args = parser.parse_args(argv)
@@ -166,10 +178,11 @@ def main(argv: list[str]) -> int:
     frames_label = "all" if args.frames is None else str(args.frames)
     for input_mode in [m for m in args.slam_modes.split(",") if m]:
         for offset in _offsets(args.slam_offsets_ms):
-            for mode in ("estimate", "off"):
-                values = slam_case(path, args.frames, offset, input_mode, mode, truth)
+            for mode in [m for m in args.slam_clock.split(",") if m]:
+                values = slam_case(path, args.frames, offset, input_mode, mode, truth, args.settings)
+                settings = "" if args.settings == "rgbd" else f"_{args.settings}"  # the first records: preset rgbd
                 case = {"area": "slam", "sequence": args.slam_sequence, "mode": input_mode, "size": size,
-                        "variant": f"{values['injected_ms']:+.0f}ms_clock-{mode}_frames-{frames_label}"}
+                        "variant": f"{values['injected_ms']:+.0f}ms_clock-{mode}_frames-{frames_label}{settings}"}
                 recorder.write(case, values)
                 print(f"slam {input_mode} injected {values['injected_ms']:+.0f} ms clock {mode}: ATE "
                       f"{values['ate_cm']} cm PSNR {values['psnr_db']} dB (applied {values['offset_applied_ms']} ms, "

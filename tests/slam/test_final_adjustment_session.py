@@ -76,3 +76,32 @@ def test_a_failing_adjustment_leaves_the_poses_and_the_finish_completes(coming_b
     after = {i: p for i, _, p in system.trajectory()}
     assert all(np.allclose(after[i], before[i]) for i in before)
     system.close()
+
+
+def test_a_posed_rgb_session_lays_the_final_adjustment_on_the_device_poses() -> None:
+    """TUM fr1/xyz frames (tests/data/tum_fr1_xyz_mini, CC BY 4.0) played three times, the motion capture sent as the
+    device's poses and no depth: `pose_mode` auto chooses seeded visual odometry, whose adjusted keyframes the finish
+    lays on the device's poses (its world and units: compared without alignment)."""
+    source = open_source(str(DATA.parent / "tum_fr1_xyz_mini"), use_gt_depth=False, use_gt_poses=True)
+    recorded = list(source)
+    frames = [replace(recorded[p], index=i, timestamp=i / 30) for i, p in enumerate(sweep_order(len(recorded), 3))]
+    system = SlamSystem(SlamConfig.preset("rgbd", threaded=False, mapping={"enabled": False}), source.intrinsics)
+    for frame in frames:
+        system.push(frame)
+    system.loop_stage.wait_idle()
+    system.tracking_stage.apply_loop_corrections()
+    before = {i: p.copy() for i, _, p in system.trajectory()}
+    system.finish()
+    assert system.stats()["pose_source"] == "seeded"
+    assert system.stats()["final_adjustment"]["applied"]
+    assert [e for e in system.finish_events if e.TYPE == "poses_refined"]
+    after = {i: p for i, _, p in system.trajectory()}
+    gt = {f.index: f.gt_pose for f in frames}
+
+    def ate(poses: dict[int, np.ndarray]) -> float:
+        keys = sorted(poses)
+        return absolute_trajectory_error(np.stack([poses[k] for k in keys]), np.stack([gt[k] for k in keys]),
+                                         "none").rmse
+
+    assert ate(after) < 0.9 * ate(before)
+    system.close()
