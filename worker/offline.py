@@ -161,6 +161,7 @@ def run_sequence(
             metrics["num_gaussians"] = system.num_gaussians
             metrics.update(_render_metrics(system, frames, results, all_poses, intrinsics, out, eval_every, hold_every,
                                            max_eval_frames))
+            metrics["keyframe_depth"] = _keyframe_depth_metrics(system, frames)
         else:
             metrics.update({"num_gaussians": 0, "psnr": None, "ssim": None, "lpips": None, "depth_l1": None,
                             "lpips_note": "mapping disabled"})
@@ -254,6 +255,21 @@ def _trajectory_metrics(frames: list[Frame], poses: list, drift: PoseDrift | Non
         given = np.stack([np.asarray(f.pose, np.float64) for f in frames if f.gt_pose is not None])
         out["ate_rmse_drift_only"] = absolute_trajectory_error(given, gt, "sim3").rmse
     return out
+
+
+def _keyframe_depth_metrics(system, frames: list[Frame]) -> dict[str, Any] | None:
+    """The depth the keyframes were mapped from against the recording's sensor depth, for sessions mapped without
+    it (worker.eval.keyframe_depth; keyframes whose frame was held with its depth); None otherwise."""
+    from worker.eval.keyframe_depth import keyframe_depth_scores
+
+    if system.config.input.use_depth:
+        return None
+    sensor = {f.index: f.depth for f in frames if f.depth is not None}
+    if not sensor:
+        return None
+    scores = keyframe_depth_scores(system.mapping_stage.map.keyframe_depths(), sensor,
+                                   metric=system.tracking == "device")
+    return None if scores is None else scores.to_dict()
 
 
 def renderer_as_captured(system, K: np.ndarray, width: int, height: int, frame_indices: list[int]):

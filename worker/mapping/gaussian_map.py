@@ -461,6 +461,17 @@ class GaussianMap:
         """Keyframes whose image is held for refinement (window + archive)."""
         return sum(kf.held for kf in self._keyframes.values())
 
+    def keyframe_depths(self) -> dict[int, np.ndarray]:
+        """Each held keyframe's target depth in world units (0 = none), by keyframe id: the depth it was mapped
+        from (a sensor's, or the confident multi-view depth), for evaluation."""
+        depths = {}
+        for kf_id, kf in self._keyframes.items():
+            if kf.held:
+                view = kf.refine_view()
+                if view.depth is not None:
+                    depths[kf_id] = (view.depth * view.depth_scale).cpu().numpy().astype(np.float32)
+        return depths
+
     def _refine(self, trainable: torch.Tensor, kf_ids: list[int], iterations: int, scene_scale: float,
                 deadline: float | None = None, lr_schedule: Callable[[int], float] | None = None,
                 after_step: Callable[[], None] | None = None, train_poses: bool = False) -> RefineReport:
