@@ -61,6 +61,10 @@ def test_the_adjusted_keyframes_land_on_the_device_poses_nearer_than_the_poses_h
     # no alignment: the device's world and units are the session's
     assert _ate(placed, truth, "none") < 0.9 * _ate(given, truth, "none")
     assert _ate(placed, truth, "none") < 0.02
+    assert set(seeded.final_adjustment.poses) == set(moves)  # the stats count the keyframes placed
+    seeded.keyframe_marks.clear()  # no keyframe with a device pose: the placing gives up, and says so
+    assert seeded.keyframe_corrections() == {} and not seeded.final_adjustment.poses
+    assert seeded.odometry.final_adjustment.poses
 
 
 def test_a_drifting_device_places_the_adjusted_shape_without_bending_it() -> None:

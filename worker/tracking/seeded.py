@@ -143,6 +143,7 @@ class SeededTracking:
         # (output, device pose in the session's world) of the frames that became the odometry's keyframes, for its
         # final adjustment's placing in the device's world (memory only, as the odometry's keyframe archive)
         self.keyframe_marks: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
+        self.placed: set[int] | None = None  # the keyframes `keyframe_corrections` placed, once it ran
 
     # -- what the engine reads from a pose source ---------------------------------------------------------------
     @property
@@ -151,8 +152,12 @@ class SeededTracking:
 
     @property
     def final_adjustment(self):
-        """The odometry's final bundle adjustment, once `keyframe_corrections` ran it (None before, or without)."""
-        return getattr(self.odometry, "final_adjustment", None)
+        """The odometry's final bundle adjustment, once `keyframe_corrections` ran it (None before, or without);
+        monocular, with the poses of the keyframes it placed in the device's world only (none where it gave up)."""
+        result = getattr(self.odometry, "final_adjustment", None)
+        if result is None or not self.monocular or self.placed is None:
+            return result
+        return replace(result, poses={k: p for k, p in result.poses.items() if k in self.placed})
 
     @property
     def calibrating(self) -> bool:
@@ -254,13 +259,12 @@ class SeededTracking:
         adjusted = {k: poses[1] for k, poses in adjust().items() if k in self.keyframe_marks}
         similarity = _fit_robustly([adjusted[k] for k in adjusted],
                                    [self.keyframe_marks[k][1] for k in adjusted]) if len(adjusted) >= 3 else None
-        if similarity is None:
-            return {}
         moves = {}
-        for k, pose in adjusted.items():
+        for k, pose in adjusted.items() if similarity is not None else ():
             placed = similarity @ pose
             placed[:3, :3] /= np.cbrt(np.linalg.det(placed[:3, :3]))
             moves[k] = placed @ np.linalg.inv(self.keyframe_marks[k][0])
+        self.placed = set(moves)
         return moves
 
     def _can_resume(self, device_motion: np.ndarray | None) -> bool:
