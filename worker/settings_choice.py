@@ -22,13 +22,16 @@ The rule, in order:
    depth (visual odometry on features) frames are tracked at their size (ICL RGB only at 640: ATE 1.11 cm, 1.76 at
    320).
 
-5. RGB only (no depth, no device poses) on a CPU with at least `MAPPING_PROCESS_CORES` cores: mapping (multi-view
-   depth, fusion, refinement) runs in a process of its own beside visual odometry (`mapping.process`,
-   worker.pipeline.mapping_process), whose feature tracking is Python-heavy and otherwise waits for mapping's share
-   of the interpreter. Measured live through the service (bench/results/out_of_box, 2 cores, 30 frames/s): TUM
-   fr1/xyz RGB only 2.33 cm / 18.90 dB against 4.14 cm / 16.74 dB with a mapping thread (offline 1.96 cm); ICL the
-   same within the spread. The other inputs keep a mapping thread: with the process their pose latency p95 rose
-   (ICL 54-98 ms against 33-43, TUM 111-126 against 62-90) for maps within 0.3 dB of the thread's.
+5. Frames without depth (RGB only, and posed RGB) on a CPU with at least `MAPPING_PROCESS_CORES` cores: mapping
+   (multi-view depth, fusion, refinement) runs in a process of its own beside tracking (`mapping.process`,
+   worker.pipeline.mapping_process). Visual odometry's feature tracking is Python-heavy and otherwise waits for
+   mapping's share of the interpreter, and posed RGB runs it whenever the device's poses disagree with the images
+   (seeded). Measured live through the service (bench/results/out_of_box, 2 cores, 30 frames/s): TUM fr1/xyz RGB
+   only 2.33 cm / 18.90 dB against 4.14 cm / 16.74 dB with a mapping thread (offline 1.96 cm); TUM posed RGB
+   (seeded) 66-86 % of the frames posed at p95 176-231 ms against 44-58 % at 266-309 ms with the thread, ICL posed
+   RGB (the device's poses) 94-96 % posed either way at p95 49-53 ms against 55-70 (journal 68). Frames with depth
+   keep a mapping thread: with the process their pose latency p95 rose (ICL 54-98 ms against 33-43, TUM 111-126
+   against 62-90) for maps within 0.3 dB of the thread's.
 
 6. A recording (every frame tracked: `skip_frames` false) gets every pass of the final refinement, as `flashmono
    run` does (no time bound: its passes bound it); a live stream's finish stays bounded by
@@ -153,9 +156,10 @@ def choose_settings(received: SessionInput, machine: Machine) -> SettingsChoice:
         if machine.cuda:
             choice.overrides["device"] = "cuda"
             choice.reasons.append("mapping on the GPU")
-        elif machine.cpu_cores >= MAPPING_PROCESS_CORES and received.depth is False and received.device_poses is False:
+        elif machine.cpu_cores >= MAPPING_PROCESS_CORES and received.depth is False:
+            what = "posed RGB" if received.device_poses else "RGB only"
             choice.overrides["mapping"] = {"process": True}
-            choice.reasons.append(f"RGB only on {machine.cpu_cores} CPU cores: mapping in a process of its own beside "
+            choice.reasons.append(f"{what} on {machine.cpu_cores} CPU cores: mapping in a process of its own beside "
                                   "visual odometry (tracking keeps an interpreter to itself)")
     long_side = max(received.width or 0, received.height or 0)
     rate = f" at {received.frame_rate:g} frames/s" if received.frame_rate else ""

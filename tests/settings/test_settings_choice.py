@@ -37,7 +37,7 @@ def test_a_cpu_gets_the_cpu_mapping_settings_for_every_input(mode, live):
     assert any("no CUDA GPU" in reason for reason in choice.reasons)
     assert choice.reasons[-1].startswith(f"input: {mode};")
     mapping = {"final_refine_budget_s": 0.0} if not live else {}  # a recording: every pass, as flashmono run
-    if mode == "rgb":  # visual odometry on 2 cores: mapping beside tracking, not under it
+    if mode in ("rgb", "posed-rgb"):  # visual odometry on 2 cores: mapping beside tracking, not under it
         assert choice.overrides == {"mapping": {"process": True, **mapping}}
         assert any("process of its own" in reason for reason in choice.reasons)
     else:
