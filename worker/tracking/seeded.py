@@ -63,6 +63,7 @@ from worker.tracking.device_check import (
     relative,
 )
 from worker.tracking.device_clock import DeviceClock, clock_state, load_clock_state, retimed
+from worker.tracking.keyframe_scale import scaled_moves
 from worker.tracking.seeded_config import DevicePoseConfig
 
 log = logging.getLogger(__name__)
@@ -259,11 +260,11 @@ class SeededTracking:
         adjusted = {k: poses[1] for k, poses in adjust().items() if k in self.keyframe_marks}
         similarity = _fit_robustly([adjusted[k] for k in adjusted],
                                    [self.keyframe_marks[k][1] for k in adjusted]) if len(adjusted) >= 3 else None
-        moves = {}
+        placed = {}
         for k, pose in adjusted.items() if similarity is not None else ():
-            placed = similarity @ pose
-            placed[:3, :3] /= np.cbrt(np.linalg.det(placed[:3, :3]))
-            moves[k] = placed @ np.linalg.inv(self.keyframe_marks[k][0])
+            placed[k] = similarity @ pose
+            placed[k][:3, :3] /= np.cbrt(np.linalg.det(placed[k][:3, :3]))
+        moves = scaled_moves({k: self.keyframe_marks[k][0] for k in placed}, placed)
         self.placed = set(moves)
         return moves
 

@@ -44,10 +44,11 @@ from worker.geometry import Intrinsics
 from . import schur_native
 from .base import TrackingResult
 from .global_adjustment import GlobalAdjustment, adjust_globally
+from .keyframe_scale import scaled_moves
 from .learned_places import LearnedPlaces
 from .local_map import LocalMap
 from .map_join import similarity_scale
-from .projection import camera_matrix, invert_pose
+from .projection import camera_matrix
 from .relocalization import Place
 from .vo_calibration import camera_of
 from .vo_config import VisualOdometryConfig
@@ -185,7 +186,9 @@ class VisualOdometry:
     def keyframe_corrections(self) -> dict[int, np.ndarray]:
         """Each adjusted keyframe's rigid motion from the pose its frame was given to its adjusted pose
         (`adjusted_keyframes`), by frame index: frames between keyframes follow them."""
-        return {k: adjusted @ invert_pose(given) for k, (given, adjusted) in self.adjusted_keyframes().items()}
+        adjusted = self.adjusted_keyframes()
+        return scaled_moves({k: given for k, (given, _) in adjusted.items()},
+                            {k: pose for k, (_, pose) in adjusted.items()})
 
     # ---- snapshots -------------------------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
