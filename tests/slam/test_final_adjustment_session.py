@@ -51,6 +51,7 @@ def test_the_finish_moves_every_frame_to_the_final_adjustment(coming_back) -> No
     system.finish()
     stats = system.stats()["final_adjustment"]
     assert stats["applied"] and stats["points_joined"] > 0 and stats["keyframes"] >= 10
+    assert len(stats["local_scales"]) == 3 and 0.5 <= stats["local_scales"][1] <= 2.0
     refined = [e for e in system.finish_events if e.TYPE == "poses_refined"]
     assert len(refined) == 1 and refined[0].revision == system.revision
     after = {i: p for i, _, p in system.trajectory()}

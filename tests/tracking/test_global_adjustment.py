@@ -44,6 +44,7 @@ def test_coming_back_joins_points_and_brings_the_keyframes_nearer_the_truth(name
     odometry, truth = _odometry_over(name, sweeps)
     corrections = odometry.keyframe_corrections()
     result = odometry.final_adjustment
+    assert result.local_scales is not None and result.local_scales[0] <= result.local_scales[2]
     assert result.pairs >= odometry.config.fuse_min_pairs and result.joined > 0
     keyframes = odometry.state.archive.keyframes
     archived = {k: kf.pose for k, kf in keyframes.items()}  # after the windowed adjustments

@@ -58,3 +58,14 @@ def test_keyframes_on_one_spot_keep_their_scale():
     placed = {k: _pose([1.0, 0, 0.001 * k], 0.1 * k) for k in range(5)}
     assert local_scales(given, placed) == {k: 1.0 for k in range(5)}
     assert local_scales({}, {}) == {}
+
+
+def test_a_turn_on_the_spot_within_a_walk_measures_no_scale_from_its_noise():
+    rng = np.random.default_rng(6)
+    walk = {k: _pose([0.1 * k, 0, 0]) for k in range(20)}
+    spot = {k: _pose([2.0, 0, 0] + rng.normal(0, 1e-4, 3), 0.2 * (k - 20)) for k in range(20, 40)}
+    given = {**walk, **spot}
+    placed = {k: _pose(1.05 * p[:3, 3] + rng.normal(0, 1e-3, 3)) for k, p in given.items()}  # 1 mm noise after
+    scales = local_scales(given, placed)
+    assert scales[5] == pytest.approx(1.05, abs=0.01)
+    assert all(scales[k] == 1.0 for k in range(25, 40))  # 0.1 mm apart as given: no measure

@@ -63,6 +63,8 @@ def test_the_adjusted_keyframes_land_on_the_device_poses_nearer_than_the_poses_h
     assert _ate(placed, truth, "none") < 0.9 * _ate(given, truth, "none")
     assert _ate(placed, truth, "none") < 0.02
     assert set(seeded.final_adjustment.poses) == set(moves)  # the stats count the keyframes placed
+    low, median, high = seeded.final_adjustment.local_scales  # ... and the spread of their scales
+    assert 0.8 < low <= median <= high < 1.25
     seeded.keyframe_marks.clear()  # no keyframe with a device pose: the placing gives up, and says so
     assert seeded.keyframe_corrections() == {} and not seeded.final_adjustment.poses
     assert seeded.odometry.final_adjustment.poses

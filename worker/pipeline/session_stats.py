@@ -74,4 +74,5 @@ def final_adjustment(system: SessionParts) -> dict[str, Any] | None:
     if result is None:
         return None
     return {"applied": bool(result.poses), "keyframes": len(result.poses), "pairs": result.pairs,
-            "points_joined": result.joined, "observations": result.observations, "seconds": round(result.seconds, 3)}
+            "points_joined": result.joined, "observations": result.observations, "seconds": round(result.seconds, 3),
+            "local_scales": None if result.local_scales is None else [round(v, 4) for v in result.local_scales]}

@@ -28,13 +28,15 @@ HELD = 2  # the oldest keyframes held still: pose and scale
 @dataclass
 class GlobalAdjustment:
     """Its outcome: adjusted poses by frame index (empty when it did not run), the revisit pairs verified, the
-    points joined, the observations used and the seconds it took."""
+    points joined, the observations used and the seconds it took; `local_scales`, once the keyframes' moves were
+    made: the spread of the scales their parts of the map took (worker.tracking.keyframe_scale.scale_spread)."""
 
     poses: dict[int, np.ndarray]
     pairs: int
     joined: int
     observations: int
     seconds: float
+    local_scales: tuple[float, float, float] | None = None
 
 
 class _Roots:

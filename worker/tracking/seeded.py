@@ -63,7 +63,7 @@ from worker.tracking.device_check import (
     relative,
 )
 from worker.tracking.device_clock import DeviceClock, clock_state, load_clock_state, retimed
-from worker.tracking.keyframe_scale import scaled_moves
+from worker.tracking.keyframe_scale import local_scales, scale_spread, scaled_moves
 from worker.tracking.seeded_config import DevicePoseConfig
 
 log = logging.getLogger(__name__)
@@ -145,6 +145,7 @@ class SeededTracking:
         # final adjustment's placing in the device's world (memory only, as the odometry's keyframe archive)
         self.keyframe_marks: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
         self.placed: set[int] | None = None  # the keyframes `keyframe_corrections` placed, once it ran
+        self.placed_scales: tuple[float, float, float] | None = None  # ... and the spread of their local scales
 
     # -- what the engine reads from a pose source ---------------------------------------------------------------
     @property
@@ -158,7 +159,8 @@ class SeededTracking:
         result = getattr(self.odometry, "final_adjustment", None)
         if result is None or not self.monocular or self.placed is None:
             return result
-        return replace(result, poses={k: p for k, p in result.poses.items() if k in self.placed})
+        return replace(result, poses={k: p for k, p in result.poses.items() if k in self.placed},
+                       local_scales=self.placed_scales)
 
     @property
     def calibrating(self) -> bool:
@@ -264,9 +266,10 @@ class SeededTracking:
         for k, pose in adjusted.items() if similarity is not None else ():
             placed[k] = similarity @ pose
             placed[k][:3, :3] /= np.cbrt(np.linalg.det(placed[k][:3, :3]))
-        moves = scaled_moves({k: self.keyframe_marks[k][0] for k in placed}, placed)
-        self.placed = set(moves)
-        return moves
+        given = {k: self.keyframe_marks[k][0] for k in placed}
+        scales = local_scales(given, placed)
+        self.placed, self.placed_scales = set(placed), scale_spread(scales)
+        return scaled_moves(given, placed, scales)
 
     def _can_resume(self, device_motion: np.ndarray | None) -> bool:
         """Whether a frame the RGB-D odometry lost can be tracked again from the device's pose."""

@@ -33,6 +33,7 @@ restarted), over `vo_tracks` (optical flow, new corners) and `vo_places` (keyfra
 from __future__ import annotations
 
 from collections import deque
+from dataclasses import replace
 from typing import Any
 
 import cv2
@@ -44,7 +45,7 @@ from worker.geometry import Intrinsics
 from . import schur_native
 from .base import TrackingResult
 from .global_adjustment import GlobalAdjustment, adjust_globally
-from .keyframe_scale import scaled_moves
+from .keyframe_scale import local_scales, scale_spread, scaled_moves
 from .learned_places import LearnedPlaces
 from .local_map import LocalMap
 from .map_join import similarity_scale
@@ -187,8 +188,12 @@ class VisualOdometry:
         """Each adjusted keyframe's rigid motion from the pose its frame was given to its adjusted pose
         (`adjusted_keyframes`), by frame index: frames between keyframes follow them."""
         adjusted = self.adjusted_keyframes()
-        return scaled_moves({k: given for k, (given, _) in adjusted.items()},
-                            {k: pose for k, (_, pose) in adjusted.items()})
+        given = {k: before for k, (before, _) in adjusted.items()}
+        placed = {k: after for k, (_, after) in adjusted.items()}
+        scales = local_scales(given, placed)
+        if self.final_adjustment is not None:
+            self.final_adjustment = replace(self.final_adjustment, local_scales=scale_spread(scales))
+        return scaled_moves(given, placed, scales)
 
     # ---- snapshots -------------------------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
