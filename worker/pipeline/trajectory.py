@@ -162,9 +162,10 @@ class Trajectory:
 
     def source_corrected_poses(self, corrections: Mapping[int, np.ndarray]) -> dict[int, np.ndarray]:
         """World poses of every recorded frame after the pose source moved its own keyframes (frame index -> the
-        rigid motion from the pose it handed out to the adjusted one, in the world it tracked in): each frame's
-        tracked pose moves with the source keyframes before and after it, by how near it is to each (the first and
-        last ones alone outside them). The source's adjustment replaces the corrections made here since."""
+        motion, rigid or a similarity, from the pose it handed out to the adjusted one, in the world it tracked
+        in): each frame's tracked pose moves with the source keyframes before and after it, by how near it is to
+        each (the first and last ones alone outside them). The source's adjustment replaces the corrections made
+        here since."""
         order = np.array(sorted(corrections), np.int64)
         if len(order) == 0:
             return {}

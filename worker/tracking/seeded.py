@@ -254,8 +254,9 @@ class SeededTracking:
         have one scale and no drift; the one similarity that best lays them on their device poses (rotations
         averaged, then scale and position by least squares, keyframes off by more than `MARK_OUTLIER_FACTOR` times
         the median fitted again without them) puts them in the session's world and units. Returns, by frame index,
-        each keyframe's rigid motion from the pose its frame was given to that placed pose ({} where the odometry
-        did not adjust, or fewer than three keyframes have device poses)."""
+        each keyframe's move from the pose its frame was given to that placed pose, a similarity carrying the local
+        scale (worker.tracking.keyframe_scale); {} where the odometry did not adjust, or fewer than three keyframes
+        have device poses."""
         adjust = getattr(self.odometry, "adjusted_keyframes", None)
         if not self.monocular or adjust is None:
             return {}

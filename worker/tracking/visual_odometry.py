@@ -185,8 +185,10 @@ class VisualOdometry:
         return {k: (before[k], pose) for k, pose in result.poses.items()}
 
     def keyframe_corrections(self) -> dict[int, np.ndarray]:
-        """Each adjusted keyframe's rigid motion from the pose its frame was given to its adjusted pose
-        (`adjusted_keyframes`), by frame index: frames between keyframes follow them."""
+        """Each adjusted keyframe's move from the pose its frame was given to its adjusted pose
+        (`adjusted_keyframes`), by frame index: a similarity whose scale is the local scale the adjustment found
+        (worker.tracking.keyframe_scale), so the keyframe's part of the map takes it; frames between keyframes
+        follow them."""
         adjusted = self.adjusted_keyframes()
         given = {k: before for k, (before, _) in adjusted.items()}
         placed = {k: after for k, (_, after) in adjusted.items()}
