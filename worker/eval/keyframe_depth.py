@@ -52,12 +52,9 @@ def keyframe_depth_scores(depths: Mapping[int, np.ndarray], sensor: Mapping[int,
         if has_truth.sum() == 0:
             continue
         coverages.append(float(both.sum() / has_truth.sum()))
-        if both.any():
-            l1s.append(depth_l1(depth, truth, scaling).value)
-            unscaled.append(depth_l1(depth, truth, "none").value)
-        else:
-            l1s.append(float("inf"))
-            unscaled.append(float("inf"))
+        l1s.append(depth_l1(depth, truth, scaling).value if both.any() else float("inf"))
+        if metric:
+            unscaled.append(depth_l1(depth, truth, "none").value if both.any() else float("inf"))
     if not coverages:
         return None
     finite = [v for v in l1s if np.isfinite(v)] or [float("nan")]
